@@ -1,0 +1,1 @@
+"""Fitting the noise model to measurements (importable as ``evnoise.calibration``)."""

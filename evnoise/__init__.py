@@ -1,0 +1,61 @@
+"""evnoise: the photon noise of event cameras, modelled exactly and put to work.
+
+Importing evnoise is cheap: the numerical parts (Numba kernels, SciPy) load on first use.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+from ._version import __version__
+from .errors import EvnoiseError, InputError, OutputError, ParameterError
+from .events import EVENT_DTYPE, count_events, events_from_array, events_to_array, merge_events
+from .params import NoiseParams, list_presets, load_preset
+
+_LAZY = {
+    "event_probability": "evnoise.model",
+    "log_event_probability": "evnoise.model",
+    "expected_rate": "evnoise.rates",
+    "draw_thresholds": "evnoise.rates",
+    "sample_counts": "evnoise.simulate",
+    "simulate_events": "evnoise.simulate",
+    "iter_events": "evnoise.simulate",
+    "simulate_video": "evnoise.simulate",
+    "iter_video": "evnoise.simulate",
+    "NoiseStream": "evnoise.simulate",
+    "write_events": "evnoise.io",
+    "read_events": "evnoise.io",
+    "EventWriter": "evnoise.io",
+    "image_to_lux": "evnoise.radiometry",
+    "read_image": "evnoise.radiometry",
+}
+
+__all__ = [
+    "__version__",
+    "EVENT_DTYPE",
+    "EvnoiseError",
+    "InputError",
+    "OutputError",
+    "ParameterError",
+    "NoiseParams",
+    "count_events",
+    "events_from_array",
+    "events_to_array",
+    "list_presets",
+    "load_preset",
+    "merge_events",
+    *_LAZY,
+]
+
+
+def __getattr__(name):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'evnoise' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))

@@ -1,0 +1,81 @@
+"""Validation helpers shared by the public functions (raise, never assert)."""
+
+from __future__ import annotations
+
+import math
+import numbers
+
+import numpy as np
+
+from .errors import InputError, ParameterError
+from .params import NoiseParams
+
+
+def as_generator(rng) -> np.random.Generator:
+    """Normalise ``rng`` (a Generator, an int seed, a SeedSequence or None) to a Generator."""
+    if isinstance(rng, np.random.Generator):
+        return rng
+    if rng is None or isinstance(rng, np.random.SeedSequence):
+        return np.random.default_rng(rng)
+    if isinstance(rng, numbers.Integral) and not isinstance(rng, bool):
+        if rng < 0:
+            raise ParameterError(f"seed must be a non-negative integer, got {rng}")
+        return np.random.default_rng(int(rng))
+    raise ParameterError(f"rng must be a numpy Generator, an integer seed or None, got {type(rng).__name__}")
+
+
+def check_params(params) -> NoiseParams:
+    if isinstance(params, NoiseParams):
+        return params
+    if isinstance(params, str):
+        from .params import load_preset
+
+        return load_preset(params)
+    raise ParameterError(f"params must be a NoiseParams (or a preset name), got {type(params).__name__}")
+
+
+def check_lux(lux, *, name: str = "lux", ndim: int | None = 2) -> np.ndarray:
+    """A float64 illuminance array: finite and >= 0 everywhere."""
+    try:
+        arr = np.asarray(lux, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a numeric array") from None
+    if ndim is not None and arr.ndim != ndim:
+        raise InputError(f"{name} must be a {ndim}-D array (H, W), got shape {arr.shape}")
+    if arr.size == 0:
+        raise InputError(f"{name} is empty")
+    if not np.isfinite(arr).all():
+        raise InputError(f"{name} contains NaN or Inf values")
+    if (arr < 0).any():
+        raise InputError(f"{name} contains negative illuminance (min {arr.min():g} lux)")
+    if ndim == 2 and (arr.shape[0] > 65536 or arr.shape[1] > 65536):
+        raise InputError(f"{name} is larger than 65536 pixels on a side: {arr.shape}")
+    return arr
+
+
+def check_positive(value, name: str, unit: str = "") -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ParameterError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(v) or v <= 0:
+        raise ParameterError(f"{name} must be finite and > 0{(' ' + unit) if unit else ''}, got {value!r}")
+    return v
+
+
+def duration_to_us(duration_s) -> int:
+    """Duration in whole microseconds (at least 1)."""
+    d = check_positive(duration_s, "duration_s", "seconds")
+    us = int(round(d * 1e6))
+    if us < 1:
+        raise ParameterError(f"duration_s must be at least 1 microsecond, got {duration_s!r}")
+    return us
+
+
+def check_thresholds(thresholds, shape) -> np.ndarray:
+    arr = np.asarray(thresholds, dtype=np.float64)
+    if arr.shape != (2, *shape):
+        raise InputError(f"thresholds must have shape (2, H, W) = {(2, *shape)}, got {arr.shape}")
+    if not (np.isfinite(arr).all() and (arr > 0).all()):
+        raise InputError("thresholds must be finite and > 0")
+    return arr

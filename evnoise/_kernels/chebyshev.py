@@ -1,0 +1,182 @@
+"""Adaptive piecewise Chebyshev interpolation of ``log p(lam)`` in ``u = log(lam)``.
+
+For fixed ``(eps, bias)`` the exact ``log p`` is analytic in ``u`` but not slowly varying
+everywhere: the integer thresholds ``k(m) = m + floor(c (m + b))`` form a lattice, and once
+the Poisson spread ``sqrt(lam)`` is comparable to the lattice's period the function carries
+real ripples on a ``lam`` scale of about ``sqrt(lam)``. A fixed grid would either miss them
+or cost too much, so panels are refined adaptively: a panel's series is accepted only if
+it reproduces the exact kernel at check points between its nodes to within the tolerance,
+otherwise it is halved (down to a minimum width, below which the panel is evaluated with
+the exact kernel directly). Evaluation does a binary search for the panel and Clenshaw.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import prange
+
+from ._jit import kernel
+from .poisson import log_event_probability_exact
+
+DEGREE = 16
+MAX_DEPTH = 6  # smallest panel width 2**-6 in natural-log units of lam
+# A panel is accepted when |series - exact| <= ABS_TOL + REL_TOL * |log p| at every check point.
+ABS_TOL = 1e-13
+REL_TOL = 1e-14
+DIRECT = -1  # marker of a panel evaluated with the exact kernel
+
+
+@kernel
+def _exact_on_nodes(u_lo, u_hi, c, b, degree):
+    out = np.empty(degree + 1)
+    for k in range(degree + 1):
+        x = math.cos(math.pi * (k + 0.5) / (degree + 1))
+        u = 0.5 * (u_lo + u_hi) + 0.5 * (u_hi - u_lo) * x
+        out[k] = log_event_probability_exact(math.exp(u), c, b)
+    return out
+
+
+@kernel
+def _coefficients(values):
+    n = values.shape[0]
+    a = np.zeros(n)
+    for j in range(n):
+        s = 0.0
+        for k in range(n):
+            s += values[k] * math.cos(math.pi * j * (k + 0.5) / n)
+        a[j] = 2.0 * s / n
+    a[0] *= 0.5
+    return a
+
+
+@kernel
+def _clenshaw(coef, t):
+    b1 = 0.0
+    b2 = 0.0
+    for j in range(coef.shape[0] - 1, 0, -1):
+        b0 = coef[j] + 2.0 * t * b1 - b2
+        b2 = b1
+        b1 = b0
+    return coef[0] + t * b1 - b2
+
+
+@kernel
+def _panel_ok(coef, u_lo, u_hi, c, b):
+    """Check the series against the exact kernel midway between the nodes and at the ends."""
+    n = coef.shape[0]
+    for k in range(-1, n):
+        if k < 0:
+            x = 1.0
+        elif k == n - 1:
+            x = -1.0
+        else:
+            x = math.cos(math.pi * (k + 1.0) / n)  # between nodes k and k + 1
+        u = 0.5 * (u_lo + u_hi) + 0.5 * (u_hi - u_lo) * x
+        exact = log_event_probability_exact(math.exp(u), c, b)
+        approx = _clenshaw(coef, x)
+        if not abs(approx - exact) <= ABS_TOL + REL_TOL * abs(exact):
+            return False
+    return True
+
+
+def build_unit_panel(unit: int, c: float, b: float):
+    """Panels covering ``u`` in ``[unit, unit + 1)``: a list of ``(u_lo, u_hi, coef | None)``."""
+    out = []
+    stack = [(float(unit), float(unit + 1), 0)]
+    while stack:
+        u_lo, u_hi, depth = stack.pop()
+        coef = _coefficients(_exact_on_nodes(u_lo, u_hi, c, b, DEGREE))
+        if _panel_ok(coef, u_lo, u_hi, c, b):
+            out.append((u_lo, u_hi, coef))
+        elif depth >= MAX_DEPTH:
+            # ripples finer than the smallest panel: the whole unit is evaluated exactly
+            return [(float(unit), float(unit + 1), None)]
+        else:
+            mid = 0.5 * (u_lo + u_hi)
+            stack.append((mid, u_hi, depth + 1))
+            stack.append((u_lo, mid, depth + 1))
+    out.sort(key=lambda p: p[0])
+    return out
+
+
+class LogPTable:
+    """Lazily built adaptive table of ``log p`` for one ``(c, b)`` over unit panels of ``u``."""
+
+    def __init__(self, c: float, b: float, first_unit: int, last_unit: int):
+        self.c = float(c)
+        self.b = float(b)
+        self.first_unit = first_unit
+        self.last_unit = last_unit
+        self._units: dict[int, list] = {}
+        self._arrays = None
+
+    def ensure(self, units) -> None:
+        """Build the unit panels in ``units`` (an iterable of ints) that are not built yet."""
+        new = [u for u in units if self.first_unit <= u <= self.last_unit and u not in self._units]
+        for u in new:
+            self._units[u] = build_unit_panel(u, self.c, self.b)
+        if new or self._arrays is None:
+            self._arrays = self._pack()
+
+    def _pack(self):
+        n_units = self.last_unit - self.first_unit + 1
+        unit_start = np.zeros(n_units + 1, dtype=np.int64)
+        lo, coefs = [], []
+        for i in range(n_units):
+            panels = self._units.get(self.first_unit + i, [])
+            unit_start[i + 1] = unit_start[i] + len(panels)
+            for u_lo, u_hi, coef in panels:
+                lo.append((u_lo, u_hi))
+                coefs.append(np.full(DEGREE + 1, np.nan) if coef is None else coef)
+        bounds = np.array(lo, dtype=np.float64).reshape(-1, 2)
+        coef_arr = np.array(coefs, dtype=np.float64).reshape(-1, DEGREE + 1)
+        direct = np.array([np.isnan(cf[0]) for cf in coefs], dtype=np.bool_)
+        return unit_start, bounds, coef_arr, direct
+
+    def evaluate(self, lam: np.ndarray) -> np.ndarray:
+        """``log p`` at the 1-D float64 array ``lam`` (units outside the table use the exact kernel)."""
+        units = np.floor(np.log(lam[(lam > 0) & np.isfinite(lam)]))
+        if units.size:
+            lo = int(max(units.min(), self.first_unit))
+            hi = int(min(units.max(), self.last_unit))
+            if lo <= hi:
+                present = np.bincount((np.clip(units, lo, hi) - lo).astype(np.int64), minlength=hi - lo + 1)
+                self.ensure(lo + int(i) for i in np.flatnonzero(present))
+        if self._arrays is None:
+            self._arrays = self._pack()
+        out = np.empty_like(lam)
+        unit_start, bounds, coef, direct = self._arrays
+        _evaluate(lam, unit_start, bounds, coef, direct, self.first_unit, self.c, self.b, out)
+        return out
+
+
+@kernel(parallel=True)
+def _evaluate(lam, unit_start, bounds, coef, direct, first_unit, c, b, out):
+    n_units = unit_start.shape[0] - 1
+    for i in prange(lam.shape[0]):
+        x = lam[i]
+        if not x > 0.0 or x == math.inf:
+            out[i] = -math.inf
+            continue
+        u = math.log(x)
+        unit = int(math.floor(u)) - first_unit
+        if unit < 0 or unit >= n_units or unit_start[unit] == unit_start[unit + 1]:
+            out[i] = log_event_probability_exact(x, c, b)
+            continue
+        lo = unit_start[unit]
+        hi = unit_start[unit + 1] - 1
+        while lo < hi:  # last panel with u_lo <= u
+            mid = (lo + hi + 1) // 2
+            if bounds[mid, 0] <= u:
+                lo = mid
+            else:
+                hi = mid - 1
+        if direct[lo]:
+            out[i] = log_event_probability_exact(x, c, b)
+            continue
+        u_lo = bounds[lo, 0]
+        u_hi = bounds[lo, 1]
+        t = (2.0 * u - u_lo - u_hi) / (u_hi - u_lo)
+        out[i] = _clenshaw(coef[lo], t)

@@ -1,0 +1,135 @@
+"""Per-pixel random streams for the Numba kernels (xoshiro256++ seeded by SplitMix64).
+
+Every pixel owns a 4-word xoshiro256++ state derived from a 4-word key (drawn once from the
+user's ``numpy.random.Generator``) and the pixel's flat index, so a pixel's stream does not
+depend on how pixels are grouped into chunks, on the number of threads, or on how time is
+cut into windows. The samplers below (uniform, geometric, Poisson) are tested against
+SciPy's distributions in ``tests/test_rng.py``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ._jit import kernel
+
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_M1 = np.uint64(0xBF58476D1CE4E5B9)
+_M2 = np.uint64(0x94D049BB133111EB)
+_U30 = np.uint64(30)
+_U27 = np.uint64(27)
+_U31 = np.uint64(31)
+_U11 = np.uint64(11)
+_U17 = np.uint64(17)
+_U45 = np.uint64(45)
+_U23 = np.uint64(23)
+_U64 = np.uint64(64)
+_TWO_M53 = 1.0 / 9007199254740992.0
+
+
+@kernel
+def _mix64(z):
+    z = (z ^ (z >> _U30)) * _M1
+    z = (z ^ (z >> _U27)) * _M2
+    return z ^ (z >> _U31)
+
+
+@kernel
+def _rotl(x, k):
+    return (x << k) | (x >> (_U64 - k))
+
+
+@kernel
+def seed_state(key, index, state):
+    """Fill ``state[0:4]`` for stream ``index`` (uint64) from the 4-word ``key``."""
+    z = key[0] ^ _mix64(key[1] + np.uint64(index) * _GOLDEN)
+    z = z ^ _mix64(key[2] ^ _mix64(key[3] + np.uint64(index)))
+    for i in range(4):
+        z += _GOLDEN
+        state[i] = _mix64(z)
+    if state[0] == 0 and state[1] == 0 and state[2] == 0 and state[3] == 0:
+        state[0] = _GOLDEN  # the all-zero state is the one forbidden state
+
+
+@kernel
+def next_u64(s):
+    result = _rotl(s[0] + s[3], _U23) + s[0]
+    t = s[1] << _U17
+    s[2] ^= s[0]
+    s[3] ^= s[1]
+    s[1] ^= s[2]
+    s[0] ^= s[3]
+    s[2] ^= t
+    s[3] = _rotl(s[3], _U45)
+    return result
+
+
+@kernel
+def uniform(s):
+    """Uniform double in [0, 1) with 53 random bits."""
+    return float(next_u64(s) >> _U11) * _TWO_M53
+
+
+@kernel
+def uniform_pos(s):
+    """Uniform double in (0, 1]."""
+    return (float(next_u64(s) >> _U11) + 1.0) * _TWO_M53
+
+
+@kernel
+def geometric(s, log1m_p):
+    """Trials up to and including the first success, ``>= 1``; ``log1m_p = log1p(-p)``.
+
+    Returns ``inf`` when ``p = 0`` (``log1m_p = 0``) and 1 when ``p = 1`` (``log1m_p = -inf``).
+    """
+    if log1m_p == 0.0:
+        return math.inf
+    if log1m_p == -math.inf:
+        return 1.0
+    return math.floor(math.log(uniform_pos(s)) / log1m_p) + 1.0
+
+
+@kernel
+def poisson(s, lam):
+    """Poisson variate (as a float): inversion below 10, Hormann's PTRS above."""
+    if lam <= 0.0:
+        return 0.0
+    if lam < 10.0:
+        u = uniform(s)
+        p = math.exp(-lam)
+        cdf = p
+        k = 0.0
+        while u >= cdf:
+            k += 1.0
+            p *= lam / k
+            cdf += p
+            if p == 0.0 and cdf < u:  # rounding guard: u beyond the reachable cdf
+                return k
+        return k
+    # PTRS: transformed rejection with squeeze (W. Hormann, 1993)
+    slam = math.sqrt(lam)
+    loglam = math.log(lam)
+    b = 0.931 + 2.53 * slam
+    a = -0.059 + 0.02483 * b
+    inv_alpha = 1.1239 + 1.1328 / (b - 3.4)
+    v_r = 0.9277 - 3.6224 / (b - 2.0)
+    while True:
+        u = uniform(s) - 0.5
+        v = uniform(s)
+        us = 0.5 - abs(u)
+        k = math.floor((2.0 * a / us + b) * u + lam + 0.43)
+        if us >= 0.07 and v <= v_r:
+            return k
+        if k < 0.0 or (us < 0.013 and v > us):
+            continue
+        if math.log(v) + math.log(inv_alpha) - math.log(a / (us * us) + b) <= (
+            -lam + k * loglam - math.lgamma(k + 1.0)
+        ):
+            return k
+
+
+def key_from(rng: np.random.Generator) -> np.ndarray:
+    """Draw the 4-word stream key from a NumPy generator (consumes it)."""
+    return rng.integers(0, 2**64, size=4, dtype=np.uint64, endpoint=False)

@@ -1,0 +1,260 @@
+"""Event-generation kernels: renewal tier (static pixels) and trial tier (changing pixels).
+
+Time is kept per pixel in float64 microseconds relative to the start of the run; trial ``j``
+covers ``[j dt, (j + 1) dt)``. A noise event of trial ``j`` happens at ``tau = (j + u) dt`` with
+``u ~ U[0, 1)`` (so timestamps are not a comb) and is emitted as ``t0 + floor(tau)``.
+Refractory period ``R`` (whole microseconds): after an event at ``tau`` in trial ``j`` the next
+trial that may fire is the first ``j' > j`` with ``j' dt >= tau + R``; emitted timestamps of
+one pixel are therefore at least ``R`` apart, and since ``u`` is uniform the mean number of
+skipped trials is exactly ``R / dt``, giving the non-paralyzable dead-time rate
+``nu = nu0 / (1 + nu0 R)``.
+
+All kernels work on a contiguous range of pixels ``[lo, hi)`` and on that range's slice of
+the per-pixel state only, so chunks can run in parallel threads.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ._jit import kernel
+from .rng import geometric, poisson, seed_state, uniform
+
+NO_EVENT = math.nan
+
+
+@kernel
+def seed_streams(key, pix, states):
+    """Seed row ``i`` of ``states`` with the stream of flat pixel index ``pix[i]``."""
+    for i in range(pix.shape[0]):
+        seed_state(key, pix[i], states[i])
+
+
+@kernel
+def _first_eligible(last_trial, tau, refr_us, dt):
+    """First trial ``j > last_trial`` whose start ``j dt`` is at or after ``tau + refr_us``."""
+    j = math.ceil((tau + refr_us) / dt)
+    while j * dt < tau + refr_us:
+        j += 1.0
+    while j > last_trial + 1.0 and (j - 1.0) * dt >= tau + refr_us:
+        j -= 1.0
+    return max(j, last_trial + 1.0)
+
+
+@kernel
+def _grow(arr, n):
+    out = np.empty(max(2 * arr.shape[0], 1024), dtype=arr.dtype)
+    out[:n] = arr[:n]
+    return out
+
+
+@kernel
+def _push(t_out, x_out, y_out, p_out, n, t, flat, width, pol):
+    """Append one event, growing the buffers when full; returns the (possibly new) buffers."""
+    if n == t_out.shape[0]:
+        t_out = _grow(t_out, n)
+        x_out = _grow(x_out, n)
+        y_out = _grow(y_out, n)
+        p_out = _grow(p_out, n)
+    t_out[n] = t
+    x_out[n] = flat % width
+    y_out[n] = flat // width
+    p_out[n] = pol
+    return t_out, x_out, y_out, p_out
+
+
+@kernel
+def renewal_window(
+    lo, hi, width, pix, log1m_p, q_on, states, last_trial, last_tau, pend_trial, pend_tau,
+    dt, refr_us, j_min, w_end, discard_from_trial, t0_us, capacity, store
+):
+    """Advance pixels ``pix[lo:hi]`` whose probabilities are constant up to time ``w_end`` (µs).
+
+    Per pixel (chunk slices, index ``k = i - lo``): ``log1m_p = log1p(-(p_on + p_off))`` and
+    ``q_on = p_on / (p_on + p_off)``. The gap to the next event is geometric in eligible
+    trials; no trial before ``j_min`` is drawn. A drawn event beyond ``w_end`` stays pending
+    (``pend_trial``, ``pend_tau``; ``pend_tau`` NaN when none) so that the random stream does
+    not depend on how time is cut into windows - unless its trial starts at or after
+    ``discard_from_trial``: then it is dropped and redrawn next time, which is exact because
+    the geometric gap is memoryless (used when the probabilities change between windows).
+
+    Returns ``(t, x, y, p, on_counts, off_counts)``; with ``store`` false only the counts
+    (length ``hi - lo``) are filled.
+    """
+    cap = capacity if store else 0
+    t_out = np.empty(cap, dtype=np.int64)
+    x_out = np.empty(cap, dtype=np.uint16)
+    y_out = np.empty(cap, dtype=np.uint16)
+    p_out = np.empty(cap, dtype=np.uint8)
+    on_counts = np.zeros(hi - lo, dtype=np.int64)
+    off_counts = np.zeros(hi - lo, dtype=np.int64)
+    n = 0
+    for i in range(lo, hi):
+        k = i - lo
+        s = states[k]
+        tau = pend_tau[k]
+        jp = pend_trial[k]
+        while True:
+            if math.isnan(tau):
+                if last_tau[k] == -math.inf:
+                    j_e = last_trial[k] + 1.0
+                else:
+                    j_e = _first_eligible(last_trial[k], last_tau[k], refr_us, dt)
+                j_e = max(j_e, j_min)
+                g = geometric(s, log1m_p[k])
+                if g == math.inf:
+                    tau = math.inf
+                    jp = math.inf
+                    break
+                jp = j_e + g - 1.0
+                tau = (jp + uniform(s)) * dt
+            if tau >= w_end:
+                break
+            on = uniform(s) < q_on[k]
+            if on:
+                on_counts[k] += 1
+            else:
+                off_counts[k] += 1
+            if store:
+                t_out, x_out, y_out, p_out = _push(
+                    t_out, x_out, y_out, p_out, n, t0_us + np.int64(math.floor(tau)), pix[i], width,
+                    1 if on else 0,
+                )
+                n += 1
+            last_tau[k] = tau
+            last_trial[k] = jp
+            tau = NO_EVENT
+        if jp >= discard_from_trial:
+            tau = NO_EVENT
+        pend_tau[k] = tau
+        pend_trial[k] = jp
+    return t_out[:n], x_out[:n], y_out[:n], p_out[:n], on_counts, off_counts
+
+
+@kernel
+def counting_sort_by_time(t, t_lo, t_hi):
+    """Stable permutation sorting ``t`` (int64 in ``[t_lo, t_hi)``) by value, O(n + range)."""
+    n_bins = t_hi - t_lo
+    counts = np.zeros(n_bins + 1, dtype=np.int64)
+    for i in range(t.shape[0]):
+        counts[t[i] - t_lo + 1] += 1
+    for b in range(n_bins):
+        counts[b + 1] += counts[b]
+    order = np.empty(t.shape[0], dtype=np.int64)
+    for i in range(t.shape[0]):
+        b = t[i] - t_lo
+        order[counts[b]] = i
+        counts[b] += 1
+    return order
+
+
+_LEVEL_FLOOR = 1e-6  # photons per trial; log-levels below log(1e-6) are clamped in signal crossings
+
+
+@kernel
+def _level(lam, b):
+    return math.log(max(lam + b, _LEVEL_FLOOR))
+
+
+@kernel
+def trial_window(
+    lo, hi, width, pix, frames_lam, frame_us, j_start, j_end, c_on, c_off, eps_on, eps_off, b,
+    states, last_trial, last_tau, lam_ref, lev_prev, dt, refr_us, tau_limit, t0_us, capacity
+):
+    """Trial-by-trial simulation of pixels ``pix[lo:hi]`` for trials ``j_start .. j_end - 1``.
+
+    ``frames_lam`` (F, P) holds the mean photon counts per trial of the frames at times
+    ``frame_us`` (µs, increasing; they must cover the trials' centres or be clamped to the
+    ends); ``lam`` of a trial is the linear interpolation at the trial's centre.
+
+    Per trial: *signal* events first - the mean level ``L = log(lam + b)`` is compared with
+    the reference ``L_ref``; every whole threshold crossed gives one event, timed where the
+    level crosses it (linear between the previous trial's level and this one), at least the
+    refractory period after the previous event, and moves ``L_ref`` by one threshold; what
+    does not fit in the trial is left for the next one. Then, if no signal event fired and
+    the trial is eligible, the *noise* comparison of the paper's model: ``n ~ Poisson(lam)``,
+    ``n0 ~ Poisson(lam_ref)``, ON if ``n > n0 + floor(c_on (n0 + b))``, OFF if
+    ``n0 > n + floor(c_off (n + b))``; a noise event resets ``lam_ref`` to ``lam``. For a
+    static pixel (``lam_ref = lam``) this is exactly the static model.
+
+    Per-pixel arrays (``states``, ``last_*``, ``lam_ref``, ``lev_prev``, ``c_*``, ``eps_*``) are
+    indexed by ``k = i - lo`` (pass the chunk's slices); ``pix`` maps to flat pixel indices.
+    Events at or after ``tau_limit`` (µs) are not emitted (the end of the recording).
+    """
+    t_out = np.empty(capacity, dtype=np.int64)
+    x_out = np.empty(capacity, dtype=np.uint16)
+    y_out = np.empty(capacity, dtype=np.uint16)
+    p_out = np.empty(capacity, dtype=np.uint8)
+    n = 0
+    n_frames = frames_lam.shape[0]
+    max_signal = 1 << 20
+    for i in range(lo, hi):
+        k = i - lo
+        flat = pix[i]
+        s = states[k]
+        seg = 0
+        for j in range(j_start, j_end):
+            s_j = j * dt
+            centre = s_j + 0.5 * dt
+            while seg < n_frames - 2 and frame_us[seg + 1] <= centre:
+                seg += 1
+            if n_frames == 1:
+                lam = frames_lam[0, flat]
+            else:
+                f0 = frames_lam[seg, flat]
+                f1 = frames_lam[seg + 1, flat]
+                a = (centre - frame_us[seg]) / (frame_us[seg + 1] - frame_us[seg])
+                a = min(max(a, 0.0), 1.0)
+                lam = f0 + a * (f1 - f0)
+            lev = _level(lam, b)
+            lev_ref = _level(lam_ref[k], b)
+            fired = False
+            for sign in range(2):
+                eps = eps_on[k] if sign == 0 else eps_off[k]
+                emitted = 0
+                while emitted < max_signal:
+                    gap = (lev - lev_ref) if sign == 0 else (lev_ref - lev)
+                    if gap < eps:
+                        break
+                    target = lev_ref + eps if sign == 0 else lev_ref - eps
+                    span = lev - lev_prev[k]
+                    phi = (target - lev_prev[k]) / span if span != 0.0 else 0.0
+                    phi = min(max(phi, 0.0), 1.0)
+                    tau = s_j + phi * dt
+                    if last_tau[k] + refr_us > tau:
+                        tau = last_tau[k] + refr_us
+                    if tau >= s_j + dt or tau >= tau_limit:
+                        break  # does not fit in this trial: left for the next one
+                    t_out, x_out, y_out, p_out = _push(
+                        t_out, x_out, y_out, p_out, n, t0_us + np.int64(math.floor(tau)), flat, width,
+                        1 if sign == 0 else 0,
+                    )
+                    n += 1
+                    emitted += 1
+                    fired = True
+                    lev_ref = target
+                    last_tau[k] = tau
+                    last_trial[k] = j
+            if fired:
+                lam_ref[k] = max(math.exp(lev_ref) - b, 0.0)
+            if not fired and j > last_trial[k] and s_j >= last_tau[k] + refr_us:
+                n_sig = poisson(s, lam)
+                n_ref = poisson(s, lam_ref[k])
+                pol = -1
+                if n_sig > n_ref + math.floor(c_on[k] * (n_ref + b)):
+                    pol = 1
+                elif n_ref > n_sig + math.floor(c_off[k] * (n_sig + b)):
+                    pol = 0
+                tau = (j + uniform(s)) * dt if pol >= 0 else math.inf
+                if tau < tau_limit:
+                    t_out, x_out, y_out, p_out = _push(
+                        t_out, x_out, y_out, p_out, n, t0_us + np.int64(math.floor(tau)), flat, width, pol
+                    )
+                    n += 1
+                    last_tau[k] = tau
+                    last_trial[k] = j
+                    lam_ref[k] = lam
+            lev_prev[k] = lev
+    return t_out[:n], x_out[:n], y_out[:n], p_out[:n]

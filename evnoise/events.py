@@ -1,0 +1,139 @@
+"""The one event dtype of evnoise, and small pure functions on event arrays.
+
+Events are a structured NumPy array with fields ``t`` (int64, microseconds), ``x`` and ``y``
+(uint16, pixel column and row) and ``p`` (uint8, 1 = ON / positive, 0 = OFF / negative),
+sorted by ``t``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import InputError
+
+EVENT_DTYPE = np.dtype([("t", np.int64), ("x", np.uint16), ("y", np.uint16), ("p", np.uint8)])
+
+__all__ = [
+    "EVENT_DTYPE",
+    "empty_events",
+    "make_events",
+    "count_events",
+    "merge_events",
+    "events_to_array",
+    "events_from_array",
+    "check_events",
+]
+
+
+def empty_events(n: int = 0) -> np.ndarray:
+    """An uninitialised event array of length ``n``."""
+    return np.empty(n, dtype=EVENT_DTYPE)
+
+
+def make_events(t, x, y, p) -> np.ndarray:
+    """Pack four equal-length columns into an event array (no sorting, no checks)."""
+    out = np.empty(len(t), dtype=EVENT_DTYPE)
+    out["t"] = t
+    out["x"] = x
+    out["y"] = y
+    out["p"] = p
+    return out
+
+
+def check_events(events, shape=None, *, name: str = "events") -> np.ndarray:
+    """Validate an event array: the dtype, time order and (optionally) coordinates within ``shape``."""
+    events = np.asarray(events)
+    if events.dtype != EVENT_DTYPE:
+        if events.dtype.names and set("txyp") <= set(events.dtype.names):
+            events = make_events(events["t"], events["x"], events["y"], events["p"])
+        else:
+            raise InputError(f"{name} must have fields t, x, y, p (evnoise.EVENT_DTYPE), got dtype {events.dtype}")
+    if events.ndim != 1:
+        raise InputError(f"{name} must be one-dimensional, got shape {events.shape}")
+    if events.size > 1 and np.any(np.diff(events["t"]) < 0):
+        raise InputError(f"{name} are not sorted by time t")
+    if events.size and np.any(events["p"] > 1):
+        raise InputError(f"{name} polarity p must be 0 (OFF) or 1 (ON)")
+    if shape is not None and events.size:
+        height, width = _check_shape(shape)
+        if events["x"].max() >= width or events["y"].max() >= height:
+            raise InputError(f"{name} have coordinates outside the sensor of shape (H, W) = {shape}")
+    return events
+
+
+def _check_shape(shape):
+    try:
+        height, width = (int(v) for v in shape)
+    except (TypeError, ValueError):
+        raise InputError(f"shape must be (H, W), got {shape!r}") from None
+    if height <= 0 or width <= 0 or height > 65536 or width > 65536:
+        raise InputError(f"shape must be (H, W) with 1 <= H, W <= 65536, got {shape!r}")
+    return height, width
+
+
+def count_events(events, shape, t_start_us=None, t_end_us=None) -> np.ndarray:
+    """Per-pixel event counts ``(2, H, W)`` int64, ``[ON, OFF]``, for ``t_start_us <= t < t_end_us``."""
+    height, width = _check_shape(shape)
+    events = check_events(events, shape)
+    t = events["t"]
+    lo = 0 if t_start_us is None else int(np.searchsorted(t, t_start_us, side="left"))
+    hi = t.size if t_end_us is None else int(np.searchsorted(t, t_end_us, side="left"))
+    ev = events[lo:hi]
+    flat = (1 - ev["p"].astype(np.int64)) * (height * width) + ev["y"].astype(np.int64) * width + ev["x"]
+    return np.bincount(flat, minlength=2 * height * width).reshape(2, height, width)
+
+
+def merge_events(a, b) -> np.ndarray:
+    """Merge two time-sorted event arrays into one sorted array (stable: ``a`` before ``b`` on ties)."""
+    a = check_events(a, name="first events")
+    b = check_events(b, name="second events")
+    out = np.empty(a.size + b.size, dtype=EVENT_DTYPE)
+    # position of each b event in the output: after all a events with t <= its t
+    pos_b = np.searchsorted(a["t"], b["t"], side="right") + np.arange(b.size)
+    mask = np.ones(out.size, dtype=bool)
+    mask[pos_b] = False
+    out[pos_b] = b
+    out[mask] = a
+    return out
+
+
+def events_to_array(events, *, time_unit: str = "us") -> np.ndarray:
+    """Events as an ``N x 4`` float64 array ``[t, x, y, p]`` as v2e / ESIM-style tools use.
+
+    ``time_unit`` is ``"us"`` (integer microseconds stored as float) or ``"s"`` (seconds).
+    Polarity stays 1 (ON) / 0 (OFF); use ``2 * p - 1`` for the +1/-1 convention.
+    """
+    events = check_events(events)
+    out = np.empty((events.size, 4), dtype=np.float64)
+    if time_unit == "us":
+        out[:, 0] = events["t"]
+    elif time_unit == "s":
+        out[:, 0] = events["t"] * 1e-6
+    else:
+        raise InputError(f"time_unit must be 'us' or 's', got {time_unit!r}")
+    out[:, 1] = events["x"]
+    out[:, 2] = events["y"]
+    out[:, 3] = events["p"]
+    return out
+
+
+def events_from_array(arr, *, time_unit: str = "us") -> np.ndarray:
+    """Events from an ``N x 4`` array ``[t, x, y, p]`` (p in {0, 1} or {-1, +1}); sorted stably by t."""
+    arr = np.asarray(arr)
+    if arr.ndim != 2 or arr.shape[1] != 4:
+        raise InputError(f"expected an N x 4 array [t, x, y, p], got shape {arr.shape}")
+    if arr.size and not np.isfinite(arr).all():
+        raise InputError("event array contains NaN or Inf")
+    if time_unit == "us":
+        t = np.round(arr[:, 0]).astype(np.int64)
+    elif time_unit == "s":
+        t = np.round(arr[:, 0] * 1e6).astype(np.int64)
+    else:
+        raise InputError(f"time_unit must be 'us' or 's', got {time_unit!r}")
+    pol = arr[:, 3]
+    if np.any((pol != 0) & (pol != 1) & (pol != -1)):
+        raise InputError("polarity must be 0/1 or -1/+1")
+    if np.any(arr[:, 1:3] < 0) or np.any(arr[:, 1:3] > 65535) or np.any(arr[:, 1:3] != np.round(arr[:, 1:3])):
+        raise InputError("x and y must be integers in 0 .. 65535")
+    out = make_events(t, arr[:, 1], arr[:, 2], (pol > 0).astype(np.uint8))
+    return out[np.argsort(out["t"], kind="stable")]

@@ -1,0 +1,162 @@
+"""Noise-model parameters as an immutable, validated value object, and presets.
+
+Units are part of every field's name. Presets are TOML files shipped in
+``evnoise/presets/`` (``load_preset("evk3-hd")``) or any TOML file with the same keys.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import tomllib
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+from .errors import ParameterError
+
+__all__ = ["NoiseParams", "load_preset", "list_presets"]
+
+
+@dataclass(frozen=True)
+class NoiseParams:
+    """Parameters of evnoise's photon-noise model of an event-camera pixel.
+
+    Parameters
+    ----------
+    eps_pos : float
+        ON (positive) log-intensity contrast threshold, dimensionless, ``> 0``.
+    eps_neg : float
+        OFF (negative) log-intensity contrast threshold, dimensionless, ``> 0``.
+    bias_pr : float
+        Photoreceptor bias ``b_pr``, in photons per trial, ``>= 0``; added to the photon count
+        before the logarithm.
+    trial_rate_hz : float
+        Trials per second, ``N`` in the paper (the photoreceptor's effective sampling rate);
+        one trial lasts ``1 / trial_rate_hz`` seconds.
+    photons_per_lux : float
+        Mean photons per trial per lux of illuminance at the sensor, ``> 0``.
+    dark_lux : float, optional
+        Illuminance-equivalent offset (dark current, stray light) in lux, ``>= 0``; the mean
+        photon count per trial is ``lam = photons_per_lux * (lux + dark_lux)``.
+    refractory_s : float, optional
+        Refractory period in seconds, ``>= 0`` (rounded up to whole microseconds when
+        simulating): non-paralyzable dead time after every event.
+    eps_sigma : float, optional
+        Standard deviation of the per-pixel threshold mismatch, ``>= 0``: each pixel's
+        ``eps_pos`` and ``eps_neg`` are drawn once (independently, normal truncated to ``> 0``)
+        and fixed for the whole run.
+    """
+
+    eps_pos: float
+    eps_neg: float
+    bias_pr: float
+    trial_rate_hz: float
+    photons_per_lux: float
+    dark_lux: float = 0.0
+    refractory_s: float = 0.0
+    eps_sigma: float = 0.0
+
+    def __post_init__(self):
+        rules = {
+            "eps_pos": (False, "> 0"),
+            "eps_neg": (False, "> 0"),
+            "bias_pr": (True, ">= 0"),
+            "trial_rate_hz": (False, "> 0"),
+            "photons_per_lux": (False, "> 0"),
+            "dark_lux": (True, ">= 0"),
+            "refractory_s": (True, ">= 0"),
+            "eps_sigma": (True, ">= 0"),
+        }
+        for name, (zero_ok, text) in rules.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                try:
+                    value = float(value)
+                except (TypeError, ValueError):
+                    raise ParameterError(f"NoiseParams.{name} must be a number, got {value!r}") from None
+            value = float(value)
+            if not math.isfinite(value) or value < 0 or (value == 0 and not zero_ok):
+                raise ParameterError(f"NoiseParams.{name} must be finite and {text}, got {value!r}")
+            object.__setattr__(self, name, value)
+        if self.trial_rate_hz > 1e6:
+            raise ParameterError(
+                f"NoiseParams.trial_rate_hz must be <= 1e6 (one trial per microsecond at most), "
+                f"got {self.trial_rate_hz!r}"
+            )
+
+    # -- derived quantities -------------------------------------------------------------
+    def photons_per_trial(self, lux):
+        """Mean photon count per trial, ``lam = photons_per_lux * (lux + dark_lux)``."""
+        return self.photons_per_lux * (lux + self.dark_lux)
+
+    @property
+    def trial_us(self) -> float:
+        """Duration of one trial in microseconds."""
+        return 1e6 / self.trial_rate_hz
+
+    @property
+    def refractory_us(self) -> int:
+        """Refractory period in whole microseconds (rounded up)."""
+        return int(math.ceil(self.refractory_s * 1e6 - 1e-9))
+
+    def replace(self, **changes) -> "NoiseParams":
+        """A copy with some fields changed (validated again)."""
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), sort_keys=True)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "NoiseParams":
+        fields = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(data) - fields
+        if unknown:
+            raise ParameterError(f"unknown noise parameter(s): {', '.join(sorted(unknown))}")
+        missing = {f.name for f in dataclasses.fields(cls) if f.default is dataclasses.MISSING} - set(data)
+        if missing:
+            raise ParameterError(f"missing noise parameter(s): {', '.join(sorted(missing))}")
+        return cls(**data)
+
+
+def list_presets() -> list[str]:
+    """Names of the presets shipped with evnoise."""
+    folder = resources.files("evnoise") / "presets"
+    return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
+
+
+def _read_toml(text: str, origin: str) -> dict:
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ParameterError(f"preset {origin} is not valid TOML: {exc}") from None
+
+
+def load_preset_document(name_or_path) -> dict:
+    """The whole preset TOML document (parameters plus provenance) as a dict."""
+    text = str(name_or_path)
+    path = Path(text)
+    if text.endswith(".toml") or path.exists():
+        if not path.is_file():
+            raise ParameterError(f"preset file not found: {path}")
+        return _read_toml(path.read_text(encoding="utf-8"), str(path))
+    resource = resources.files("evnoise") / "presets" / f"{text}.toml"
+    if not resource.is_file():
+        raise ParameterError(f"unknown preset {text!r}; shipped presets: {', '.join(list_presets())}")
+    return _read_toml(resource.read_text(encoding="utf-8"), text)
+
+
+def load_preset(name_or_path) -> NoiseParams:
+    """Load a preset by name (``"evk3-hd"``) or from a TOML file path.
+
+    The file holds a ``[params]`` table with :class:`NoiseParams` fields; other tables
+    (``[provenance]``, ``[fit]``) describe where the numbers come from.
+    """
+    doc = load_preset_document(name_or_path)
+    if "params" not in doc or not isinstance(doc["params"], dict):
+        raise ParameterError(f"preset {name_or_path} has no [params] table")
+    return NoiseParams.from_dict(doc["params"])

@@ -1,0 +1,85 @@
+"""Expected event rates and per-pixel threshold maps.
+
+Dead-time convention (see :mod:`evnoise._kernels.simulate`): after an event at time ``tau``
+the pixel skips every trial that starts before ``tau + R``; event times are uniform within
+their trial, so the mean number of skipped trials is exactly ``R * trial_rate_hz`` and the
+rate of a pixel is the non-paralyzable dead-time formula
+
+    nu = nu0 / (1 + nu0 R),   nu0 = trial_rate_hz * (p_on + p_off),
+
+split between the polarities in proportion ``p_on : p_off``. ``R`` is the refractory period
+rounded up to whole microseconds.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._checks import as_generator, check_lux, check_params, check_thresholds
+from .model import event_probability
+
+__all__ = ["expected_rate", "draw_thresholds", "trial_probabilities"]
+
+
+def draw_thresholds(shape, params, rng=None) -> np.ndarray:
+    """Per-pixel thresholds ``(2, H, W)`` = ``[eps_pos, eps_neg]`` with mismatch ``eps_sigma``.
+
+    Each pixel's two thresholds are drawn independently from normal distributions with means
+    ``eps_pos`` / ``eps_neg`` and standard deviation ``eps_sigma``, truncated to ``> 0``
+    (values ``<= 0`` are redrawn). With ``eps_sigma = 0`` the maps are constant.
+    """
+    params = check_params(params)
+    gen = as_generator(rng)
+    shape = tuple(int(s) for s in shape)
+    out = np.empty((2, *shape))
+    out[0] = params.eps_pos
+    out[1] = params.eps_neg
+    if params.eps_sigma > 0:
+        for i, mean in enumerate((params.eps_pos, params.eps_neg)):
+            draw = gen.normal(mean, params.eps_sigma, size=shape)
+            bad = draw <= 0
+            while bad.any():
+                draw[bad] = gen.normal(mean, params.eps_sigma, size=int(bad.sum()))
+                bad = draw <= 0
+            out[i] = draw
+    return out
+
+
+def trial_probabilities(lam, params, thresholds=None, *, skip_below=None):
+    """Per-trial ``(p_on, p_off)`` at mean photon counts ``lam`` (nominal or per-pixel thresholds)."""
+    eps_on = params.eps_pos if thresholds is None else thresholds[0]
+    eps_off = params.eps_neg if thresholds is None else thresholds[1]
+    p_on = event_probability(lam, eps_on, params.bias_pr)
+    p_off = event_probability(lam, eps_off, params.bias_pr)
+    return p_on, p_off
+
+
+def expected_rate(lux, params, *, thresholds=None) -> np.ndarray:
+    """Expected noise-event rate of a static pixel, events per second, ``[ON, OFF]``.
+
+    Parameters
+    ----------
+    lux : array_like
+        Illuminance at the sensor in lux (any shape, ``>= 0``).
+    params : NoiseParams
+        Model parameters (refractory period included as non-paralyzable dead time).
+    thresholds : array_like, optional
+        Per-pixel thresholds ``(2, *lux.shape)`` (e.g. from :func:`draw_thresholds`). Without it
+        the nominal thresholds are used; with ``eps_sigma > 0`` the result is then the rate
+        of a pixel whose thresholds equal the nominal values, not the population mean.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 array of shape ``(2, *lux.shape)``.
+    """
+    params = check_params(params)
+    lux = check_lux(lux, ndim=None)
+    if thresholds is not None:
+        thresholds = check_thresholds(thresholds, lux.shape)
+    lam = params.photons_per_trial(lux)
+    p_on, p_off = trial_probabilities(lam, params, thresholds)
+    nu_on = params.trial_rate_hz * p_on
+    nu_off = params.trial_rate_hz * p_off
+    dead = 1.0 + (nu_on + nu_off) * (params.refractory_us * 1e-6)
+    return np.stack([nu_on / dead, nu_off / dead])

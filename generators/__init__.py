@@ -1,0 +1,1 @@
+"""Dataset generators (importable as ``evnoise.generators``)."""
