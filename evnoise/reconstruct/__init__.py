@@ -1,0 +1,1 @@
+"""The reconstructor: a small PyTorch U-Net from noise-event counts to images (needs ``evnoise[train]``)."""
