@@ -28,6 +28,7 @@ from .errors import ParameterError
 METHODS = ("poisson", "gaussian")
 _TABLE_MIN_SIZE = 4096  # below this many elements the direct sum is cheaper than a table
 _TABLE_UNITS = (-40, 16)  # unit panels of log(lam) covered by tables: lam in [4e-18, 2.4e7)
+_SKIP_CHECK_MIN_LAM = 100.0  # below this the exact sum is cheap: no bound needed
 _tables: dict = {}
 _tables_lock = threading.Lock()
 
@@ -101,14 +102,18 @@ def _log_p_poisson(lam, eps, bias, shape, skip_below=None):
     uniform = uniform and (bias.size == 1 or np.all(bias == bias.flat[0]))
     todo = np.ones(lam_b.shape, dtype=bool)
     if skip_below is not None:
-        from ._kernels.bounds import log_chernoff_bound_array
+        # only where the exact sum is costly (large lam) is a bound worth computing
+        big = np.flatnonzero(lam_b > _SKIP_CHECK_MIN_LAM)
+        if big.size:
+            from ._kernels.bounds import log_chernoff_bound_array
 
-        c_b = np.ascontiguousarray(np.broadcast_to(np.expm1(eps), shape)).ravel()
-        b_b = np.ascontiguousarray(np.broadcast_to(bias, shape)).ravel()
-        bound = np.empty(lam_b.shape)
-        log_chernoff_bound_array(lam_b, c_b, b_b, bound)
-        todo = bound >= skip_below
-        out[~todo] = -np.inf
+            c_b = np.ascontiguousarray(np.broadcast_to(np.expm1(eps), shape)).ravel()[big]
+            b_b = np.ascontiguousarray(np.broadcast_to(bias, shape)).ravel()[big]
+            bound = np.empty(big.size)
+            log_chernoff_bound_array(np.ascontiguousarray(lam_b[big]), c_b, b_b, bound)
+            skip = big[bound < skip_below]
+            todo[skip] = False
+            out[skip] = -np.inf
     if uniform and lam_b.size >= _TABLE_MIN_SIZE:
         c = float(np.expm1(eps.flat[0]))
         table = _table_for(c, float(bias.flat[0]))

@@ -14,10 +14,15 @@ import numba
 _OPTIONS = dict(cache=True, nogil=True, error_model="numpy", fastmath=False)
 
 
-def kernel(func=None, *, parallel: bool = False):
-    """Compile ``func`` with evnoise's standard Numba options (usable with or without arguments)."""
+def kernel(func=None, *, parallel: bool = False, inline: bool = False):
+    """Compile ``func`` with evnoise's standard Numba options (usable with or without arguments).
+
+    ``inline=True`` inlines the function into its callers at Numba-IR level (for small helpers
+    on hot paths that pass arrays around, where a call would cost reference counting).
+    """
 
     def wrap(f):
-        return numba.njit(parallel=parallel, **_OPTIONS)(f)
+        extra = {"inline": "always"} if inline else {}
+        return numba.njit(parallel=parallel, **_OPTIONS, **extra)(f)
 
     return wrap(func) if func is not None else wrap

@@ -50,7 +50,7 @@ def _grow(arr, n):
     return out
 
 
-@kernel
+@kernel(inline=True)
 def _push(t_out, x_out, y_out, p_out, n, t, flat, width, pol):
     """Append one event, growing the buffers when full; returns the (possibly new) buffers."""
     if n == t_out.shape[0]:
