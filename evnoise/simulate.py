@@ -106,7 +106,7 @@ class _PixelState:
         self.pend_trial = np.full(n, math.nan)
         self.pend_tau = np.full(n, math.nan)
         self.lam_ref = np.zeros(n)
-        self.lev_prev = np.zeros(n)
+        self.lam_prev = np.zeros(n)
 
 
 def _sorted_window(parts, t_lo: int, t_hi: int) -> np.ndarray:
@@ -156,7 +156,8 @@ def _progress(total, enabled, desc, unit="s"):
         return None
     from tqdm.auto import tqdm
 
-    return tqdm(total=total, desc=desc, unit=unit, leave=False)
+    return tqdm(total=total, desc=desc, unit=unit, leave=False,
+                bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.1f}/{total:.1f} " + unit + " [{elapsed}<{remaining}]")
 
 
 # --------------------------------------------------------------------------------------
@@ -475,7 +476,7 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
                 a = min(max((0.5 * dt - frame_us[idx[0]]) / (frame_us[idx[1]] - frame_us[idx[0]]), 0.0), 1.0)
                 lam_first = lams[0] + a * (lams[1] - lams[0])
             dyn_state.lam_ref[:] = lam_first
-            dyn_state.lev_prev[:] = np.log(np.maximum(lam_first + b, 1e-6))
+            dyn_state.lam_prev[:] = lam_first
         dyn_c_on, dyn_c_off = c_on[dyn_pix], c_off[dyn_pix]
         dyn_e_on, dyn_e_off = eps_on[dyn_pix], eps_off[dyn_pix]
         bar = _progress(duration_us * 1e-6, progress, "simulate")
@@ -504,7 +505,7 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
                     return trial_window(
                         lo, hi, width, s.pix, stack, f_us, j_a, j_b, dyn_c_on[lo:hi], dyn_c_off[lo:hi],
                         dyn_e_on[lo:hi], dyn_e_off[lo:hi], b, s.states[lo:hi], s.last_trial[lo:hi],
-                        s.last_tau[lo:hi], s.lam_ref[lo:hi], s.lev_prev[lo:hi], dt, float(refr),
+                        s.last_tau[lo:hi], s.lam_ref[lo:hi], s.lam_prev[lo:hi], dt, float(refr),
                         float(duration_us), np.int64(t0_us), 256,
                     )
 

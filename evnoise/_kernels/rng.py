@@ -94,11 +94,17 @@ def geometric(s, log1m_p):
 @kernel
 def poisson(s, lam):
     """Poisson variate (as a float): inversion below 10, Hormann's PTRS above."""
+    return poisson_emlam(s, lam, math.exp(-lam) if lam < 10.0 else 0.0)
+
+
+@kernel
+def poisson_emlam(s, lam, emlam):
+    """:func:`poisson` with ``emlam = exp(-lam)`` precomputed (used only when ``lam < 10``)."""
     if lam <= 0.0:
         return 0.0
     if lam < 10.0:
         u = uniform(s)
-        p = math.exp(-lam)
+        p = emlam
         cdf = p
         k = 0.0
         while u >= cdf:

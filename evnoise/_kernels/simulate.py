@@ -20,7 +20,7 @@ import math
 import numpy as np
 
 from ._jit import kernel
-from .rng import geometric, poisson, seed_state, uniform
+from .rng import geometric, poisson_emlam, seed_state, uniform
 
 NO_EVENT = math.nan
 
@@ -161,25 +161,25 @@ def _level(lam, b):
 @kernel
 def trial_window(
     lo, hi, width, pix, frames_lam, frame_us, j_start, j_end, c_on, c_off, eps_on, eps_off, b,
-    states, last_trial, last_tau, lam_ref, lev_prev, dt, refr_us, tau_limit, t0_us, capacity
+    states, last_trial, last_tau, lam_ref, lam_prev, dt, refr_us, tau_limit, t0_us, capacity
 ):
     """Trial-by-trial simulation of pixels ``pix[lo:hi]`` for trials ``j_start .. j_end - 1``.
 
     ``frames_lam`` (F, P) holds the mean photon counts per trial of the frames at times
-    ``frame_us`` (µs, increasing; they must cover the trials' centres or be clamped to the
-    ends); ``lam`` of a trial is the linear interpolation at the trial's centre.
+    ``frame_us`` (µs, increasing; trials whose centre lies outside are clamped to the end
+    frames); ``lam`` of a trial is the linear interpolation at the trial's centre.
 
     Per trial: *signal* events first - the mean level ``L = log(lam + b)`` is compared with
-    the reference ``L_ref``; every whole threshold crossed gives one event, timed where the
-    level crosses it (linear between the previous trial's level and this one), at least the
-    refractory period after the previous event, and moves ``L_ref`` by one threshold; what
-    does not fit in the trial is left for the next one. Then, if no signal event fired and
-    the trial is eligible, the *noise* comparison of the paper's model: ``n ~ Poisson(lam)``,
-    ``n0 ~ Poisson(lam_ref)``, ON if ``n > n0 + floor(c_on (n0 + b))``, OFF if
-    ``n0 > n + floor(c_off (n + b))``; a noise event resets ``lam_ref`` to ``lam``. For a
+    the reference ``L_ref = log(lam_ref + b)``; every whole threshold crossed gives one event,
+    timed where the level crosses it (linear in ``L`` between the previous trial's level and
+    this one), at least the refractory period after the previous event, and moves ``L_ref``
+    by one threshold; what does not fit in the trial is left for the next one. Then, if no
+    signal event fired and the trial is eligible, the *noise* comparison of the paper's
+    model: ``n ~ Poisson(lam)``, ``n0 ~ Poisson(lam_ref)``, ON if ``n > n0 + floor(c_on (n0 + b))``,
+    OFF if ``n0 > n + floor(c_off (n + b))``; a noise event resets ``lam_ref`` to ``lam``. For a
     static pixel (``lam_ref = lam``) this is exactly the static model.
 
-    Per-pixel arrays (``states``, ``last_*``, ``lam_ref``, ``lev_prev``, ``c_*``, ``eps_*``) are
+    Per-pixel arrays (``states``, ``last_*``, ``lam_ref``, ``lam_prev``, ``c_*``, ``eps_*``) are
     indexed by ``k = i - lo`` (pass the chunk's slices); ``pix`` maps to flat pixel indices.
     Events at or after ``tau_limit`` (µs) are not emitted (the end of the recording).
     """
@@ -195,32 +195,45 @@ def trial_window(
         flat = pix[i]
         s = states[k]
         seg = 0
+        e_on = math.exp(eps_on[k])
+        e_off = math.exp(eps_off[k])
+        ref = lam_ref[k]
+        # cached exp(-lam) of the last Poisson means (most trials repeat them)
+        lam_c = -1.0
+        em_c = 1.0
+        ref_c = -1.0
+        emr_c = 1.0
         for j in range(j_start, j_end):
             s_j = j * dt
-            centre = s_j + 0.5 * dt
-            while seg < n_frames - 2 and frame_us[seg + 1] <= centre:
-                seg += 1
             if n_frames == 1:
                 lam = frames_lam[0, flat]
             else:
+                centre = s_j + 0.5 * dt
+                while seg < n_frames - 2 and frame_us[seg + 1] <= centre:
+                    seg += 1
                 f0 = frames_lam[seg, flat]
                 f1 = frames_lam[seg + 1, flat]
                 a = (centre - frame_us[seg]) / (frame_us[seg + 1] - frame_us[seg])
                 a = min(max(a, 0.0), 1.0)
                 lam = f0 + a * (f1 - f0)
-            lev = _level(lam, b)
-            lev_ref = _level(lam_ref[k], b)
             fired = False
-            for sign in range(2):
-                eps = eps_on[k] if sign == 0 else eps_off[k]
+            # signal crossings (rare): compare levels multiplicatively, take logs only if needed
+            up = lam + b >= (ref + b) * e_on
+            down = (lam + b) * e_off <= ref + b
+            if up or down:
+                lev = _level(lam, b)
+                lev_ref = _level(ref, b)
+                lev_prev = _level(lam_prev[k], b)
+                sign = 0 if up else 1
+                eps = eps_on[k] if up else eps_off[k]
                 emitted = 0
                 while emitted < max_signal:
                     gap = (lev - lev_ref) if sign == 0 else (lev_ref - lev)
                     if gap < eps:
                         break
                     target = lev_ref + eps if sign == 0 else lev_ref - eps
-                    span = lev - lev_prev[k]
-                    phi = (target - lev_prev[k]) / span if span != 0.0 else 0.0
+                    span = lev - lev_prev
+                    phi = (target - lev_prev) / span if span != 0.0 else 0.0
                     phi = min(max(phi, 0.0), 1.0)
                     tau = s_j + phi * dt
                     if last_tau[k] + refr_us > tau:
@@ -237,11 +250,17 @@ def trial_window(
                     lev_ref = target
                     last_tau[k] = tau
                     last_trial[k] = j
-            if fired:
-                lam_ref[k] = max(math.exp(lev_ref) - b, 0.0)
+                if fired:
+                    ref = max(math.exp(lev_ref) - b, 0.0)
             if not fired and j > last_trial[k] and s_j >= last_tau[k] + refr_us:
-                n_sig = poisson(s, lam)
-                n_ref = poisson(s, lam_ref[k])
+                if lam != lam_c:
+                    lam_c = lam
+                    em_c = math.exp(-lam)
+                if ref != ref_c:
+                    ref_c = ref
+                    emr_c = math.exp(-ref)
+                n_sig = poisson_emlam(s, lam, em_c)
+                n_ref = poisson_emlam(s, ref, emr_c)
                 pol = -1
                 if n_sig > n_ref + math.floor(c_on[k] * (n_ref + b)):
                     pol = 1
@@ -255,6 +274,7 @@ def trial_window(
                     n += 1
                     last_tau[k] = tau
                     last_trial[k] = j
-                    lam_ref[k] = lam
-            lev_prev[k] = lev
+                    ref = lam
+            lam_prev[k] = lam
+        lam_ref[k] = ref
     return t_out[:n], x_out[:n], y_out[:n], p_out[:n]

@@ -1,0 +1,387 @@
+"""``evnoise simulate INPUT --out events.h5``: an image or a folder of frames to an event file.
+
+An image is a static scene simulated for ``--duration`` seconds (renewal tier, O(events));
+a folder of frames is a video at ``--fps`` frames per second, frames sorted naturally by
+file name (``frame2`` before ``frame10``) and read lazily.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import re
+import secrets
+import textwrap
+import time
+from pathlib import Path
+from typing import Iterator, NamedTuple
+
+from ..errors import InputError, OutputError, ParameterError
+
+log = logging.getLogger(__name__)
+
+EXAMPLE = "example.png"
+
+
+def register(subparsers) -> None:
+    from ..radiometry import DEFAULT_MAX_LUX, ENCODINGS, FIT_MODES
+
+    p = subparsers.add_parser(
+        "simulate",
+        help="simulate the events of an image (static scene) or a folder of frames (video)",
+        description="Simulate event-camera events of an image (a static scene, for --duration seconds) "
+        "or of a folder of frames (a video at --fps) and write them to an events.h5 file (DSEC layout).",
+        epilog="example: evnoise simulate --example --duration 10 --out example.h5 --png example.png "
+        "(put -q before 'simulate' for no progress bar and no summary)",
+    )
+    p.add_argument("input", nargs="?", metavar="INPUT",
+                   help="an image (PNG, JPEG, TIFF, OpenEXR) or a folder of frames")
+    p.add_argument("--example", action="store_true", help="use the bundled 1280x720 example image as INPUT")
+    p.add_argument("-o", "--out", required=True, metavar="FILE", help="output event file: events.h5 (DSEC layout), or .aedat4 (see --format)")
+    p.add_argument("--duration", type=float, metavar="S",
+                   help="length of a static scene in seconds (default 1); not used for a folder")
+    p.add_argument("--fps", type=float, metavar="F",
+                   help="frame rate of a folder of frames (required for a folder)")
+    p.add_argument("--preset", default="evk3-hd", metavar="NAME|TOML",
+                   help="noise-model preset name or parameter TOML file (default: %(default)s)")
+    p.add_argument("--seed", type=int, metavar="N",
+                   help="random seed (default: a fresh one, printed and stored in the file)")
+    p.add_argument("--method", choices=("auto", "renewal", "trials"), default="auto",
+                   help="simulation tier (default: %(default)s)")
+    p.add_argument("--sensor", metavar="WxH", help="sensor size, e.g. 1280x720 (default: the image's size)")
+    p.add_argument("--fit", choices=FIT_MODES, default="cover",
+                   help="how to bring images to --sensor: cover (scale keeping the aspect ratio, crop the "
+                   "centre), crop (centre crop, no scaling), resize (stretch) (default: %(default)s)")
+    p.add_argument("--max-lux", type=float, metavar="LUX",
+                   help=f"illuminance of full-scale white of 8/16-bit images (default {DEFAULT_MAX_LUX:g} lux, "
+                   "the Noise2Image monitor at grey 255)")
+    p.add_argument("--lux-scale", type=float, metavar="K",
+                   help="lux per unit of linear images (OpenEXR, float TIFF) (default 1)")
+    p.add_argument("--encoding", choices=ENCODINGS, default="srgb",
+                   help="transfer function of 8/16-bit images (default: %(default)s)")
+    p.add_argument("--clip-invalid", action="store_true",
+                   help="clip NaN, Inf and negative pixel values (with a warning) instead of failing")
+    p.add_argument("--threads", type=int, metavar="N", help="worker threads (default: all CPUs)")
+    p.add_argument("--format", choices=("h5", "aedat4"),
+                   help="output format: h5 (events.h5, DSEC layout, with parameters and seed) or aedat4 "
+                   "(needs the faery package) (default: from the --out suffix, .aedat4 or else h5)")
+    p.add_argument("--compression", choices=("gzip", "lzf", "none"), default="gzip",
+                   help="HDF5 compression of the events (default: %(default)s)")
+    p.add_argument("--png", metavar="FILE",
+                   help="also write a PNG of the ON/OFF event-count maps (side by side, log scale)")
+    p.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    p.set_defaults(func=run)
+
+
+# --------------------------------------------------------------------------------------
+# argument checks
+# --------------------------------------------------------------------------------------
+def _positive(value, flag: str, unit: str) -> float | None:
+    if value is None:
+        return None
+    if not math.isfinite(value) or value <= 0:
+        raise ParameterError(f"{flag} must be finite and > 0 {unit}, got {value:g}")
+    return float(value)
+
+
+def parse_sensor(text):
+    """``"1280x720"`` -> ``(720, 1280)`` (H, W); ``None`` stays ``None``."""
+    if text is None:
+        return None
+    m = re.fullmatch(r"\s*(\d+)\s*[xX*,]\s*(\d+)\s*", text)
+    if not m or int(m.group(1)) < 1 or int(m.group(2)) < 1 or max(int(m.group(1)), int(m.group(2))) > 65536:
+        raise ParameterError(f"--sensor must be WIDTHxHEIGHT, e.g. 1280x720 (1 .. 65536 each), got {text!r}")
+    return int(m.group(2)), int(m.group(1))
+
+
+class LuxFrames:
+    """Frames of a folder as illuminance, read lazily (``len`` and indexing, as ``iter_video`` wants).
+
+    Every frame must have the size of the first one (after fitting to the sensor); the last
+    few frames read are kept, since the simulator reads neighbouring frames repeatedly.
+    """
+
+    def __init__(self, paths, convert, keep: int = 4):
+        self.paths = list(paths)
+        self._convert = convert
+        self._keep = keep
+        self._cache: dict[int, object] = {}
+        self.shape = None
+        self.shape = self[0].shape
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def __getitem__(self, i):
+        i = int(i)
+        if i in self._cache:
+            return self._cache[i]
+        lux = self._convert(self.paths[i])
+        if self.shape is not None and lux.shape != self.shape:
+            h, w = lux.shape
+            raise InputError(
+                f"frame {self.paths[i]} is {w}x{h} pixels, but the first frame {self.paths[0]} is "
+                f"{self.shape[1]}x{self.shape[0]}; give all frames one size or pass --sensor WxH"
+            )
+        if len(self._cache) >= self._keep:
+            self._cache.pop(next(iter(self._cache)))
+        self._cache[i] = lux
+        return lux
+
+
+# --------------------------------------------------------------------------------------
+# the command
+# --------------------------------------------------------------------------------------
+def run(args) -> int:
+    """Run ``evnoise simulate`` with parsed arguments; returns the exit code."""
+    from ..io import open_output_path
+    from ..params import load_preset
+
+    started = time.perf_counter()
+    quiet = bool(getattr(args, "quiet", False))
+    source, source_label = _source(args)
+    is_video = source.is_dir()
+    duration, fps = _timing(args, source, is_video)
+    if args.threads is not None and args.threads < 1:
+        raise ParameterError(f"--threads must be >= 1, got {args.threads}")
+    if args.seed is not None and args.seed < 0:
+        raise ParameterError(f"--seed must be a non-negative integer, got {args.seed}")
+    sensor = parse_sensor(args.sensor)
+    params = load_preset(args.preset)
+    fmt = args.format or ("aedat4" if str(args.out).lower().endswith(".aedat4") else "h5")
+    out = open_output_path(args.out, overwrite=args.overwrite, what="event file")
+    if fmt == "aedat4":
+        from ..io import _import_faery
+
+        _import_faery()  # fail before the work if faery is missing
+    png = None
+    if args.png:
+        png = open_output_path(args.png, overwrite=args.overwrite, what="PNG file")
+        if png.resolve() == out.resolve():
+            raise OutputError(f"--png and --out name the same file: {out}")
+    seed = args.seed if args.seed is not None else secrets.randbelow(1 << 32)
+    if args.seed is None:
+        log.info("no --seed given; using seed %d (stored in the file)", seed)
+    attrs = {
+        "source": source_label, "preset": str(args.preset), "params": params, "seed": int(seed),
+        "method": args.method, "encoding": args.encoding, "max_lux": args.max_lux, "lux_scale": args.lux_scale,
+        "fit": args.fit if sensor else None,
+    }
+    scene = _scene(args, source, is_video, duration, fps, sensor, params, seed, progress=not quiet)
+    attrs.update(scene.attrs)
+    counts = _write_outputs(args, fmt, out, png, scene, attrs)
+    if not quiet:
+        print(summary(counts, scene.t_end_us * 1e-6, scene.text, params_label=str(args.preset), seed=seed,
+                      method=args.method, out=out, png=png, elapsed_s=time.perf_counter() - started))
+    return 0
+
+
+def _source(args):
+    """``(path, label)`` of the input image or folder."""
+    if args.example and args.input:
+        raise InputError(f"give either INPUT ({args.input}) or --example, not both")
+    if args.example:
+        return Path(str(_example_path())), f"evnoise example ({EXAMPLE})"
+    if not args.input:
+        raise InputError("no input: give an image or a folder of frames as INPUT, or --example")
+    source = Path(args.input)
+    if not source.exists():
+        raise InputError(f"input not found: {source}")
+    return source, str(source)
+
+
+def _timing(args, source, is_video):
+    """``(duration_s, fps)``: a duration for an image (default 1 s), a frame rate for a folder."""
+    duration = _positive(args.duration, "--duration", "seconds")
+    fps = _positive(args.fps, "--fps", "frames per second")
+    if is_video:
+        if duration is not None:
+            raise ParameterError("--duration is for a single image; the length of a folder of frames is set "
+                                 "by the number of frames and --fps")
+        if fps is None:
+            raise ParameterError(f"{source} is a folder of frames: give their frame rate with --fps")
+    else:
+        if fps is not None:
+            raise ParameterError(f"--fps is for a folder of frames, but {source} is a single image "
+                                 f"(use --duration)")
+        if duration is None:
+            duration = 1.0
+    return duration, fps
+
+
+class _Scene(NamedTuple):
+    """What ``_scene`` prepares: the event stream and what the outputs need to know about it."""
+
+    stream: Iterator  # time-sorted event arrays
+    shape: tuple  # (H, W)
+    t_end_us: int  # end of the recording (exclusive)
+    attrs: dict  # attributes for the event file
+    text: str  # description for the summary
+
+
+def _scene(args, source, is_video, duration, fps, sensor, params, seed, *, progress) -> _Scene:
+    """Read the input (validating every frame) and start the simulation (nothing written yet)."""
+    import functools
+
+    import numpy as np
+
+    from .. import radiometry
+    from ..simulate import iter_events, iter_video
+
+    convert = functools.partial(
+        radiometry.image_to_lux, max_lux=args.max_lux, lux_scale=args.lux_scale, encoding=args.encoding,
+        clip_invalid=args.clip_invalid, sensor_shape=sensor, fit=args.fit,
+    )
+    if is_video:
+        frames = LuxFrames(radiometry.list_frames(source), convert)
+        if len(frames) < 2:
+            raise InputError(f"folder {source} holds one frame; a video needs at least 2 "
+                             f"(simulate the image itself with --duration for a static scene)")
+        log.info("%s: %d frames of %dx%d pixels, %s .. %s", source, len(frames), frames.shape[1],
+                 frames.shape[0], frames.paths[0].name, frames.paths[-1].name)
+        timestamps = np.arange(len(frames)) / fps
+        t_end_us = int(round(timestamps[-1] * 1e6))
+        stream = iter_video(frames, timestamps, params, seed, args.method, threads=args.threads, progress=progress)
+        attrs = {"scene": "video", "fps": fps, "n_frames": len(frames), "duration_s": t_end_us * 1e-6}
+        return _Scene(stream, frames.shape, t_end_us, attrs, f"a {len(frames)}-frame video at {fps:g} fps")
+    lux = convert(source)
+    stream = iter_events(lux, params, duration, seed, args.method, threads=args.threads, progress=progress)
+    attrs = {"scene": "static", "duration_s": duration, "lux_min": float(lux.min()),
+             "lux_mean": float(lux.mean()), "lux_max": float(lux.max())}
+    text = (f"a static scene ({lux.min():.3g} to {lux.max():.3g} lux, mean {lux.mean():.3g} lux) "
+            f"for {duration:g} s")
+    return _Scene(stream, lux.shape, int(round(duration * 1e6)), attrs, text)
+
+
+def _write_outputs(args, fmt, out, png, scene: _Scene, attrs):
+    """Run the simulation into the event file (and the PNG); returns the counts ``(2, H, W)``."""
+    import numpy as np
+
+    from ..io import EventWriter, write_aedat4
+
+    height, width = scene.shape
+    counts = np.zeros(2 * height * width, dtype=np.int64)
+
+    def counted(chunks):
+        for chunk in chunks:
+            flat = (1 - chunk["p"].astype(np.int64)) * (height * width) + chunk["y"].astype(np.int64) * width
+            flat += chunk["x"]
+            counts[:] += np.bincount(flat, minlength=counts.size)
+            yield chunk
+
+    png_tmp = None
+    try:
+        if fmt == "aedat4":
+            write_aedat4(out, counted(scene.stream), scene.shape, overwrite=args.overwrite)
+            if png is not None:
+                png_tmp = _png_tmp_name(png)
+                _write_png_file(counts.reshape(2, height, width), png_tmp)
+        else:
+            compression = None if args.compression == "none" else args.compression
+            with EventWriter(out, scene.shape, attrs, overwrite=args.overwrite, compression=compression,
+                             t_end_us=scene.t_end_us) as writer:
+                for chunk in counted(scene.stream):
+                    writer.write(chunk)
+                if png is not None:  # written before the event file is renamed: both or neither
+                    png_tmp = _png_tmp_name(png)
+                    _write_png_file(counts.reshape(2, height, width), png_tmp)
+        if png_tmp is not None:
+            _replace(png_tmp, png)
+            png_tmp = None
+    finally:
+        if png_tmp is not None and png_tmp.exists():
+            png_tmp.unlink()
+    return counts.reshape(2, height, width)
+
+
+def _png_tmp_name(png: Path) -> Path:
+    return png.with_name(f".{png.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")
+
+
+def _write_png_file(counts, path) -> None:
+    try:
+        save_count_png(counts, path)
+    except OSError as exc:
+        raise OutputError(f"cannot write PNG file {path}: {exc}") from None
+
+
+def _replace(tmp, final) -> None:
+    try:
+        os.replace(tmp, final)
+    except OSError as exc:
+        raise OutputError(f"cannot write PNG file {final}: {exc}") from None
+
+
+def _example_path():
+    from importlib import resources
+
+    path = resources.files("evnoise.data") / EXAMPLE
+    if not path.is_file():
+        raise InputError(f"the bundled example image {EXAMPLE} is missing from the installed evnoise package")
+    return path
+
+
+def save_count_png(counts, path) -> None:
+    """PNG of the ON (left) and OFF (right) event-count maps, grey, log-scaled, one shared scale.
+
+    ``log1p(count) / log1p(c_max)`` with ``c_max`` the 99.9th percentile of all counts (so
+    a few hot pixels do not darken the rest); black = no events. Labels ``ON`` / ``OFF`` and
+    the count at full white are drawn in the top-left corners.
+    """
+    import numpy as np
+    from PIL import Image, ImageDraw
+
+    counts = np.asarray(counts)
+    _, height, width = counts.shape
+    top = float(np.percentile(counts, 99.9))
+    if top < 1.0:
+        top = max(float(counts.max()), 1.0)
+    scaled = np.log1p(np.minimum(counts, top)) / np.log1p(top)
+    grey = np.round(255.0 * scaled).astype(np.uint8)
+    gap = max(4, width // 160)
+    canvas = np.full((height, 2 * width + gap), 96, dtype=np.uint8)
+    canvas[:, :width] = grey[0]
+    canvas[:, width + gap:] = grey[1]
+    image = Image.fromarray(canvas).convert("RGB")
+    draw = ImageDraw.Draw(image)
+    font = _label_font(max(10, height // 36))
+    for x0, label in ((0, "ON"), (width + gap, "OFF")):
+        text = f"{label}  (white = {top:.0f}+ events, log scale)"
+        box = draw.textbbox((x0 + 8, 6), text, font=font)
+        if box[2] + 4 > x0 + width:
+            continue  # too narrow for a label
+        draw.rectangle((box[0] - 4, box[1] - 3, box[2] + 4, box[3] + 3), fill=(0, 0, 0))
+        draw.text((x0 + 8, 6), text, fill=(80, 255, 80) if label == "ON" else (255, 110, 110), font=font)
+    image.save(path, format="PNG")
+
+
+def _label_font(size: int):
+    from PIL import ImageFont
+
+    try:
+        return ImageFont.load_default(size=size)  # scalable with FreeType (Pillow >= 10.1)
+    except (TypeError, ImportError, OSError):
+        return ImageFont.load_default()
+
+
+def summary(counts, duration_s, scene, *, params_label, seed, method, out, png, elapsed_s) -> str:
+    """The one-paragraph report printed at the end of a run."""
+    from .info import human_bytes
+
+    on, off = (int(c.sum()) for c in counts)
+    total = on + off
+    pixels = counts.shape[1] * counts.shape[2]
+    size = Path(out).stat().st_size
+    outputs = f"{out} ({human_bytes(size)})" + (f" and {png}" if png else "")
+    per_pixel_s = pixels * duration_s
+    text = (
+        f"Simulated {scene} on a {counts.shape[2]}x{counts.shape[1]} sensor (preset {params_label}, "
+        f"seed {seed}, method {method}): {total:,} events ({on:,} ON, {off:,} OFF), on average "
+        f"{total / per_pixel_s:.3g} events/s per pixel (ON {on / per_pixel_s:.3g}, OFF {off / per_pixel_s:.3g}). "
+        f"Wrote {outputs} in {elapsed_s:.1f} s."
+    )
+    return textwrap.fill(text, width=100)
+
+
+__all__ = ["register", "run", "parse_sensor", "LuxFrames", "save_count_png", "summary"]

@@ -1,0 +1,542 @@
+"""Images in, illuminance out: decoding, linearisation, luminance and the mapping to lux.
+
+Two kinds of image reach the simulator:
+
+*display-referred* images (8- or 16-bit PNG, JPEG, TIFF, or ``uint8``/``uint16`` arrays)
+    hold encoded grey or RGB values. They are normalised to ``[0, 1]`` by the full scale
+    of their bit depth, decoded to linear light (sRGB by default, IEC 61966-2-1), reduced to
+    relative luminance ``Y = 0.2126 R + 0.7152 G + 0.0722 B`` (Rec. 709 / sRGB primaries) and
+    mapped to illuminance by ``lux = max_lux * Y``: full-scale white gives ``max_lux``.
+    The default, :data:`DEFAULT_MAX_LUX` = 18 lux, is the Noise2Image setup: the paper's
+    monitor, showing grey 255, gave about 17.8 lux at the camera.
+*linear* images (OpenEXR half/float, floating-point TIFF, float arrays)
+    hold linear values already (relative luminance ``Y`` or linear ``R, G, B``). They are
+    mapped by ``lux = lux_scale * Y`` (default ``lux_scale = 1``: the values are lux).
+
+Invalid values (NaN, Inf, negative) are an :class:`~evnoise.InputError` that names the
+file, or, with ``clip_invalid=True``, replaced (NaN and negative values by 0, ``+Inf`` by the
+largest finite value of the image) with a logged warning.
+
+Heavy libraries (Pillow, tifffile, imagecodecs, OpenEXR) are imported inside the functions.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError, ParameterError
+
+__all__ = [
+    "DEFAULT_MAX_LUX",
+    "ENCODINGS",
+    "FIT_MODES",
+    "IMAGE_EXTENSIONS",
+    "read_image",
+    "image_to_lux",
+    "fit_to_sensor",
+    "srgb_to_linear",
+    "luminance",
+    "natural_sort_key",
+    "list_frames",
+]
+
+log = logging.getLogger(__name__)
+
+#: Illuminance (lux) of full-scale white of a display-referred image, by default.
+#: Noise2Image's monitor at grey 255 gave about 17.8 lux at the camera position.
+DEFAULT_MAX_LUX = 18.0
+
+#: Transfer functions that decode display-referred values to linear light.
+ENCODINGS = ("srgb", "gamma2.2", "linear")
+
+#: Ways to bring an image to the sensor size, see :func:`fit_to_sensor`.
+FIT_MODES = ("cover", "crop", "resize")
+
+#: File name extensions that :func:`list_frames` treats as images (case-insensitive).
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr")
+
+#: Relative-luminance weights of linear sRGB / Rec. 709 ``R, G, B`` (IEC 61966-2-1).
+REC709_LUMA = np.array([0.2126, 0.7152, 0.0722])
+
+_EXR_MAGIC = b"\x76\x2f\x31\x01"
+_TIFF_MAGICS = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
+_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+# --------------------------------------------------------------------------------------
+# transfer functions and luminance
+# --------------------------------------------------------------------------------------
+def srgb_to_linear(values) -> np.ndarray:
+    """Decode sRGB-encoded values in ``[0, 1]`` to linear light (the IEC 61966-2-1 EOTF).
+
+    ``V / 12.92`` for ``V <= 0.04045``, else ``((V + 0.055) / 1.055) ** 2.4``; the same
+    function as ``colour.models.eotf_sRGB`` (checked in the tests), without importing colour.
+    """
+    v = np.asarray(values, dtype=np.float64)
+    low = v <= 0.04045
+    out = np.empty_like(v)
+    out[low] = v[low] / 12.92
+    out[~low] = ((v[~low] + 0.055) / 1.055) ** 2.4
+    return out
+
+
+@functools.lru_cache(maxsize=8)
+def _decode_table(bits: int, encoding: str) -> np.ndarray:
+    """Linear value of every code of a ``bits``-bit display-referred image (read-only)."""
+    codes = np.arange(1 << bits, dtype=np.float64) / ((1 << bits) - 1)
+    if encoding == "srgb":
+        table = srgb_to_linear(codes)
+    elif encoding == "gamma2.2":
+        table = codes**2.2
+    else:
+        table = codes
+    table.flags.writeable = False
+    return table
+
+
+def _check_encoding(encoding) -> str:
+    if encoding not in ENCODINGS:
+        raise ParameterError(f"encoding must be one of {ENCODINGS}, got {encoding!r}")
+    return encoding
+
+
+def luminance(rgb, weights=REC709_LUMA) -> np.ndarray:
+    """Relative luminance ``Y`` of linear ``(H, W, 3)`` RGB (Rec. 709 weights by default)."""
+    rgb = np.asarray(rgb, dtype=np.float64)
+    w = np.asarray(weights, dtype=np.float64)
+    return rgb[..., 0] * w[0] + rgb[..., 1] * w[1] + rgb[..., 2] * w[2]
+
+
+def _luma_from_chromaticities(c) -> np.ndarray:
+    """Luminance weights of the RGB primaries ``(xr, yr, xg, yg, xb, yb, xw, yw)``."""
+    xr, yr, xg, yg, xb, yb, xw, yw = (float(v) for v in c)
+    prim = np.array([[x / y, 1.0, (1.0 - x - y) / y] for x, y in ((xr, yr), (xg, yg), (xb, yb))]).T
+    white = np.array([xw / yw, 1.0, (1.0 - xw - yw) / yw])
+    return np.linalg.solve(prim, white)  # scales of the primaries = their Y contributions
+
+
+# --------------------------------------------------------------------------------------
+# decoding files
+# --------------------------------------------------------------------------------------
+def _describe(path) -> str:
+    return os.fspath(path)
+
+
+def _sniff(path: Path) -> bytes:
+    if not path.exists():
+        raise InputError(f"image not found: {_describe(path)}")
+    if path.is_dir():
+        raise InputError(f"expected an image file, got a folder: {_describe(path)}")
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(32)
+    except OSError as exc:
+        raise InputError(f"cannot read image {_describe(path)}: {exc.strerror or exc}") from None
+    if not head:
+        raise InputError(f"cannot read image {_describe(path)}: the file is empty")
+    return head
+
+
+def _load(path, encoding: str = "srgb"):
+    """``(values, kind)``: relative linear luminance (float64, H x W) and ``"display"`` or ``"linear"``."""
+    path = Path(path)
+    encoding = _check_encoding(encoding)
+    head = _sniff(path)
+    if head.startswith(_EXR_MAGIC):
+        return _read_exr(path), "linear"
+    if head[:4] in _TIFF_MAGICS:
+        raw = _read_tiff(path)
+    elif head.startswith(_PNG_MAGIC) and len(head) >= 26 and head[24] == 16 and head[25] in (2, 4, 6):
+        raw = _read_png16(path)  # Pillow would truncate 16-bit colour / grey+alpha PNG to 8 bits
+    else:
+        raw = _read_pillow(path)
+    return _to_luminance(raw, encoding, _describe(path))
+
+
+def _to_luminance(raw: np.ndarray, encoding: str, name: str):
+    """Luminance of a decoded ``(H, W)`` / ``(H, W, C)`` array; integer = display-referred."""
+    if raw.ndim == 3 and raw.shape[2] == 1:
+        raw = raw[..., 0]
+    if raw.ndim == 3 and raw.shape[2] == 2:  # grey + alpha
+        raw = raw[..., 0]
+    if raw.ndim == 3:
+        if raw.shape[2] < 3:
+            raise InputError(f"{name}: unsupported channel layout {raw.shape}")
+        raw = raw[..., :3]  # alpha / extra samples are ignored
+    if raw.ndim not in (2, 3) or raw.shape[0] == 0 or raw.shape[1] == 0:
+        raise InputError(f"{name}: expected a grey or RGB image, got an array of shape {raw.shape}")
+    if raw.dtype.kind == "u" and raw.dtype.itemsize in (1, 2):
+        table = _decode_table(8 * raw.dtype.itemsize, encoding)
+        lin = table[raw]
+        return (lin if lin.ndim == 2 else luminance(lin)), "display"
+    if raw.dtype.kind == "f":
+        lin = raw.astype(np.float64)
+        return (lin if lin.ndim == 2 else luminance(lin)), "linear"
+    raise InputError(f"{name}: unsupported pixel type {raw.dtype} (use 8/16-bit integers or floats)")
+
+
+def _read_pillow(path: Path) -> np.ndarray:
+    from PIL import Image, ImageOps
+
+    name = _describe(path)
+    try:
+        with Image.open(path) as im:
+            im.load()
+            im = ImageOps.exif_transpose(im)
+            if "icc_profile" in im.info:
+                log.info("%s has an embedded ICC profile; it is ignored (values are decoded as `encoding`)", name)
+            mode = im.mode
+            if mode in ("1", "LA", "La", "P", "PA"):
+                im = im.convert("RGBA" if mode.startswith("P") else "L")
+            elif mode in ("CMYK", "YCbCr", "LAB", "HSV"):
+                im = im.convert("RGB")
+            arr = np.asarray(im)
+            mode = im.mode
+    except InputError:
+        raise
+    except Exception as exc:  # Pillow raises many types for corrupt or unknown files
+        raise InputError(f"cannot read image {name}: {exc}") from None
+    if mode.startswith("I;16"):
+        return arr.astype(np.uint16)
+    if mode == "I":
+        if arr.size and (arr.min() < 0 or arr.max() > 65535):
+            raise InputError(f"{name}: 32-bit integer image with values outside 0 .. 65535 is not supported")
+        return arr.astype(np.uint16)
+    if mode == "F":
+        return arr.astype(np.float32)
+    if arr.dtype != np.uint8:
+        raise InputError(f"{name}: unsupported image mode {mode!r}")
+    return arr
+
+
+def _read_png16(path: Path) -> np.ndarray:
+    import imagecodecs
+
+    try:
+        arr = imagecodecs.png_decode(path.read_bytes())
+    except Exception as exc:
+        raise InputError(f"cannot read image {_describe(path)}: {exc}") from None
+    return np.asarray(arr)
+
+
+def _read_tiff(path: Path) -> np.ndarray:
+    import tifffile
+
+    name = _describe(path)
+    ph = tifffile.PHOTOMETRIC
+    try:
+        with tifffile.TiffFile(path) as tif:
+            page = tif.pages[0]
+            photometric = page.photometric
+            if photometric not in (ph.MINISBLACK, ph.MINISWHITE, ph.RGB):
+                return _read_pillow(path)  # palette, CMYK, YCbCr: let Pillow convert
+            arr = page.asarray()
+            axes = page.axes
+    except InputError:
+        raise
+    except Exception as exc:
+        raise InputError(f"cannot read image {name}: {exc}") from None
+    if axes.startswith("S") and arr.ndim == 3:
+        arr = np.moveaxis(arr, 0, -1)  # planar configuration: samples first
+    if photometric == ph.MINISWHITE and arr.dtype.kind == "u":
+        arr = np.iinfo(arr.dtype).max - arr
+    if arr.dtype.kind == "f" and arr.dtype.itemsize < 4:
+        arr = arr.astype(np.float32)
+    return arr
+
+
+def _read_exr(path: Path) -> np.ndarray:
+    import OpenEXR
+
+    name = _describe(path)
+    try:
+        with OpenEXR.File(os.fspath(path), separate_channels=True) as exr:
+            chroma = exr.header().get("chromaticities")  # the header is emptied on close
+            channels = {k: np.asarray(v.pixels) for k, v in exr.channels().items()}
+    except Exception as exc:
+        raise InputError(f"cannot read OpenEXR image {name}: {exc}") from None
+    for key, arr in channels.items():
+        if arr.dtype.kind != "f":
+            raise InputError(f"{name}: EXR channel {key!r} has pixel type {arr.dtype}; expected half or float")
+    if "Y" in channels:
+        return channels["Y"].astype(np.float64)
+    if all(c in channels for c in "RGB"):
+        shapes = {channels[c].shape for c in "RGB"}
+        if len(shapes) != 1:
+            raise InputError(f"{name}: EXR channels R, G, B have different sizes {sorted(shapes)}")
+        weights = REC709_LUMA
+        if chroma is not None:
+            weights = _luma_from_chromaticities(chroma)
+        rgb = np.stack([channels[c].astype(np.float64) for c in "RGB"], axis=-1)
+        return luminance(rgb, weights)
+    raise InputError(f"{name}: EXR has channels {sorted(channels)}; expected 'Y' or 'R', 'G', 'B'")
+
+
+# --------------------------------------------------------------------------------------
+# invalid values
+# --------------------------------------------------------------------------------------
+def _handle_invalid(values: np.ndarray, name: str, clip_invalid: bool) -> np.ndarray:
+    nan = np.isnan(values)
+    inf = np.isinf(values)
+    neg = values < 0  # -inf counts as negative too
+    n_nan, n_inf, n_neg = int(nan.sum()), int(inf.sum()), int((neg & ~inf).sum())
+    if not (n_nan or n_inf or n_neg):
+        return values
+    what = ", ".join(f"{n} {label}" for n, label in ((n_nan, "NaN"), (n_inf, "infinite"), (n_neg, "negative"))
+                     if n)
+    if not clip_invalid:
+        raise InputError(f"{name} has invalid pixel values ({what}); fix the image or clip them "
+                         f"(clip_invalid=True, --clip-invalid)")
+    finite = values[np.isfinite(values)]
+    top = float(finite.max()) if finite.size else 0.0
+    out = values.copy()
+    out[nan | neg] = 0.0
+    out[np.isposinf(values)] = max(top, 0.0)
+    log.warning("%s: clipped %s pixel values (NaN and negative to 0, +Inf to the largest finite value)",
+                name, what)
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# public functions
+# --------------------------------------------------------------------------------------
+def read_image(path, *, encoding: str = "srgb", clip_invalid: bool = False) -> np.ndarray:
+    """Read an image file as relative *linear* luminance.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        PNG, JPEG, TIFF (8/16-bit integer or floating point; grey or RGB; alpha is ignored)
+        or OpenEXR (half/float; a ``Y`` channel, or ``R``, ``G``, ``B``). The format is
+        detected from the file's content, not its name.
+    encoding : {"srgb", "gamma2.2", "linear"}
+        Transfer function of integer (display-referred) images; floating-point images
+        and EXR are linear and not decoded.
+    clip_invalid : bool
+        Replace NaN and negative values by 0 and ``+Inf`` by the largest finite value (with a
+        logged warning) instead of raising.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 ``(H, W)``: ``Y`` in ``[0, 1]`` for integer images (1 = full-scale white);
+        the stored linear luminance for floating-point images and EXR.
+
+    Raises
+    ------
+    InputError
+        Missing, unreadable or corrupt file; unsupported layout; NaN, Inf or negative values
+        (unless ``clip_invalid``).
+    """
+    values, _ = _load(path, encoding)
+    return _handle_invalid(values, _describe(path), clip_invalid)
+
+
+def image_to_lux(
+    path_or_array,
+    *,
+    max_lux: float | None = None,
+    lux_scale: float | None = None,
+    encoding: str = "srgb",
+    clip_invalid: bool = False,
+    sensor_shape=None,
+    fit: str = "cover",
+    name: str | None = None,
+) -> np.ndarray:
+    """Illuminance at the sensor, in lux, of an image file or array.
+
+    Parameters
+    ----------
+    path_or_array : str, os.PathLike or array_like
+        An image file (see :func:`read_image`) or an array ``(H, W)`` / ``(H, W, 3)``:
+        ``uint8`` / ``uint16`` arrays are display-referred (encoded by ``encoding``, full
+        scale 255 / 65535), floating-point arrays are linear values.
+    max_lux : float, optional
+        Illuminance in lux of full-scale white of a display-referred image:
+        ``lux = max_lux * Y`` (default :data:`DEFAULT_MAX_LUX` = 18 lux, the Noise2Image
+        monitor at grey 255). Not valid for linear images.
+    lux_scale : float, optional
+        Lux per unit of a linear image (EXR, float TIFF, float array): ``lux = lux_scale * Y``
+        (default 1: the values are lux). Not valid for display-referred images.
+    encoding : {"srgb", "gamma2.2", "linear"}
+        Transfer function of display-referred values (default sRGB).
+    clip_invalid : bool
+        Clip NaN, Inf and negative values with a logged warning instead of raising.
+    sensor_shape : (H, W), optional
+        Bring the image to this sensor size with :func:`fit_to_sensor` (on linear values).
+    fit : {"cover", "crop", "resize"}
+        How to fit the sensor size (see :func:`fit_to_sensor`).
+    name : str, optional
+        Label of an array input in error messages (default ``"image"``).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 ``(H, W)`` illuminance in lux, finite and ``>= 0``.
+    """
+    encoding = _check_encoding(encoding)
+    if isinstance(path_or_array, (str, os.PathLike)):
+        label = name or _describe(path_or_array)
+        values, kind = _load(path_or_array, encoding)
+    else:
+        label = name or "image"
+        values, kind = _array_luminance(path_or_array, encoding, label)
+    if kind == "display":
+        if lux_scale is not None:
+            raise ParameterError(f"lux_scale applies to linear (EXR / floating-point) images, but {label} is "
+                                 f"an 8/16-bit display-referred image; use max_lux")
+        scale = DEFAULT_MAX_LUX if max_lux is None else _positive(max_lux, "max_lux", "lux")
+    else:
+        if max_lux is not None:
+            raise ParameterError(f"max_lux applies to 8/16-bit display-referred images, but {label} is a "
+                                 f"linear (EXR / floating-point) image; use lux_scale")
+        scale = 1.0 if lux_scale is None else _positive(lux_scale, "lux_scale", "lux per unit")
+    values = _handle_invalid(values, label, clip_invalid)
+    if sensor_shape is not None:
+        values = fit_to_sensor(values, sensor_shape, mode=fit)
+    with np.errstate(over="ignore"):
+        lux = values * scale
+    if not np.isfinite(lux).all():
+        raise InputError(f"{label}: illuminance overflows float64 after scaling by {scale:g}")
+    return lux
+
+
+def _positive(value, name: str, unit: str) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ParameterError(f"{name} must be a number ({unit}), got {value!r}") from None
+    if not np.isfinite(v) or v <= 0:
+        raise ParameterError(f"{name} must be finite and > 0 ({unit}), got {value!r}")
+    return v
+
+
+def _array_luminance(arr, encoding: str, label: str):
+    try:
+        arr = np.asarray(arr)
+    except Exception:
+        raise InputError(f"{label} must be an image array (H, W) or (H, W, 3)") from None
+    if arr.dtype == np.bool_ or arr.dtype.kind not in "uif":
+        raise InputError(f"{label} must be a numeric image array, got dtype {arr.dtype}")
+    if arr.dtype.kind in "iu" and arr.dtype not in (np.uint8, np.uint16):
+        raise InputError(f"integer {label} must be uint8 or uint16 (display-referred), got {arr.dtype}; "
+                         f"pass floating-point values for linear input")
+    if not (arr.ndim == 2 or (arr.ndim == 3 and arr.shape[2] in (1, 3, 4))):
+        raise InputError(f"{label} must have shape (H, W) or (H, W, 3), got {arr.shape}")
+    return _to_luminance(arr, encoding, label)
+
+
+def fit_to_sensor(image, shape, mode: str = "cover") -> np.ndarray:
+    """Bring a 2-D image (linear values) to the sensor size ``shape = (H, W)``.
+
+    Parameters
+    ----------
+    image : array_like, shape (h, w)
+        Linear values (luminance or lux); resampling happens on linear values.
+    shape : (H, W)
+        Sensor size in pixels (rows, columns).
+    mode : {"cover", "crop", "resize"}
+        ``"cover"``: scale, keeping the aspect ratio, until the image covers the sensor,
+        then crop the centre. ``"crop"``: crop the centre at the image's own resolution
+        (the image must be at least ``H x W``). ``"resize"``: resample to exactly ``H x W``
+        (the aspect ratio may change). Resampling uses Pillow's bilinear (triangle) filter,
+        widened when shrinking, so it averages instead of aliasing and never makes
+        negative values.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 ``(H, W)``.
+    """
+    from .events import _check_shape
+
+    if mode not in FIT_MODES:
+        raise ParameterError(f"fit mode must be one of {FIT_MODES}, got {mode!r}")
+    height, width = _check_shape(shape)
+    img = np.asarray(image, dtype=np.float64)
+    if img.ndim != 2 or img.size == 0:
+        raise InputError(f"fit_to_sensor needs a non-empty 2-D image, got shape {img.shape}")
+    h, w = img.shape
+    if (h, w) == (height, width):
+        return img
+    if mode == "crop":
+        if h < height or w < width:
+            raise InputError(f"cannot crop a {w}x{h} image to a {width}x{height} sensor (the image is "
+                             f"smaller); use fit mode 'cover' or 'resize'")
+        return _centre_crop(img, height, width)
+    if mode == "resize":
+        return _resample(img, height, width)
+    scale = max(height / h, width / w)
+    new_h = max(height, round(h * scale))
+    new_w = max(width, round(w * scale))
+    return _centre_crop(_resample(img, new_h, new_w), height, width)
+
+
+def _centre_crop(img, height, width):
+    top = (img.shape[0] - height) // 2
+    left = (img.shape[1] - width) // 2
+    return np.ascontiguousarray(img[top:top + height, left:left + width])
+
+
+def _resample(img, height, width):
+    if img.shape == (height, width):
+        return img
+    from PIL import Image
+
+    peak = float(np.abs(img).max())
+    norm = peak if peak > 0 else 1.0
+    # normalised, so that float32 keeps full relative precision whatever the units
+    pil = Image.fromarray((img / norm).astype(np.float32))  # mode "F"
+    out = np.asarray(pil.resize((width, height), resample=Image.Resampling.BILINEAR), dtype=np.float64)
+    out *= norm
+    if img.min() >= 0:
+        np.maximum(out, 0.0, out=out)  # the filter's weights are >= 0; guard against rounding
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# frame folders
+# --------------------------------------------------------------------------------------
+_DIGITS = re.compile(r"(\d+)")
+
+
+def natural_sort_key(name) -> tuple:
+    """Sort key that orders ``frame2`` before ``frame10`` (digit runs compare as numbers).
+
+    Case-insensitive; ties between equal keys (``f01`` and ``f1``) break on the plain name.
+    """
+    text = os.fspath(name)
+    text = os.path.basename(text) or text
+    parts = _DIGITS.split(text.casefold())
+    key = tuple(int(p) if i % 2 else p for i, p in enumerate(parts))
+    return key, text
+
+
+def list_frames(folder, extensions=IMAGE_EXTENSIONS) -> list[Path]:
+    """Image files of a folder (not hidden, known extension), sorted naturally by file name.
+
+    Raises
+    ------
+    InputError
+        The folder does not exist, is not a folder, cannot be listed, or holds no image file.
+    """
+    folder = Path(folder)
+    if not folder.exists():
+        raise InputError(f"folder not found: {_describe(folder)}")
+    if not folder.is_dir():
+        raise InputError(f"not a folder: {_describe(folder)}")
+    exts = tuple(e.lower() for e in extensions)
+    try:
+        files = [p for p in folder.iterdir()
+                 if not p.name.startswith(".") and p.suffix.lower() in exts and p.is_file()]
+    except OSError as exc:
+        raise InputError(f"cannot list folder {_describe(folder)}: {exc.strerror or exc}") from None
+    if not files:
+        raise InputError(f"folder {_describe(folder)} holds no image files ({', '.join(exts)})")
+    return sorted(files, key=lambda p: natural_sort_key(p.name))

@@ -1,0 +1,329 @@
+"""events.h5 writing and reading (evnoise.io): layout, round trip, atomicity, errors."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+import evnoise as ev
+from evnoise import InputError, OutputError, ParameterError
+from evnoise.events import make_events
+from evnoise.io import EventWriter, read_events, read_metadata, write_events
+
+h5py = pytest.importorskip("h5py")
+
+SHAPE = (48, 64)  # (H, W)
+
+
+def random_events(n, t_max_us, seed, shape=SHAPE, t_min_us=0):
+    rng = np.random.default_rng(seed)
+    t = np.sort(rng.integers(t_min_us, t_max_us, n))
+    return make_events(t, rng.integers(0, shape[1], n), rng.integers(0, shape[0], n), rng.integers(0, 2, n))
+
+
+def leftovers(folder):
+    """Files in ``folder`` other than the expected outputs (temporary files, for one)."""
+    return sorted(p.name for p in folder.iterdir())
+
+
+def dsec_slice(f, t0_ms, t1_ms):
+    """What DSEC's EventSlicer does for a whole-millisecond window [t0_ms, t1_ms): index by ms_to_idx."""
+    ms = f["ms_to_idx"]
+    lo, hi = int(ms[t0_ms]), int(ms[t1_ms])
+    return make_events(f["events/t"][lo:hi], f["events/x"][lo:hi], f["events/y"][lo:hi], f["events/p"][lo:hi])
+
+
+# --------------------------------------------------------------------------------------
+# round trip and layout
+# --------------------------------------------------------------------------------------
+def test_round_trip_is_bit_exact(tmp_path):
+    events = random_events(50_000, 3_000_000, seed=1)
+    params = ev.load_preset("evk3-hd")
+    path = write_events(tmp_path / "ev.h5", events, SHAPE, {"params": params, "seed": 7, "source": "unit test"})
+    got, meta = read_events(path)
+    assert got.dtype == ev.EVENT_DTYPE
+    assert got.tobytes() == events.tobytes()
+    assert meta["shape"] == SHAPE and meta["width"] == 64 and meta["height"] == 48
+    assert meta["n_events"] == events.size and meta["t_offset"] == 0
+    assert meta["time_unit"] == "us" and meta["evnoise_version"] == ev.__version__
+    assert meta["seed"] == 7 and meta["source"] == "unit test"
+    assert ev.NoiseParams.from_dict(meta["params"]) == params
+    assert leftovers(tmp_path) == ["ev.h5"]
+
+
+def test_layout_with_plain_h5py(tmp_path):
+    events = random_events(20_000, 2_500_000, seed=2)
+    write_events(tmp_path / "ev.h5", events, SHAPE, t_end_us=2_500_000)
+    with h5py.File(tmp_path / "ev.h5", "r") as f:
+        for name, dtype in (("x", np.uint16), ("y", np.uint16), ("t", np.int64), ("p", np.uint8)):
+            ds = f["events"][name]
+            assert ds.dtype == dtype and ds.shape == (events.size,)
+            assert ds.chunks is not None and ds.maxshape == (None,)
+            assert ds.compression == "gzip" and ds.shuffle
+            np.testing.assert_array_equal(ds[:], events[name])
+        assert f["t_offset"].shape == () and f["t_offset"].dtype == np.int64 and f["t_offset"][()] == 0
+        ms = f["ms_to_idx"][:]
+        assert ms.dtype == np.uint64
+        assert ms.size == 2501  # one entry per millisecond, 0 .. 2500 ms inclusive
+        np.testing.assert_array_equal(ms, np.searchsorted(events["t"], np.arange(ms.size) * 1000, side="left"))
+        assert ms[-1] == events.size
+        assert f.attrs["width"] == 64 and f.attrs["height"] == 48 and f.attrs["time_unit"] == "us"
+
+
+def test_incremental_writing_builds_the_same_file(tmp_path):
+    events = random_events(30_000, 4_000_000, seed=3)
+    # chunks of uneven sizes, with chunk boundaries inside a millisecond and between equal times
+    events["t"][9_999:10_002] = events["t"][9_999]
+    cuts = [0, 1, 10_000, 10_001, 17_777, 17_777, 29_999, 30_000]
+    with EventWriter(tmp_path / "inc.h5", SHAPE, {"seed": 1}) as out:
+        for lo, hi in zip(cuts[:-1], cuts[1:]):
+            out.write(events[lo:hi])
+    write_events(tmp_path / "once.h5", events, SHAPE, {"seed": 1})
+    with h5py.File(tmp_path / "inc.h5", "r") as a, h5py.File(tmp_path / "once.h5", "r") as b:
+        for key in ("events/x", "events/y", "events/t", "events/p", "ms_to_idx"):
+            np.testing.assert_array_equal(a[key][:], b[key][:])
+        np.testing.assert_array_equal(a["ms_to_idx"][:], np.searchsorted(
+            events["t"], np.arange(a["ms_to_idx"].shape[0]) * 1000, side="left"))
+    assert out.n_events == events.size
+
+
+def test_dsec_style_slicing_returns_exactly_the_window(tmp_path):
+    events = random_events(40_000, 5_000_000, seed=4)
+    path = write_events(tmp_path / "ev.h5", events, SHAPE, t_end_us=5_000_000)
+    rng = np.random.default_rng(5)
+    windows = [(0, 1), (0, 5000), (4999, 5000), (1234, 1234)] + [
+        tuple(sorted(rng.integers(0, 5001, 2))) for _ in range(20)]
+    with h5py.File(path, "r") as f:
+        for t0, t1 in windows:
+            got = dsec_slice(f, t0, t1)
+            mask = (events["t"] >= t0 * 1000) & (events["t"] < t1 * 1000)
+            assert got.tobytes() == events[mask].tobytes(), (t0, t1)
+
+
+def test_read_events_time_window(tmp_path):
+    events = random_events(40_000, 3_000_000, seed=6, t_min_us=100)
+    path = write_events(tmp_path / "ev.h5", events, SHAPE)
+    rng = np.random.default_rng(7)
+    windows = [(None, None), (None, 1_000_000), (2_000_000, None), (-50, 10), (0, 3_500_000),
+               (2_999_999, 10_000_000), (5_000_000, 6_000_000), (1_000_500, 1_000_500)]
+    windows += [tuple(sorted(int(v) for v in rng.integers(-1000, 3_100_000, 2))) for _ in range(20)]
+    for t0, t1 in windows:
+        got, _ = read_events(path, t0, t1)
+        mask = np.ones(events.size, dtype=bool)
+        if t0 is not None:
+            mask &= events["t"] >= t0
+        if t1 is not None:
+            mask &= events["t"] < t1
+        assert got.tobytes() == events[mask].tobytes(), (t0, t1)
+
+
+def test_read_window_without_ms_to_idx(tmp_path):
+    # a foreign file with only /events: the window is found by binary search
+    events = random_events(5_000, 1_000_000, seed=8)
+    with h5py.File(tmp_path / "bare.h5", "w") as f:
+        for k in "xytp":
+            f.create_dataset(f"events/{k}", data=events[k])
+    got, meta = read_events(tmp_path / "bare.h5", 250_000, 750_000)
+    mask = (events["t"] >= 250_000) & (events["t"] < 750_000)
+    assert got.tobytes() == events[mask].tobytes()
+    assert meta["shape"] is None and meta["t_offset"] == 0
+
+
+def test_empty_and_compression_variants(tmp_path):
+    path = write_events(tmp_path / "empty.h5", ev.events.empty_events(0), SHAPE, t_end_us=2500)
+    got, meta = read_events(path)
+    assert got.size == 0 and meta["n_events"] == 0
+    with h5py.File(path, "r") as f:
+        np.testing.assert_array_equal(f["ms_to_idx"][:], [0, 0, 0, 0])
+    events = random_events(1000, 10_000, seed=9)
+    for comp in ("lzf", None):
+        path = write_events(tmp_path / f"{comp}.h5", events, SHAPE, compression=comp)
+        assert read_events(path)[0].tobytes() == events.tobytes()
+    with pytest.raises(ParameterError, match="compression"):
+        write_events(tmp_path / "bad.h5", events, SHAPE, compression="zstd")
+
+
+def test_attributes(tmp_path):
+    attrs = {"seed": np.int64(3), "source": tmp_path / "img.png", "note": None, "list": [1, 2],
+             "nested": {"a": 1.5}, "flag": True, "arr": np.arange(3)}
+    path = write_events(tmp_path / "a.h5", random_events(10, 1000, seed=1), SHAPE, attrs)
+    meta = read_metadata(path)
+    assert meta["seed"] == 3 and meta["source"] == str(tmp_path / "img.png")
+    assert "note" not in meta
+    assert meta["list"] == [1, 2] and meta["nested"] == {"a": 1.5} and meta["flag"] is True
+    np.testing.assert_array_equal(meta["arr"], [0, 1, 2])
+    with pytest.raises(ParameterError, match="width"):
+        write_events(tmp_path / "b.h5", random_events(10, 1000, seed=1), SHAPE, {"width": 5})
+    with pytest.raises(ParameterError, match="unsupported type"):
+        write_events(tmp_path / "c.h5", random_events(10, 1000, seed=1), SHAPE, {"obj": object()})
+    assert leftovers(tmp_path) == ["a.h5"]
+
+
+# --------------------------------------------------------------------------------------
+# failures leave nothing behind
+# --------------------------------------------------------------------------------------
+def test_exception_inside_the_writer_leaves_no_file(tmp_path):
+    events = random_events(5000, 1_000_000, seed=10)
+    with pytest.raises(RuntimeError, match="boom"):
+        with EventWriter(tmp_path / "ev.h5", SHAPE) as out:
+            out.write(events[:2500])
+            raise RuntimeError("boom")
+    assert leftovers(tmp_path) == []
+
+
+def test_failing_event_source_leaves_no_file(tmp_path):
+    events = random_events(5000, 1_000_000, seed=11)
+
+    def source():
+        yield events[:1000]
+        yield events[1000:2000]
+        raise InputError("frame 3 is corrupt")
+
+    with pytest.raises(InputError, match="frame 3"):
+        with EventWriter(tmp_path / "ev.h5", SHAPE) as out:
+            for chunk in source():
+                out.write(chunk)
+    assert leftovers(tmp_path) == []
+
+
+def test_unsorted_chunks_abort_the_file(tmp_path):
+    events = random_events(2000, 1_000_000, seed=12)
+    with pytest.raises(InputError, match="not sorted across chunks"):
+        with EventWriter(tmp_path / "ev.h5", SHAPE) as out:
+            out.write(events[1000:])
+            out.write(events[:1000])
+    assert leftovers(tmp_path) == []
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda e: e["x"].__setitem__(0, 64), "outside the sensor"),
+    (lambda e: e["t"].__setitem__(slice(0, 2), [5, 4]), "not sorted"),
+    (lambda e: e["t"].__setitem__(0, -1), ">= 0"),
+])
+def test_bad_events_are_rejected(tmp_path, change, message):
+    events = random_events(100, 1000, seed=13)
+    events["t"][:2] = [1, 2]
+    change(events)
+    with pytest.raises(InputError, match=message):
+        write_events(tmp_path / "ev.h5", events, SHAPE)
+    assert leftovers(tmp_path) == []
+
+
+def test_events_after_t_end_are_rejected(tmp_path):
+    events = random_events(100, 2000, seed=14)
+    with pytest.raises(InputError, match="t_end_us"):
+        write_events(tmp_path / "ev.h5", events, SHAPE, t_end_us=int(events["t"][-1]))
+    assert leftovers(tmp_path) == []
+
+
+def test_existing_output_needs_overwrite(tmp_path):
+    path = tmp_path / "ev.h5"
+    path.write_bytes(b"precious")
+    events = random_events(100, 1000, seed=15)
+    with pytest.raises(OutputError, match="already exists"):
+        write_events(path, events, SHAPE)
+    assert path.read_bytes() == b"precious"
+    write_events(path, events, SHAPE, overwrite=True)
+    assert read_events(path)[0].tobytes() == events.tobytes()
+    assert leftovers(tmp_path) == ["ev.h5"]
+
+
+def test_unwritable_destinations(tmp_path):
+    events = random_events(10, 1000, seed=16)
+    with pytest.raises(OutputError, match="does not exist"):
+        write_events(tmp_path / "no" / "such" / "ev.h5", events, SHAPE)
+    (tmp_path / "afile").write_bytes(b"")
+    with pytest.raises(OutputError, match="not a directory"):
+        write_events(tmp_path / "afile" / "ev.h5", events, SHAPE)
+    (tmp_path / "adir.h5").mkdir()
+    with pytest.raises(OutputError, match="is a directory"):
+        write_events(tmp_path / "adir.h5", events, SHAPE, overwrite=True)
+
+
+@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() == 0, reason="root can write anywhere")
+def test_read_only_directory(tmp_path):
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o500)
+    try:
+        with pytest.raises(OutputError, match="not writable"):
+            write_events(ro / "ev.h5", random_events(10, 1000, seed=17), SHAPE)
+    finally:
+        ro.chmod(0o700)
+
+
+def test_writer_checks_its_arguments(tmp_path):
+    with pytest.raises(InputError, match="shape"):
+        EventWriter(tmp_path / "ev.h5", (0, 5))
+    with pytest.raises(ParameterError, match="t_end_us"):
+        EventWriter(tmp_path / "ev.h5", SHAPE, t_end_us=-1)
+    writer = EventWriter(tmp_path / "ev.h5", SHAPE)
+    writer.close()
+    with pytest.raises(OutputError, match="closed"):
+        writer.write(random_events(5, 100, seed=1))
+    assert leftovers(tmp_path) == ["ev.h5"]
+
+
+# --------------------------------------------------------------------------------------
+# reading bad files
+# --------------------------------------------------------------------------------------
+def test_read_errors_name_the_file(tmp_path):
+    with pytest.raises(InputError, match="not found.*missing.h5"):
+        read_events(tmp_path / "missing.h5")
+    (tmp_path / "text.h5").write_text("hello")
+    with pytest.raises(InputError, match="text.h5"):
+        read_events(tmp_path / "text.h5")
+    with h5py.File(tmp_path / "other.h5", "w") as f:
+        f.create_dataset("data", data=np.arange(3))
+    with pytest.raises(InputError, match=r"other.h5.*/events"):
+        read_events(tmp_path / "other.h5")
+    with h5py.File(tmp_path / "ragged.h5", "w") as f:
+        for k, n in zip("xytp", (3, 3, 4, 3)):
+            f.create_dataset(f"events/{k}", data=np.zeros(n, dtype=np.uint16))
+    with pytest.raises(InputError, match="equal length"):
+        read_events(tmp_path / "ragged.h5")
+
+
+def test_lazy_exports():
+    assert ev.write_events is write_events and ev.read_events is read_events and ev.EventWriter is EventWriter
+
+
+# --------------------------------------------------------------------------------------
+# AEDAT4 through faery (optional)
+# --------------------------------------------------------------------------------------
+def test_aedat4_round_trip_through_faery(tmp_path):
+    faery = pytest.importorskip("faery")
+    from evnoise.io import write_aedat4
+
+    events = random_events(20_000, 2_000_000, seed=20, t_min_us=123)
+    write_aedat4(tmp_path / "ev.aedat4", (events[i:i + 7000] for i in range(0, events.size, 7000)), SHAPE)
+    stream = faery.events_stream_from_file(tmp_path / "ev.aedat4")
+    assert stream.dimensions() == (SHAPE[1], SHAPE[0])
+    got = stream.to_array()
+    np.testing.assert_array_equal(got["t"], events["t"])  # times kept, not shifted to zero
+    np.testing.assert_array_equal(got["x"], events["x"])
+    np.testing.assert_array_equal(got["y"], events["y"])
+    np.testing.assert_array_equal(got["on"], events["p"] == 1)
+    assert leftovers(tmp_path) == ["ev.aedat4"]
+
+
+def test_aedat4_failure_leaves_no_file(tmp_path):
+    pytest.importorskip("faery")
+    from evnoise.io import write_aedat4
+
+    events = random_events(2000, 1_000_000, seed=21)
+
+    def source():
+        yield events[:1000]
+        raise InputError("frame 3 is corrupt")
+
+    with pytest.raises(InputError, match="frame 3"):
+        write_aedat4(tmp_path / "ev.aedat4", source(), SHAPE)
+    with pytest.raises(InputError, match="not sorted across chunks"):
+        write_aedat4(tmp_path / "ev.aedat4", [events[1000:], events[:1000]], SHAPE)
+    (tmp_path / "old.aedat4").write_bytes(b"x")
+    with pytest.raises(OutputError, match="already exists"):
+        write_aedat4(tmp_path / "old.aedat4", events, SHAPE)
+    assert leftovers(tmp_path) == ["old.aedat4"]
