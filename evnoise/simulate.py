@@ -110,19 +110,15 @@ class _PixelState:
 
 
 def _sorted_window(parts, t_lo: int, t_hi: int) -> np.ndarray:
-    """Concatenate ``(t, x, y, p)`` parts (in a fixed order) and sort stably by time."""
-    from ._kernels.simulate import counting_sort_by_time
+    """Concatenate ``(t, x, y, p)`` parts (in a fixed order) into one event array sorted stably by time."""
+    from ._kernels.simulate import sort_into_events
 
     parts = [p for p in parts if p[0].size]
     if not parts:
         return empty_events(0)
-    t = np.concatenate([p[0] for p in parts])
-    order = counting_sort_by_time(t, np.int64(t_lo), np.int64(t_hi))
-    out = np.empty(t.size, dtype=EVENT_DTYPE)
-    out["t"] = t[order]
-    out["x"] = np.concatenate([p[1] for p in parts])[order]
-    out["y"] = np.concatenate([p[2] for p in parts])[order]
-    out["p"] = np.concatenate([p[3] for p in parts])[order]
+    cols = [np.concatenate([p[i] for p in parts]) if len(parts) > 1 else parts[0][i] for i in range(4)]
+    out = np.empty(cols[0].size, dtype=EVENT_DTYPE)
+    sort_into_events(*cols, np.int64(t_lo), np.int64(t_hi), out)
     return out
 
 

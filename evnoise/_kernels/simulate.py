@@ -134,20 +134,26 @@ def renewal_window(
 
 
 @kernel
-def counting_sort_by_time(t, t_lo, t_hi):
-    """Stable permutation sorting ``t`` (int64 in ``[t_lo, t_hi)``) by value, O(n + range)."""
+def sort_into_events(t, x, y, p, t_lo, t_hi, out):
+    """Scatter the columns into the event array ``out`` sorted stably by ``t`` (in ``[t_lo, t_hi)``).
+
+    A counting sort, O(n + t_hi - t_lo): ties keep the input order (pixel order, then time
+    order within a pixel), so the result does not depend on how the work was split.
+    """
     n_bins = t_hi - t_lo
     counts = np.zeros(n_bins + 1, dtype=np.int64)
     for i in range(t.shape[0]):
         counts[t[i] - t_lo + 1] += 1
     for b in range(n_bins):
         counts[b + 1] += counts[b]
-    order = np.empty(t.shape[0], dtype=np.int64)
     for i in range(t.shape[0]):
         b = t[i] - t_lo
-        order[counts[b]] = i
-        counts[b] += 1
-    return order
+        j = counts[b]
+        counts[b] = j + 1
+        out[j].t = t[i]
+        out[j].x = x[i]
+        out[j].y = y[i]
+        out[j].p = p[i]
 
 
 _LEVEL_FLOOR = 1e-6  # photons per trial; log-levels below log(1e-6) are clamped in signal crossings
