@@ -109,17 +109,21 @@ class _PixelState:
         self.lam_prev = np.zeros(n)
 
 
-def _sorted_window(parts, t_lo: int, t_hi: int) -> np.ndarray:
-    """Concatenate ``(t, x, y, p)`` parts (in a fixed order) into one event array sorted stably by time."""
+def _sorted_window(parts, t_lo: int, t_hi: int, labels: bool = False):
+    """Concatenate ``(t, x, y, p)`` parts (in a fixed order) into one event array sorted stably by time.
+
+    With ``labels`` also returns a bool array, True for signal events.
+    """
     from ._kernels.simulate import sort_into_events
 
     parts = [p for p in parts if p[0].size]
     if not parts:
-        return empty_events(0)
+        return (empty_events(0), np.zeros(0, dtype=bool)) if labels else empty_events(0)
     cols = [np.concatenate([p[i] for p in parts]) if len(parts) > 1 else parts[0][i] for i in range(4)]
     out = np.empty(cols[0].size, dtype=EVENT_DTYPE)
-    sort_into_events(*cols, np.int64(t_lo), np.int64(t_hi), out)
-    return out
+    lab = np.empty(cols[0].size if labels else 0, dtype=np.uint8)
+    sort_into_events(*cols, np.int64(t_lo), np.int64(t_hi), out, lab)
+    return (out, lab.astype(bool)) if labels else out
 
 
 def _renewal_inputs(p_on: np.ndarray, p_off: np.ndarray):
@@ -190,8 +194,7 @@ def iter_events(
     if method == "trials":
         frames = _FrameSource([lux], name="lux")
         return _iter_dynamic(frames, np.array([0.0, float(duration_us)]), params, key, eps_on, eps_off,
-                             np.zeros(lux.size, dtype=bool), t_start_us, duration_us, threads, progress,
-                             constant=True)
+                             np.zeros(lux.size, dtype=bool), t_start_us, duration_us, threads, progress)
     return _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, threads, progress)
 
 
@@ -346,11 +349,13 @@ def iter_video(
     thresholds=None,
     threads: int | None = None,
     progress: bool = False,
+    return_labels: bool = False,
 ) -> Iterator[np.ndarray]:
     """Simulate a changing scene, yielding time-sorted event arrays window by window.
 
     See :func:`simulate_video`. Frames may be any sequence of ``(H, W)`` arrays (read
-    lazily, two passes: one to find the static pixels, one to simulate).
+    lazily, two passes: one to find the static pixels, one to simulate). With
+    ``return_labels`` each item is ``(events, is_signal)``.
     """
     params = check_params(params)
     frames = _FrameSource(frames_lux)
@@ -376,7 +381,7 @@ def iter_video(
     if duration_us < 1:
         raise InputError("the video is shorter than one microsecond")
     return _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static.ravel(), t0_us,
-                         duration_us, threads, progress)
+                         duration_us, threads, progress, labels=return_labels)
 
 
 def simulate_video(
@@ -389,7 +394,8 @@ def simulate_video(
     thresholds=None,
     threads: int | None = None,
     progress: bool = False,
-) -> np.ndarray:
+    return_labels: bool = False,
+):
     """Signal and noise events of a changing scene.
 
     Parameters
@@ -404,6 +410,15 @@ def simulate_video(
     method : {"auto", "renewal", "trials"}
         ``"auto"``: renewal tier for pixels that never change, trial tier for the rest;
         ``"trials"``: trial tier everywhere; ``"renewal"``: only valid if nothing changes.
+    return_labels : bool
+        Also return a bool array, True for *signal* events (threshold crossings of the mean
+        level) and False for *noise* events (the photon-count comparison): the ground truth
+        for signal/noise separation.
+
+    Returns
+    -------
+    numpy.ndarray or (numpy.ndarray, numpy.ndarray)
+        Events sorted by time, and with ``return_labels`` the labels.
 
     Notes
     -----
@@ -413,12 +428,16 @@ def simulate_video(
     step change); noise events everywhere, from the per-trial photon-count comparison.
     """
     parts = list(iter_video(frames_lux, timestamps_s, params, rng, method, thresholds=thresholds,
-                            threads=threads, progress=progress))
+                            threads=threads, progress=progress, return_labels=return_labels))
+    if return_labels:
+        if not parts:
+            return empty_events(0), np.zeros(0, dtype=bool)
+        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
     return np.concatenate(parts) if parts else empty_events(0)
 
 
 def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us, duration_us, threads,
-                  progress, constant=False):
+                  progress, labels=False):
     """Generator over windows of a changing scene (renewal for ``static`` pixels, trials for the rest)."""
     from ._kernels.simulate import trial_window
 
@@ -506,7 +525,7 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
                     )
 
                 parts += _map_chunks(run, dyn_pix.size, threads)
-            yield _sorted_window([p[:4] for p in parts], t0_us + w_lo, t0_us + w_hi)
+            yield _sorted_window([p[:4] for p in parts], t0_us + w_lo, t0_us + w_hi, labels=labels)
             if bar is not None:
                 bar.update((w_hi - w_lo) * 1e-6)
         if bar is not None:

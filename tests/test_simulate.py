@@ -277,6 +277,22 @@ def test_step_change_gives_delta_log_over_eps_signal_events(lux0, lux1):
     assert gaps.min() >= params.refractory_us
 
 
+def test_video_labels_mark_signal_events():
+    params = PARAMS.replace(eps_pos=0.5, eps_neg=0.45)
+    frames, times = _step_video(100.0, 1000.0)
+    frames[:, :, :10] = 100.0  # the left third stays static
+    events, is_signal = ev.simulate_video(frames, times, params, rng=2, return_labels=True)
+    assert is_signal.dtype == bool and is_signal.shape == events.shape
+    assert np.array_equal(events, ev.simulate_video(frames, times, params, rng=2))
+    static = events["x"] < 10
+    assert not is_signal[static].any()  # a static pixel only ever makes noise
+    sig = events[is_signal]
+    assert np.all(sig["p"] == 1) and np.all(sig["x"] >= 10)
+    assert np.all((sig["t"] >= 0.95e6) & (sig["t"] < 1.15e6))
+    n_expected = math.floor(math.log((1000 + 1.7) / (100 + 1.7)) / 0.5) * 20 * 20
+    assert sig.size == n_expected
+
+
 def test_video_static_pixels_and_noise_everywhere():
     params = PARAMS
     shape = (30, 40)

@@ -133,12 +133,17 @@ def renewal_window(
     return t_out[:n], x_out[:n], y_out[:n], p_out[:n], on_counts, off_counts
 
 
+SIGNAL_FLAG = 2  # or-ed into a kernel's polarity output for signal (threshold-crossing) events
+
+
 @kernel
-def sort_into_events(t, x, y, p, t_lo, t_hi, out):
+def sort_into_events(t, x, y, p, t_lo, t_hi, out, labels):
     """Scatter the columns into the event array ``out`` sorted stably by ``t`` (in ``[t_lo, t_hi)``).
 
     A counting sort, O(n + t_hi - t_lo): ties keep the input order (pixel order, then time
-    order within a pixel), so the result does not depend on how the work was split.
+    order within a pixel), so the result does not depend on how the work was split. The
+    kernels mark signal events with :data:`SIGNAL_FLAG` in ``p``; the flag is removed from
+    ``out.p`` and, if ``labels`` has room for every event, written there (1 = signal).
     """
     n_bins = t_hi - t_lo
     counts = np.zeros(n_bins + 1, dtype=np.int64)
@@ -153,7 +158,9 @@ def sort_into_events(t, x, y, p, t_lo, t_hi, out):
         out[j].t = t[i]
         out[j].x = x[i]
         out[j].y = y[i]
-        out[j].p = p[i]
+        out[j].p = p[i] & 1
+        if labels.shape[0] == t.shape[0]:
+            labels[j] = p[i] >> 1
 
 
 _LEVEL_FLOOR = 1e-6  # photons per trial; log-levels below log(1e-6) are clamped in signal crossings
@@ -248,7 +255,7 @@ def trial_window(
                         break  # does not fit in this trial: left for the next one
                     t_out, x_out, y_out, p_out = _push(
                         t_out, x_out, y_out, p_out, n, t0_us + np.int64(math.floor(tau)), flat, width,
-                        1 if sign == 0 else 0,
+                        (1 if sign == 0 else 0) | SIGNAL_FLAG,
                     )
                     n += 1
                     emitted += 1
