@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 import os
 from concurrent.futures import ThreadPoolExecutor
-from typing import Iterator, Sequence
+from typing import Iterator
 
 import numpy as np
 
@@ -29,7 +29,6 @@ from ._checks import (
     as_generator,
     check_lux,
     check_params,
-    check_positive,
     check_thresholds,
     duration_to_us,
 )
@@ -441,8 +440,7 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
     """Generator over windows of a changing scene (renewal for ``static`` pixels, trials for the rest)."""
     from ._kernels.simulate import trial_window
 
-    height, width = frames.shape
-    n_pix = height * width
+    width = frames.shape[1]
     dt = params.trial_us
     refr = params.refractory_us
     b = params.bias_pr
