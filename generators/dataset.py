@@ -1,0 +1,728 @@
+"""``make_dataset``: plan the shards, run them (in-process, a process pool or Dask), resume, write the manifest.
+
+Output folder::
+
+    DIR/manifest.json              written last, atomically: its presence means "complete"
+    DIR/shards/<split>-<k>.h5      one HDF5 file per shard (see :mod:`.shards`)
+    DIR/.evnoise-progress/         while running: plan.json, one record per finished shard,
+                                   a lock file; removed when the manifest is written
+
+Determinism. The plan (which source goes to which split and shard) depends only on the
+options and the list of item ids; every pair depends only on the seed and its identity
+(:mod:`.pairs`); a shard's bytes depend only on its pairs. So any number of workers, a Dask
+cluster, or an interrupted run resumed later all give the same files, and the manifest,
+which holds no timestamps, is the same too.
+
+Resume. Running the same job again on the same folder keeps every shard whose record (size
+and SHA-256) matches the file, regenerates the others, and finishes the manifest. A
+complete dataset is verified the same way (a corrupt or missing shard is regenerated). A
+folder holding a dataset made with different options is refused (pass ``overwrite=True``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import os
+import secrets
+import shutil
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from evnoise._version import __version__
+from evnoise.errors import InputError, OutputError, ParameterError
+
+from .config import COUNT_MAX, LEVELS, PairConfig
+from .shards import FORMAT, FORMAT_VERSION, file_sha256
+
+__all__ = ["make_dataset", "plan_dataset", "DatasetResult", "Plan", "ShardTask", "SPLITS", "MANIFEST",
+           "resolve_sources"]
+
+log = logging.getLogger(__name__)
+
+SPLITS = ("train", "val", "test")
+MANIFEST = "manifest.json"
+SHARDS_DIR = "shards"
+PROGRESS_DIR = ".evnoise-progress"
+_SPLIT_SALT = "evnoise-split-v1:"
+
+
+# --------------------------------------------------------------------------------------
+# planning
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ShardTask:
+    """One shard: its name, split and items ``((source_index, item_id), ...)``."""
+
+    name: str
+    split: str
+    items: tuple
+
+    @property
+    def file(self) -> str:
+        return f"{SHARDS_DIR}/{self.name}.h5"
+
+
+@dataclass(frozen=True)
+class Plan:
+    """Everything decided before any pair is made (a pure function of options and item ids)."""
+
+    config: PairConfig  # with the seed resolved
+    sources: tuple
+    shards: tuple  # of ShardTask, in split order then index
+    split_sources: dict  # split -> number of sources planned
+    fingerprint: str
+
+    @property
+    def n_samples(self) -> int:
+        return sum(len(t.items) for t in self.shards) * self.config.samples_per_source
+
+    def record(self) -> dict:
+        """What identifies the job (stored in the progress folder and the manifest)."""
+        return {"format": FORMAT, "format_version": FORMAT_VERSION, "evnoise_version": __version__,
+                "fingerprint": self.fingerprint, "config": self.config.to_dict(),
+                "sources": [s.spec() for s in self.sources]}
+
+
+def resolve_sources(sources) -> tuple:
+    """Source objects from a source, a path (folder or image file) or a list of them.
+
+    Folders become :class:`~.sources.FolderSource`; image files, together, one
+    :class:`~.sources.FilesSource`.
+    """
+    from .sources import DeadLeaves, FilesSource, FolderSource, PackagePhotos
+
+    if sources is None:
+        raise InputError("no scene source: give image folders or files, package photos or a procedural source")
+    if isinstance(sources, (str, os.PathLike)) or hasattr(sources, "items") and hasattr(sources, "load"):
+        sources = [sources]
+    out, files = [], []
+    for s in sources:
+        if isinstance(s, (FolderSource, FilesSource, PackagePhotos, DeadLeaves)) or (
+                hasattr(s, "items") and hasattr(s, "load") and hasattr(s, "spec")):
+            out.append(s)
+            continue
+        if not isinstance(s, (str, os.PathLike)):
+            raise InputError(f"not a scene source: {s!r}")
+        path = Path(s)
+        if path.is_dir():
+            out.append(FolderSource(os.fspath(path)))
+        elif path.is_file():
+            files.append(os.fspath(path))
+        else:
+            raise InputError(f"image folder or file not found: {path}")
+    if files:
+        out.append(FilesSource(tuple(files)))
+    if not out:
+        raise InputError("no scene source: give image folders or files, package photos or a procedural source")
+    return tuple(out)
+
+
+def _split_key(item_id: str) -> str:
+    return hashlib.sha256((_SPLIT_SALT + item_id).encode("utf-8")).hexdigest()
+
+
+def _assign_splits(ids: list, fractions) -> dict:
+    """``id -> split``: sources ranked by a hash of their id; the first ``round(f n)`` go to
+    test, the next to val, the rest to train (at least one source in every split whose
+    fraction is > 0, when there are enough sources)."""
+    n = len(ids)
+    f_train, f_val, f_test = fractions
+    n_test = round(f_test * n)
+    n_val = round(f_val * n)
+    positive = [f > 0 for f in (f_train, f_val, f_test)]
+    if n >= sum(positive):
+        if f_test > 0:
+            n_test = max(n_test, 1)
+        if f_val > 0:
+            n_val = max(n_val, 1)
+        if f_train > 0:
+            while n - n_test - n_val < 1:
+                if n_val > 1 or (n_val == 1 and f_val == 0):
+                    n_val -= 1
+                elif n_test > 1 or (n_test == 1 and f_test == 0):
+                    n_test -= 1
+                else:
+                    break
+    n_test = min(n_test, n)
+    n_val = min(n_val, n - n_test)
+    ranked = sorted(ids, key=_split_key)
+    out = {}
+    for k, item in enumerate(ranked):
+        out[item] = "test" if k < n_test else "val" if k < n_test + n_val else "train"
+    return out
+
+
+def plan_dataset(sources, config: PairConfig) -> Plan:
+    """The split and shard plan of a job (``config.seed`` must be set)."""
+    if config.seed is None:
+        raise ParameterError("plan_dataset needs a config with a seed")
+    sources = resolve_sources(sources)
+    items, owner = [], {}
+    for k, source in enumerate(sources):
+        for item_id in source.items():
+            if item_id in owner:
+                raise InputError(f"two scene sources both have an item {item_id!r}; ids must be unique "
+                                 "(rename one of the files)")
+            owner[item_id] = k
+            items.append((k, item_id))
+    if not items:
+        raise InputError("the scene sources hold no images")
+    split_of = _assign_splits([i for _, i in items], config.splits)
+    per_shard = max(1, config.shard_size // config.samples_per_source)
+    shards, counts = [], {}
+    for split in SPLITS:
+        members = [it for it in items if split_of[it[1]] == split]
+        counts[split] = len(members)
+        for j, lo in enumerate(range(0, len(members), per_shard)):
+            shards.append(ShardTask(f"{split}-{j:05d}", split, tuple(members[lo:lo + per_shard])))
+    body = {"format_version": FORMAT_VERSION, "evnoise_version": __version__, "config": config.to_dict(),
+            "sources": [s.spec() for s in sources],
+            "shards": [[t.name, [i for _, i in t.items]] for t in shards]}
+    fingerprint = hashlib.sha256(json.dumps(body, sort_keys=True).encode("utf-8")).hexdigest()
+    return Plan(config, sources, tuple(shards), counts, fingerprint)
+
+
+# --------------------------------------------------------------------------------------
+# one shard (runs in a worker process, a Dask worker, or in-process)
+# --------------------------------------------------------------------------------------
+_SAMPLERS: dict = {}
+_SAMPLERS_LOCK = threading.Lock()
+
+
+def _sampler(config: PairConfig, threads: int):
+    from .pairs import CountSampler
+
+    key = (json.dumps(config.to_dict(), sort_keys=True), threads)
+    with _SAMPLERS_LOCK:
+        sampler = _SAMPLERS.get(key)
+        if sampler is None:
+            if len(_SAMPLERS) > 8:
+                _SAMPLERS.clear()
+            sampler = _SAMPLERS[key] = CountSampler(config, threads)
+    return sampler
+
+
+@dataclass(frozen=True)
+class _Job:
+    root: str
+    config: PairConfig
+    sources: tuple
+    task: ShardTask
+    threads: int
+
+
+def generate_shard(job: _Job, on_sample=None) -> dict:
+    """Make one shard file; returns its record (size, checksum, sources written, skipped ones)."""
+    from evnoise.radiometry import fit_to_sensor
+
+    from .pairs import crop_levels, display_image, draw_crop, sample_seed, to_uint16
+    from .shards import ShardWriter
+    from .sources import LoadContext
+
+    config, task = job.config, job.task
+    sampler = _sampler(config, job.threads)
+    ctx = LoadContext(config.sensor_shape, config.encoding, config.clip_invalid, config.seed)
+    path = Path(job.root) / task.file
+    white = config.display_white_lux
+    attrs = {"evnoise_version": __version__, "split": task.split, "shard": task.name, "binning": config.binning,
+             "counts_order": "ON,OFF", "image_encoding": "srgb", "white_lux": white,
+             "params": config.noise_params.to_dict(), "seed": int(config.seed)}
+    timings = {"scene": 0.0, "illuminance": 0.0, "sampling": 0.0, "write": 0.0}
+    written, skipped, saturated = [], [], 0
+    clock = time.perf_counter
+    with ShardWriter(path, config.pair_shape, config.compression, attrs) as writer:
+        for k, item_id in task.items:
+            t0 = clock()
+            try:
+                y, kind = job.sources[k].load(item_id, ctx)
+                y = fit_to_sensor(y, config.sensor_shape, config.fit)
+            except InputError as exc:
+                skipped.append({"source": item_id, "split": task.split, "shard": task.name, "reason": str(exc)})
+                if on_sample is not None:
+                    on_sample(config.samples_per_source)
+                continue
+            timings["scene"] += clock() - t0
+            written.append(item_id)
+            for c in range(config.crops_per_image):
+                t0 = clock()
+                draw = draw_crop(config, config.seed, item_id, c, kind)
+                codes, sums = crop_levels(y, draw, config.lux_step, config.binning)
+                image = display_image(sums, config.binning, config.lux_step, white)
+                timings["illuminance"] += clock() - t0
+                t0 = clock()
+                image_index = writer.add_image(image)
+                timings["write"] += clock() - t0
+                for window_s, window_us in zip(config.windows_s, config.windows_us, strict=True):
+                    t0 = clock()
+                    seed = sample_seed(config.seed, item_id, c, window_us)
+                    counts, n_sat = to_uint16(sampler.sample(codes, window_us, seed))
+                    t1 = clock()
+                    writer.append(counts, draw.box, source=item_id, crop_index=c, window_s=window_s,
+                                  window_us=window_us, lux_scale=white, max_lux=draw.scale_lux,
+                                  contrast_gamma=draw.gamma, seed=seed, saturated=n_sat, image_index=image_index)
+                    timings["sampling"] += t1 - t0
+                    timings["write"] += clock() - t1
+                    saturated += n_sat
+                    if on_sample is not None:
+                        on_sample(1)
+        t0 = clock()
+        writer.close()
+        n = writer.n
+        timings["write"] += clock() - t0
+    t0 = clock()
+    digest = file_sha256(path)
+    timings["checksum"] = clock() - t0
+    return {"name": task.name, "file": task.file, "split": task.split, "samples": n, "sources": written,
+            "bytes": path.stat().st_size, "sha256": digest, "saturated_bins": saturated, "skipped": skipped,
+            "timings": timings}
+
+
+def _run_job(job: _Job) -> dict:
+    return generate_shard(job)
+
+
+# --------------------------------------------------------------------------------------
+# the output folder
+# --------------------------------------------------------------------------------------
+def _write_json(path: Path, data) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")
+    try:
+        tmp.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n", encoding="utf-8")
+        os.replace(tmp, path)
+    except OSError as exc:
+        try:
+            tmp.unlink()
+        except OSError:
+            pass
+        raise OutputError(f"cannot write {path}: {exc}") from None
+
+
+def _read_json(path: Path):
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+
+
+class _Lock:
+    """An exclusive lock on the output folder (one run at a time)."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.fh = None
+
+    def __enter__(self):
+        try:
+            import fcntl
+        except ImportError:  # pragma: no cover - not POSIX
+            return self
+        try:
+            self.fh = open(self.path, "a+")
+            fcntl.flock(self.fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            self.fh.close()
+            raise OutputError(f"another evnoise make-dataset run is writing to {self.path.parent.parent}") from None
+        except OSError as exc:
+            raise OutputError(f"cannot lock {self.path}: {exc}") from None
+        return self
+
+    def __exit__(self, *exc):
+        if self.fh is not None:
+            self.fh.close()
+        return False
+
+
+def _prepare_folder(root: Path, overwrite: bool) -> None:
+    if root.exists() and not root.is_dir():
+        raise OutputError(f"output {root} exists and is not a folder")
+    if not root.exists():
+        parent = root.parent if str(root.parent) else Path(".")
+        if not parent.is_dir():
+            raise OutputError(f"cannot create output folder {root}: {parent} does not exist")
+        try:
+            root.mkdir()
+        except OSError as exc:
+            raise OutputError(f"cannot create output folder {root}: {exc.strerror or exc}") from None
+    if not os.access(root, os.W_OK | os.X_OK):
+        raise OutputError(f"output folder {root} is not writable")
+    ours = {MANIFEST, SHARDS_DIR, PROGRESS_DIR}
+    others = [p.name for p in root.iterdir() if p.name not in ours]
+    has_dataset = (root / MANIFEST).exists() or (root / PROGRESS_DIR).exists()
+    if others and not has_dataset:
+        raise OutputError(f"output folder {root} is not empty and holds no evnoise dataset "
+                          f"({', '.join(sorted(others)[:3])}{', ...' if len(others) > 3 else ''}); "
+                          "choose a new or empty folder")
+    if overwrite and has_dataset:
+        _clear(root)
+
+
+def _clear(root: Path) -> None:
+    """Remove an existing dataset's files (only evnoise's own)."""
+    (root / MANIFEST).unlink(missing_ok=True)
+    shards = root / SHARDS_DIR
+    if shards.is_dir():
+        for p in shards.iterdir():
+            if p.suffix == ".h5" or p.name.endswith(".tmp"):
+                p.unlink()
+    progress = root / PROGRESS_DIR
+    if progress.is_dir():
+        shutil.rmtree(progress)
+
+
+def _stored_seed(root: Path):
+    for path in (root / MANIFEST, root / PROGRESS_DIR / "plan.json"):
+        data = _read_json(path) if path.exists() else None
+        if isinstance(data, dict) and isinstance(data.get("config"), dict) and "seed" in data["config"]:
+            return data["config"]["seed"]
+    return None
+
+
+def _existing_records(root: Path, plan: Plan) -> dict:
+    """Records of shards finished earlier (from the manifest or the progress folder), unverified."""
+    records = {}
+    manifest = _read_json(root / MANIFEST) if (root / MANIFEST).exists() else None
+    progress = root / PROGRESS_DIR
+    plan_file = _read_json(progress / "plan.json") if (progress / "plan.json").exists() else None
+    for state in (manifest, plan_file):
+        if state is None:
+            continue
+        if not isinstance(state, dict) or state.get("fingerprint") != plan.fingerprint:
+            raise OutputError(_mismatch(root, state, plan))
+    if manifest is not None:
+        for entry in manifest.get("shards", []):
+            records[entry["name"]] = {**entry, "skipped": [s for s in manifest.get("skipped", [])
+                                                          if s.get("shard") == entry["name"]]}
+    if progress.is_dir():
+        for p in sorted(progress.glob("*.done.json")):
+            rec = _read_json(p)
+            if isinstance(rec, dict) and "name" in rec:
+                records[rec["name"]] = rec
+    return records
+
+
+def _mismatch(root: Path, state, plan: Plan) -> str:
+    what = "a different dataset"
+    if isinstance(state, dict) and isinstance(state.get("config"), dict):
+        new = plan.config.to_dict()
+        diff = sorted(k for k in set(new) | set(state["config"]) if new.get(k) != state["config"].get(k))
+        if state.get("evnoise_version") != __version__:
+            diff.append(f"evnoise version {state.get('evnoise_version')} -> {__version__}")
+        if state.get("sources") != [s.spec() for s in plan.sources]:
+            diff.append("sources")
+        if diff:
+            what = f"a dataset made with different options (differs in: {', '.join(diff)})"
+        else:
+            what = "a dataset of a different list of source images"
+    return (f"output folder {root} already holds {what}; pass --overwrite (overwrite=True) to replace it, "
+            "or choose another folder")
+
+
+def _verified(root: Path, rec: dict) -> bool:
+    path = root / rec["file"]
+    try:
+        if not path.is_file() or path.stat().st_size != rec["bytes"]:
+            return False
+        return file_sha256(path) == rec["sha256"]
+    except OSError:
+        return False
+
+
+# --------------------------------------------------------------------------------------
+# the job
+# --------------------------------------------------------------------------------------
+@dataclass
+class DatasetResult:
+    """What :func:`make_dataset` did."""
+
+    path: Path
+    manifest: dict
+    generated: list = field(default_factory=list)  # shard names made by this run
+    reused: list = field(default_factory=list)  # shard names kept (verified by checksum)
+    skipped: list = field(default_factory=list)  # skipped sources with reasons
+    seconds: float = 0.0
+    timings: dict = field(default_factory=dict)  # seconds per phase, summed over generated shards
+    workers: int = 1
+    sampler: str = ""
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.manifest["totals"]["samples"])
+
+
+def _default_threads(workers: int) -> int:
+    return max(1, (os.cpu_count() or 1) // max(1, workers))
+
+
+def make_dataset(sources, out_dir, config: PairConfig | None = None, *, workers: int | None = None,
+                 scheduler=None, threads: int | None = None, progress: bool = False,
+                 overwrite: bool = False) -> DatasetResult:
+    """Generate (or resume, or verify) a dataset of count/image pairs.
+
+    Parameters
+    ----------
+    sources : source, path, or list of them
+        Scene sources: :class:`~.sources.FolderSource`, :class:`~.sources.FilesSource`,
+        :class:`~.sources.PackagePhotos`, :class:`~.sources.DeadLeaves`, or folders / image
+        files by path.
+    out_dir : str or os.PathLike
+        Output folder (created; must be new, empty, or hold this same job to resume it).
+    config : PairConfig, optional
+        Dataset options (default :class:`PairConfig()`). With ``seed=None`` the seed of an
+        interrupted run in ``out_dir`` is reused, else a fresh one is drawn (and stored).
+    workers : int, optional
+        Local worker processes (default: the CPU count, at most the number of shards to make);
+        1 runs in this process. Never changes the output. Workers are spawned: a script that
+        uses them needs the usual ``if __name__ == "__main__":`` guard.
+    scheduler : str or distributed.Client, optional
+        Run the shards on a Dask distributed cluster (address like ``tcp://host:8786``, or a
+        client). Workers must see ``out_dir`` and the source files at the same paths (a shared
+        file system). Needs ``pip install 'evnoise[dask]'``. Never changes the output.
+    threads : int, optional
+        Threads per worker for the event simulator and the general count sampler (default: the
+        CPU count divided by ``workers``; 1 on Dask). Never changes the output.
+    progress : bool
+        Show a progress bar (tqdm) of pairs made.
+    overwrite : bool
+        Replace a dataset of different options in ``out_dir``.
+
+    Returns
+    -------
+    DatasetResult
+
+    Raises
+    ------
+    InputError
+        No sources, an empty folder, duplicate item ids.
+    OutputError
+        ``out_dir`` unwritable, not empty, locked by another run, or holding another dataset.
+    ParameterError
+        Invalid options.
+    """
+    started = time.perf_counter()
+    config = PairConfig() if config is None else config
+    if not isinstance(config, PairConfig):
+        raise ParameterError(f"config must be a PairConfig, got {type(config).__name__}")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
+        raise ParameterError(f"workers must be an integer >= 1, got {workers!r}")
+    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
+        raise ParameterError(f"threads must be an integer >= 1, got {threads!r}")
+    root = Path(out_dir)
+    sources = resolve_sources(sources)
+    if config.params is None:  # resolve the preset once: every worker uses these exact parameters
+        config = config.replace(params=config.noise_params)
+    if config.seed is None:
+        stored = None if overwrite or not root.is_dir() else _stored_seed(root)
+        seed = stored if stored is not None else secrets.randbelow(1 << 32)
+        if stored is None:
+            log.info("no seed given; using seed %d (stored in the manifest)", seed)
+        config = config.replace(seed=seed)
+    plan = plan_dataset(sources, config)  # lists the sources: fails before anything is written
+    _prepare_folder(root, overwrite)
+    progress_dir = root / PROGRESS_DIR
+    progress_dir.mkdir(exist_ok=True)
+    with _Lock(progress_dir / "lock"):
+        records = _existing_records(root, plan)
+        (root / SHARDS_DIR).mkdir(exist_ok=True)
+        valid, reused = {}, []
+        for task in plan.shards:
+            rec = records.get(task.name)
+            if rec is not None and _verified(root, rec):
+                valid[task.name] = rec
+                reused.append(task.name)
+            elif rec is not None:
+                log.warning("shard %s is missing or does not match its checksum; making it again", task.file)
+        todo = [t for t in plan.shards if t.name not in valid]
+        if not todo and (root / MANIFEST).exists():
+            shutil.rmtree(progress_dir, ignore_errors=True)
+            manifest = _read_json(root / MANIFEST)
+            return DatasetResult(root, manifest, [], reused, list(manifest.get("skipped", [])),
+                                 time.perf_counter() - started, {}, 0, manifest.get("sampler", ""))
+        (root / MANIFEST).unlink(missing_ok=True)  # from here on the dataset is incomplete
+        _write_json(progress_dir / "plan.json", plan.record())
+        for name, rec in valid.items():  # a manifest's records become progress records
+            if not (progress_dir / f"{name}.done.json").exists():
+                _write_json(progress_dir / f"{name}.done.json", rec)
+        for p in (root / SHARDS_DIR).iterdir():
+            if p.name.startswith(".") and p.name.endswith(".tmp"):
+                p.unlink(missing_ok=True)  # left by an interrupted run (we hold the lock)
+        if reused:
+            log.info("resuming: %d shard(s) verified and kept, %d to make", len(reused), len(todo))
+        bar = None
+        if progress:
+            from tqdm.auto import tqdm
+
+            done = sum(len(t.items) for t in plan.shards if t.name in valid) * config.samples_per_source
+            bar = tqdm(total=plan.n_samples, initial=done, unit="pair", desc="make-dataset", smoothing=0.1)
+        timings: dict = {}
+        plan_items = {t.name: t.items for t in plan.shards}
+        in_process = scheduler is None and (workers == 1 or (workers is None and len(todo) <= 1))
+
+        def finished(rec: dict) -> None:
+            for s in rec["skipped"]:
+                log.warning("skipped %s: %s", s["source"], s["reason"])
+            for key, value in rec.pop("timings", {}).items():
+                timings[key] = timings.get(key, 0.0) + value
+            _write_json(progress_dir / f"{rec['name']}.done.json", rec)
+            valid[rec["name"]] = rec
+            if bar is not None and not in_process:
+                bar.update(len(plan_items[rec["name"]]) * config.samples_per_source)
+
+        try:
+            if scheduler is not None:
+                if workers is not None:
+                    log.info("--workers is not used with a Dask scheduler")
+                n_workers = _run_dask(root, plan, todo, scheduler, threads or 1, finished)
+            elif in_process:
+                n_workers = 1
+                thr = threads or _default_threads(1)
+                step = bar.update if bar is not None else None
+                for task in todo:
+                    finished(generate_shard(_Job(os.fspath(root), plan.config, plan.sources, task, thr), step))
+            else:
+                n_workers = min(workers or (os.cpu_count() or 1), len(todo))
+                _run_pool(root, plan, todo, n_workers, threads or _default_threads(n_workers), finished)
+        finally:
+            if bar is not None:
+                bar.close()
+        manifest = _manifest(plan, valid)
+        _write_json(root / MANIFEST, manifest)
+        shutil.rmtree(progress_dir, ignore_errors=True)
+    from .pairs import CountSampler
+
+    return DatasetResult(root, manifest, [t.name for t in todo], reused, manifest["skipped"],
+                         time.perf_counter() - started, timings, n_workers,
+                         CountSampler(plan.config).method)
+
+
+def _start_method() -> str:
+    """``"spawn"`` (clean workers, safe with threads), unless ``__main__`` names a file that a spawned
+    worker cannot re-import (a script read from stdin, ``python -``): then ``"fork"`` where available.
+
+    As with any spawn-based pool, a Python script that calls :func:`make_dataset` with workers
+    must guard its top level with ``if __name__ == "__main__":``.
+    """
+    import multiprocessing
+    import sys
+
+    main_file = getattr(sys.modules.get("__main__"), "__file__", None)
+    if main_file is not None and not os.path.isfile(main_file) and "fork" in multiprocessing.get_all_start_methods():
+        return "fork"
+    return "spawn"
+
+
+def _run_pool(root, plan, todo, n_workers, threads, finished) -> None:
+    import multiprocessing
+    from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+
+    ctx = multiprocessing.get_context(_start_method())
+    jobs = [_Job(os.fspath(root), plan.config, plan.sources, t, threads) for t in todo]
+    pool = ProcessPoolExecutor(max_workers=n_workers, mp_context=ctx)
+    try:
+        pending = {pool.submit(_run_job, job) for job in jobs}
+        while pending:
+            done, pending = wait(pending, return_when=FIRST_EXCEPTION)
+            for fut in sorted(done, key=lambda f: f.exception() is not None):
+                finished(fut.result())  # re-raises a worker's exception
+    except BaseException:
+        pool.shutdown(wait=True, cancel_futures=True)
+        raise
+    pool.shutdown(wait=True)
+
+
+def _run_dask(root, plan, todo, scheduler, threads, finished) -> int:
+    try:
+        from distributed import Client, as_completed
+    except ImportError:
+        raise ParameterError("--scheduler needs Dask: pip install 'evnoise[dask]'") from None
+    own = not isinstance(scheduler, Client)
+    try:
+        client = Client(scheduler, set_as_default=False) if own else scheduler
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise OutputError(f"cannot connect to the Dask scheduler {scheduler!r}: {exc}") from None
+    try:
+        futures = [client.submit(_run_job, _Job(os.fspath(root), plan.config, plan.sources, t, threads),
+                                 key=f"evnoise-shard-{plan.fingerprint[:16]}-{t.name}", retries=1)
+                   for t in todo]
+        try:
+            for fut in as_completed(futures, loop=client.loop):
+                finished(fut.result())
+        except BaseException:
+            client.cancel(futures)
+            raise
+        n = len(client.scheduler_info().get("workers", {})) or 1
+    finally:
+        if own:
+            client.close()
+    return n
+
+
+def _manifest(plan: Plan, records: dict) -> dict:
+    config = plan.config
+    shards, skipped = [], []
+    splits = {s: {"sources_planned": plan.split_sources[s], "sources": 0, "samples": 0, "shards": 0}
+              for s in SPLITS}
+    saturated = 0
+    for task in plan.shards:
+        rec = records[task.name]
+        shards.append({k: rec[k] for k in ("name", "file", "split", "samples", "sources", "bytes", "sha256",
+                                             "saturated_bins")})
+        skipped.extend(rec["skipped"])
+        sp = splits[task.split]
+        sp["sources"] += len(rec["sources"])
+        sp["samples"] += rec["samples"]
+        sp["shards"] += 1
+        saturated += rec["saturated_bins"]
+    h, w = config.pair_shape
+    params = config.noise_params
+    trials = max(config.windows_us) * 1e-6 * params.trial_rate_hz
+    max_count = config.binning**2 * (math.floor(trials) + 1)
+    from .pairs import CountSampler
+
+    return {
+        **plan.record(),
+        "sampler": CountSampler(config).method,
+        "pair": {
+            "counts": {"shape": [2, h, w], "dtype": "uint16", "order": ["ON", "OFF"],
+                       "binning": config.binning},
+            "image": {"shape": [h, w], "dtype": "float32", "encoding": "srgb", "range": [0.0, 1.0],
+                      "white_lux": config.display_white_lux},
+            "lux_levels": LEVELS,
+        },
+        "overflow": {"max_possible_count": max_count, "count_max": COUNT_MAX,
+                     "policy": "binned counts above 65535 saturate at 65535; the per-pair column 'saturated' "
+                               "counts them"},
+        "splits": splits,
+        "shards": shards,
+        "skipped": skipped,
+        "totals": {"samples": sum(s["samples"] for s in splits.values()),
+                   "sources": sum(s["sources"] for s in splits.values()),
+                   "sources_planned": sum(plan.split_sources.values()),
+                   "skipped_sources": len(skipped), "saturated_bins": saturated,
+                   "bytes": sum(s["bytes"] for s in shards), "shards": len(shards)},
+    }
+
+
+def load_manifest(path) -> tuple:
+    """``(root, manifest)`` of a dataset folder (or its ``manifest.json``); InputError if incomplete."""
+    path = Path(path)
+    root = path.parent if path.name == MANIFEST and path.is_file() else path
+    if not root.is_dir():
+        raise InputError(f"dataset not found: {path}")
+    manifest_path = root / MANIFEST
+    if not manifest_path.is_file():
+        if (root / PROGRESS_DIR).exists():
+            raise InputError(f"dataset {root} is incomplete (an interrupted make-dataset run); run the same "
+                             "command again to resume it")
+        raise InputError(f"{root} is not an evnoise dataset (no {MANIFEST})")
+    data = _read_json(manifest_path)
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        raise InputError(f"{manifest_path} is not an evnoise pairs manifest")
+    if int(data.get("format_version", 0)) > FORMAT_VERSION:
+        raise InputError(f"{manifest_path} has format version {data.get('format_version')}; this evnoise "
+                         f"reads up to {FORMAT_VERSION} (upgrade evnoise)")
+    return root, data
