@@ -119,12 +119,39 @@ def _log_p_poisson(lam, eps, bias, shape, skip_below=None):
         table = _table_for(c, float(bias.flat[0]))
         out[todo] = table.evaluate(np.ascontiguousarray(lam_b[todo]))
     else:
-        c_b = np.ascontiguousarray(np.broadcast_to(np.expm1(eps), shape)).ravel()[todo]
+        c_b = np.ascontiguousarray(np.broadcast_to(np.expm1(eps), shape)).ravel()
+        if bias.size == 1 or np.all(bias == bias.flat[0]):
+            # per-pixel thresholds (mismatch) on shared lam levels: tabulate once per level
+            todo &= ~_grouped(lam_b, c_b, float(bias.flat[0]), todo, out)
         b_b = np.ascontiguousarray(np.broadcast_to(bias, shape), dtype=np.float64).ravel()[todo]
-        sub = np.empty(c_b.shape)
-        log_event_probability_exact_array(np.ascontiguousarray(lam_b[todo]), c_b, b_b, sub)
+        sub = np.empty(b_b.shape)
+        log_event_probability_exact_array(np.ascontiguousarray(lam_b[todo]), np.ascontiguousarray(c_b[todo]),
+                                          b_b, sub)
         out[todo] = sub
     return out.reshape(shape)
+
+
+def _grouped(lam, c, b, todo, out) -> np.ndarray:
+    """Fill ``out`` (log p) where lam repeats enough for the grouped path; returns the mask of done."""
+    from ._kernels.poisson import GROUPED_MAX_LAM, event_probability_grouped
+
+    done = np.zeros(lam.shape, dtype=bool)
+    cand = np.flatnonzero(todo & (lam > 0) & (lam <= GROUPED_MAX_LAM))
+    if cand.size < _TABLE_MIN_SIZE:
+        return done
+    levels, inverse = np.unique(lam[cand], return_inverse=True)
+    if levels.size * 8 > cand.size:
+        return done  # mostly distinct lam values: nothing to share
+    order = np.argsort(inverse, kind="stable")
+    starts = np.searchsorted(inverse[order], np.arange(levels.size + 1))
+    p = np.empty(cand.size)
+    event_probability_grouped(levels, starts.astype(np.int64), order.astype(np.int64),
+                              np.ascontiguousarray(c[cand]), b, p)
+    good = p > 1e-280
+    with np.errstate(divide="ignore"):
+        out[cand[good]] = np.log(p[good])
+    done[cand[good]] = True
+    return done
 
 
 def log_event_probability(lam, eps, bias=0.0, *, method: str = "poisson") -> np.ndarray:

@@ -189,3 +189,20 @@ def test_log_and_linear_agree(lam, eps, b):
 def test_gaussian_bounded(lam, eps, b):
     p = float(ev.event_probability(lam, eps, b, method="gaussian"))
     assert 0.0 <= p <= 0.5
+
+
+def test_per_pixel_thresholds_on_shared_levels_match_the_windowed_sum():
+    """Threshold-mismatch maps on a few lam levels use per-level tables; same values as element-wise."""
+    from evnoise._kernels.poisson import log_event_probability_exact_array
+
+    rng = np.random.default_rng(5)
+    n = 20000
+    lam = rng.choice(np.concatenate([np.geomspace(1e-6, 150, 40), [0.0, 500.0]]), n)
+    eps = rng.normal(0.9, 0.2, n).clip(1e-3)
+    for b in (0.0, 1.7, 300.0):
+        got = ev.log_event_probability(lam, eps, b)
+        ref = np.empty(n)
+        log_event_probability_exact_array(lam, np.expm1(eps), np.full(n, b), ref)
+        finite = np.isfinite(ref)
+        assert np.array_equal(finite, np.isfinite(got))
+        assert np.all(np.abs(got[finite] - ref[finite]) <= 1e-12 + 1e-14 * np.abs(ref[finite]))

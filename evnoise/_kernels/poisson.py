@@ -283,3 +283,42 @@ def log_event_probability_exact_array(lam, c, b, out):
     """Elementwise :func:`log_event_probability_exact` over equal-length 1-D arrays."""
     for i in prange(lam.shape[0]):
         out[i] = log_event_probability_exact(lam[i], c[i], b[i])
+
+
+GROUPED_MAX_LAM = 200.0  # above this the per-pixel loop of the grouped path costs more than the windowed sum
+
+
+@kernel(parallel=True)
+def event_probability_grouped(lam_levels, starts, order, c, b, out):
+    """``p`` for pixels that share a few ``lam`` levels but each have their own threshold.
+
+    Pixels ``order[starts[g]:starts[g + 1]]`` all have ``lam = lam_levels[g]`` (``0 < lam <=``
+    :data:`GROUPED_MAX_LAM`) and thresholds ``c[i] = expm1(eps_i)``. Per level, ``pmf(m)`` and
+    ``P(N > k)`` are tabulated once (the tails summed downwards, so they only grow); per pixel
+    ``p = sum_m pmf(m) P(N > m + floor(c_i (m + b)))`` over ``m <= lam + 12 sqrt(lam) + 20``,
+    beyond which the terms are below 1e-30 of the sum. Linear arithmetic: results below about
+    1e-280 lose relative accuracy and should be recomputed with the windowed sum.
+    """
+    for g in prange(lam_levels.shape[0]):
+        lam = lam_levels[g]
+        lo = starts[g]
+        hi = starts[g + 1]
+        c_max = 0.0
+        for q in range(lo, hi):
+            c_max = max(c_max, c[order[q]])
+        m_top = int(math.floor(lam + 12.0 * math.sqrt(lam) + 20.0))
+        k_top = m_top + int(math.floor(c_max * (m_top + b))) + 1
+        pmf = np.empty(k_top + 2)
+        for k in range(k_top + 2):
+            pmf[k] = math.exp(log_pmf(float(k), lam))
+        sf = np.empty(k_top + 1)
+        sf[k_top] = math.exp(log_sf(float(k_top), lam))
+        for k in range(k_top - 1, -1, -1):
+            sf[k] = sf[k + 1] + pmf[k + 1]
+        for q in range(lo, hi):
+            i = order[q]
+            ci = c[i]
+            s = 0.0
+            for m in range(m_top + 1):
+                s += pmf[m] * sf[m + int(math.floor(ci * (m + b)))]
+            out[i] = s
