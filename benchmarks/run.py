@@ -446,6 +446,9 @@ def main(argv=None):
     bench_naive(size, report, params)
     bench_end_to_end(size, report, params)
     bench_gaussian_error(size, args.out, report)
+    from bench_dataset import bench_dataset
+
+    bench_dataset(size, args.out, report)
     mode = "--tiny" if args.tiny else "--quick" if args.quick else ""
     head = [
         "# evnoise benchmark report",
