@@ -17,7 +17,7 @@ from .._version import __version__
 from ..errors import EvnoiseError
 
 # subcommand modules, in the order they appear in --help
-COMMANDS = ["simulate", "make_dataset", "calibrate", "train", "reconstruct", "info"]
+COMMANDS = ["simulate", "make_dataset", "calibrate", "train", "reconstruct", "separate", "info"]
 
 log = logging.getLogger("evnoise")
 

@@ -1,0 +1,61 @@
+"""``evnoise separate IN.h5 --out signal.h5 --noise-out noise.h5``: split signal from noise events."""
+
+from __future__ import annotations
+
+
+def register(subparsers):
+    p = subparsers.add_parser(
+        "separate",
+        help="split an events.h5 file into signal and noise events (density or background-activity filter)",
+        description="Label every event of an events.h5 recording as signal (caused by an intensity change) or "
+        "noise with a spatio-temporal correlation filter, streaming the file, and write the two parts to "
+        "events.h5 files. density: YNoise-style event density in a (2R+1)x(2R+1) neighbourhood and the time "
+        "window [t - WINDOW, t + LOOKAHEAD] (signal if >= THRESHOLD other events); activity: the background-"
+        "activity filter (signal if another pixel within R fired in the last WINDOW).",
+    )
+    p.add_argument("events", help="input events.h5 (with width/height attributes)")
+    p.add_argument("--out", default=None, help="events.h5 for the signal events")
+    p.add_argument("--noise-out", default=None, help="events.h5 for the noise events")
+    p.add_argument("--method", choices=("density", "activity"), default="density", help="filter (default density)")
+    p.add_argument("--radius", type=int, default=None, metavar="PX",
+                   help="neighbourhood half-side in pixels (default 2 for density, 1 for activity)")
+    p.add_argument("--window-us", type=int, default=None, metavar="US",
+                   help="time window back from each event in microseconds (default 5000)")
+    p.add_argument("--lookahead-us", type=int, default=None, metavar="US",
+                   help="density: time window forward in microseconds (default 5000; 0 = causal)")
+    p.add_argument("--threshold", type=int, default=None, metavar="N",
+                   help="density: minimum number of other events in the window (default 3)")
+    p.add_argument("--polarity", choices=("any", "same"), default=None,
+                   help="density: count events of any polarity or only the event's own (default same)")
+    p.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from ..errors import ParameterError
+    from ..separation import separate_file
+
+    params = {}
+    if args.radius is not None:
+        params["radius_px"] = args.radius
+    if args.window_us is not None:
+        params["window_us"] = args.window_us
+    density_only = {"lookahead_us": args.lookahead_us, "threshold": args.threshold, "polarity": args.polarity}
+    for key, value in density_only.items():
+        if value is not None:
+            if args.method != "density":
+                flag = "--" + key.replace("_", "-")
+                raise ParameterError(f"{flag} applies to --method density only")
+            params[key] = value
+    if args.out is None and args.noise_out is None:
+        raise ParameterError("give --out (signal events) and/or --noise-out (noise events)")
+    res = separate_file(args.events, args.out, args.noise_out, args.method, overwrite=args.overwrite,
+                        progress=not args.quiet, **params)
+    if not args.quiet:
+        n = res["n_events"]
+        share = res["n_signal"] / n if n else 0.0
+        pairs = (("signal", args.out), ("noise", args.noise_out))
+        outs = ", ".join(f"{what} -> {path}" for what, path in pairs if path)
+        print(f"{n:,} events: {res['n_signal']:,} signal ({share:.1%}), {res['n_noise']:,} noise; {outs} "
+              f"[{res['filter']}]")
+    return 0
