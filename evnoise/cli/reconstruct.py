@@ -1,0 +1,113 @@
+"""``evnoise reconstruct events.h5 --model model.pt --out image.png``: image from noise events."""
+
+from __future__ import annotations
+
+import logging
+
+log = logging.getLogger("evnoise")
+
+
+def register(subparsers):
+    p = subparsers.add_parser(
+        "reconstruct",
+        help="reconstruct a static image from the noise events of an events.h5 file",
+        description="Count the ON/OFF events of a window, bin them as in training, run the trained "
+        "U-Net and write an 8-bit grayscale PNG. With --step, a moving window writes one PNG per "
+        "position (OUT_0000.png, OUT_0001.png, ...).",
+    )
+    p.add_argument("events", help="events.h5 (DSEC layout: /events/{t,x,y,p}, /ms_to_idx)")
+    p.add_argument("--model", required=True, help="checkpoint written by `evnoise train`")
+    p.add_argument("--out", required=True, help="output PNG")
+    p.add_argument("--window", type=float, default=None, metavar="S",
+                   help="integration window in seconds (default: the model's training window)")
+    p.add_argument("--t-start", type=float, default=0.0, metavar="S",
+                   help="start of the window in seconds (default 0)")
+    p.add_argument("--step", type=float, default=None, metavar="S",
+                   help="moving window: advance by S seconds per frame")
+    p.add_argument("--frames", type=int, default=None, help="with --step or --fps: at most this many frames")
+    p.add_argument("--binning", type=int, default=None, help="check that the model uses this binning")
+    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    p.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    video = p.add_argument_group("video mode (--fps): the static background behind moving things")
+    video.add_argument("--fps", type=float, default=None, metavar="F",
+                       help="write one frame per 1/F seconds into the folder --out (frame_NNNNN.png, "
+                       "overlay_NNNNN.png, frames.csv), from the noise events of pixels without motion over the "
+                       "last --window seconds")
+    video.add_argument("--separator", choices=("density", "activity", "none"), default="density",
+                       help="signal/noise separator of the video mode (default density; none: no motion mask)")
+    video.add_argument("--no-overlay", action="store_true", help="video mode: do not write the overlay PNGs")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    import time
+    from pathlib import Path
+
+    from ..errors import OutputError, ParameterError
+    from ..reconstruct.imaging import write_png
+    from ..reconstruct.infer import Reconstructor, counts_from_h5, h5_duration_s
+
+    if args.fps is not None:
+        if args.step is not None:
+            raise ParameterError("--step and --fps are two different moving-window modes; give one")
+        from ..motion import reconstruct_video
+
+        res = reconstruct_video(args.events, args.model, args.out, fps=args.fps, window_s=args.window,
+                                separator=None if args.separator == "none" else args.separator,
+                                binning=args.binning, t_start_s=args.t_start, max_frames=args.frames,
+                                overlay=not args.no_overlay, overwrite=args.overwrite, threads=args.threads,
+                                progress=not args.quiet)
+        if not args.quiet:
+            print(f"wrote {res['n_frames']} frames to {res['out_dir']} ({res['fps']:g} fps, window "
+                  f"{res['window_s']:g} s, {res['mean_masked']:.1%} of the pixels masked on average)")
+        return 0
+    out = Path(args.out)
+    if out.suffix.lower() != ".png":
+        raise ParameterError(f"--out must be a .png file, got {out}")
+    if not (out.parent if str(out.parent) else Path(".")).is_dir():
+        raise OutputError(f"output folder {out.parent} does not exist")
+    if args.step is not None and args.step <= 0:
+        raise ParameterError(f"--step must be > 0 seconds, got {args.step}")
+    if args.frames is not None and args.frames < 1:
+        raise ParameterError(f"--frames must be >= 1, got {args.frames}")
+    duration = h5_duration_s(args.events)  # checks the events file first: cheap, clear errors
+    rec = Reconstructor(args.model, threads=args.threads)
+    if args.binning is not None and args.binning != rec.binning:
+        raise ParameterError(
+            f"the model was trained on {rec.binning}x{rec.binning}-binned counts; "
+            f"--binning {args.binning} does not match"
+        )
+    window = args.window if args.window is not None else rec.spec.window_s
+    if window is None:
+        raise ParameterError("the model does not record its training window: give --window")
+    starts = [args.t_start]
+    if args.step is not None:
+        starts = []
+        t = args.t_start
+        while t + window <= duration + 1e-6 and (args.frames is None or len(starts) < args.frames):
+            starts.append(t)
+            t += args.step
+        if not starts:
+            raise ParameterError(f"the stream ({duration:.3g} s) is shorter than one window of {window:g} s")
+    if args.step is None:
+        targets = [out]
+    else:
+        targets = [out.with_name(f"{out.stem}_{k:04d}{out.suffix}") for k in range(len(starts))]
+    for path in targets:
+        if path.exists() and not args.overwrite:
+            raise OutputError(f"{path} exists (use --overwrite)")
+    times = []
+    for t0, path in zip(starts, targets, strict=True):
+        counts, used = counts_from_h5(args.events, t_start_s=t0, window_s=window)
+        tic = time.perf_counter()
+        image = rec.predict(counts, used)
+        ms = 1000 * (time.perf_counter() - tic)
+        times.append(ms)
+        write_png(path, image)
+        log.info("%s: window %.3g s from %.3g s, %d events, %dx%d -> %dx%d in %.0f ms", path, used, t0,
+                 int(counts.sum()), counts.shape[2], counts.shape[1], image.shape[1], image.shape[0], ms)
+    if not args.quiet:
+        what = targets[0] if len(targets) == 1 else f"{len(targets)} frames {targets[0]} ... {targets[-1]}"
+        print(f"wrote {what} ({image.shape[1]}x{image.shape[0]}, window {window:g} s, "
+              f"U-Net {sum(times) / len(times):.0f} ms per image)")
+    return 0

@@ -1,0 +1,246 @@
+"""Evaluation table: PSNR / SSIM / LPIPS of the U-Net and both baselines on a test set.
+
+Usage (once a dataset exists)::
+
+    python -m evnoise.reconstruct.evaluate DATASET --model model.pt [--split test] \\
+        [--out table.md] [--json results.json] [--figure examples.png] [--no-lpips]
+
+Methods, each on the same pairs:
+
+``unet``            the trained reconstructor
+``ml-inversion``    per-pixel maximum-likelihood illuminance (closed form, ON and OFF jointly,
+                    Gaussian smoothing sigma 0.7 binned pixels), display-encoded like the targets
+``counts-affine``   ON + OFF counts, best affine fit to the target (oracle: uses the target)
+``counts-minmax``   ON + OFF counts stretched to [0, 1] (what a user sees without us)
+
+Reported: mean and standard error over the pairs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import EvnoiseError, InputError, ParameterError
+from .baselines import MLInversion, count_image
+from .metrics import psnr, ssim
+
+__all__ = ["evaluate", "format_table", "comparison_figure", "METHODS"]
+
+METHODS = ("unet", "ml-inversion", "counts-affine", "counts-minmax")
+LABELS = {
+    "unet": "U-Net (evnoise)",
+    "ml-inversion": "ML inversion, closed form (baseline b)",
+    "counts-affine": "count image, affine fit to target (baseline a, oracle)",
+    "counts-minmax": "count image, min-max (baseline a)",
+}
+
+
+def _summary(values):
+    v = np.asarray([x for x in values if x is not None and math.isfinite(x)], dtype=np.float64)
+    if v.size == 0:
+        return None, None
+    sem = float(v.std(ddof=1) / math.sqrt(v.size)) if v.size > 1 else 0.0
+    return float(v.mean()), sem
+
+
+def evaluate(dataset, model=None, *, params=None, max_lux=None, lpips: bool = True, methods=METHODS,
+             smoothing_sigma: float = 0.7, max_items: int | None = None, keep_predictions: int = 0,
+             progress: bool = False) -> dict:
+    """Metrics of every method on every pair of ``dataset``.
+
+    Parameters
+    ----------
+    dataset : pair dataset
+        Test pairs (see :mod:`evnoise.reconstruct.data`).
+    model : path or Reconstructor, optional
+        Checkpoint of the U-Net (needed for ``"unet"``).
+    params, max_lux : optional
+        Noise model and white level for the ML baseline (default: the dataset's ``params`` and
+        ``max_lux`` attributes, then the checkpoint's ``max_lux``). A pair with a
+        ``"lux_scale"`` (lux of image value 1) uses that instead of ``max_lux``.
+    lpips : bool
+        Also compute LPIPS (needs torch and the installed weights).
+    smoothing_sigma : float or sequence of float
+        Gaussian smoothing (binned pixels) of the ML baseline; several values give one row
+        each (``"ml-inversion@<sigma>"``).
+    keep_predictions : int
+        Keep the outputs of the first this-many pairs (for :func:`comparison_figure`).
+
+    Returns
+    -------
+    dict
+        ``{"n": int, "metrics": {method: {"psnr": (mean, sem), "ssim": ..., "lpips": ...}},
+        "per_item": [...], "seconds": {method: s}, "examples": [...]}``.
+    """
+    from .infer import Reconstructor
+
+    methods = tuple(methods)
+    unknown = set(methods) - set(METHODS)
+    if unknown:
+        raise ParameterError(f"unknown method(s) {sorted(unknown)}; choose from {METHODS}")
+    net = None
+    if "unet" in methods:
+        if model is None:
+            raise ParameterError("the 'unet' method needs a model")
+        net = model if isinstance(model, Reconstructor) else Reconstructor(model)
+    inverter = None
+    if "ml-inversion" in methods:
+        params = params if params is not None else getattr(dataset, "params", None)
+        if max_lux is None:
+            max_lux = getattr(dataset, "max_lux", None)
+        if max_lux is None and net is not None:
+            max_lux = net.spec.max_lux
+        if params is None or max_lux is None:
+            raise ParameterError(
+                "the ML-inversion baseline needs the noise parameters and max_lux of the dataset "
+                "(give params= / max_lux=, or --preset / --max-lux)"
+            )
+        binning = int(getattr(dataset, "binning", net.spec.binning if net is not None else 2))
+        sigmas = [float(smoothing_sigma)] if np.ndim(smoothing_sigma) == 0 else [float(x) for x in smoothing_sigma]
+        inverter = {("ml-inversion" if len(sigmas) == 1 else f"ml-inversion@{x:g}"):
+                    MLInversion(params, max_lux=float(max_lux), binning=binning, smoothing_sigma=x) for x in sigmas}
+        methods = tuple(m2 for m in methods for m2 in (inverter if m == "ml-inversion" else [m]))
+    lp = None
+    if lpips:
+        from .lpips import LPIPS
+
+        lp = LPIPS()
+
+    n = len(dataset) if max_items is None else min(len(dataset), int(max_items))
+    if n == 0:
+        raise InputError("the test set is empty")
+    per_item, examples = [], []
+    seconds = {m: 0.0 for m in methods}
+    iterator = range(n)
+    if progress:
+        from tqdm.auto import tqdm
+
+        iterator = tqdm(iterator, desc="evaluating", unit="pair")
+    for i in iterator:
+        item = dataset[i]
+        counts = np.asarray(item["counts"])
+        target = np.asarray(item["image"], dtype=np.float64)
+        window = float(item["window_s"])
+        preds = {}
+        for m in methods:
+            t0 = time.perf_counter()
+            if m == "unet":
+                preds[m] = net.predict_binned(counts, window)
+            elif m.startswith("ml-inversion"):
+                # a pair's own white level (make-dataset's "lux_scale") when it has one
+                preds[m] = inverter[m].display(counts, window, max_lux=item.get("lux_scale"))
+            elif m == "counts-affine":
+                preds[m] = count_image(counts, target=target, mode="affine")
+            else:
+                preds[m] = count_image(counts, mode="minmax")
+            seconds[m] += time.perf_counter() - t0
+        row = {"index": i, "source": str(item.get("source", i))}
+        for m, pred in preds.items():
+            row[m] = {"psnr": psnr(pred, target), "ssim": ssim(pred, target),
+                      "lpips": lp.distance(pred, target) if lp is not None else None}
+        per_item.append(row)
+        if len(examples) < keep_predictions:
+            examples.append({"counts": counts, "target": target, "window_s": window, "predictions": preds,
+                             "source": row["source"]})
+    metrics = {}
+    for m in methods:
+        metrics[m] = {k: _summary([r[m][k] for r in per_item]) for k in ("psnr", "ssim", "lpips")}
+    return {"n": n, "metrics": metrics, "per_item": per_item, "seconds": seconds, "examples": examples}
+
+
+def format_table(result: dict, *, title: str | None = None) -> str:
+    """Markdown table of :func:`evaluate`'s result (mean +- standard error)."""
+
+    def cell(v, digits):
+        mean, sem = v
+        return "n/a" if mean is None else f"{mean:.{digits}f} ± {sem:.{digits}f}"
+
+    lines = []
+    if title:
+        lines += [f"**{title}** ({result['n']} pairs)", ""]
+    lines += ["| method | PSNR (dB) ↑ | SSIM ↑ | LPIPS (AlexNet) ↓ |", "|---|---|---|---|"]
+    for m, v in result["metrics"].items():
+        label = LABELS.get(m) or LABELS["ml-inversion"].replace("closed form", f"closed form, sigma {m.split('@')[1]}")
+        lines.append(f"| {label} | {cell(v['psnr'], 2)} | {cell(v['ssim'], 3)} | {cell(v['lpips'], 3)} |")
+    return "\n".join(lines)
+
+
+def comparison_figure(examples, path, *, methods=None) -> Path:
+    """PNG grid: input counts (ON + OFF) / baseline / U-Net / ground truth, one row per pair."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    if not examples:
+        raise InputError("no examples to plot")
+    if methods is None:
+        methods = [m for m in examples[0]["predictions"] if m.startswith("ml-inversion")][:1] + ["unet"]
+    cols = ["counts (ON + OFF)"] + [LABELS.get(m, m).split(" (")[0] for m in methods] + ["ground truth"]
+    cols = [c.replace("ml-inversion@", "ML inversion, sigma ") for c in cols]
+    fig, axes = plt.subplots(len(examples), len(cols), figsize=(2.6 * len(cols), 2.6 * len(examples)), squeeze=False)
+    for r, ex in enumerate(examples):
+        panels = [np.asarray(ex["counts"]).sum(axis=0)] + [ex["predictions"][m] for m in methods] + [ex["target"]]
+        for c, img in enumerate(panels):
+            ax = axes[r, c]
+            ax.imshow(img, cmap="gray", vmin=0 if c else None, vmax=1 if c else None, interpolation="nearest")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if r == 0:
+                ax.set_title(cols[c], fontsize=9)
+        axes[r, 0].set_ylabel(f"{ex['source']} ({ex['window_s']:g} s)", fontsize=8)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m evnoise.reconstruct.evaluate", description=__doc__.split("\n")[0])
+    parser.add_argument("dataset", help="make-dataset folder or .npz pairs file")
+    parser.add_argument("--model", required=True, help="checkpoint written by evnoise train")
+    parser.add_argument("--split", default="test", help="dataset split (default: test)")
+    parser.add_argument("--preset", help="noise preset for the ML baseline (default: the dataset's)")
+    parser.add_argument("--max-lux", type=float, help="white level in lux for the ML baseline (default: the dataset's)")
+    parser.add_argument("--ml-sigma", type=float, action="append",
+                        help="smoothing of the ML baseline in binned pixels (repeatable; default 0.7)")
+    parser.add_argument("--no-lpips", action="store_true", help="skip LPIPS")
+    parser.add_argument("--max-items", type=int, help="evaluate only the first N pairs")
+    parser.add_argument("--out", help="write the markdown table here")
+    parser.add_argument("--json", help="write all numbers (per pair too) here")
+    parser.add_argument("--figure", help="PNG with counts / baseline / U-Net / ground truth for a few pairs")
+    args = parser.parse_args(argv)
+    try:
+        from ..params import load_preset
+        from .data import open_pairs
+
+        data = open_pairs(args.dataset, split=args.split)
+        params = load_preset(args.preset) if args.preset else None
+        result = evaluate(data, args.model, params=params, max_lux=args.max_lux, lpips=not args.no_lpips,
+                          max_items=args.max_items, keep_predictions=4 if args.figure else 0, progress=True,
+                          smoothing_sigma=args.ml_sigma or 0.7)
+        table = format_table(result, title=f"{args.dataset} [{args.split}]")
+        print(table)
+        if args.out:
+            Path(args.out).write_text(table + "\n", encoding="utf-8")
+        if args.json:
+            doc = {k: v for k, v in result.items() if k != "examples"}
+            Path(args.json).write_text(json.dumps(doc, indent=1, default=float), encoding="utf-8")
+        if args.figure:
+            comparison_figure(result["examples"], args.figure)
+    except EvnoiseError as exc:
+        print(f"evnoise: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,119 @@
+"""Image helpers of the reconstructor (NumPy only): display encoding, binning, PNG output.
+
+The reconstruction target is *display-encoded* grayscale: the sRGB transfer function applied
+to ``lux / max_lux`` (what a person sees when ``max_lux`` is shown as white). Counts are binned
+by summing ``binning x binning`` blocks, as in the Noise2Image paper (2 x 2).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError, OutputError, ParameterError
+
+__all__ = [
+    "srgb_encode",
+    "srgb_decode",
+    "lux_to_display",
+    "display_to_lux",
+    "bin_counts",
+    "bin_mean",
+    "write_png",
+]
+
+
+def srgb_encode(linear) -> np.ndarray:
+    """sRGB transfer function (IEC 61966-2-1): linear ``[0, 1]`` -> display ``[0, 1]`` (clipped)."""
+    x = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
+
+
+def srgb_decode(display) -> np.ndarray:
+    """Inverse of :func:`srgb_encode`: display ``[0, 1]`` -> linear ``[0, 1]`` (clipped)."""
+    v = np.clip(np.asarray(display, dtype=np.float64), 0.0, 1.0)
+    return np.where(v <= 0.04045, v / 12.92, np.power((v + 0.055) / 1.055, 2.4))
+
+
+def _check_max_lux(max_lux) -> float:
+    try:
+        value = float(max_lux)
+    except (TypeError, ValueError):
+        raise ParameterError(f"max_lux must be a number (lux shown as white), got {max_lux!r}") from None
+    if not np.isfinite(value) or value <= 0:
+        raise ParameterError(f"max_lux must be finite and > 0 lux, got {max_lux!r}")
+    return value
+
+
+def lux_to_display(lux, max_lux) -> np.ndarray:
+    """Display-encoded image ``srgb_encode(lux / max_lux)`` in ``[0, 1]`` (float64)."""
+    return srgb_encode(np.asarray(lux, dtype=np.float64) / _check_max_lux(max_lux))
+
+
+def display_to_lux(display, max_lux) -> np.ndarray:
+    """Illuminance in lux of a display-encoded image (inverse of :func:`lux_to_display`)."""
+    return srgb_decode(display) * _check_max_lux(max_lux)
+
+
+def _check_binning(binning) -> int:
+    if isinstance(binning, bool) or not isinstance(binning, (int, np.integer)) or binning < 1:
+        raise ParameterError(f"binning must be an integer >= 1, got {binning!r}")
+    return int(binning)
+
+
+def bin_counts(counts, binning: int = 2) -> np.ndarray:
+    """Sum ``binning x binning`` blocks of counts ``(..., H, W)`` -> ``(..., H // b, W // b)`` int64.
+
+    A last row or column that does not fill a whole block is dropped (as a sensor crop would).
+    """
+    b = _check_binning(binning)
+    arr = np.asarray(counts)
+    if arr.ndim < 2:
+        raise InputError(f"counts must have at least 2 dimensions (..., H, W), got shape {arr.shape}")
+    h, w = arr.shape[-2] // b, arr.shape[-1] // b
+    if h == 0 or w == 0:
+        raise InputError(f"counts of shape {arr.shape} are smaller than one {b}x{b} bin")
+    arr = arr[..., : h * b, : w * b].astype(np.int64, copy=False)
+    return arr.reshape(*arr.shape[:-2], h, b, w, b).sum(axis=(-3, -1))
+
+
+def bin_mean(image, binning: int = 2) -> np.ndarray:
+    """Mean over ``binning x binning`` blocks (float64); incomplete last blocks are dropped."""
+    b = _check_binning(binning)
+    arr = np.asarray(image, dtype=np.float64)
+    h, w = arr.shape[-2] // b, arr.shape[-1] // b
+    if h == 0 or w == 0:
+        raise InputError(f"image of shape {arr.shape} is smaller than one {b}x{b} bin")
+    arr = arr[..., : h * b, : w * b]
+    return arr.reshape(*arr.shape[:-2], h, b, w, b).mean(axis=(-3, -1))
+
+
+def write_png(path, image, *, overwrite: bool = True) -> Path:
+    """Write a ``[0, 1]`` grayscale image as an 8-bit PNG, atomically (temporary name, then rename)."""
+    from PIL import Image
+
+    path = Path(path)
+    arr = np.asarray(image, dtype=np.float64)
+    if arr.ndim != 2:
+        raise InputError(f"image must be 2-D (H, W), got shape {arr.shape}")
+    if path.exists() and not overwrite:
+        raise OutputError(f"{path} exists (use overwrite)")
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise OutputError(f"output folder {folder} does not exist")
+    data = np.round(np.clip(np.nan_to_num(arr, nan=0.0), 0.0, 1.0) * 255.0).astype(np.uint8)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+    os.close(fd)
+    try:
+        Image.fromarray(data).save(tmp, format="PNG")
+        os.replace(tmp, path)
+    except OSError as exc:
+        Path(tmp).unlink(missing_ok=True)
+        raise OutputError(f"cannot write {path}: {exc}") from None
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path

