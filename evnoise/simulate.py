@@ -47,7 +47,7 @@ __all__ = [
 ]
 
 CHUNK_PIXELS = 1 << 14
-TARGET_EVENTS_PER_WINDOW = 4_000_000
+TARGET_EVENTS_PER_WINDOW = 1_000_000
 TARGET_PIXEL_TRIALS_PER_WINDOW = 40_000_000
 MAX_WINDOW_US = 1 << 22  # bounds the counting sort's histogram
 METHODS = ("auto", "renewal", "trials")

@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import prange
 
 from ._jit import kernel
 from .rng import geometric, poisson_emlam, seed_state, uniform
@@ -136,31 +137,66 @@ def renewal_window(
 SIGNAL_FLAG = 2  # or-ed into a kernel's polarity output for signal (threshold-crossing) events
 
 
-@kernel
+@kernel(parallel=True)
 def sort_into_events(t, x, y, p, t_lo, t_hi, out, labels):
     """Scatter the columns into the event array ``out`` sorted stably by ``t`` (in ``[t_lo, t_hi)``).
 
-    A counting sort, O(n + t_hi - t_lo): ties keep the input order (pixel order, then time
-    order within a pixel), so the result does not depend on how the work was split. The
-    kernels mark signal events with :data:`SIGNAL_FLAG` in ``p``; the flag is removed from
-    ``out.p`` and, if ``labels`` has room for every event, written there (1 = signal).
+    A two-pass (MSD) counting sort, O(n + t_hi - t_lo): the events are first scattered into
+    at most 256 coarse time buckets (few write streams, so the writes stay in cache), then
+    each bucket is counting-sorted by the remaining low bits of ``t`` in parallel (a bucket's
+    histogram and output fit in cache). Both passes are stable: ties keep the input order
+    (pixel order, then time order within a pixel), so the result does not depend on how the
+    work was split. The kernels mark signal events with :data:`SIGNAL_FLAG` in ``p``; the
+    flag is removed from ``out.p`` and, if ``labels`` has room for every event, written there
+    (1 = signal).
     """
-    n_bins = t_hi - t_lo
-    counts = np.zeros(n_bins + 1, dtype=np.int64)
-    for i in range(t.shape[0]):
-        counts[t[i] - t_lo + 1] += 1
-    for b in range(n_bins):
-        counts[b + 1] += counts[b]
-    for i in range(t.shape[0]):
-        b = t[i] - t_lo
-        j = counts[b]
-        counts[b] = j + 1
-        out[j].t = t[i]
-        out[j].x = x[i]
-        out[j].y = y[i]
-        out[j].p = p[i] & 1
-        if labels.shape[0] == t.shape[0]:
-            labels[j] = p[i] >> 1
+    n = t.shape[0]
+    span = t_hi - t_lo
+    shift = 0
+    while (span >> shift) >= 256:
+        shift += 1
+    n_coarse = (span >> shift) + 1
+    starts = np.zeros(n_coarse + 1, dtype=np.int64)
+    for i in range(n):
+        starts[((t[i] - t_lo) >> shift) + 1] += 1
+    for c in range(n_coarse):
+        starts[c + 1] += starts[c]
+    tt = np.empty(n, dtype=np.int64)
+    xx = np.empty(n, dtype=np.uint16)
+    yy = np.empty(n, dtype=np.uint16)
+    pp = np.empty(n, dtype=np.uint8)
+    fill = starts.copy()
+    for i in range(n):
+        c = (t[i] - t_lo) >> shift
+        j = fill[c]
+        fill[c] = j + 1
+        tt[j] = t[i]
+        xx[j] = x[i]
+        yy[j] = y[i]
+        pp[j] = p[i]
+    fine = np.int64(1) << shift
+    mask = fine - 1
+    want_labels = labels.shape[0] == n
+    for c in prange(n_coarse):
+        lo = starts[c]
+        hi = starts[c + 1]
+        if hi - lo == 0:
+            continue
+        counts = np.zeros(fine + 1, dtype=np.int64)
+        for i in range(lo, hi):
+            counts[((tt[i] - t_lo) & mask) + 1] += 1
+        for f in range(fine):
+            counts[f + 1] += counts[f]
+        for i in range(lo, hi):
+            f = (tt[i] - t_lo) & mask
+            j = lo + counts[f]
+            counts[f] += 1
+            out[j].t = tt[i]
+            out[j].x = xx[i]
+            out[j].y = yy[i]
+            out[j].p = pp[i] & 1
+            if want_labels:
+                labels[j] = pp[i] >> 1
 
 
 _LEVEL_FLOOR = 1e-6  # photons per trial; log-levels below log(1e-6) are clamped in signal crossings
