@@ -60,6 +60,11 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("evnoise: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # e.g. `evnoise info FILE | head`: the reader went away, not an error
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     return 0 if code is None else int(code)
 
 
