@@ -51,14 +51,13 @@ from __future__ import annotations
 
 import csv
 import math
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
 import numpy as np
 
+from ._atomic import atomic_output
 from .errors import InputError, OutputError, ParameterError
 from .events import _check_shape, check_events, empty_events
 
@@ -597,17 +596,8 @@ def overlay_rgb(image, mask, signal=None, *, alpha: float = 0.45) -> np.ndarray:
 def _write_rgb_png(path: Path, rgb: np.ndarray) -> None:
     from PIL import Image
 
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_output(path, what="PNG file") as tmp:
         Image.fromarray(rgb, mode="RGB").save(tmp, format="PNG")
-        os.replace(tmp, path)
-    except OSError as exc:
-        Path(tmp).unlink(missing_ok=True)
-        raise OutputError(f"cannot write {path}: {exc}") from None
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 # --------------------------------------------------------------------------------------

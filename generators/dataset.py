@@ -33,6 +33,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from evnoise._atomic import write_text_atomic
 from evnoise._version import __version__
 from evnoise.errors import InputError, OutputError, ParameterError
 
@@ -290,16 +291,7 @@ def _run_job(job: _Job) -> dict:
 # the output folder
 # --------------------------------------------------------------------------------------
 def _write_json(path: Path, data) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")
-    try:
-        tmp.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n", encoding="utf-8")
-        os.replace(tmp, path)
-    except OSError as exc:
-        try:
-            tmp.unlink()
-        except OSError:
-            pass
-        raise OutputError(f"cannot write {path}: {exc}") from None
+    write_text_atomic(path, json.dumps(data, indent=1, sort_keys=True) + "\n", what="manifest")
 
 
 def _read_json(path: Path):

@@ -19,12 +19,11 @@ truncated checkpoint behind.
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 from pathlib import Path
 
+from .._atomic import atomic_output
 from .._version import __version__
-from ..errors import InputError, OutputError, ParameterError
+from ..errors import InputError, ParameterError
 from ._torch import require_torch
 
 __all__ = [
@@ -96,21 +95,8 @@ class InputSpec:
 
 def _atomic_torch_save(obj, path: Path):
     torch = require_torch()
-    path = Path(path)
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise OutputError(f"output folder {folder} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
-    os.close(fd)
-    try:
+    with atomic_output(path, what="checkpoint") as tmp:
         torch.save(obj, tmp)
-        os.replace(tmp, path)
-    except OSError as exc:
-        Path(tmp).unlink(missing_ok=True)
-        raise OutputError(f"cannot write {path}: {exc}") from None
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def save_checkpoint(path, *, model_config, input_spec: InputSpec, state_dict, train_state=None) -> Path:

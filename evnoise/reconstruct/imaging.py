@@ -7,13 +7,12 @@ by summing ``binning x binning`` blocks, as in the Noise2Image paper (2 x 2).
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError, OutputError, ParameterError
+from .._atomic import atomic_output
+from ..errors import InputError, ParameterError
 
 __all__ = [
     "srgb_encode",
@@ -99,21 +98,7 @@ def write_png(path, image, *, overwrite: bool = True) -> Path:
     arr = np.asarray(image, dtype=np.float64)
     if arr.ndim != 2:
         raise InputError(f"image must be 2-D (H, W), got shape {arr.shape}")
-    if path.exists() and not overwrite:
-        raise OutputError(f"{path} exists (use overwrite)")
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise OutputError(f"output folder {folder} does not exist")
     data = np.round(np.clip(np.nan_to_num(arr, nan=0.0), 0.0, 1.0) * 255.0).astype(np.uint8)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
-    os.close(fd)
-    try:
+    with atomic_output(path, overwrite=overwrite, what="PNG file") as tmp:
         Image.fromarray(data).save(tmp, format="PNG")
-        os.replace(tmp, path)
-    except OSError as exc:
-        Path(tmp).unlink(missing_ok=True)
-        raise OutputError(f"cannot write {path}: {exc}") from None
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return path

@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._atomic import atomic_output
 from ..errors import EvnoiseError, InputError, OutputError
 
 __all__ = ["LPIPS", "weights_path", "install_weights", "load_weights", "convert_ckpt", "reference_check",
@@ -162,13 +163,11 @@ def install_weights(source=None, *, dest=None) -> Path:
     arrays = convert_ckpt(data)
     try:
         dest.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp_name = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **arrays)
-        os.chmod(tmp_name, 0o644)
-        os.replace(tmp_name, dest)
     except OSError as exc:
         raise OutputError(f"cannot write LPIPS weights to {dest}: {exc}") from None
+    with atomic_output(dest, what="LPIPS weights") as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
     return dest
 
 
