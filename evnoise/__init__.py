@@ -5,8 +5,7 @@ Importing evnoise is cheap: the numerical parts (Numba kernels, SciPy) load on f
 
 from __future__ import annotations
 
-import importlib
-
+from ._lazy import lazy_attributes
 from ._version import __version__
 from .errors import EvnoiseError, InputError, OutputError, ParameterError
 from .events import EVENT_DTYPE, count_events, events_from_array, events_to_array, merge_events
@@ -28,6 +27,12 @@ _LAZY = {
     "EventWriter": "evnoise.io",
     "image_to_lux": "evnoise.radiometry",
     "read_image": "evnoise.radiometry",
+    "Separator": "evnoise.separation",
+    "separate_events": "evnoise.separation",
+    "density_filter": "evnoise.separation",
+    "activity_filter": "evnoise.separation",
+    "iter_motion": "evnoise.motion",
+    "reconstruct_video": "evnoise.motion",
 }
 
 __all__ = [
@@ -48,14 +53,4 @@ __all__ = [
 ]
 
 
-def __getattr__(name):
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'evnoise' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(_LAZY))
+__getattr__, __dir__ = lazy_attributes(__name__, _LAZY)

@@ -29,36 +29,26 @@ Importing this package is cheap; the parts load on first use.
 
 from __future__ import annotations
 
-import importlib
+from evnoise._lazy import lazy_attributes
 
 _LAZY = {
-    "PairConfig": "config",
-    "make_dataset": "dataset",
-    "plan_dataset": "dataset",
-    "DatasetResult": "dataset",
-    "load_manifest": "dataset",
-    "PairDataset": "reader",
-    "FolderSource": "sources",
-    "FilesSource": "sources",
-    "PackagePhotos": "sources",
-    "DeadLeaves": "sources",
-    "DeadLeavesModel": "procedural",
-    "dead_leaves": "procedural",
-    "linear_to_srgb": "pairs",
-    "summarise_dataset": "summary",
+    "PairConfig": ".config",
+    "make_dataset": ".dataset",
+    "plan_dataset": ".dataset",
+    "DatasetResult": ".dataset",
+    "load_manifest": ".dataset",
+    "PairDataset": ".reader",
+    "FolderSource": ".sources",
+    "FilesSource": ".sources",
+    "PackagePhotos": ".sources",
+    "DeadLeaves": ".sources",
+    "DeadLeavesModel": ".procedural",
+    "dead_leaves": ".procedural",
+    "linear_to_srgb": ".pairs",
+    "summarise_dataset": ".summary",
 }
 
 __all__ = list(_LAZY)
 
 
-def __getattr__(name):
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'evnoise.generators' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(_LAZY))
+__getattr__, __dir__ = lazy_attributes(__name__, _LAZY)

@@ -10,51 +10,41 @@ use. Modules: ``unet`` (model), ``train`` (training loop), ``checkpoint`` (files
 
 from __future__ import annotations
 
-import importlib
+from evnoise._lazy import lazy_attributes
 
 _LAZY = {
-    "UNet": "unet",
-    "UNetConfig": "unet",
-    "TrainConfig": "train",
-    "DEFAULT_MODEL": "train",
-    "InputSpec": "checkpoint",
-    "read_checkpoint": "checkpoint",
-    "load_model": "checkpoint",
-    "describe_checkpoint": "checkpoint",
-    "Reconstructor": "infer",
-    "counts_from_h5": "infer",
-    "PairList": "data",
-    "NpzPairs": "data",
-    "ResampledPairs": "data",
-    "open_pairs": "data",
-    "split_by_source": "data",
-    "save_pairs_npz": "data",
-    "psnr": "metrics",
-    "ssim": "metrics",
-    "lpips_distance": "metrics",
-    "LPIPS": "lpips",
-    "install_weights": "lpips",
-    "count_image": "baselines",
-    "MLInversion": "baselines",
-    "format_table": "evaluate",
-    "bin_counts": "imaging",
-    "srgb_encode": "imaging",
-    "srgb_decode": "imaging",
-    "lux_to_display": "imaging",
-    "write_png": "imaging",
+    "UNet": ".unet",
+    "UNetConfig": ".unet",
+    "TrainConfig": ".train",
+    "DEFAULT_MODEL": ".train",
+    "InputSpec": ".checkpoint",
+    "read_checkpoint": ".checkpoint",
+    "load_model": ".checkpoint",
+    "describe_checkpoint": ".checkpoint",
+    "Reconstructor": ".infer",
+    "counts_from_h5": ".infer",
+    "PairList": ".data",
+    "NpzPairs": ".data",
+    "ResampledPairs": ".data",
+    "open_pairs": ".data",
+    "split_by_source": ".data",
+    "save_pairs_npz": ".data",
+    "psnr": ".metrics",
+    "ssim": ".metrics",
+    "lpips_distance": ".metrics",
+    "LPIPS": ".lpips",
+    "install_weights": ".lpips",
+    "count_image": ".baselines",
+    "MLInversion": ".baselines",
+    "format_table": ".evaluate",
+    "bin_counts": ".imaging",
+    "srgb_encode": ".imaging",
+    "srgb_decode": ".imaging",
+    "lux_to_display": ".imaging",
+    "write_png": ".imaging",
 }
 
 __all__ = sorted(_LAZY)
 
 
-def __getattr__(name):
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'evnoise.reconstruct' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(_LAZY))
+__getattr__, __dir__ = lazy_attributes(__name__, _LAZY)
