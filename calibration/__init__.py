@@ -1,1 +1,43 @@
-"""Fitting the noise model to measurements (importable as ``evnoise.calibration``)."""
+"""Fitting the noise model to measurements (importable as ``evnoise.calibration``).
+
+Typical use::
+
+    from evnoise import calibration as cal
+    meas = cal.read_measurements("rates.csv")            # or a flat-field listing (TOML/CSV)
+    result = cal.calibrate(meas)                          # maximum likelihood, exact model
+    print(result.summary())
+    result.write_preset("my-camera.toml")                 # evnoise.load_preset("my-camera.toml")
+    result.plot("my-camera-fit.png")
+
+or ``evnoise calibrate MEASUREMENTS --out preset.toml``. The EVK3-HD preset shipped with
+evnoise is refitted by ``python -m evnoise.calibration.refit_evk3``.
+
+Importing this package is cheap; SciPy, Numba kernels and matplotlib load on first use.
+"""
+
+from __future__ import annotations
+
+from evnoise._lazy import lazy_attributes
+
+_LAZY = {
+    "Measurements": ".measurements",
+    "MonitorTable": ".measurements",
+    "rate_table": ".measurements",
+    "count_table": ".measurements",
+    "flat_field": ".measurements",
+    "read_rate_table": ".measurements",
+    "read_flat_fields": ".measurements",
+    "read_measurements": ".measurements",
+    "read_monitor_table": ".measurements",
+    "grey_to_lux": ".measurements",
+    "calibrate": ".fit",
+    "CalibrationResult": ".fit",
+    "FIT_NAMES": ".fit",
+    "population_rate": ".model",
+    "nb_shape": ".model",
+    "threshold_distribution": ".model",
+    "plot_fit": ".plot",
+}
+
+__all__ = sorted(_LAZY)
+__getattr__, __dir__ = lazy_attributes(__name__, _LAZY)

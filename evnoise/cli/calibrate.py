@@ -1,0 +1,105 @@
+"""``evnoise calibrate MEASUREMENTS --out preset.toml``: fit the noise model to measurements.
+
+MEASUREMENTS is a rate table (CSV: ``lux, rate_on_hz, rate_off_hz[, n_pixels, duration_s][, r_on,
+r_off]``, or counts) or a flat-field listing (TOML ``[[level]]`` entries or CSV ``file, lux``) of
+events.h5 recordings; ``--monitor`` converts grey levels to lux. The formats are described in
+:mod:`evnoise.calibration.measurements`. The preset written is loadable by ``--preset`` of
+``evnoise simulate`` and ``make-dataset``; the report goes to standard output.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from ..errors import ParameterError
+
+log = logging.getLogger(__name__)
+
+PARAMETERS = ("eps_pos", "eps_neg", "bias_pr", "trial_rate_hz", "photons_per_lux", "dark_lux", "refractory_s",
+              "eps_sigma")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "calibrate",
+        help="fit the noise model to measured rates or flat-field recordings; write a preset",
+        description="Fit evnoise's noise model to measurements by maximum likelihood (exact closed form, "
+        "threshold mismatch, multi-start) and write the parameters as a preset TOML with uncertainties, "
+        "goodness of fit and what the data do not determine.",
+        epilog="examples: evnoise calibrate rates.csv --out cam.toml --plot cam.png ; "
+        "evnoise calibrate flats.toml --out cam.toml --fix refractory_s=0 ; "
+        "evnoise calibrate grey_rates.csv --monitor monitor.csv --out cam.toml",
+    )
+    p.add_argument("measurements", metavar="MEASUREMENTS",
+                   help="rate table (CSV) or flat-field listing (TOML, or CSV with a 'file' column)")
+    p.add_argument("-o", "--out", required=True, metavar="TOML", help="preset file to write")
+    p.add_argument("--plot", metavar="PNG", help="also write a figure of the data and the fitted curves")
+    p.add_argument("--monitor", metavar="CSV", help="grey -> lux table of a monitor (columns grey, lux)")
+    p.add_argument("--monitor-model", choices=("interp", "gamma"), default="interp",
+                   help="grey -> lux: interpolation in grey^2.2, or a straight-line fit in grey^2.2 "
+                   "(default: %(default)s)")
+    p.add_argument("--method", choices=("poisson", "gaussian"), default="poisson",
+                   help="closed form: exact Poisson, or the paper's Gaussian eq. 3 (default: %(default)s)")
+    p.add_argument("--distribution", choices=("binomial", "poisson"), default="binomial",
+                   help="per-pixel count given its thresholds, for flat fields (default: %(default)s)")
+    p.add_argument("--fit", nargs="+", metavar="NAME", choices=PARAMETERS,
+                   help="parameters to fit (default: eps_pos eps_neg bias_pr trial_rate_hz photons_per_lux "
+                   "dark_lux, and eps_sigma when the data carry dispersion); add refractory_s to fit it")
+    p.add_argument("--fix", nargs="+", default=[], metavar="NAME=VALUE",
+                   help="hold parameters at given values, e.g. --fix eps_sigma=0.05 refractory_s=1e-4")
+    p.add_argument("--initial", metavar="PRESET",
+                   help="starting point and values of parameters that are not fitted (a preset name or TOML)")
+    p.add_argument("--starts", type=int, default=6, metavar="N",
+                   help="strata of starting points (2 each are screened; more is slower and safer) "
+                   "(default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, metavar="N", help="seed of the starting points (default 0)")
+    p.add_argument("--unidentified", choices=("report", "fix"), default="report",
+                   help="parameters the data do not constrain: report them, or fix them and refit the rest "
+                   "(default: %(default)s)")
+    p.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    p.set_defaults(func=run)
+
+
+def _parse_fix(items) -> dict:
+    out = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        name = name.strip()
+        if not sep:
+            raise ParameterError(f"--fix expects NAME=VALUE, got {item!r}")
+        if name not in PARAMETERS:
+            raise ParameterError(f"--fix: unknown parameter {name!r}; parameters: {', '.join(PARAMETERS)}")
+        try:
+            out[name] = float(value)
+        except ValueError:
+            raise ParameterError(f"--fix {name}: {value!r} is not a number") from None
+    return out
+
+
+def run(args) -> int:
+    from ..io import open_output_path
+    from ..params import load_preset
+
+    if args.starts < 1:
+        raise ParameterError(f"--starts must be >= 1, got {args.starts}")
+    fixed = _parse_fix(args.fix)
+    out = open_output_path(args.out, overwrite=args.overwrite, what="preset")
+    plot = open_output_path(args.plot, overwrite=args.overwrite, what="plot") if args.plot else None
+    initial = load_preset(args.initial) if args.initial else None
+
+    from ..calibration import calibrate, read_measurements
+
+    meas = read_measurements(args.measurements, monitor=args.monitor, monitor_model=args.monitor_model,
+                             progress=not args.quiet)
+    log.info("%d levels (%s), %.4g to %.4g lux", meas.n_levels, meas.kind, meas.lux.min(), meas.lux.max())
+    result = calibrate(meas, method=args.method, distribution=args.distribution, free=args.fit, fixed=fixed,
+                       initial=initial, n_starts=args.starts, n_seeds=max(2048, args.starts), rng=args.seed,
+                       unidentified=args.unidentified, progress=not args.quiet)
+    result.write_preset(out, overwrite=args.overwrite,
+                        extra_provenance={"command": "evnoise calibrate " + str(args.measurements)})
+    if plot is not None:
+        result.plot(plot, overwrite=args.overwrite)
+    if not args.quiet:
+        print(result.summary())
+        print(f"wrote {out}" + (f" and {plot}" if plot is not None else ""))
+    return 0
