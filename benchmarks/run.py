@@ -433,6 +433,9 @@ def main(argv=None):
     group.add_argument("--quick", action="store_true", help="smaller sizes and fewer repeats")
     group.add_argument("--tiny", action="store_true", help="smoke test sizes")
     parser.add_argument("--out", type=Path, default=HERE, help="folder for REPORT.md and the plots")
+    parser.add_argument("--train-minutes", type=float, default=None,
+                        help="train a small U-Net this long for the dynamic-scene section (default: 0 with "
+                             "--tiny, 3 with --quick, 10 otherwise; 0 evaluates the model-based inversion only)")
     args = parser.parse_args(argv)
     size = SIZES["tiny" if args.tiny else "quick" if args.quick else "full"]
     args.out.mkdir(parents=True, exist_ok=True)
@@ -449,6 +452,9 @@ def main(argv=None):
     from bench_dataset import bench_dataset
 
     bench_dataset(size, args.out, report)
+    from bench_dynamic import bench_dynamic
+
+    bench_dynamic(size, args.out, report, train_minutes=args.train_minutes)
     mode = "--tiny" if args.tiny else "--quick" if args.quick else ""
     head = [
         "# evnoise benchmark report",

@@ -1,0 +1,34 @@
+"""The benchmark report script runs end to end at its smoke size (about 45 s).
+
+Only the report's structure is checked: timings are never asserted (shared, noisy machines),
+and at ``--tiny`` size the numbers mean nothing.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("matplotlib")
+
+SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "run.py"
+
+
+def test_benchmark_report_tiny_run(tmp_path):
+    proc = subprocess.run([sys.executable, str(SCRIPT), "--tiny", "--out", str(tmp_path)], capture_output=True,
+                          text=True, check=False)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-4000:]
+    text = (tmp_path / "REPORT.md").read_text(encoding="utf-8")
+    for heading in ("## 1. Closed forms", "## 2. Simulator tiers", "## 3. Scaling", "## 4. Against a naive reference",
+                    "## 5. End to end into events.h5", "## 6. The paper's Gaussian form", "## make-dataset throughput",
+                    "## Dynamic scenes"):
+        assert heading in text, heading
+    assert "Machine:" in text and "python benchmarks/run.py --tiny" in text
+    for line in text.splitlines():
+        if line.startswith("![") and "](" in line:
+            name = line.split("](", 1)[1].rstrip(")")
+            png = tmp_path / name
+            assert png.is_file() and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
