@@ -716,11 +716,13 @@ class CalibrationResult:
 
         return write_text_atomic(path, self.to_toml(extra_provenance=extra_provenance), overwrite=overwrite)
 
-    def plot(self, path, *, title: str | None = None, overwrite: bool = False, extra_curves=None):
+    def plot(self, path, *, title: str | None = None, overwrite: bool = False, extra_curves=None,
+             extra_r_curves=None):
         """Save a PNG of the data and the fitted curves (see :func:`evnoise.calibration.plot_fit`)."""
         from .plot import plot_fit
 
-        return plot_fit(self, path, title=title, overwrite=overwrite, extra_curves=extra_curves)
+        return plot_fit(self, path, title=title, overwrite=overwrite, extra_curves=extra_curves,
+                        extra_r_curves=extra_r_curves)
 
 
 def _fmt(v):
@@ -1001,18 +1003,23 @@ def _ridge_walk(problem: _Problem, theta, f, *, rounds: int = 2, n_directions: i
     """
     if len(problem.free) < 2:
         return theta
-    for _ in range(rounds):
+    # flat fields: every direction, each start fitted to convergence (a short fit from a
+    # displaced start is often still above the optimum it would reach); rate tables (a few
+    # dozen numbers, slow at large photon counts): one round on the weakest direction, short fits
+    thorough = problem.meas.kind == "flat-field"
+    for _ in range(rounds if thorough else 1):
         info, _, _ = _information(problem, theta, _steps(problem, 1e-4), want_meat=False)
         cov, _ = _covariance(info, info)
         w, v = np.linalg.eigh(cov)
         improved = False
         base = theta
-        for k in range(1, min(n_directions, len(w)) + 1):
+        for k in range(1, (min(n_directions, len(w)) if thorough else 1) + 1):
             direction = v[:, -k]
             scale = max(0.5, 1.5 * math.sqrt(max(w[-k], 0.0)))
             for t in (-2.0, -1.0, 1.0, 2.0):
                 start = np.clip(base + t * scale * direction, problem.lo, problem.hi)
-                cand, fc = _local_fit(problem, start, central=False)
+                cand, fc = (_local_fit(problem, start, central=False) if thorough else
+                            _local_fit(problem, start, max_iter=12, polish=False, central=False))
                 if fc < f - 1e-9 * (1 + abs(f)):
                     cand, fc = _local_fit(problem, cand)
                     if fc < f:

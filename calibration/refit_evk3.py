@@ -209,9 +209,10 @@ def write_outputs(meas, info, exact, gauss, profiles, preset_path: Path, plot_pa
         "source": "Noise2Image reference tables (noise2image-reference: lux_measurement.npz, synthetic_param.npz) "
                   "and the authors' published fitted parameters",
         "procedure": "authors' rate curve regenerated from their parameters and code formula at every "
-                     f"{GREY_STEP}th grey level (ON; OFF without the constant), fitted together with the "
-                     "measured r tables (1 s windows) by evnoise.calibration (exact closed form, threshold "
-                     "mismatch, quasi-likelihood weights per block)",
+                     f"{GREY_STEP}th grey level (ON; OFF without the constant), fitted by evnoise.calibration "
+                     "(exact closed form, no threshold mismatch, relative residuals with quasi-likelihood "
+                     "scaling) with photons_per_lux profiled on a grid; the measured r tables (1 s windows) "
+                     "compared with the NB shapes that a threshold mismatch predicts",
         "command": "python -m evnoise.calibration.refit_evk3",
         "lux_axis": f"lux = {slope:.6g} * grey^2.2 (authors' fit of lux_far; their intercept {intercept:.4g} lux "
                     f"dropped, so the authors' lux = this - {-intercept:.4g})",
