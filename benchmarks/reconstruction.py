@@ -445,10 +445,12 @@ def plan(size_name: str, size: Size, work: Path, out: Path, seed: int, train_see
     deps = {v: (f"data:dl-{v}", f"data:photos-{v}") for v in variants}
 
     def model(name, v, w, pol, test_sets):
+        # every dataset the model is trained or tested on must be complete first
+        used = {v} | {u for u in variants if any(f"-{u}-" in key for key in test_sets)}
         return Job(f"train:{name}", job_train,
                    {"train": spec("dl", v, "train", w), "val": spec("dl", v, "val", w),
                         "out": str(work / "models" / f"{name}.pt"), "polarities": pol, "size": sz, "seed": train_seed,
-                        "tests": test_sets}, deps[v])
+                        "tests": test_sets}, tuple(d for u in sorted(used) for d in deps[u]))
 
     cross = {**tests("nominal", MAIN_WINDOW), **tests("mismatch", MAIN_WINDOW)}
     models = {
