@@ -34,13 +34,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import datetime as _dt
 import hashlib
 import inspect
 import json
 import math
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -533,30 +531,11 @@ def paper_row(label, vals):
 
 
 def machine_info() -> dict:
+    """``run.machine_info()`` (CPU, cores, load, versions, commit) plus the torch version."""
     import torch
+    from run import machine_info as base_info
 
-    import evnoise
-
-    cpu = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=HERE, capture_output=True,
-                                text=True, check=False).stdout.strip() or "?"
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=HERE,
-                               capture_output=True, text=True, check=False).stdout.strip()
-        commit += " (with uncommitted changes)" if dirty else ""
-    except OSError:
-        commit = "?"
-    return {"date": _dt.datetime.now().strftime("%Y-%m-%d %H:%M"), "cpu": cpu, "cores": os.cpu_count(),
-            "load": [round(x, 2) for x in os.getloadavg()] if hasattr(os, "getloadavg") else None,
-            "python": platform.python_version(), "numpy": np.__version__, "torch": torch.__version__,
-            "evnoise": evnoise.__version__, "commit": commit}
+    return {**base_info(), "torch": torch.__version__}
 
 
 def preset_provenance() -> dict:

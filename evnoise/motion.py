@@ -560,13 +560,9 @@ class BackgroundHold:
 
 def bin_rates(rates, binning: int) -> np.ndarray:
     """Sum float rates or counts ``(2, H, W)`` over ``binning x binning`` blocks (partial edges dropped)."""
-    b = int(binning)
-    arr = np.asarray(rates, dtype=np.float64)
-    h, w = arr.shape[-2] // b, arr.shape[-1] // b
-    if h == 0 or w == 0:
-        raise InputError(f"a sensor of {arr.shape[-1]}x{arr.shape[-2]} pixels is smaller than one {b}x{b} bin")
-    arr = arr[..., :h * b, :w * b]
-    return arr.reshape(*arr.shape[:-2], h, b, w, b).sum(axis=(-3, -1))
+    from .reconstruct.imaging import block_sum
+
+    return block_sum(np.asarray(rates, dtype=np.float64), int(binning), "sensor")
 
 
 def _bin_any(mask, binning: int) -> np.ndarray:

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from .._atomic import atomic_output
+from .._checks import check_positive
 from ..errors import InputError, ParameterError
 
 __all__ = [
@@ -38,13 +39,7 @@ def srgb_decode(display) -> np.ndarray:
 
 
 def _check_max_lux(max_lux) -> float:
-    try:
-        value = float(max_lux)
-    except (TypeError, ValueError):
-        raise ParameterError(f"max_lux must be a number (lux shown as white), got {max_lux!r}") from None
-    if not np.isfinite(value) or value <= 0:
-        raise ParameterError(f"max_lux must be finite and > 0 lux, got {max_lux!r}")
-    return value
+    return check_positive(max_lux, "max_lux (lux shown as white)", "lux")
 
 
 def lux_to_display(lux, max_lux) -> np.ndarray:
@@ -68,26 +63,25 @@ def bin_counts(counts, binning: int = 2) -> np.ndarray:
 
     A last row or column that does not fill a whole block is dropped (as a sensor crop would).
     """
-    b = _check_binning(binning)
     arr = np.asarray(counts)
     if arr.ndim < 2:
         raise InputError(f"counts must have at least 2 dimensions (..., H, W), got shape {arr.shape}")
+    return block_sum(arr.astype(np.int64, copy=False), _check_binning(binning), "counts")
+
+
+def block_sum(arr: np.ndarray, b: int, what: str = "image") -> np.ndarray:
+    """Sum of ``b x b`` blocks over the last two axes; a partial last row or column is dropped."""
     h, w = arr.shape[-2] // b, arr.shape[-1] // b
     if h == 0 or w == 0:
-        raise InputError(f"counts of shape {arr.shape} are smaller than one {b}x{b} bin")
-    arr = arr[..., : h * b, : w * b].astype(np.int64, copy=False)
+        raise InputError(f"{what} of shape {arr.shape} is smaller than one {b}x{b} bin")
+    arr = arr[..., : h * b, : w * b]
     return arr.reshape(*arr.shape[:-2], h, b, w, b).sum(axis=(-3, -1))
 
 
 def bin_mean(image, binning: int = 2) -> np.ndarray:
     """Mean over ``binning x binning`` blocks (float64); incomplete last blocks are dropped."""
     b = _check_binning(binning)
-    arr = np.asarray(image, dtype=np.float64)
-    h, w = arr.shape[-2] // b, arr.shape[-1] // b
-    if h == 0 or w == 0:
-        raise InputError(f"image of shape {arr.shape} is smaller than one {b}x{b} bin")
-    arr = arr[..., : h * b, : w * b]
-    return arr.reshape(*arr.shape[:-2], h, b, w, b).mean(axis=(-3, -1))
+    return block_sum(np.asarray(image, dtype=np.float64), b) / (b * b)
 
 
 def write_png(path, image, *, overwrite: bool = True) -> Path:
