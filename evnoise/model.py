@@ -170,8 +170,9 @@ def log_event_probability(lam, eps, bias=0.0, *, method: str = "poisson") -> np.
 
     Returns
     -------
-    numpy.ndarray
-        float64 array of the broadcast shape; finite for every ``0 < lam < inf`` however small
+    numpy.ndarray or numpy.float64
+        float64 array of the broadcast shape, or a ``numpy.float64`` when every input is a
+        scalar (as numpy's functions do); finite for every ``0 < lam < inf`` however small
         the probability (far below 1e-300), ``-inf`` where the probability is exactly 0.
     """
     lam, eps, bias, shape = _check_inputs(lam, eps, bias, method)
@@ -179,20 +180,27 @@ def log_event_probability(lam, eps, bias=0.0, *, method: str = "poisson") -> np.
         from scipy.special import log_ndtr
 
         # log(erfc(z) / 2) = log Phi(-sqrt(2) z), accurate in the far tail
-        return log_ndtr(-math.sqrt(2.0) * _gaussian_z(lam, eps, bias, shape))
-    return _log_p_poisson(lam, eps, bias, shape)
+        return _scalar_if_0d(log_ndtr(-math.sqrt(2.0) * _gaussian_z(lam, eps, bias, shape)))
+    return _scalar_if_0d(_log_p_poisson(lam, eps, bias, shape))
+
+
+def _scalar_if_0d(values):
+    """A 0-d result as ``numpy.float64`` (numpy's convention for scalar inputs), else the array."""
+    values = np.asarray(values, dtype=np.float64)
+    return values[()] if values.ndim == 0 else values
 
 
 def event_probability(lam, eps, bias=0.0, *, method: str = "poisson") -> np.ndarray:
     """Per-trial probability that one polarity fires in a static scene.
 
     ``P(log(n + b) - log(n0 + b) > eps)`` for ``n, n0 ~ Poisson(lam)`` i.i.d. (strict inequality).
-    Parameters as in :func:`log_event_probability`; returns a float64 array (values that are
-    below the smallest double underflow to 0 without a warning).
+    Parameters as in :func:`log_event_probability`; returns a float64 array of the broadcast
+    shape, or a ``numpy.float64`` when every input is a scalar (values that are below the
+    smallest double underflow to 0 without a warning).
     """
     lam, eps, bias, shape = _check_inputs(lam, eps, bias, method)
     if method == "gaussian":
         from scipy.special import erfc
 
-        return 0.5 * erfc(_gaussian_z(lam, eps, bias, shape))
-    return np.exp(_log_p_poisson(lam, eps, bias, shape, skip_below=-760.0))
+        return _scalar_if_0d(0.5 * erfc(_gaussian_z(lam, eps, bias, shape)))
+    return _scalar_if_0d(np.exp(_log_p_poisson(lam, eps, bias, shape, skip_below=-760.0)))

@@ -277,7 +277,7 @@ def test_existing_output_without_overwrite(tmp_path, image, capsys):
     (["IMAGE", "--preset", "no-such-camera"], "unknown preset"),
     (["IMAGE", "--seed", "-3"], "--seed must be a non-negative integer"),
     (["IMAGE", "--threads", "0"], "--threads must be >= 1"),
-    (["IMAGE", "--lux-scale", "2"], "lux_scale applies to linear"),
+    (["IMAGE", "--lux-scale", "2"], "--lux-scale applies to linear"),
     (["IMAGE", "--sensor", "64x48", "--fit", "crop"], "cannot crop"),
     (["IMAGE", "--method", "renewal", "--png", "OUT"], "--png and --out name the same file"),
 ])

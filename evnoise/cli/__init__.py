@@ -40,24 +40,50 @@ def build_parser() -> argparse.ArgumentParser:
                 continue  # subcommand not built yet
             raise
         module.register(sub)
+    seen = set()
+    for subparser in sub.choices.values():  # -v/-q after the subcommand as well (merged in main)
+        if id(subparser) in seen:
+            continue
+        seen.add(id(subparser))
+        subparser.add_argument("-v", "--verbose", dest="sub_verbose", action="count", default=0,
+                               help="more log output (-vv for debug)")
+        subparser.add_argument("-q", "--quiet", dest="sub_quiet", action="store_true",
+                               help="only errors; no progress bars")
+    parser.set_defaults(subparsers_action=sub)
     return parser
 
 
 def main(argv=None) -> int:
-    """Run the command line with ``argv`` (default ``sys.argv[1:]``); returns the exit code."""
+    """Run the command line with ``argv`` (default ``sys.argv[1:]``); returns the exit code.
+
+    SIGTERM (a plain ``kill``) is handled like Ctrl-C: the command stops, temporary files are
+    removed, and the exit code is 143 (128 + 15, what a shell reports for a process killed by
+    SIGTERM; Ctrl-C gives 130).
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.verbose = args.verbose + getattr(args, "sub_verbose", 0)
+    args.quiet = bool(args.quiet or getattr(args, "sub_quiet", False))
     level = logging.ERROR if args.quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
-    logging.basicConfig(level=level, format="evnoise: %(levelname)s: %(message)s", force=True)
+    handler = _ProgressAwareHandler()
+    handler.setFormatter(logging.Formatter("evnoise: %(levelname)s: %(message)s"))
+    logging.basicConfig(level=level, handlers=[handler], force=True)
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)
         return 2
+    previous = _catch_sigterm()
     try:
         code = args.func(args)
     except EvnoiseError as exc:
-        print(f"evnoise: error: {exc}", file=sys.stderr)
+        _close_progress_bars()
+        print(f"evnoise: error: {_flag_names(str(exc), args)}", file=sys.stderr)
         return 2
+    except Terminated:
+        _close_progress_bars()
+        print("evnoise: terminated", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
+        _close_progress_bars()
         print("evnoise: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:  # e.g. `evnoise info FILE | head`: the reader went away, not an error
@@ -65,7 +91,112 @@ def main(argv=None) -> int:
 
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    finally:
+        _restore_sigterm(previous)
     return 0 if code is None else int(code)
+
+
+class Terminated(KeyboardInterrupt):
+    """Raised in the main thread on SIGTERM, so that the cleanup of Ctrl-C runs (temporaries removed)."""
+
+
+_NO_HANDLER = object()
+
+
+def _catch_sigterm():
+    """Turn SIGTERM into :class:`Terminated` while a command runs; returns the previous handler."""
+    import os
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return _NO_HANDLER
+    pid = os.getpid()
+
+    def on_sigterm(signum, frame):
+        if os.getpid() != pid:  # a forked worker process: die as SIGTERM would (pools terminate workers so)
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+            os.kill(os.getpid(), signal.SIGTERM)
+            return
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second SIGTERM must not break the cleanup
+        raise Terminated()
+
+    try:
+        return signal.signal(signal.SIGTERM, on_sigterm)
+    except (ValueError, OSError):  # pragma: no cover - no signals here (embedded interpreter)
+        return _NO_HANDLER
+
+
+def _restore_sigterm(previous) -> None:
+    import signal
+
+    if previous is not _NO_HANDLER:
+        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+
+
+class _ProgressAwareHandler(logging.Handler):
+    """Log records to standard error through ``tqdm.write`` when tqdm is loaded, so that a warning
+    does not land on the line of a progress bar (the bar is redrawn below the message)."""
+
+    def emit(self, record) -> None:
+        try:
+            text = self.format(record)
+            tqdm_module = sys.modules.get("tqdm")
+            if tqdm_module is not None and getattr(tqdm_module.tqdm, "_instances", None):
+                tqdm_module.tqdm.write(text, file=sys.stderr)
+            else:
+                sys.stderr.write(text + "\n")
+                sys.stderr.flush()
+        except Exception:  # pragma: no cover - as logging.StreamHandler
+            self.handleError(record)
+
+
+def _close_progress_bars() -> None:
+    """Close the progress bars still open (left by an error or interruption), so that the final
+    message starts on a line of its own."""
+    tqdm_module = sys.modules.get("tqdm")
+    if tqdm_module is None:
+        return
+    for bar in list(getattr(tqdm_module.tqdm, "_instances", ())):
+        try:
+            bar.close()
+        except Exception:  # pragma: no cover - a bar that cannot redraw
+            pass
+
+
+# library parameter names whose flag is not simply the name with dashes
+_FLAG_ALIASES = {
+    "duration_s": "--duration", "window_s": "--window", "windows_s": "--window", "crop_shape": "--crop",
+    "sensor_shape": "--sensor", "t_start_s": "--t-start", "step_s": "--step", "radius_px": "--radius",
+    "n_starts": "--starts", "max_frames": "--frames", "fps_out": "--fps",
+}
+
+
+def _flag_names(message: str, args) -> str:
+    """``message`` with the Python parameter names of the subcommand's options written as its flags
+    (``max_lux must be ...`` -> ``--max-lux must be ...``, ``clip_invalid=True`` -> ``--clip-invalid``)."""
+    import re
+
+    sub = getattr(args, "subparsers_action", None)
+    subparser = sub.choices.get(getattr(args, "command", None)) if sub is not None else None
+    if subparser is None:
+        return message
+    flags = {}
+    for action in subparser._actions:
+        longs = [o for o in action.option_strings if o.startswith("--")]
+        if longs:
+            flags[longs[0][2:].replace("-", "_")] = longs[0]
+            flags.setdefault(action.dest, longs[0])
+    known = set(flags.values())
+    for name, flag in _FLAG_ALIASES.items():
+        if flag in known:
+            flags.setdefault(name, flag)
+    for name, flag in sorted(flags.items(), key=lambda kv: -len(kv[0])):
+        if "_" not in name:
+            continue  # a plain word (``seed``, ``fps``) is as likely prose as a parameter
+        message = re.sub(rf"(?<![\w./-]){re.escape(name)}(=True)?(?![\w/]|\.\w)", flag, message)
+    # "(clip_invalid=True, --clip-invalid)" and "window_s (--window)" now say the flag twice
+    return re.sub(r"(--[\w-]+)(?:, \1(?![\w-])| \(\1\))", r"\1", message)
 
 
 if __name__ == "__main__":  # pragma: no cover

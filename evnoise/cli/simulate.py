@@ -137,11 +137,15 @@ def run(args) -> int:
     """Run ``evnoise simulate`` with parsed arguments; returns the exit code."""
     from ..io import open_output_path
     from ..params import load_preset
+    from ._paths import refuse_writing_inputs
 
     started = time.perf_counter()
     quiet = bool(getattr(args, "quiet", False))
     source, source_label = _source(args)
     is_video = source.is_dir()
+    refuse_writing_inputs([("--out", args.out), ("--png", args.png)],
+                          [("the input folder" if is_video else "the input image", source),
+                           ("the --preset file", args.preset)], frames_folder=True)
     duration, fps = _timing(args, source, is_video)
     if args.threads is not None and args.threads < 1:
         raise ParameterError(f"--threads must be >= 1, got {args.threads}")
