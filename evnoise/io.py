@@ -29,7 +29,8 @@ from ._version import __version__
 from .errors import EvnoiseError, InputError, OutputError, ParameterError
 from .events import _check_shape, check_events, make_events
 
-__all__ = ["EventWriter", "write_events", "read_events", "read_metadata", "write_aedat4", "open_output_path"]
+__all__ = ["EventWriter", "EventFileWriter", "open_event_writer", "output_format", "OUTPUT_FORMATS", "write_events",
+           "read_events", "read_metadata", "write_aedat4", "open_output_path"]
 
 log = logging.getLogger(__name__)
 
@@ -161,8 +162,9 @@ class EventWriter:
         self.n_events = 0
         self._last_t = None
         self._next_ms = 0  # entries of ms_to_idx already written
+        _probe_tmp(self._tmp, self.path, "event file")  # a clean one-line error (not h5py's) if it cannot be created
         try:
-            self._file = h5py.File(self._tmp, "w-")
+            self._file = h5py.File(self._tmp, "w")
         except OSError as exc:
             self._remove_tmp()
             raise OutputError(f"cannot write event file {self.path}: {exc}") from None
@@ -335,11 +337,11 @@ def _import_faery():
     try:
         import faery
     except ImportError:
-        raise OutputError("writing AEDAT4 needs the faery package: pip install 'evnoise[aedat]'") from None
+        raise OutputError("writing .aedat4, .raw, .dat, .es or .csv needs the faery package: pip install 'evnoise[readers]'") from None
     return faery
 
 
-def write_aedat4(path, chunks, shape, *, overwrite: bool = False) -> Path:
+def write_aedat4(path, chunks, shape, *, overwrite: bool = False, attrs=None) -> Path:
     """Write event chunks to an AEDAT4 file (iniVation's format) through faery, streaming.
 
     Parameters
@@ -354,61 +356,258 @@ def write_aedat4(path, chunks, shape, *, overwrite: bool = False) -> Path:
         Sensor size in pixels.
     overwrite : bool
         Replace an existing file.
+    attrs : dict, optional
+        evnoise's attributes (parameters, seed, source, ...), stored in the file's description
+        (node ``evnoise``) and reported by :func:`read_events` / ``evnoise info``.
 
     Notes
     -----
-    Timestamps are kept as they are (faery's ``zero_t0=False``). AEDAT4 has no place for
-    evnoise's attributes (parameters, seed): keep an events.h5 file for provenance.
-    Needs the optional ``faery`` package (``pip install 'evnoise[aedat]'``).
+    Timestamps are kept as they are (not shifted to zero). Needs the optional ``faery``
+    package (``pip install 'evnoise[readers]'``).
     """
-    faery = _import_faery()
-    height, width = _check_shape(shape)
-    path = open_output_path(path, overwrite=overwrite, what="AEDAT4 file")
     if isinstance(chunks, np.ndarray):
         chunks = [chunks]
-    tmp = path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp.aedat4")
+    with EventFileWriter(path, shape, attrs, overwrite=overwrite, file_format="aedat4") as out:
+        for chunk in chunks:
+            out.write(chunk)
+    return out.path
 
-    class _Chunks(faery.EventsStream):
-        def __init__(self):
-            super().__init__()
-            self.last_t = None
 
-        def dimensions(self):
-            return (width, height)
+#: Output suffix -> format written (the suffix decides; anything else is an error).
+OUTPUT_FORMATS = {".h5": "h5", ".hdf5": "h5", ".aedat4": "aedat4", ".raw": "evt3", ".dat": "dat", ".es": "es",
+                  ".csv": "csv"}
 
-        def __iter__(self):
-            for chunk in chunks:
-                events = check_events(chunk, (height, width))
-                if not events.size:
-                    continue
-                if events["t"][0] < 0:
-                    raise InputError(f"event times must be >= 0 microseconds, got t = {events['t'][0]}")
-                if self.last_t is not None and events["t"][0] < self.last_t:
-                    raise InputError(f"events are not sorted across chunks: t = {events['t'][0]} after "
-                                     f"t = {self.last_t}")
-                self.last_t = int(events["t"][-1])
-                out = np.empty(events.size, dtype=faery.EVENTS_DTYPE)
-                out["t"] = events["t"]
-                out["x"] = events["x"]
-                out["y"] = events["y"]
-                out["on"] = events["p"] == 1
-                yield out
 
+def output_format(path, *, flag: str = "--out") -> str:
+    """The format an event output is written in, from its suffix (see :data:`OUTPUT_FORMATS`).
+
+    A folder (an existing one, or a name ending in ``/``) or an unknown suffix is an error.
+    """
+    text = os.fspath(path)
+    known = ", ".join(OUTPUT_FORMATS)
+    if text.endswith(("/", os.sep)) or Path(text).is_dir():
+        raise OutputError(f"{flag} {text} is a folder; give an event file name ending in {known}")
+    suffix = Path(text).suffix.lower()
+    if suffix not in OUTPUT_FORMATS:
+        raise ParameterError(f"{flag} {text}: unknown event file suffix {suffix or '(none)'!r}; the suffix decides "
+                             f"the format: {known}")
+    return OUTPUT_FORMATS[suffix]
+
+
+def _probe_tmp(tmp: Path, path: Path, what: str) -> None:
+    """Create the temporary file (empty), turning an OS error into one clean line."""
     try:
-        _Chunks().to_file(tmp, zero_t0=False, file_type="aedat")
-        if not overwrite and path.exists():
-            raise OutputError(f"AEDAT4 file {path} appeared while writing; not replacing it")
-        os.replace(tmp, path)
-    except EvnoiseError:
-        _unlink_quietly(tmp)
-        raise
+        with open(tmp, "xb"):
+            pass
     except OSError as exc:
-        _unlink_quietly(tmp)
-        raise OutputError(f"cannot write AEDAT4 file {path}: {exc}") from None
-    except BaseException:
-        _unlink_quietly(tmp)
-        raise
-    return path
+        raise OutputError(f"cannot write {what} {path}: {exc.strerror or exc}") from None
+
+
+def _aedat_description(aedat, width: int, height: int, attrs: dict):
+    """AEDAT 4 description: the event track (as DV writes it) and evnoise's attributes."""
+    A = aedat.DescriptionAttribute
+    N = aedat.DescriptionNode
+    info = N("info", "/mainloop/Recorder/outInfo/0/info/",
+             {"sizeX": A("int", int(width)), "sizeY": A("int", int(height)), "source": A("string", "evnoise")}, [])
+    track = N("0", "/mainloop/Recorder/outInfo/0/",
+              {"compression": A("string", "LZ4"), "originalOutputName": A("string", "events"),
+               "typeIdentifier": A("string", "EVTS")}, [info])
+    nodes = [N("outInfo", "/mainloop/Recorder/outInfo/", {}, [track])]
+    if attrs:
+        from .params import NoiseParams
+
+        fields = {"evnoise_version": A("string", __version__)}
+        for key, value in attrs.items():
+            if value is None:
+                continue
+            if isinstance(value, bool) or not isinstance(value, (str, int, np.integer)):
+                if isinstance(value, NoiseParams):
+                    text = value.to_json()
+                else:
+                    text = json.dumps(value.tolist() if hasattr(value, "tolist") else
+                                      (os.fspath(value) if isinstance(value, Path) else value), sort_keys=True)
+                fields[f"{key}_json"] = A("string", text)
+            elif isinstance(value, str):
+                fields[key] = A("string", value)
+            else:
+                fields[key] = A("long", int(value))
+        nodes.append(N("evnoise", "/evnoise/", fields, []))
+    return nodes
+
+
+class EventFileWriter:
+    """Write an event file of any output format chunk by chunk, atomically (a context manager).
+
+    ``.h5`` goes through :class:`EventWriter`; ``.aedat4``, ``.raw`` (EVT 3.0), ``.dat``
+    (Prophesee DAT 2, CD events), ``.es`` (Event Stream, DVS) and ``.csv`` (header
+    ``t,x,y,on``) through faery's encoders. Every format is written under a temporary name in the
+    target folder and renamed on :meth:`close`; an error (or :meth:`abort`) removes it.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Output file; its suffix decides the format (:func:`output_format`).
+    shape : (H, W)
+        Sensor size in pixels.
+    attrs : dict, optional
+        evnoise's attributes (``params``, ``seed``, ``source``, ...): kept in ``.h5`` (root
+        attributes) and ``.aedat4`` (description); the other formats have no place for them.
+    overwrite, compression, t_end_us
+        As in :class:`EventWriter` (``compression`` applies to ``.h5`` only).
+    file_format : str, optional
+        Force a format (one of :data:`OUTPUT_FORMATS`' values) instead of the suffix.
+    """
+
+    def __new__(cls, path, shape, attrs=None, *, overwrite: bool = False, compression: str | None = "gzip",
+                t_end_us: int | None = None, file_format: str | None = None):
+        fmt = file_format or output_format(path)
+        if fmt == "h5":
+            return EventWriter(path, shape, attrs, overwrite=overwrite, compression=compression, t_end_us=t_end_us)
+        return super().__new__(cls)
+
+    def __init__(self, path, shape, attrs=None, *, overwrite: bool = False, compression: str | None = "gzip",
+                 t_end_us: int | None = None, file_format: str | None = None):
+        from ._atomic import temporary_name
+
+        self.format = file_format or output_format(path)
+        what = {"aedat4": "AEDAT4 file", "evt3": "RAW file", "dat": "DAT file", "es": "Event Stream file",
+                "csv": "CSV file"}[self.format]
+        self.what = what
+        self.shape = _check_shape(shape)
+        self.t_end_us = t_end_us
+        self.overwrite = overwrite
+        self.n_events = 0
+        self._last_t = None
+        self._closed = False
+        self._encoder = None
+        faery = _import_faery()
+        from faery.extension import aedat, csv, dat, es, evt
+
+        self.path = open_output_path(path, overwrite=overwrite, what=what)
+        self._tmp = temporary_name(self.path)
+        _probe_tmp(self._tmp, self.path, what)
+        height, width = self.shape
+        self._faery_dtype = faery.EVENTS_DTYPE
+        try:
+            if self.format == "aedat4":
+                enc = aedat.Encoder(self._tmp, _aedat_description(aedat, width, height, dict(attrs or {})),
+                                    ("lz4", 1))
+            elif self.format == "evt3":
+                enc = evt.Encoder(self._tmp, "evt3", False, (width, height), True)
+            elif self.format == "dat":
+                enc = dat.Encoder(self._tmp, "dat2", "cd", False, (width, height))
+            elif self.format == "es":
+                enc = es.Encoder(self._tmp, "dvs", False, (width, height))
+            else:
+                enc = csv.Encoder(self._tmp, ord(","), True, (width, height), True)
+            self._encoder = enc.__enter__()
+        except BaseException as exc:
+            self.abort()
+            if isinstance(exc, Exception) and not isinstance(exc, EvnoiseError):
+                raise OutputError(f"cannot write {what} {self.path}: {' '.join(str(exc).split())}") from None
+            raise
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+        return False
+
+    def __del__(self):
+        try:
+            if not self._closed:
+                self.abort()
+        except Exception:
+            pass
+
+    def write(self, events) -> None:
+        """Append a chunk of events, sorted by time and not earlier than the previous chunk."""
+        if self._closed:
+            raise OutputError(f"{self.what} {self.path} is already closed")
+        try:
+            self._write(events)
+        except BaseException as exc:
+            self.abort()
+            if isinstance(exc, Exception) and not isinstance(exc, EvnoiseError):
+                raise OutputError(f"writing {self.what} {self.path} failed: {' '.join(str(exc).split())}") from None
+            raise
+
+    def _write(self, events):
+        events = check_events(events, self.shape)
+        if not events.size:
+            return
+        t = events["t"]
+        if t[0] < 0:
+            raise InputError(f"event times must be >= 0 microseconds, got t = {t[0]}")
+        if self._last_t is not None and t[0] < self._last_t:
+            raise InputError(f"events are not sorted across chunks: t = {t[0]} after t = {self._last_t}")
+        if self.t_end_us is not None and t[-1] >= self.t_end_us:
+            raise InputError(f"event at t = {t[-1]} us is not before t_end_us = {self.t_end_us}")
+        out = np.empty(events.size, dtype=self._faery_dtype)
+        out["t"] = t
+        out["x"] = events["x"]
+        out["y"] = events["y"]
+        out["on"] = events["p"] == 1
+        if self.format == "aedat4":
+            self._encoder.write(0, out)
+        elif self.format == "evt3":
+            self._encoder.write({"events": out})
+        elif self.format == "dat":
+            rec = np.empty(events.size, dtype=[("t", "<u8"), ("x", "<u2"), ("y", "<u2"), ("payload", "u1")])
+            rec["t"], rec["x"], rec["y"], rec["payload"] = t, events["x"], events["y"], events["p"]
+            self._encoder.write(rec)
+        elif self.format == "es":
+            out["y"] = (self.shape[0] - 1) - out["y"].astype(np.int64)  # Event Stream counts rows from the bottom
+            self._encoder.write(out)
+        else:
+            self._encoder.write(out)
+        self.n_events += int(events.size)
+        self._last_t = int(t[-1])
+
+    def close(self) -> Path:
+        """Finish the file and rename it to its final name; returns the path."""
+        if self._closed:
+            return self.path
+        try:
+            enc, self._encoder = self._encoder, None
+            enc.__exit__(None, None, None)
+            if not self.overwrite and self.path.exists():
+                raise OutputError(f"{self.what} {self.path} appeared while writing; not replacing it")
+            os.replace(self._tmp, self.path)
+        except EvnoiseError:
+            self.abort()
+            raise
+        except Exception as exc:
+            self.abort()
+            raise OutputError(f"cannot finish {self.what} {self.path}: {' '.join(str(exc).split())}") from None
+        except BaseException:
+            self.abort()
+            raise
+        self._closed = True
+        return self.path
+
+    def abort(self) -> None:
+        """Discard everything written so far (the temporary file is removed)."""
+        self._closed = True
+        enc, self._encoder = getattr(self, "_encoder", None), None
+        if enc is not None:
+            try:
+                enc.__exit__(None, None, None)
+            except Exception:
+                pass
+        tmp = getattr(self, "_tmp", None)
+        if tmp is not None:
+            _unlink_quietly(tmp)
+
+
+def open_event_writer(path, shape, attrs=None, *, overwrite: bool = False, compression: str | None = "gzip",
+                      t_end_us: int | None = None):
+    """A writer for ``path`` in the format its suffix names (:class:`EventWriter` or :class:`EventFileWriter`)."""
+    return EventFileWriter(path, shape, attrs, overwrite=overwrite, compression=compression, t_end_us=t_end_us)
 
 
 def _unlink_quietly(path):
@@ -497,39 +696,60 @@ def _first_index(f, t_ds, t_us: int) -> int:
     return lo + int(np.searchsorted(t_ds[lo:hi], t_us, side="left"))
 
 
-def read_events(path, t_start_us: int | None = None, t_end_us: int | None = None):
-    """Read events (all, or those with ``t_start_us <= t < t_end_us``) from an events.h5 file.
+def read_events(path, t_start_us: int | None = None, t_end_us: int | None = None, *, sensor=None,
+                t_start: float | None = None, t_end: float | None = None, csv_columns=None):
+    """Read events (all, or a time window) from an events.h5 file or any camera file evnoise reads.
 
     Parameters
     ----------
     path : str or os.PathLike
-        An events.h5 file (evnoise's, or any file with the DSEC layout).
+        An events.h5 file (evnoise's, or any file with the DSEC layout), or a camera file:
+        Prophesee ``.raw`` (EVT 2.0/2.1/3.0) and ``.dat``, ``.aedat4``, jAER ``.aedat``, ``.es``,
+        ``.csv``, N-MNIST ``.bin`` (see :mod:`evnoise.readers`).
     t_start_us, t_end_us : int, optional
-        Time window in microseconds, in the file's time base (``t`` as stored, without
-        ``t_offset``); located through ``/ms_to_idx`` when the file has it.
+        Time window ``t_start_us <= t < t_end_us`` in integer microseconds on the file's clock
+        (for events.h5: ``t`` as stored plus ``t_offset``, which is 0 in evnoise's files);
+        located through ``/ms_to_idx`` when the file has it.
+    sensor : str or (int, int), optional
+        Sensor size ``"WxH"`` or ``(width, height)``, for files whose header has none (EVT 2.0,
+        CSV, N-CARS ``.dat``) or a wrong one.
+    t_start, t_end : float, optional
+        The time window in seconds instead (give one form, not both).
+    csv_columns : str, optional
+        Column order of a CSV file, e.g. ``"x,y,p,t"``.
 
     Returns
     -------
     events : numpy.ndarray
         :data:`evnoise.EVENT_DTYPE`, sorted by time.
     meta : dict
-        The root attributes (decoded: JSON attributes such as ``params`` become dicts),
-        plus ``shape`` ``(H, W)`` (or ``None``), ``n_events`` (in the file) and ``t_offset``.
+        For events.h5: the root attributes (decoded: JSON attributes such as ``params`` become
+        dicts), plus ``shape`` ``(H, W)`` (or ``None``), ``n_events`` (in the file) and
+        ``t_offset``. For camera files: the header's facts, ``format``, ``shape`` (or ``None``),
+        ``shape_from``, ``t_offset`` and ``n_events`` (events returned).
 
     Raises
     ------
     InputError
-        Missing, unreadable or malformed file.
+        Missing, unreadable, malformed or truncated file; an unknown suffix.
     """
+    from .readers import _window, detect_format
+    from .readers import read_events as read_any
+
+    t_start_us, t_end_us = _window(t_start, t_end, t_start_us, t_end_us)
+    if sensor is not None or csv_columns is not None or detect_format(path) != "h5":
+        return read_any(path, sensor=sensor, csv_columns=csv_columns, t_start_us=t_start_us, t_end_us=t_end_us)
     with _open_h5(path) as f:
         ds = _event_datasets(f, path)
         meta = _metadata(f, ds)
         n = meta["n_events"]
+        off = meta["t_offset"]
         try:
-            lo = 0 if t_start_us is None else _first_index(f, ds["t"], int(t_start_us))
-            hi = n if t_end_us is None else _first_index(f, ds["t"], int(t_end_us))
+            lo = 0 if t_start_us is None else _first_index(f, ds["t"], int(t_start_us) - off)
+            hi = n if t_end_us is None else _first_index(f, ds["t"], int(t_end_us) - off)
             hi = max(lo, hi)
-            events = make_events(ds["t"][lo:hi], ds["x"][lo:hi], ds["y"][lo:hi], ds["p"][lo:hi])
+            t = ds["t"][lo:hi]
+            events = make_events(t + off if off else t, ds["x"][lo:hi], ds["y"][lo:hi], ds["p"][lo:hi])
         except OSError as exc:
             raise InputError(f"cannot read events from {path}: {exc}") from None
     return events, meta

@@ -1,0 +1,67 @@
+"""events.h5 in the DSEC layout: evnoise's own files and those other tools wrote.
+
+``/events/{t,x,y,p}`` (``/ms_to_idx`` when present locates a time window without reading the
+events before it). The file's clock is ``t + t_offset`` (``/t_offset``, 0 in evnoise's files).
+Width and height come from the root attributes; DSEC's own files have none (use ``sensor``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import InputError
+from ..events import make_events
+from ._base import EventSource
+
+#: Events read from the file at a time.
+CHUNK_EVENTS = 1 << 21
+
+
+class H5Source(EventSource):
+    format = "h5"
+    seekable = True
+
+    def __init__(self, path, *, sensor=None):
+        from ..io import _event_datasets, _metadata, _open_h5
+
+        super().__init__(path, sensor=sensor)
+        with _open_h5(self.path) as f:
+            ds = _event_datasets(f, self.path)
+            meta = _metadata(f, ds)
+            n = meta["n_events"]
+            self.t_offset_us = int(meta["t_offset"])
+            self.t_first_us = int(ds["t"][0]) + self.t_offset_us if n else None
+            self.t_last_us = int(ds["t"][n - 1]) + self.t_offset_us if n else None
+        self.n_events = n
+        self.meta = {k: v for k, v in meta.items() if k != "shape"}
+        self._set_shape(meta["shape"])
+
+    def _chunks(self, t_start_us, t_end_us):
+        from ..io import _event_datasets, _first_index, _open_h5
+
+        off = self.t_offset_us
+        with _open_h5(self.path) as f:
+            ds = _event_datasets(f, self.path)
+            lo = 0 if t_start_us is None else _first_index(f, ds["t"], int(t_start_us) - off)
+            hi = self.n_events if t_end_us is None else _first_index(f, ds["t"], int(t_end_us) - off)
+            for a in range(lo, hi, CHUNK_EVENTS):
+                b = min(a + CHUNK_EVENTS, hi)
+                try:
+                    t = ds["t"][a:b]
+                    events = make_events(t + off if off else t, ds["x"][a:b], ds["y"][a:b], ds["p"][a:b])
+                except OSError as exc:
+                    raise InputError(f"cannot read events from {self.path}: {exc}") from None
+                if events.size and int(events["p"].max()) > 1:
+                    events["p"] = events["p"] != 0
+                yield events
+
+
+def is_hdf5(head: bytes) -> bool:
+    return head.startswith(b"\x89HDF\r\n\x1a\n")
+
+
+def h5_events_window(path, t_start_us, t_end_us):
+    """All events of an events.h5 file in a window, as one array (used by :func:`evnoise.io.read_events`)."""
+    src = H5Source(path)
+    parts = list(src.chunks(t_start_us, t_end_us))
+    return np.concatenate(parts) if parts else make_events([], [], [], []), src

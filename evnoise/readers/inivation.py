@@ -1,0 +1,229 @@
+"""iniVation / jAER files: AEDAT 4 (through faery) and AEDAT 2.0 (tonic's container reader).
+
+AEDAT 4 (``.aedat4``): the first event track; the sensor size comes from its description. A file
+written by evnoise also carries evnoise's parameters, seed and version in the description
+(node ``evnoise``), reported in ``meta``.
+
+AEDAT 2.0 (jAER ``.aedat``): ``#`` header lines (the ``AEChip`` names the camera), then
+big-endian pairs of 32-bit address and 32-bit timestamp (µs). The records have a fixed size, so
+the body is memory-mapped and a time window is found by binary search. The address -> x, y,
+polarity map is per camera (:data:`AEDAT2_CHIPS`); it is the only bit-level decoding evnoise
+does itself.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ._base import EventSource, decoder_error, from_faery, header_lines, require, to_events
+
+# --------------------------------------------------------------------------------------
+# AEDAT 4
+# --------------------------------------------------------------------------------------
+#: Name of the description node where evnoise stores its attributes in AEDAT 4 files.
+EVNOISE_NODE = "evnoise"
+
+
+def _description_attrs(nodes) -> dict:
+    """evnoise's attributes from an AEDAT 4 description (``{}`` if none)."""
+    for node in nodes:
+        if node.name == EVNOISE_NODE:
+            out = {}
+            for key, attr in node.attributes.items():
+                value = attr.value
+                if key.endswith("_json") and isinstance(value, str):
+                    try:
+                        value = json.loads(value)
+                    except ValueError:
+                        pass
+                    key = key[:-5]
+                out[key] = value
+            return out
+        found = _description_attrs(node.nodes)
+        if found:
+            return found
+    return {}
+
+
+class Aedat4Source(EventSource):
+    """AEDAT 4 (the first event track)."""
+
+    format = "aedat4"
+
+    def __init__(self, path, *, sensor=None):
+        super().__init__(path, sensor=sensor)
+        require("faery", "AEDAT 4 files")
+        from faery.extension import aedat
+
+        try:
+            with aedat.Decoder(self.path) as dec:
+                tracks = dec.tracks()
+                description = dec.description()
+        except Exception as exc:  # noqa: BLE001 - faery raises plain exceptions
+            raise decoder_error(self.path, "AEDAT 4", exc) from None
+        events = [t for t in tracks if t.data_type == "events"]
+        if not events:
+            raise InputError(f"{self.path}: the AEDAT 4 file has no event track "
+                             f"(tracks: {', '.join(t.data_type for t in tracks) or 'none'})")
+        self._track = events[0].id
+        self.meta = {"tracks": [f"{t.id}: {t.data_type}" for t in tracks]}
+        self.meta.update(_description_attrs(description))
+        dims = events[0].dimensions
+        self._set_shape((dims[1], dims[0]) if dims else None)
+
+    def _chunks(self, t_start_us, t_end_us):
+        from faery.extension import aedat
+
+        try:
+            with aedat.Decoder(self.path) as dec:
+                for track, packet in dec:
+                    if track.id != self._track or len(packet) == 0:
+                        continue
+                    if t_start_us is not None and int(packet["t"][-1]) < t_start_us:
+                        continue
+                    yield from_faery(packet)
+                    if t_end_us is not None and int(packet["t"][-1]) >= t_end_us:
+                        return
+        except InputError:
+            raise
+        except Exception as exc:  # noqa: BLE001
+            raise decoder_error(self.path, "AEDAT 4", exc) from None
+
+
+# --------------------------------------------------------------------------------------
+# AEDAT 2.0 (jAER)
+# --------------------------------------------------------------------------------------
+def _dvs128(a):
+    """DVS128 (and eDVS128): x = 127 - bits 1-7, y = bits 8-14, ON when bit 0 is 0."""
+    keep = np.ones(a.shape, dtype=bool)
+    return keep, 127 - ((a >> 1) & 0x7F), (a >> 8) & 0x7F, (a & 1) == 0
+
+
+def _davis(width):
+    """DAVIS (jAER's DavisBaseCamera): DVS events have bit 31 = 0 and bit 10 = 0 (bit 10 marks
+    external-input events); x = width - 1 - bits 12-21, y = bits 22-30, ON when bit 11 is 1."""
+
+    def decode(a):
+        keep = ((a >> 31) & 1 == 0) & ((a >> 10) & 1 == 0)
+        return keep, (width - 1) - ((a >> 12) & 0x3FF), (a >> 22) & 0x1FF, ((a >> 11) & 1) == 1
+
+    return decode
+
+
+#: AEDAT 2.0 address tables: regular expression on the header's ``AEChip`` -> (width, height, decode).
+#: The DVS128 row is tested on the real recordings in ``shared/data/realdata``; the DAVIS rows
+#: follow jAER's DAVIS extractor (no DAVIS AEDAT 2.0 recording with events was available to test).
+AEDAT2_CHIPS = [
+    (r"DVS128|Tmpdiff128", 128, 128, _dvs128),
+    (r"DAVIS240|SBret10", 240, 180, _davis(240)),
+    (r"Davis346", 346, 260, _davis(346)),
+]
+
+_AEDAT2_RECORD = np.dtype([("address", ">u4"), ("timeStamp", ">u4")])
+
+
+def _tonic_io():
+    """tonic's ``io`` module, loaded on its own (``import tonic`` would load its datasets, ~2 s)."""
+    spec = importlib.util.find_spec("tonic")
+    if spec is None or spec.origin is None:
+        require("tonic", "this file")  # raises the error naming the extra
+    path = Path(spec.origin).parent / "io.py"
+    mod_spec = importlib.util.spec_from_file_location("_evnoise_tonic_io", path)
+    module = importlib.util.module_from_spec(mod_spec)
+    mod_spec.loader.exec_module(module)
+    return module
+
+
+class Aedat2Source(EventSource):
+    """jAER AEDAT 2.0."""
+
+    format = "aedat2"
+    seekable = True
+
+    def __init__(self, path, *, sensor=None, chip: str | None = None):
+        super().__init__(path, sensor=sensor)
+        tio = _tonic_io()
+        try:
+            version, _, created_ms = tio.read_aedat_header_from_file(str(self.path))
+        except Exception as exc:  # noqa: BLE001 - tonic raises plain errors on a bad header
+            raise decoder_error(self.path, "jAER AEDAT 2.0", exc) from None
+        if not 2 <= version < 3:
+            raise InputError(f"{self.path}: AEDAT version {version:g}; this reader handles AEDAT 2.0")
+        # tonic's data_start is one byte short when the header runs to the end of the file (a
+        # header-only recording); the end of the '#' lines is the start of the data
+        lines, start = header_lines(self.path, b"#")
+        head = "\n".join(lines)
+        chip = chip or _header_value(head, "AEChip")
+        self.meta = {"aedat_version": float(version), "chip": chip}
+        hw = _header_value(head, "HardwareInterface")
+        if hw:
+            self.meta["hardware_interface"] = hw.split(" with ")[0]
+        if created_ms is not None:
+            self.meta["created_unix_ms"] = int(created_ms)
+        body = self.path.stat().st_size - start
+        if body % _AEDAT2_RECORD.itemsize:
+            raise InputError(f"cannot read {self.path} as jAER AEDAT 2.0: the data section ({body} bytes) is not "
+                             f"a whole number of 8-byte events (truncated file?)")
+        self._start = start
+        self.n_records = body // _AEDAT2_RECORD.itemsize
+        self._decode = None
+        header_shape = None
+        for pattern, width, height, decode in AEDAT2_CHIPS:
+            if chip and re.search(pattern, chip, re.IGNORECASE):
+                self._decode, header_shape = decode, (height, width)
+                break
+        if self._decode is None:
+            names = ", ".join(p for p, *_ in AEDAT2_CHIPS)
+            raise InputError(f"{self.path}: AEDAT 2.0 camera {chip or '(no AEChip line)'} has no address table in "
+                             f"evnoise (known: {names})")
+        self._set_shape(header_shape, source="header")
+
+    def _records(self):
+        if self.n_records == 0:
+            return np.empty(0, dtype=_AEDAT2_RECORD)
+        return np.memmap(self.path, dtype=_AEDAT2_RECORD, mode="r", offset=self._start, shape=(self.n_records,))
+
+    def _index(self, rec, t_us) -> int:
+        """First record with ``timeStamp >= t_us`` (binary search on the mapped file)."""
+        if t_us is None:
+            return 0
+        if t_us <= 0:
+            return 0
+        if t_us > 0xFFFFFFFF:
+            return rec.shape[0]
+        return int(np.searchsorted(rec["timeStamp"], np.uint32(t_us), side="left"))
+
+    def _chunks(self, t_start_us, t_end_us, chunk: int = 1 << 20):
+        rec = self._records()
+        n = rec.shape[0]
+        ts = rec["timeStamp"]
+        sorted_ts = n < 2 or bool(np.all(ts[1:] >= ts[:-1])) if n <= (1 << 22) else True
+        lo = self._index(rec, t_start_us) if sorted_ts else 0
+        hi = (self._index(rec, t_end_us) if t_end_us is not None else n) if sorted_ts else n
+        for a in range(lo, hi, chunk):
+            part = np.asarray(rec[a:min(a + chunk, hi)])
+            addr = part["address"].astype(np.uint32)
+            keep, x, y, on = self._decode(addr)
+            t = part["timeStamp"].astype(np.int64)
+            if not keep.all():
+                t, x, y, on = t[keep], x[keep], y[keep], on[keep]
+            yield to_events(t, x, y, on)
+
+
+def _header_value(head: str, key: str) -> str | None:
+    m = re.search(rf"^#\s*{key}:\s*(.+?)\s*$", head, re.MULTILINE)
+    return m.group(1) if m else None
+
+
+def is_aedat2(head: bytes) -> bool:
+    return head.startswith(b"#!AER-DAT2")
+
+
+def is_aedat4(head: bytes) -> bool:
+    return head.startswith(b"#!AER-DAT4")

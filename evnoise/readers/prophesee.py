@@ -1,0 +1,166 @@
+"""Prophesee files: RAW (EVT 2.0, 2.1, 3.0) and DAT, through faery (and expelliarmus for Event2d DAT).
+
+- ``.raw``: the ``% key value`` text header, then EVT words. faery decodes all three EVT versions
+  (version and geometry from the header: ``% evt 3.0``, ``% format EVT3;height=720;width=1280``
+  or ``% geometry``). EVT words carry no absolute index, so a time window is found by decoding
+  from the start; decoding stops at the window's end and memory stays at one packet.
+- ``.dat``: the ``%`` header, then 8-byte records. ``CD`` files (as faery and Metavision write
+  them) go through faery; ``Event2d`` files (ATIS datasets such as N-CARS), which faery refuses,
+  through expelliarmus, in chunks. expelliarmus is never used for EVT3 (it decodes EVT3
+  timestamps wrongly).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import InputError
+from ._base import EventSource, decoder_error, from_faery, header_lines, require, to_events
+
+#: Placeholder geometry handed to faery when a file has none (faery needs one; no event is
+#: checked against it). The events' extent is what evnoise reports then.
+NO_GEOMETRY = (65535, 65535)
+
+
+def _header_dict(lines):
+    out = {}
+    for line in lines:
+        body = line[1:].strip()
+        if not body:
+            continue
+        key, _, value = body.partition(" ")
+        out[key] = value.strip() if key not in out else f"{out[key]}; {value.strip()}"
+    return out
+
+
+class RawSource(EventSource):
+    """Prophesee RAW (EVT 2.0 / 2.1 / 3.0)."""
+
+    def __init__(self, path, *, sensor=None):
+        super().__init__(path, sensor=sensor)
+        require("faery", "Prophesee RAW files")
+        from faery.extension import evt
+
+        lines, self._data_offset = header_lines(self.path, b"%")
+        self.meta = {"header": _header_dict(lines)}
+        geometry = True
+        try:
+            with evt.Decoder(self.path, None, None) as dec:
+                version, dims = dec.version, dec.dimensions
+        except RuntimeError as exc:
+            if "size" not in str(exc):
+                raise decoder_error(self.path, "Prophesee RAW (EVT)", exc) from None
+            geometry = False
+            try:
+                with evt.Decoder(self.path, NO_GEOMETRY, None) as dec:
+                    version, dims = dec.version, dec.dimensions
+            except Exception as exc2:  # noqa: BLE001 - faery raises plain exceptions
+                raise decoder_error(self.path, "Prophesee RAW (EVT)", exc2) from None
+        except Exception as exc:  # noqa: BLE001
+            raise decoder_error(self.path, "Prophesee RAW (EVT)", exc) from None
+        self.format = str(version)
+        self.meta["evt_version"] = str(version)
+        self._fallback = NO_GEOMETRY if self._user_shape is None else (self._user_shape[1], self._user_shape[0])
+        self._set_shape((dims[1], dims[0]) if geometry else None)
+        if not geometry:
+            self.meta["geometry"] = "none in the header"
+
+    def _chunks(self, t_start_us, t_end_us):
+        from faery.extension import evt
+
+        try:
+            with evt.Decoder(self.path, self._fallback, None) as dec:
+                for packet in dec:
+                    events = packet.get("events")
+                    if events is None or len(events) == 0:
+                        continue
+                    if t_start_us is not None and int(events["t"][-1]) < t_start_us:
+                        continue
+                    yield from_faery(events)
+                    if t_end_us is not None and int(events["t"][-1]) >= t_end_us:
+                        return
+        except InputError:
+            raise
+        except Exception as exc:  # noqa: BLE001
+            raise decoder_error(self.path, f"Prophesee RAW ({self.format})", exc) from None
+
+
+class DatSource(EventSource):
+    """Prophesee DAT (CD through faery, Event2d through expelliarmus)."""
+
+    format = "dat"
+
+    def __init__(self, path, *, sensor=None):
+        super().__init__(path, sensor=sensor)
+        require("faery", "Prophesee DAT files")
+        from faery.extension import dat
+
+        lines, self._data_offset = header_lines(self.path, b"%")
+        self.meta = {"header": _header_dict(lines)}
+        if self._data_offset + 2 > self.path.stat().st_size:
+            raise InputError(f"cannot read {self.path} as Prophesee DAT: no event-type header after the text header")
+        geometry = True
+        try:
+            try:
+                with dat.Decoder(self.path, None, None) as dec:
+                    kind, dims = dec.event_type, dec.dimensions
+            except RuntimeError as exc:
+                if "size" not in str(exc):
+                    raise
+                geometry = False
+                with dat.Decoder(self.path, NO_GEOMETRY, None) as dec:
+                    kind, dims = dec.event_type, dec.dimensions
+        except Exception as exc:  # noqa: BLE001
+            raise decoder_error(self.path, "Prophesee DAT", exc) from None
+        if kind not in ("cd", "2d"):
+            raise InputError(f"{self.path}: a DAT file of {kind} events holds no change-detection events")
+        self.meta["event_type"] = "CD" if kind == "cd" else "Event2d"
+        self._kind = kind
+        if kind == "2d":
+            require("expelliarmus", "Prophesee DAT Event2d files")
+        self._fallback = NO_GEOMETRY if self._user_shape is None else (self._user_shape[1], self._user_shape[0])
+        self._set_shape((dims[1], dims[0]) if geometry and dims else None)
+        if self.shape is None and not geometry:
+            self.meta["geometry"] = "none in the header"
+        body = self.path.stat().st_size - self._data_offset - 2
+        if body % 8:
+            raise InputError(f"cannot read {self.path} as Prophesee DAT: the data section ({body} bytes) is not a "
+                             f"whole number of 8-byte events (truncated file?)")
+
+    def _chunks(self, t_start_us, t_end_us):
+        if self._kind == "cd":
+            from faery.extension import dat
+
+            try:
+                with dat.Decoder(self.path, self._fallback, None) as dec:
+                    for packet in dec:
+                        if len(packet) == 0:
+                            continue
+                        if t_start_us is not None and int(packet["t"][-1]) < t_start_us:
+                            continue
+                        yield to_events(packet["t"], packet["x"], packet["y"], packet["payload"])
+                        if t_end_us is not None and int(packet["t"][-1]) >= t_end_us:
+                            return
+            except InputError:
+                raise
+            except Exception as exc:  # noqa: BLE001
+                raise decoder_error(self.path, "Prophesee DAT", exc) from None
+            return
+        import expelliarmus
+
+        wiz = expelliarmus.Wizard(encoding="dat", fpath=str(self.path), chunk_size=1 << 20)
+        try:
+            for packet in wiz.read_chunk():
+                if len(packet) == 0:
+                    continue
+                if t_start_us is not None and int(packet["t"][-1]) < t_start_us:
+                    continue
+                if np.any(packet["x"] < 0) or np.any(packet["y"] < 0):
+                    raise InputError(f"{self.path}: negative coordinates in a DAT file (corrupt?)")
+                yield to_events(packet["t"], packet["x"], packet["y"], packet["p"])
+                if t_end_us is not None and int(packet["t"][-1]) >= t_end_us:
+                    return
+        except InputError:
+            raise
+        except Exception as exc:  # noqa: BLE001
+            raise decoder_error(self.path, "Prophesee DAT (Event2d)", exc) from None
