@@ -100,7 +100,7 @@ def test_png_of_the_count_maps(tmp_path, image, capsys):
     assert code == 0
     with PIL_Image.open(tmp_path / "ev.png") as im:
         assert im.format == "PNG" and im.mode == "RGB"
-        assert im.height == 24 and im.width > 2 * 32
+        assert im.height > 24 and im.width > 3 * 32  # scene, ON and OFF side by side, titles and colour bars
         pixels = np.asarray(im)
     assert pixels.std() > 0  # not blank
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ev.h5", "ev.png", "scene.png"]
@@ -114,10 +114,17 @@ def test_count_png_brightness_follows_counts(tmp_path):
     counts[1, :40, :] = 5  # OFF: top half a little
     save_count_png(counts, tmp_path / "c.png")
     with PIL_Image.open(tmp_path / "c.png") as im:
-        grey = np.asarray(im.convert("L")).astype(int)
-    on, off = grey[:, :400], grey[:, -400:]
-    assert on[70, 300] == 255 and on[70, 100] == 0
-    assert off[30, 300] == round(255 * np.log1p(5) / np.log1p(50)) and off[70, 300] == 0
+        rgb = np.asarray(im.convert("RGB")).reshape(-1, 3)
+    from evnoise.cli._pictures import LogScale, colormap
+
+    scale = LogScale.of_rates(counts, floor=1.0)
+    busy, some, none = (colormap(scale(np.array([c])))[0] for c in (50, 5, 0))
+    assert tuple(none) == (0, 0, 0)  # black: no events, darker than the lowest rate
+    assert tuple(busy) != tuple(some) and colormap([1.0]).mean() > colormap([0.5]).mean() > colormap([0.0]).mean()
+    n = {name: int(np.all(rgb == c, axis=1).sum()) for name, c in (("busy", busy), ("some", some), ("none", none))}
+    # the maps' pixels (the colour bar adds a few columns of each colour)
+    assert 200 * 80 <= n["busy"] < 200 * 80 + 400 and 400 * 40 <= n["some"] < 400 * 40 + 400
+    assert 200 * 80 + 400 * 40 <= n["none"] < 200 * 80 + 400 * 40 + 400
 
 
 def test_folder_of_frames_is_a_video(tmp_path, frames, capsys):

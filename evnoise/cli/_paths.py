@@ -8,6 +8,7 @@ case-insensitive file systems) where both exist, else by resolved path.
 
 from __future__ import annotations
 
+import fnmatch
 import os
 from pathlib import Path
 
@@ -35,7 +36,8 @@ def _inside(child: Path, folder: Path, *, direct: bool) -> bool:
     return folder_r in child_r.parents
 
 
-def refuse_writing_inputs(outputs, inputs, *, frames_folder: bool = False, output_folder: bool = False) -> None:
+def refuse_writing_inputs(outputs, inputs, *, frames_folder: bool = False, output_folder: bool = False,
+                          folder_files=None) -> None:
     """Raise :class:`~evnoise.OutputError` if an output would write over (or into) an input.
 
     Parameters
@@ -54,6 +56,10 @@ def refuse_writing_inputs(outputs, inputs, *, frames_folder: bool = False, outpu
     output_folder : bool
         The outputs are folders (``make-dataset --out``): one that contains an input is refused
         too.
+    folder_files : sequence of str, optional
+        The outputs are folders into which files named by these glob patterns are written
+        (``reconstruct --fps``: ``frame_*.png``, ...): an input inside one with such a name is
+        refused (any other file there is left alone, so it is allowed).
     """
     outs = [(flag, Path(p)) for flag, p in outputs if p is not None and str(p) != ""]
     ins = [(what, Path(p)) for what, p in inputs if p is not None and str(p) != ""]
@@ -66,6 +72,10 @@ def refuse_writing_inputs(outputs, inputs, *, frames_folder: bool = False, outpu
             if inp.is_dir() and frames_folder and _inside(out, inp, direct=True):
                 raise OutputError(f"{flag} {out} is inside {what} {inp}, which is read as a whole; write it "
                                   f"elsewhere")
+            if folder_files and _inside(inp, out, direct=True) and any(
+                    fnmatch.fnmatch(inp.name, pattern) for pattern in folder_files):
+                raise OutputError(f"{flag} {out} would receive files named {' / '.join(folder_files)}, and "
+                                  f"{what} {inp} is one of them; evnoise never writes over its own input")
             if output_folder and out.is_dir() and _inside(inp, out, direct=False):
                 raise OutputError(f"{flag} {out} contains {what} ({inp}); evnoise never writes over its own "
                                   f"input: choose another folder")

@@ -83,6 +83,11 @@ def run(args) -> int:
     if args.starts < 1:
         raise ParameterError(f"--starts must be >= 1, got {args.starts}")
     fixed = _parse_fix(args.fix)
+    from ._paths import refuse_writing_inputs
+
+    refuse_writing_inputs([("--out", args.out), ("--plot", args.plot)],
+                          [("the measurements", args.measurements), ("the --monitor table", args.monitor),
+                           ("the --initial preset", args.initial)])
     out = open_output_path(args.out, overwrite=args.overwrite, what="preset")
     plot = open_output_path(args.plot, overwrite=args.overwrite, what="plot") if args.plot else None
     initial = load_preset(args.initial) if args.initial else None

@@ -169,6 +169,10 @@ def run(args) -> int:
         raise ParameterError(f"--seed must be a non-negative integer, got {args.seed}")
     config = build_config(args)
     sources = build_sources(args)
+    from ._paths import refuse_writing_inputs
+
+    refuse_writing_inputs([("--out", args.out)], [*(("an input", p) for p in args.images),
+                                                  ("the --preset file", args.preset)], output_folder=True)
     result = make_dataset(sources, args.out, config, workers=args.workers, scheduler=args.scheduler,
                           threads=args.threads, progress=not quiet, overwrite=args.overwrite)
     if not quiet:

@@ -47,6 +47,10 @@ def run(args) -> int:
     from ..reconstruct.imaging import write_png
     from ..reconstruct.infer import Reconstructor, counts_from_h5, h5_duration_s
 
+    from ._paths import refuse_writing_inputs
+
+    refuse_writing_inputs([("--out", args.out)], [("the events file", args.events), ("the --model", args.model)],
+                          folder_files=("frame_*.png", "overlay_*.png", "frames.csv") if args.fps else None)
     if args.fps is not None:
         if args.step is not None:
             raise ParameterError("--step and --fps are two different moving-window modes; give one")
@@ -93,6 +97,8 @@ def run(args) -> int:
         targets = [out]
     else:
         targets = [out.with_name(f"{out.stem}_{k:04d}{out.suffix}") for k in range(len(starts))]
+    refuse_writing_inputs([("--out", path) for path in targets],
+                          [("the events file", args.events), ("the --model", args.model)])
     for path in targets:
         if path.exists() and not args.overwrite:
             raise OutputError(f"{path} exists (use --overwrite)")

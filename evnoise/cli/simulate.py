@@ -222,6 +222,7 @@ class _Scene(NamedTuple):
     t_end_us: int  # end of the recording (exclusive)
     attrs: dict  # attributes for the event file
     text: str  # description for the summary
+    lux: object = None  # (H, W) illuminance shown beside the event maps (a video: its first frame)
 
 
 def _scene(args, source, is_video, duration, fps, sensor, params, seed, *, progress) -> _Scene:
@@ -248,20 +249,22 @@ def _scene(args, source, is_video, duration, fps, sensor, params, seed, *, progr
         t_end_us = int(round(timestamps[-1] * 1e6))
         stream = iter_video(frames, timestamps, params, seed, args.method, threads=args.threads, progress=progress)
         attrs = {"scene": "video", "fps": fps, "n_frames": len(frames), "duration_s": t_end_us * 1e-6}
-        return _Scene(stream, frames.shape, t_end_us, attrs, f"a {len(frames)}-frame video at {fps:g} fps")
+        return _Scene(stream, frames.shape, t_end_us, attrs, f"a {len(frames)}-frame video at {fps:g} fps",
+                      frames[0])
     lux = convert(source)
     stream = iter_events(lux, params, duration, seed, args.method, threads=args.threads, progress=progress)
     attrs = {"scene": "static", "duration_s": duration, "lux_min": float(lux.min()),
              "lux_mean": float(lux.mean()), "lux_max": float(lux.max())}
     text = (f"a static scene ({lux.min():.3g} to {lux.max():.3g} lux, mean {lux.mean():.3g} lux) "
             f"for {duration:g} s")
-    return _Scene(stream, lux.shape, int(round(duration * 1e6)), attrs, text)
+    return _Scene(stream, lux.shape, int(round(duration * 1e6)), attrs, text, lux)
 
 
 def _write_outputs(args, fmt, out, png, scene: _Scene, attrs):
     """Run the simulation into the event file (and the PNG); returns the counts ``(2, H, W)``."""
     import numpy as np
 
+    from .._atomic import temporary_name
     from ..io import EventWriter, write_aedat4
 
     height, width = scene.shape
@@ -279,8 +282,8 @@ def _write_outputs(args, fmt, out, png, scene: _Scene, attrs):
         if fmt == "aedat4":
             write_aedat4(out, counted(scene.stream), scene.shape, overwrite=args.overwrite)
             if png is not None:
-                png_tmp = _png_tmp_name(png)
-                _write_png_file(counts.reshape(2, height, width), png_tmp)
+                png_tmp = temporary_name(png)
+                _write_png_file(counts.reshape(2, height, width), png_tmp, scene)
         else:
             compression = None if args.compression == "none" else args.compression
             with EventWriter(out, scene.shape, attrs, overwrite=args.overwrite, compression=compression,
@@ -288,8 +291,8 @@ def _write_outputs(args, fmt, out, png, scene: _Scene, attrs):
                 for chunk in counted(scene.stream):
                     writer.write(chunk)
                 if png is not None:  # written before the event file is renamed: both or neither
-                    png_tmp = _png_tmp_name(png)
-                    _write_png_file(counts.reshape(2, height, width), png_tmp)
+                    png_tmp = temporary_name(png)
+                    _write_png_file(counts.reshape(2, height, width), png_tmp, scene)
         if png_tmp is not None:
             _replace(png_tmp, png)
             png_tmp = None
@@ -299,13 +302,10 @@ def _write_outputs(args, fmt, out, png, scene: _Scene, attrs):
     return counts.reshape(2, height, width)
 
 
-def _png_tmp_name(png: Path) -> Path:
-    return png.with_name(f".{png.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")
-
-
-def _write_png_file(counts, path) -> None:
+def _write_png_file(counts, path, scene: _Scene) -> None:
     try:
-        save_count_png(counts, path)
+        save_count_png(counts, path, lux=scene.lux, duration_s=scene.t_end_us * 1e-6,
+                       scene_title="first frame" if scene.attrs.get("scene") == "video" else "scene")
     except OSError as exc:
         raise OutputError(f"cannot write PNG file {path}: {exc}") from None
 
@@ -326,47 +326,19 @@ def _example_path():
     return path
 
 
-def save_count_png(counts, path) -> None:
-    """PNG of the ON (left) and OFF (right) event-count maps, grey, log-scaled, one shared scale.
+def save_count_png(counts, path, *, lux=None, duration_s=None, scene_title: str = "scene") -> None:
+    """PNG of the scene and its ON and OFF event-rate maps, with labels and colour bars.
 
-    ``log1p(count) / log1p(c_max)`` with ``c_max`` the 99.9th percentile of all counts (so
-    a few hot pixels do not darken the rest); black = no events. Labels ``ON`` / ``OFF`` and
-    the count at full white are drawn in the top-left corners.
+    Left: ``lux`` (the scene's illuminance, ``(H, W)``) in grey on a log lux scale, so that the
+    maps can be read against it (the noise rate peaks near 1-2 lux: a bright sky is dark in the
+    maps); omitted when ``lux`` is None. Right: ON and OFF maps in events/s per pixel
+    (``counts / duration_s``; plain counts without ``duration_s``) on one shared log colour
+    scale (99.9th percentile at the top, black = no events), labelled, with the colour bar
+    below. Sensors wider than 640 pixels are shown block-averaged (the caption says so).
     """
-    import numpy as np
-    from PIL import Image, ImageDraw
+    from ._pictures import save_png, simulate_sheet
 
-    counts = np.asarray(counts)
-    _, height, width = counts.shape
-    top = float(np.percentile(counts, 99.9))
-    if top < 1.0:
-        top = max(float(counts.max()), 1.0)
-    scaled = np.log1p(np.minimum(counts, top)) / np.log1p(top)
-    grey = np.round(255.0 * scaled).astype(np.uint8)
-    gap = max(4, width // 160)
-    canvas = np.full((height, 2 * width + gap), 96, dtype=np.uint8)
-    canvas[:, :width] = grey[0]
-    canvas[:, width + gap:] = grey[1]
-    image = Image.fromarray(canvas).convert("RGB")
-    draw = ImageDraw.Draw(image)
-    font = _label_font(max(10, height // 36))
-    for x0, label in ((0, "ON"), (width + gap, "OFF")):
-        text = f"{label}  (white = {top:.0f}+ events, log scale)"
-        box = draw.textbbox((x0 + 8, 6), text, font=font)
-        if box[2] + 4 > x0 + width:
-            continue  # too narrow for a label
-        draw.rectangle((box[0] - 4, box[1] - 3, box[2] + 4, box[3] + 3), fill=(0, 0, 0))
-        draw.text((x0 + 8, 6), text, fill=(80, 255, 80) if label == "ON" else (255, 110, 110), font=font)
-    image.save(path, format="PNG")
-
-
-def _label_font(size: int):
-    from PIL import ImageFont
-
-    try:
-        return ImageFont.load_default(size=size)  # scalable with FreeType (Pillow >= 10.1)
-    except (TypeError, ImportError, OSError):
-        return ImageFont.load_default()
+    save_png(simulate_sheet(counts, lux=lux, duration_s=duration_s, scene_title=scene_title), path)
 
 
 def summary(counts, duration_s, scene, *, params_label, seed, method, out, png, elapsed_s) -> str:

@@ -68,6 +68,14 @@ def run(args) -> int:
         lr=args.lr, ssim_weight=args.ssim_weight, patience=args.patience or None, max_minutes=args.max_minutes,
         val_fraction=args.val_fraction, polarities=args.polarities, seed=args.seed,
     )
+    from pathlib import Path
+
+    from ._paths import refuse_writing_inputs
+
+    out = Path(args.out)
+    refuse_writing_inputs([("--out", out), ("the loss plot", None if args.no_plot else
+                                            out.with_name(out.stem + ".loss.png"))],
+                          [("the dataset", args.dataset), ("the --val dataset", args.val)])
     data = open_pairs(args.dataset, split="train")
     val = _open_val(args.dataset, args)
     model = {"base_channels": args.base_channels} if args.base_channels else None
