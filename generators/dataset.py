@@ -47,6 +47,8 @@ log = logging.getLogger(__name__)
 
 SPLITS = ("train", "val", "test")
 MANIFEST = "manifest.json"
+#: a picture of a few pairs, written by ``evnoise make-dataset`` (not part of the data, not verified)
+PREVIEW = "preview.png"
 SHARDS_DIR = "shards"
 PROGRESS_DIR = ".evnoise-progress"
 _SPLIT_SALT = "evnoise-split-v1:"
@@ -342,7 +344,7 @@ def _prepare_folder(root: Path, overwrite: bool) -> None:
             raise OutputError(f"cannot create output folder {root}: {exc.strerror or exc}") from None
     if not os.access(root, os.W_OK | os.X_OK):
         raise OutputError(f"output folder {root} is not writable")
-    ours = {MANIFEST, SHARDS_DIR, PROGRESS_DIR}
+    ours = {MANIFEST, SHARDS_DIR, PROGRESS_DIR, PREVIEW}
     others = [p.name for p in root.iterdir() if p.name not in ours]
     has_dataset = (root / MANIFEST).exists() or (root / PROGRESS_DIR).exists()
     if others and not has_dataset:
@@ -356,6 +358,7 @@ def _prepare_folder(root: Path, overwrite: bool) -> None:
 def _clear(root: Path) -> None:
     """Remove an existing dataset's files (only evnoise's own)."""
     (root / MANIFEST).unlink(missing_ok=True)
+    (root / PREVIEW).unlink(missing_ok=True)
     shards = root / SHARDS_DIR
     if shards.is_dir():
         for p in shards.iterdir():

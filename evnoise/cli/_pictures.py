@@ -143,8 +143,9 @@ def colour_bar(width: int, scale: LogScale, caption: str, *, grey: bool = False,
     return image
 
 
-def titled(rgb, title: str, *, size: int = 16, colour=TEXT):
-    """A panel (uint8 RGB array or PIL image) with ``title`` above it (cut to the panel's width)."""
+def titled(rgb, title: str, *, size: int = 16, colour=TEXT, min_lines: int = 1):
+    """A panel (uint8 RGB array or PIL image) with ``title`` above it, wrapped to the panel's width
+    (at least ``min_lines`` lines high, so that panels in a row line up)."""
     from PIL import Image, ImageDraw
 
     panel = rgb if isinstance(rgb, Image.Image) else Image.fromarray(np.asarray(rgb, dtype=np.uint8))
@@ -158,7 +159,7 @@ def titled(rgb, title: str, *, size: int = 16, colour=TEXT):
         while len(line) > 1 and measure.textlength(line, font=fnt) > panel.width - 4:
             line = line[:-2] + "…"
         lines.append(line)
-    head = len(lines) * (size + 4) + 6
+    head = max(len(lines), min_lines) * (size + 4) + 6
     image = Image.new("RGB", (panel.width, panel.height + head), BACKGROUND)
     draw = ImageDraw.Draw(image)
     for k, line in enumerate(lines):
@@ -300,11 +301,12 @@ def dataset_preview(root, *, n_pairs: int = 4):
         image = resample(np.asarray(item["image"], dtype=np.float64), shrink, enlarge)
         grey = np.round(255 * np.clip(image, 0, 1)).astype(np.uint8)
         source = str(item["source"])
-        cells = [titled(np.repeat(grey[..., None], 3, axis=2), f"{source} (max {item['max_lux']:.3g} lux)",
-                        size=size)]
+        cells = [titled(np.repeat(grey[..., None], 3, axis=2), f"{source} (white {item['max_lux']:.3g} lux)",
+                        size=size, min_lines=2)]
         for k, name in enumerate(("ON", "OFF")):
             shown = resample(c[k], shrink, enlarge)
-            cells.append(titled(colormap(scale(shown)), f"{name} counts, {item['window_s']:g} s", size=size))
+            cells.append(titled(colormap(scale(shown)), f"{name} events, {item['window_s']:g} s window", size=size,
+                                min_lines=2))
         rows.append(hstack(cells, 8))
     bar = colour_bar(rows[0].width, scale, f"event rate, events/s per {b}x{b}-binned pixel, log scale",
                      size=size - 1)
@@ -387,6 +389,23 @@ def separation_sheet(total, signal, duration_s: float, *, filter_text: str = "")
     if filter_text:
         parts.insert(0, titled(np.full((1, row.width, 3), BACKGROUND[0], np.uint8), filter_text, size=size))
     return vstack(parts, gap=6, pad=8)
+
+
+def check_png_output(png, others, *, overwrite: bool) -> None:
+    """Fail early (before the work) when ``png`` cannot be written or names another output."""
+    from pathlib import Path
+
+    from ..errors import OutputError
+    from ..io import open_output_path
+
+    if png is None:
+        return
+    if Path(png).suffix.lower() != ".png":
+        raise OutputError(f"--png must name a .png file, got {png}")
+    open_output_path(png, overwrite=overwrite, what="PNG file")
+    for other in others:
+        if other is not None and Path(other).resolve() == Path(png).resolve():
+            raise OutputError(f"--png and an event output name the same file: {png}")
 
 
 def write_separation_png(events, signal_out, noise_out, png, *, overwrite: bool, filter_text: str = ""):

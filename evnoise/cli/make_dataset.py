@@ -175,6 +175,7 @@ def run(args) -> int:
                                                   ("the --preset file", args.preset)], output_folder=True)
     result = make_dataset(sources, args.out, config, workers=args.workers, scheduler=args.scheduler,
                           threads=args.threads, progress=not quiet, overwrite=args.overwrite)
+    preview = _write_preview(result.path, bool(result.generated))
     if not quiet:
         m = result.manifest
         t = m["totals"]
@@ -190,7 +191,24 @@ def run(args) -> int:
             print(f"skipped {t['skipped_sources']} source image(s); reasons in {result.path / 'manifest.json'}")
         if t["saturated_bins"]:
             print(f"warning: {t['saturated_bins']} count bins saturated at 65535")
+        if preview is not None:
+            print(f"preview of a few pairs: {preview}")
     return 0
+
+
+def _write_preview(root, changed: bool):
+    """``preview.png`` in the dataset folder (redrawn when shards were made or it is missing); a
+    failure to draw it is a warning, not an error (the dataset itself is complete)."""
+    from ._pictures import PREVIEW, write_dataset_preview
+
+    path = root / PREVIEW
+    if path.exists() and not changed:
+        return path
+    try:
+        return write_dataset_preview(root)
+    except Exception as exc:  # noqa: BLE001 - the picture must never fail a finished dataset
+        log.warning("could not draw %s: %s", path, exc)
+        return None
 
 
 def _register_info_kind() -> None:

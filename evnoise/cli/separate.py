@@ -27,6 +27,8 @@ def register(subparsers):
                    help="density: minimum number of other events in the window (default 3)")
     p.add_argument("--polarity", choices=("any", "same"), default=None,
                    help="density: count events of any polarity or only the event's own (default same)")
+    p.add_argument("--png", default=None, metavar="FILE",
+                   help="also write a picture of the signal and noise event rates (PNG)")
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
     p.set_defaults(func=run)
 
@@ -49,6 +51,12 @@ def run(args) -> int:
             params[key] = value
     if args.out is None and args.noise_out is None:
         raise ParameterError("give --out (signal events) and/or --noise-out (noise events)")
+    from ._paths import refuse_writing_inputs
+    from ._pictures import check_png_output
+
+    refuse_writing_inputs([("--out", args.out), ("--noise-out", args.noise_out), ("--png", args.png)],
+                          [("the input events file", args.events)])
+    check_png_output(args.png, [args.out, args.noise_out], overwrite=args.overwrite)
     res = separate_file(args.events, args.out, args.noise_out, args.method, overwrite=args.overwrite,
                         progress=not args.quiet, **params)
     if not args.quiet:
@@ -58,4 +66,9 @@ def run(args) -> int:
         outs = ", ".join(f"{what} -> {path}" for what, path in pairs if path)
         print(f"{n:,} events: {res['n_signal']:,} signal ({share:.1%}), {res['n_noise']:,} noise; {outs} "
               f"[{res['filter']}]")
+    if args.png:
+        from ._pictures import write_separation_png
+
+        write_separation_png(args.events, args.out, args.noise_out, args.png, overwrite=args.overwrite,
+                             filter_text=str(res["filter"]))
     return 0
