@@ -15,7 +15,7 @@ import os
 from pathlib import Path
 from typing import Callable
 
-from ..errors import InputError
+from ..errors import InputError, ParameterError
 
 Detector = Callable[[Path], bool]
 Summariser = Callable[[Path], dict]
@@ -32,13 +32,35 @@ def register_kind(name: str, detect: Detector, summarise: Summariser) -> None:
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "info",
-        help="summarise a file made by evnoise (events.h5, ...)",
-        description="Summarise a file: for an events.h5 file the sensor size, duration, event counts "
-        f"and rates, model parameters, seed and version. Known kinds: {', '.join(KINDS) or 'none'}.",
+        help="summarise a file: events.h5 or a camera recording (.raw, .dat, .aedat4, .aedat, .es, .csv, .bin), "
+        "a dataset, a model",
+        description="Summarise a file: for an event file (evnoise's events.h5 or a camera recording) the "
+        "sensor size, duration, event counts and rates, and the header's facts (model parameters, seed and "
+        "version for evnoise's files); with --stats the noise statistics of the recording. "
+        f"Known kinds: {', '.join(KINDS) or 'none'}.",
     )
     p.add_argument("file", metavar="FILE", help="the file to describe")
-    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON (numbers as numbers, units in the keys)")
+    ev = p.add_argument_group("event files")
+    ev.add_argument("--sensor", metavar="WxH",
+                    help="sensor size, e.g. 640x480, for files whose header has none (EVT 2.0, CSV, N-CARS .dat) "
+                    "or a wrong one")
+    ev.add_argument("--t-start", type=float, metavar="S", help="start of the time window, seconds on the file's clock")
+    ev.add_argument("--t-end", type=float, metavar="S", help="end of the time window (exclusive), seconds on the file's clock")
+    ev.add_argument("--csv-columns", metavar="COLS", help="column order of a CSV file, e.g. x,y,p,t")
+    ev.add_argument("--stats", action="store_true",
+                    help="noise statistics: rate per pixel (mean, quantiles), ON fraction, active pixels, "
+                    "variance/mean of per-pixel counts, hot pixels")
+    ev.add_argument("--hot-threshold", type=float, metavar="N",
+                    help="--stats: a pixel is hot above N events (default: 10 x the mean count of active pixels, "
+                    "at least 10)")
+    ev.add_argument("--png", metavar="FILE",
+                    help="--stats: also write a PNG of the ON/OFF count maps and the per-pixel count histogram")
+    ev.add_argument("--overwrite", action="store_true", help="replace an existing --png file")
     p.set_defaults(func=run)
+
+
+_EVENT_FLAGS = ("sensor", "t_start", "t_end", "csv_columns", "hot_threshold", "png")
 
 
 def detect_kind(path) -> str:
@@ -60,32 +82,50 @@ def summarise(path) -> dict:
 
 
 def run(args) -> int:
-    info = summarise(args.file)
+    path = Path(args.file)
+    kind = detect_kind(path)
+    given = [f"--{k.replace('_', '-')}" for k in _EVENT_FLAGS if getattr(args, k, None) is not None]
+    if getattr(args, "stats", False):
+        given.append("--stats")
+    if kind == "events":
+        if (args.png or args.hot_threshold is not None) and not args.stats:
+            raise ParameterError("--png and --hot-threshold go with --stats")
+        info = {"file": os.fspath(path), "kind": kind,
+                **summarise_events(path, sensor=args.sensor, t_start=args.t_start, t_end=args.t_end,
+                                   csv_columns=args.csv_columns, stats=args.stats, hot_threshold=args.hot_threshold,
+                                   png=args.png, overwrite=args.overwrite)}
+    else:
+        if given:
+            raise ParameterError(f"{', '.join(given)}: only for event files; {path} is a {kind}")
+        info = summarise(path)
     if args.json:
-        print(json.dumps(info, indent=2, default=str))
+        print(json.dumps(info, indent=2, default=_plain))
     else:
         print(format_summary(info))
     return 0
 
 
-def format_summary(info: dict) -> str:
+def format_summary(info: dict, indent: str = "") -> str:
     """``label: value`` lines; nested dicts are indented below their label."""
     lines = []
     width = max((len(k) for k in info), default=0)
     for key, value in info.items():
         if isinstance(value, dict):
-            lines.append(f"{key}:")
-            inner = max((len(k) for k in value), default=0)
-            lines.extend(f"  {k:<{inner}}  {_fmt(k, v)}" for k, v in value.items())
+            lines.append(f"{indent}{key}:")
+            lines.append(format_summary(value, indent + "  "))
         else:
-            lines.append(f"{key + ':':<{width + 1}}  {_fmt(key, value)}")
-    return "\n".join(lines)
+            lines.append(f"{indent}{key + ':':<{width + 1}}  {_fmt(key, value)}")
+    return "\n".join(line for line in lines if line)
 
 
-_COUNTS = {"events", "ON", "OFF"}
+_COUNTS = {"events", "ON", "OFF", "count", "pixels"}
 
 
 def _fmt(key, value) -> str:
+    if key == "size_bytes" and isinstance(value, int):
+        return f"{value:,} ({human_bytes(value)})"
+    if value is None:
+        return "-"
     if isinstance(value, float):
         return f"{value:.6g}"
     if key in _COUNTS and isinstance(value, int) and not isinstance(value, bool):
@@ -94,87 +134,122 @@ def _fmt(key, value) -> str:
 
 
 # --------------------------------------------------------------------------------------
-# events.h5
+# event files: evnoise's events.h5 and camera recordings
 # --------------------------------------------------------------------------------------
-_HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
+def _is_event_file(path: Path) -> bool:
+    from ..readers import is_event_file
+
+    return is_event_file(path)
 
 
-def _is_events_h5(path: Path) -> bool:
-    if not path.is_file():
-        return False
-    try:
-        with open(path, "rb") as fh:
-            if fh.read(8) != _HDF5_MAGIC:
-                return False
-    except OSError:
-        return False
-    import h5py
-
-    try:
-        with h5py.File(path, "r") as f:
-            group = f.get("events")
-            return isinstance(group, h5py.Group) and all(k in group for k in "xytp")
-    except OSError:
-        return False
+_FORMAT_NAMES = {"h5": "events.h5 (DSEC layout)", "evt2": "Prophesee RAW EVT 2.0", "evt2.1": "Prophesee RAW EVT 2.1",
+                 "evt3": "Prophesee RAW EVT 3.0", "dat": "Prophesee DAT", "aedat4": "iniVation AEDAT 4",
+                 "aedat2": "jAER AEDAT 2.0", "es": "Event Stream", "csv": "CSV", "nmnist": "N-MNIST .bin"}
 
 
-def _summarise_events(path: Path) -> dict:
-    import numpy as np
+def summarise_events(path, *, sensor=None, t_start=None, t_end=None, csv_columns=None, stats: bool = False,
+                     hot_threshold=None, png=None, overwrite: bool = False) -> dict:
+    """Summary of an event file (any format :mod:`evnoise.readers` opens): plain JSON numbers, units in keys."""
+    from ..readers import _window, open_events
+    from ..readers.stats import noise_stats, pixel_counts, stats_png
 
-    from ..io import READ_BLOCK, _event_datasets, _metadata, _open_h5
+    path = Path(path)
+    a_us, b_us = _window(t_start, t_end)
+    if png is not None:
+        from ..io import open_output_path
 
-    with _open_h5(path) as f:
-        ds = _event_datasets(f, path)
-        meta = _metadata(f, ds)
-        n = meta["n_events"]
-        n_on = 0
-        for lo in range(0, n, READ_BLOCK):
-            n_on += int(np.count_nonzero(ds["p"][lo:lo + READ_BLOCK]))
-        t_first = int(ds["t"][0]) if n else None
-        t_last = int(ds["t"][n - 1]) if n else None
-        compression = ds["t"].compression
-    t_start = int(meta.get("t_start_us", 0))
-    if "t_end_us" in meta:
-        duration_s = (int(meta["t_end_us"]) - t_start) * 1e-6
-    elif n:
-        duration_s = (t_last - t_first + 1) * 1e-6
+        open_output_path(png, overwrite=overwrite, what="PNG file")
+    src = open_events(path, sensor=sensor, csv_columns=csv_columns)
+    out: dict = {"format": _FORMAT_NAMES.get(src.format, src.format), "size_bytes": path.stat().st_size}
+    meta = dict(src.meta)
+    with src:
+        counts, (n, t_first, t_last) = pixel_counts(src.chunks(a_us, b_us), src.shape)
+    n_on = int(counts[0].sum())
+    shape = src.shape
+    if shape is not None:
+        out["sensor"] = f"{shape[1]}x{shape[0]}"
+        out["sensor_from"] = {"header": "the file's header", "sensor": "--sensor", "format": "the format (fixed size)"}[
+            src.shape_from]
     else:
-        duration_s = 0.0
-    out = {"size": human_bytes(path.stat().st_size), "layout": "events.h5 (DSEC)"}
-    shape = meta["shape"]
-    out["sensor"] = f"{shape[1]}x{shape[0]}" if shape else "unknown (no width/height attributes)"
+        extent = f"{counts.shape[2]}x{counts.shape[1]}" if n else "no events"
+        out["sensor"] = None
+        out["sensor_note"] = (f"the header has no sensor size; the events span {extent} (x, y from 0); "
+                              f"give --sensor WxH")
     out["events"] = n
     out["ON"] = n_on
     out["OFF"] = n - n_on
-    out["duration_s"] = duration_s
-    out["time_span_us"] = f"{t_first} .. {t_last}" if n else "no events"
-    if shape and duration_s > 0:
-        pixels = shape[0] * shape[1]
-        out["rate_per_pixel_hz"] = {
-            "total": n / (pixels * duration_s),
-            "ON": n_on / (pixels * duration_s),
-            "OFF": (n - n_on) / (pixels * duration_s),
-        }
-    if duration_s > 0:
-        out["event_rate_hz"] = n / duration_s
-    out["compression"] = compression or "none"
+    out["on_fraction"] = n_on / n if n else None
+    out["t_first_us"] = t_first
+    out["t_last_us"] = t_last
+    t_end_attr = meta.get("t_end_us") if src.format == "h5" else None
+    if a_us is not None and b_us is not None:
+        duration_us = b_us - a_us
+    elif src.format == "h5" and t_end_attr is not None and b_us is None:
+        duration_us = int(t_end_attr) + int(meta.get("t_offset") or 0) - (a_us if a_us is not None else
+                                                                            int(meta.get("t_start_us", 0)))
+    elif n:
+        start = a_us if a_us is not None else t_first
+        end = b_us if b_us is not None else t_last
+        duration_us = end - start + (1 if src.format == "h5" and a_us is None and b_us is None else 0)
+    else:
+        duration_us = 0
+    out["duration_s"] = duration_us * 1e-6
+    if a_us is not None or b_us is not None:
+        out["window_s"] = {"t_start_s": None if a_us is None else a_us * 1e-6,
+                           "t_end_s": None if b_us is None else b_us * 1e-6}
+    if shape is not None and duration_us > 0:
+        pixels_s = shape[0] * shape[1] * duration_us * 1e-6
+        out["rate_per_pixel_hz"] = {"total": n / pixels_s, "ON": n_on / pixels_s, "OFF": (n - n_on) / pixels_s}
+    if duration_us > 0:
+        out["event_rate_hz"] = n / (duration_us * 1e-6)
+    if stats:
+        if shape is None:
+            raise InputError(f"{path}: --stats needs the sensor size, which the header does not give; "
+                             f"add --sensor WxH (the events span {counts.shape[2]}x{counts.shape[1]})")
+        if duration_us <= 0:
+            raise InputError(f"{path}: no time span to compute rates over (fewer than two distinct timestamps)")
+        st = noise_stats(counts, duration_us * 1e-6, hot_threshold=hot_threshold)
+        out["stats"] = {k: v for k, v in st.items() if k not in ("events", "duration_s")}
+        if png is not None:
+            window = "" if "window_s" not in out else f", t {a_us * 1e-6 if a_us is not None else t_first * 1e-6:.6g}" \
+                f"-{(b_us if b_us is not None else t_last) * 1e-6:.6g} s"
+            stats_png(png, counts, title=f"{path.name}{window}: {n:,} events, {out['duration_s']:.6g} s",
+                      overwrite=overwrite)
+            out["png"] = os.fspath(png)
+    if src.format == "h5":
+        _h5_details(path, meta, out)
+    else:
+        header = {k: _plain(v) for k, v in meta.items() if v is not None}
+        if header:
+            out["header"] = header
+    return out
+
+
+def _h5_details(path, meta, out):
+    """evnoise's attributes of an events.h5 file (parameters, seed, version, ...)."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        out["compression"] = f["events/t"].compression or "none"
     for key in ("evnoise_version", "seed", "source", "preset", "method", "scene"):
         if key in meta:
             out[key] = meta[key]
     if isinstance(meta.get("params"), dict):
         out["params"] = meta["params"]
-    skip = {"width", "height", "shape", "n_events", "t_offset", "time_unit", "t_end_us", "params", *out}
+    skip = {"width", "height", "shape", "n_events", "t_offset", "time_unit", "t_end_us", "params", "header_sensor",
+            *out}
     extra = {k: _plain(v) for k, v in meta.items() if k not in skip}
     if meta.get("t_offset"):
-        extra["t_offset"] = meta["t_offset"]
+        extra["t_offset_us"] = meta["t_offset"]
     if extra:
         out["attributes"] = extra
-    return out
 
 
 def _plain(value):
     if hasattr(value, "tolist"):
         return value.tolist()
+    if isinstance(value, (tuple, set)):
+        return list(value)
     return value
 
 
@@ -187,4 +262,4 @@ def human_bytes(n: int) -> str:
     return f"{n:.1f} TB"  # pragma: no cover
 
 
-register_kind("events", _is_events_h5, _summarise_events)
+register_kind("events", _is_event_file, lambda path: summarise_events(path))

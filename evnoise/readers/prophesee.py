@@ -42,7 +42,7 @@ class RawSource(EventSource):
         from faery.extension import evt
 
         lines, self._data_offset = header_lines(self.path, b"%")
-        self.meta = {"header": _header_dict(lines)}
+        self.meta = {"header_fields": _header_dict(lines)}
         geometry = True
         try:
             with evt.Decoder(self.path, None, None) as dec:
@@ -96,7 +96,7 @@ class DatSource(EventSource):
         from faery.extension import dat
 
         lines, self._data_offset = header_lines(self.path, b"%")
-        self.meta = {"header": _header_dict(lines)}
+        self.meta = {"header_fields": _header_dict(lines)}
         if self._data_offset + 2 > self.path.stat().st_size:
             raise InputError(f"cannot read {self.path} as Prophesee DAT: no event-type header after the text header")
         geometry = True
