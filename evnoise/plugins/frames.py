@@ -1,0 +1,170 @@
+"""Photon noise for frame-driven event emulators (v2e, ESIM-style loops), frame interval by interval.
+
+An emulator of this kind is driven one frame at a time with ``generate_events(frame, t_s)``
+and returns the events since the previous frame as an ``N x 4`` float array
+``[t_s, x, y, p]`` with ``p = +1`` (ON) or ``-1`` (OFF), or ``None`` when there are none; the
+first call only initialises it. :class:`EmulatorNoise` wraps such an object, exposes the same
+method, and merges evnoise's photon-noise events of the same interval into the rows.
+
+Noise and signal are independent here: the emulator's pixel state does not see evnoise's noise
+events, nor the other way round. For the coupled model (a noise event resets the pixel's
+reference level) simulate the whole scene with :func:`evnoise.simulate_video`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .._checks import as_generator, check_lux, check_params
+from ..errors import InputError, ParameterError
+from ..events import EVENT_DTYPE
+
+__all__ = ["EmulatorNoise", "noise_rows", "merge_rows"]
+
+
+def _seconds_to_us(t_s, name: str = "t_frame") -> int:
+    try:
+        t = float(t_s)
+    except (TypeError, ValueError):
+        raise ParameterError(f"{name} must be a time in seconds, got {t_s!r}") from None
+    if not math.isfinite(t):
+        raise ParameterError(f"{name} must be a finite time in seconds, got {t_s!r}")
+    return int(round(t * 1e6))
+
+
+def noise_rows(noise) -> np.ndarray:
+    """evnoise events as ``N x 4`` float64 rows ``[t_s, x, y, p]`` with ``p = +1`` (ON) / ``-1`` (OFF)."""
+    out = np.empty((noise.size, 4), dtype=np.float64)
+    out[:, 0] = noise["t"] * 1e-6
+    out[:, 1] = noise["x"]
+    out[:, 2] = noise["y"]
+    out[:, 3] = 2.0 * noise["p"] - 1.0
+    return out
+
+
+def merge_rows(signal, noise):
+    """Insert ``noise`` rows (sorted by time) into ``signal`` rows without changing the signal rows.
+
+    The signal rows keep their values and their order, whatever it is (an emulator may emit a
+    few out of order); each noise row goes after every signal row whose time, or any earlier
+    signal row's time, is ``<=`` its own. When the signal rows are sorted by time, so is the
+    result. Returns a float64 ``N x 4`` array, or ``None`` when both are empty.
+    """
+    noise = np.asarray(noise, dtype=np.float64).reshape(-1, 4)
+    if signal is None:
+        return noise if noise.shape[0] else None
+    signal = np.asarray(signal)
+    if signal.ndim != 2 or signal.shape[1] != 4:
+        raise InputError(f"the emulator returned events of shape {signal.shape}; expected N x 4 [t, x, y, p]")
+    if signal.shape[0] == 0:
+        return noise if noise.shape[0] else None
+    n_s, n_n = signal.shape[0], noise.shape[0]
+    out = np.empty((n_s + n_n, 4), dtype=np.float64)
+    running_max = np.maximum.accumulate(signal[:, 0].astype(np.float64))
+    pos = np.searchsorted(running_max, noise[:, 0], side="right") + np.arange(n_n)
+    is_signal = np.ones(n_s + n_n, dtype=bool)
+    is_signal[pos] = False
+    out[is_signal] = signal
+    out[pos] = noise
+    return out
+
+
+class EmulatorNoise:
+    """Wrap a frame-driven emulator and add evnoise's photon noise to its events.
+
+    Parameters
+    ----------
+    emulator : object
+        Anything with ``generate_events(frame, t_s)`` returning ``N x 4`` rows
+        ``[t_s, x, y, +-1]`` or ``None`` (v2e's ``EventEmulator`` and the ESIM-style example's
+        emulator). It is called first, with the frame and time unchanged.
+    params : NoiseParams or str
+        Noise model parameters, or the name / path of a preset.
+    frame_to_lux : callable, optional
+        Maps a frame to illuminance in lux, shape ``(H, W)`` indexed ``[y, x]``; by default the
+        frames are already lux.
+    rng : numpy.random.Generator, int or None
+        Randomness of the noise (threshold mismatch and events). The same seed and the same
+        frames give the same output.
+    threads : int, optional
+        Worker threads of the noise simulator.
+
+    Notes
+    -----
+    The noise of the interval between two frames is simulated under the illuminance of the
+    *earlier* frame (sample-and-hold, exact for piecewise-constant light); timestamps are
+    integer microseconds, returned in seconds. Attribute access the wrapper does not define
+    (``reset`` excepted) goes to the wrapped emulator.
+    """
+
+    def __init__(self, emulator, params, frame_to_lux=None, rng=None, *, threads: int | None = None):
+        if not callable(getattr(emulator, "generate_events", None)):
+            raise ParameterError(f"emulator must have a generate_events(frame, t_s) method, got {type(emulator).__name__}")
+        self.emulator = emulator
+        self.params = check_params(params)
+        self._frame_to_lux = frame_to_lux
+        self._gen = as_generator(rng)
+        self._threads = threads
+        self._stream = None
+        self._lux = None
+        self.signal_count = 0  # events the emulator returned, in total
+        self.noise_count = 0  # photon-noise events added, in total
+
+    def __getattr__(self, name):
+        # only called for names not found on the wrapper: hand them to the emulator
+        if name == "emulator":
+            raise AttributeError(name)
+        return getattr(self.emulator, name)
+
+    def frame_lux(self, frame) -> np.ndarray:
+        """The illuminance (lux, float64 ``(H, W)``) that the wrapper uses for ``frame``."""
+        lux = frame if self._frame_to_lux is None else self._frame_to_lux(frame)
+        return check_lux(lux, name="frame illuminance")
+
+    def reset(self):
+        """Reset the emulator (when it has ``reset()``) and start a new noise stream at the next frame."""
+        if callable(getattr(self.emulator, "reset", None)):
+            self.emulator.reset()
+        self._stream = None
+        self._lux = None
+
+    def generate_events(self, new_frame, t_frame):
+        """The emulator's events for this frame plus the photon noise since the previous frame.
+
+        Parameters
+        ----------
+        new_frame : array_like, shape (H, W)
+            The frame, passed to the emulator unchanged.
+        t_frame : float
+            Its time in seconds.
+
+        Returns
+        -------
+        numpy.ndarray or None
+            float64 ``N x 4`` rows ``[t_s, x, y, p]`` (``p`` = +1 ON, -1 OFF): the emulator's
+            rows unchanged and in their order, with the noise rows of ``[t_previous, t_frame)``
+            inserted by time; ``None`` when there are no events (e.g. on the first frame).
+        """
+        from ..simulate import NoiseStream
+
+        lux = self.frame_lux(new_frame)
+        t_us = _seconds_to_us(t_frame)
+        stream = self._stream
+        if stream is not None:
+            if lux.shape != stream.shape:
+                raise InputError(f"frame has shape {lux.shape}, but earlier frames had {stream.shape}")
+            if t_us < stream.t_us:
+                raise ParameterError(f"t_frame={t_frame!r} s is before the previous frame's time {stream.t_us * 1e-6!r} s")
+        signal = self.emulator.generate_events(new_frame, t_frame)
+        if stream is None:
+            self._stream = NoiseStream(lux.shape, self.params, rng=self._gen, t_start_us=t_us, threads=self._threads)
+            noise = np.empty(0, dtype=EVENT_DTYPE)
+        else:
+            noise = stream.advance(self._lux, t_us)
+        self._lux = lux
+        if signal is not None:
+            self.signal_count += int(np.shape(signal)[0])
+        self.noise_count += int(noise.size)
+        return merge_rows(signal, noise_rows(noise))

@@ -1,0 +1,458 @@
+"""evnoise.plugins: the tonic transform and the v2e wrapper (against a stand-in with v2e's interface)."""
+
+from __future__ import annotations
+
+import re
+import sys
+import types
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import evnoise as ev
+from evnoise.errors import InputError, ParameterError
+from evnoise.plugins import frames as frames_plugin
+from evnoise.plugins import tonic as tonic_plugin
+from evnoise.plugins import v2e as v2e_plugin
+
+tonic = pytest.importorskip("tonic", reason="tonic is a test extra: pip install -e '.[test]'")
+
+REALDATA = Path(__file__).resolve().parents[1].parent / "shared/data/realdata"
+NMNIST_FILE = REALDATA / "tonic/sample_nmnist.bin"
+K_SIGMA = 4.0
+PARAMS = ev.load_preset("evk3-hd")
+
+
+@pytest.fixture(scope="module")
+def nmnist():
+    if not NMNIST_FILE.is_file():
+        pytest.skip(f"the real N-MNIST sample is not there: {NMNIST_FILE} (../shared/data/realdata is absent)")
+    from tonic.datasets import NMNIST
+
+    events = tonic.io.read_mnist_file(str(NMNIST_FILE), dtype=NMNIST.dtype)
+    assert events.size > 1000
+    return events, NMNIST.sensor_size
+
+
+def _two_band_lux(sensor_size, top=2.0, bottom=10.0):
+    """Rows y < H/2 at ``top`` lux, the others at ``bottom``: a map whose orientation matters."""
+    width, height, _ = sensor_size
+    lux = np.full((height, width), bottom)
+    lux[: height // 2] = top
+    return lux
+
+
+def _span_s(events):
+    return (int(events["t"].max()) - int(events["t"].min()) + 1) * 1e-6
+
+
+def _check_within(observed, expected, what):
+    sigma = np.sqrt(expected)
+    assert abs(observed - expected) <= K_SIGMA * sigma + 1, (
+        f"{what}: observed {observed}, expected {expected:.1f} +- {sigma:.1f}")
+
+
+# --------------------------------------------------------------------------------------
+# tonic
+# --------------------------------------------------------------------------------------
+def test_tonic_added_events_match_expected_rate_on_a_real_nmnist_sample(nmnist):
+    events, sensor_size = nmnist
+    lux = _two_band_lux(sensor_size)
+    rate = ev.expected_rate(lux, PARAMS)  # (2, H, W) events/s, independent closed form
+    span = _span_s(events)
+    half = sensor_size[1] // 2
+    observed = np.zeros((2, 2))  # [polarity ON/OFF, band top/bottom]
+    n_samples = 10
+    for seed in range(n_samples):
+        transform = tonic_plugin.PhotonNoise(sensor_size, PARAMS, lux, rng=seed)
+        noise = transform.noise(events)
+        if seed == 0:  # the transform adds exactly these events
+            noisy = transform(events)
+            assert noisy.size == events.size + noise.size
+            both = np.concatenate([events, noise])
+            assert np.array_equal(noisy, both[np.argsort(both["t"], kind="stable")])
+        assert noise["t"].min() >= events["t"].min() and noise["t"].max() <= events["t"].max()
+        for i, pol in enumerate((1, 0)):
+            sel = noise["p"] == pol
+            observed[i, 0] += np.count_nonzero(sel & (noise["y"] < half))
+            observed[i, 1] += np.count_nonzero(sel & (noise["y"] >= half))
+    expected = n_samples * span * np.stack([rate[:, :half].sum(axis=(1, 2)), rate[:, half:].sum(axis=(1, 2))], axis=1)
+    assert expected[0, 0] > 1000  # enough events for a test that can fail (a swapped x/y halves the top band)
+    for i in range(2):
+        for j in range(2):
+            _check_within(observed[i, j], expected[i, j], f"{('ON', 'OFF')[i]} noise in the {('top', 'bottom')[j]} band")
+
+
+def test_tonic_composes_with_compose_and_to_frame(nmnist):
+    from tonic.transforms import Compose, ToFrame
+
+    events, sensor_size = nmnist
+    lux = _two_band_lux(sensor_size)
+    t0, t1 = int(events["t"].min()), int(events["t"].max()) + 1
+    to_frame = ToFrame(sensor_size, n_time_bins=3, start_time=t0, end_time=t1)
+    noise_transform = tonic_plugin.PhotonNoise(sensor_size, "evk3-hd", lux, rng=7)
+    frames = Compose([noise_transform, to_frame])(events)
+    clean = to_frame(events)
+    width, height, n_pol = sensor_size
+    assert frames.shape == clean.shape == (3, n_pol, height, width)
+    added = frames.astype(np.int64) - clean
+    assert (added >= 0).all()
+    noise = noise_transform.noise(events)
+    assert added.sum() == noise.size > 0
+    # tonic's frames are (T, P, H, W) with channel 1 = ON: the noise lands where evnoise put it
+    on_top = np.count_nonzero((noise["p"] == 1) & (noise["y"] < height // 2))
+    assert added[:, 1, : height // 2].sum() == on_top
+    assert added[:, 0].sum() == np.count_nonzero(noise["p"] == 0)
+
+
+@pytest.mark.parametrize("dtype", [
+    np.dtype([("x", int), ("y", int), ("t", int), ("p", int)]),  # NMNIST, NCALTECH101
+    np.dtype([("x", np.int16), ("y", np.int16), ("p", bool), ("t", np.int64)]),  # DVSGesture
+    np.dtype([("t", np.int32), ("x", np.int16), ("y", np.int16), ("p", bool)]),  # NERDD
+    np.dtype([("p", int), ("t", int), ("x", int), ("y", int)]),  # TUM-VIE
+])
+def test_tonic_output_keeps_dtype_and_field_names_and_is_sorted(dtype):
+    width, height = 40, 24
+    gen = np.random.default_rng(1)
+    n = 300
+    events = np.zeros(n, dtype=dtype)
+    events["x"] = gen.integers(0, width, n)
+    events["y"] = gen.integers(0, height, n)
+    events["t"] = np.sort(gen.integers(1000, 400_000, n))
+    events["p"] = gen.integers(0, 2, n).astype(dtype["p"])
+    transform = tonic_plugin.PhotonNoise((width, height, 2), PARAMS, 2.0, rng=3)
+    out = transform(events)
+    assert out.dtype == events.dtype and out.dtype.names == dtype.names
+    assert out.size > n
+    assert np.all(np.diff(out["t"].astype(np.int64)) >= 0)
+    assert out["x"].max() < width and out["y"].max() < height and out["x"].min() >= 0
+    assert set(np.unique(out["p"]).tolist()) <= {0, 1}
+    # the input events are all still there, unchanged
+    key = lambda a: sorted(map(tuple, np.stack([a[f].astype(np.int64) for f in "xytp"], axis=1).tolist()))  # noqa: E731
+    noise = transform.noise(events)
+    assert key(out) == key(np.concatenate([events, noise]))
+
+
+def test_tonic_polarity_convention_follows_the_input():
+    dtype = np.dtype([("x", int), ("y", int), ("t", int), ("p", int)])
+    events = np.zeros(4, dtype=dtype)
+    events["t"] = [0, 100_000, 200_000, 300_000]
+    events["p"] = [1, -1, 1, -1]
+    out = tonic_plugin.PhotonNoise((30, 20, 2), PARAMS, 2.0, rng=0)(events)
+    assert set(np.unique(out["p"]).tolist()) == {-1, 1}
+    merged = tonic_plugin.PhotonNoise((30, 20, 1), PARAMS, 2.0, rng=0).noise(events)
+    assert merged.size > 0 and np.all(merged["p"] == 0)
+
+
+def test_tonic_rng_semantics(nmnist):
+    events, sensor_size = nmnist
+    a = tonic_plugin.PhotonNoise(sensor_size, PARAMS, 2.0, rng=5)
+    b = tonic_plugin.PhotonNoise(sensor_size, PARAMS, 2.0, rng=5)
+    # an int seed: the same sample gets the same noise, in any order and from any copy
+    first = a(events)
+    other_sample = events[: events.size // 2]
+    a(other_sample)
+    assert np.array_equal(a(events), first)
+    assert np.array_equal(b(events), first)
+    # ... but another sample (or another seed) gets other noise
+    assert not np.array_equal(a.noise(other_sample), a.noise(events)[: a.noise(other_sample).size])
+    assert not np.array_equal(tonic_plugin.PhotonNoise(sensor_size, PARAMS, 2.0, rng=6).noise(events), a.noise(events))
+    # a Generator: new noise on every call, reproducible as a sequence
+    g1 = tonic_plugin.PhotonNoise(sensor_size, PARAMS, 2.0, rng=np.random.default_rng(9))
+    g2 = tonic_plugin.PhotonNoise(sensor_size, PARAMS, 2.0, rng=np.random.default_rng(9))
+    s1 = [g1.noise(events) for _ in range(2)]
+    s2 = [g2.noise(events) for _ in range(2)]
+    assert not np.array_equal(s1[0], s1[1])
+    assert all(np.array_equal(x, y) for x, y in zip(s1, s2))
+    # None: fresh randomness on every call
+    n = tonic_plugin.PhotonNoise(sensor_size, PARAMS, 2.0)
+    assert not np.array_equal(n.noise(events), n.noise(events))
+
+
+def test_tonic_threshold_mismatch_is_fixed_per_sensor(nmnist):
+    """With eps_sigma > 0 the per-pixel thresholds are the sensor's: the same for every sample."""
+    import dataclasses
+
+    events, sensor_size = nmnist
+    params = dataclasses.replace(PARAMS, eps_sigma=0.05)
+    transform = tonic_plugin.PhotonNoise(sensor_size, params, 2.0, rng=2)
+    thr = transform._thresholds.copy()
+    transform(events)
+    transform(events[:100])
+    assert np.array_equal(transform._thresholds, thr) and thr.std() > 0.01
+    assert np.array_equal(tonic_plugin.PhotonNoise(sensor_size, params, 2.0, rng=2)._thresholds, thr)
+
+
+def test_tonic_scalar_lux_is_a_uniform_map(nmnist):
+    events, sensor_size = nmnist
+    scalar = tonic_plugin.PhotonNoise(sensor_size, PARAMS, 1.5, rng=4)(events)
+    uniform = tonic_plugin.PhotonNoise(sensor_size, PARAMS, np.full((34, 34), 1.5), rng=4)(events)
+    assert np.array_equal(scalar, uniform)
+
+
+def test_tonic_bad_input():
+    dtype = np.dtype([("x", int), ("y", int), ("t", int), ("p", int)])
+    with pytest.raises(InputError, match="transposed"):
+        tonic_plugin.PhotonNoise((30, 20, 2), PARAMS, np.ones((30, 20)))
+    with pytest.raises(InputError, match="negative"):
+        tonic_plugin.PhotonNoise((30, 20, 2), PARAMS, -1.0)
+    with pytest.raises(ParameterError, match="sensor_size"):
+        tonic_plugin.PhotonNoise((30, 20), PARAMS, 1.0)
+    with pytest.raises(ParameterError, match="rng"):
+        tonic_plugin.PhotonNoise((30, 20, 2), PARAMS, 1.0, rng="seed")
+    transform = tonic_plugin.PhotonNoise((30, 20, 2), PARAMS, 1.0, rng=0)
+    outside = np.zeros(2, dtype=dtype)
+    outside["x"] = [0, 30]
+    with pytest.raises(InputError, match="outside sensor_size"):
+        transform(outside)
+    with pytest.raises(InputError, match="fields x, y, t, p"):
+        transform(np.zeros(3, dtype=[("t", int), ("x", int), ("p", int)]))
+    empty = np.zeros(0, dtype=dtype)
+    assert transform(empty) is empty or transform(empty).size == 0
+
+
+# --------------------------------------------------------------------------------------
+# v2e (a stand-in following v2e's documented EventEmulator interface)
+# --------------------------------------------------------------------------------------
+class StandInEmulator:
+    """What v2e's ``EventEmulator`` documents, in a few lines.
+
+    ``generate_events(new_frame, t_frame)``: ``new_frame`` a luma frame ``[height, width]`` in
+    0-255, ``t_frame`` seconds; log intensity through v2e's lin-log mapping (linear below grey 20);
+    the first call initialises the memorised log intensity and returns None; later calls return
+    float32 rows ``[t, x, y, +-1]`` for every whole threshold crossed, spread over the interval
+    as v2e does (``t_prev + dt * (i + 1) / n_iters``), or None. ``t_frame`` going backwards is a
+    ValueError; ``reset()`` makes the next frame initialise again.
+    """
+
+    def __init__(self, pos_thres=0.2, neg_thres=0.2, sigma_thres=0.0, cutoff_hz=0.0, leak_rate_hz=0.0,
+                 refractory_period_s=0.0, shot_noise_rate_hz=0.0, log_input=False, device="cpu", **other_options):
+        self.pos_thres, self.neg_thres = pos_thres, neg_thres
+        self.shot_noise_rate_hz, self.leak_rate_hz = shot_noise_rate_hz, leak_rate_hz
+        self.log_input = log_input
+        self.num_events_total = 0
+        self.frame_counter = 0
+        self.reset()
+
+    def reset(self):
+        self.base_log_frame = None
+        self.t_previous = 0.0
+
+    @staticmethod
+    def lin_log(x, threshold=20.0):
+        x = np.asarray(x, dtype=np.float64)
+        return np.round(np.where(x <= threshold, x * np.log(threshold) / threshold, np.log(np.maximum(x, threshold))), 8)
+
+    def generate_events(self, new_frame, t_frame):
+        self.frame_counter += 1
+        log_frame = np.asarray(new_frame, np.float64) if self.log_input else self.lin_log(new_frame)
+        if self.base_log_frame is None:
+            self.base_log_frame = log_frame.copy()
+            self.t_previous = t_frame
+            return None
+        if t_frame < self.t_previous:
+            raise ValueError("this frame time must be later than previous frame time")
+        diff = log_frame - self.base_log_frame
+        n_pos = np.floor(np.maximum(diff, 0) / self.pos_thres).astype(int)
+        n_neg = np.floor(np.maximum(-diff, 0) / self.neg_thres).astype(int)
+        n_iters = int(max(n_pos.max(), n_neg.max()))
+        rows = []
+        for i in range(n_iters):
+            t = self.t_previous + (t_frame - self.t_previous) * (i + 1) / n_iters
+            for count, sign in ((n_pos, 1.0), (n_neg, -1.0)):
+                ys, xs = np.nonzero(count >= i + 1)
+                rows.extend((t, x, y, sign) for y, x in zip(ys, xs))
+        self.base_log_frame += n_pos * self.pos_thres - n_neg * self.neg_thres
+        self.t_previous = t_frame
+        self.num_events_total += len(rows)
+        return np.array(rows, dtype=np.float32) if rows else None
+
+
+def _band_frame(height=32, width=64, levels=(0, 64, 128, 255)):
+    frame = np.zeros((height, width))
+    band = width // len(levels)
+    for k, g in enumerate(levels):
+        frame[:, k * band:(k + 1) * band] = g
+    return frame
+
+
+def _is_subsequence(sub, rows):
+    """Every row of ``sub`` appears in ``rows``, identically and in the same order."""
+    j = 0
+    for row in rows:
+        if j < len(sub) and np.array_equal(row, sub[j]):
+            j += 1
+    return j == len(sub)
+
+
+def test_v2e_noise_counts_match_expected_rate_with_v2e_grey_levels():
+    white_lux = 20.0
+    levels = (0, 64, 128, 255)
+    frame = _band_frame(levels=levels)
+    fps, n_frames = 5.0, 6  # 1 s in five intervals (each frame costs one closed-form evaluation)
+    wrapper = v2e_plugin.PhotonNoise(StandInEmulator(), PARAMS, white_lux, rng=11)
+    first = wrapper.generate_events(frame, 0.0)
+    assert first is None  # v2e initialises on the first frame; no interval yet, no noise
+    rows = [wrapper.generate_events(frame, k / fps) for k in range(1, n_frames)]
+    rows = np.concatenate([r for r in rows if r is not None])
+    duration = (n_frames - 1) / fps
+    # independent expectation: v2e treats grey as linear intensity, grey g -> white_lux * g / 255
+    band = frame.shape[1] // len(levels)
+    for k, g in enumerate(levels):
+        lux = np.full((frame.shape[0], band), white_lux * g / 255.0)
+        exp_on, exp_off = ev.expected_rate(lux, PARAMS).sum(axis=(1, 2)) * duration
+        in_band = (rows[:, 1] >= k * band) & (rows[:, 1] < (k + 1) * band)
+        _check_within(np.count_nonzero(in_band & (rows[:, 3] == 1)), exp_on, f"ON noise at grey {g}")
+        _check_within(np.count_nonzero(in_band & (rows[:, 3] == -1)), exp_off, f"OFF noise at grey {g}")
+    # sRGB decoding would put grey 128 at 4.3 lux instead of 10: a rate 4x higher, far outside the test
+    assert ev.expected_rate(np.full((1, 1), 0.2159 * white_lux), PARAMS).sum() > 4 * ev.expected_rate(
+        np.full((1, 1), 10.0), PARAMS).sum()
+    assert wrapper.signal_count == 0 and wrapper.noise_count == rows.shape[0]
+
+
+def test_v2e_output_format_and_none_handling():
+    frame = _band_frame(height=16, width=32)
+    wrapper = v2e_plugin.PhotonNoise(StandInEmulator(), "evk3-hd", 4.0, rng=1)
+    assert wrapper.generate_events(frame, 1.0) is None
+    out = wrapper.generate_events(frame, 1.5)
+    assert isinstance(out, np.ndarray) and out.dtype == np.float64 and out.ndim == 2 and out.shape[1] == 4
+    t, x, y, p = out.T
+    assert np.all(np.diff(t) >= 0) and t.min() >= 1.0 and t.max() < 1.5
+    assert np.array_equal(x, np.round(x)) and x.min() >= 0 and x.max() < 32
+    assert np.array_equal(y, np.round(y)) and y.min() >= 0 and y.max() < 16
+    assert set(np.unique(p).tolist()) <= {-1.0, 1.0}
+    # timestamps are whole microseconds, in seconds
+    assert np.allclose(t * 1e6, np.round(t * 1e6), atol=1e-6)
+    # no signal and (practically) no noise: None, as v2e returns
+    bright = v2e_plugin.PhotonNoise(StandInEmulator(), PARAMS, 1e6, rng=1)
+    bright_frame = np.full((8, 8), 255.0)
+    assert bright.generate_events(bright_frame, 0.0) is None
+    assert bright.generate_events(bright_frame, 0.01) is None
+    # a zero-length interval adds nothing
+    assert wrapper.generate_events(frame, 1.5) is None
+
+
+def test_v2e_merging_keeps_the_signal_events_intact():
+    h, w = 24, 48
+    frames = []
+    for k in range(12):  # a bright bar moving right over a mid-grey background
+        f = np.full((h, w), 60.0)
+        f[:, 3 * k:3 * k + 6] = 220.0
+        frames.append(f)
+    times = np.arange(len(frames)) * 0.01
+    clean = StandInEmulator()
+    wrapper = v2e_plugin.PhotonNoise(StandInEmulator(), PARAMS, 5.0, rng=2)
+    n_signal = n_noise = 0
+    for f, t in zip(frames, times):
+        sig = clean.generate_events(f, t)
+        out = wrapper.generate_events(f, t)
+        if sig is None:
+            n_noise_here = 0 if out is None else out.shape[0]
+        else:
+            assert out is not None and _is_subsequence(sig.astype(np.float64), out)
+            n_noise_here = out.shape[0] - sig.shape[0]
+            n_signal += sig.shape[0]
+            assert np.all(np.diff(out[:, 0]) >= 0)
+        n_noise += n_noise_here
+    assert n_signal > 100 and n_noise > 10
+    assert wrapper.signal_count == n_signal and wrapper.noise_count == n_noise
+    assert wrapper.num_events_total == n_signal  # other attributes are the emulator's
+
+
+def test_merge_rows_keeps_an_unsorted_signal_in_its_order():
+    signal = np.array([[0.1, 1, 1, 1], [0.3, 2, 2, -1], [0.2, 3, 3, 1], [0.4, 4, 4, 1]], dtype=np.float32)
+    noise = np.array([[0.05, 9, 9, 1], [0.25, 9, 9, -1], [0.35, 9, 9, 1], [0.5, 9, 9, 1]])
+    out = frames_plugin.merge_rows(signal, noise)
+    assert np.array_equal(out[out[:, 1] != 9], signal.astype(np.float64))
+    assert np.array_equal(out[out[:, 1] == 9], noise)
+    np.testing.assert_allclose(out[:, 0], [0.05, 0.1, 0.25, 0.3, 0.2, 0.35, 0.4, 0.5], rtol=1e-6)
+    assert frames_plugin.merge_rows(None, np.empty((0, 4))) is None
+    assert np.array_equal(frames_plugin.merge_rows(None, noise), noise)
+
+
+def test_v2e_same_seed_same_output_and_reset():
+    frame = _band_frame(height=16, width=32)
+
+    def run(seed):
+        wrapper = v2e_plugin.PhotonNoise(StandInEmulator(), PARAMS, 20.0, rng=seed)
+        outs = [wrapper.generate_events(frame * (1 + 0.5 * (k % 2)), k * 0.02) for k in range(6)]
+        return wrapper, outs
+
+    w1, a = run(3)
+    _, b = run(3)
+    _, c = run(4)
+    assert all((x is None and y is None) or np.array_equal(x, y) for x, y in zip(a, b))
+    assert not all((x is None and y is None) or (x is not None and y is not None and np.array_equal(x, y))
+                   for x, y in zip(a, c))
+    w1.reset()
+    assert w1.generate_events(frame, 10.0) is None  # the emulator initialises again, no interval
+    assert w1.generate_events(frame, 10.5) is not None
+
+
+def test_v2e_log_input_gives_the_same_illuminance():
+    frame = _band_frame(height=16, width=32, levels=(1, 64, 128, 255))
+    a = v2e_plugin.PhotonNoise(StandInEmulator(), PARAMS, 20.0, rng=5)
+    b = v2e_plugin.PhotonNoise(StandInEmulator(log_input=True), PARAMS, 20.0, rng=5)
+    assert b.log_input and not a.log_input
+    np.testing.assert_allclose(b.frame_lux(np.log(frame)), a.frame_lux(frame), rtol=1e-12)
+    a.generate_events(frame, 0.0)
+    b.generate_events(np.log(frame), 0.0)
+    out_a, out_b = a.generate_events(frame, 0.2), b.generate_events(np.log(frame), 0.2)
+    assert out_a is not None and np.array_equal(out_a, out_b)
+
+
+def test_v2e_warns_about_its_own_noise_and_rejects_bad_input():
+    with pytest.warns(UserWarning, match="shot_noise_rate_hz=5"):
+        v2e_plugin.PhotonNoise(StandInEmulator(shot_noise_rate_hz=5.0), PARAMS, 20.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        v2e_plugin.PhotonNoise(StandInEmulator(), PARAMS, 20.0)  # v2e's noise off: no warning
+    with pytest.raises(ParameterError, match="white_lux"):
+        v2e_plugin.PhotonNoise(StandInEmulator(), PARAMS, 0.0)
+    with pytest.raises(ParameterError, match="generate_events"):
+        v2e_plugin.PhotonNoise(object(), PARAMS, 20.0)
+    emulator = StandInEmulator()
+    wrapper = v2e_plugin.PhotonNoise(emulator, PARAMS, 20.0, rng=0)
+    with pytest.raises(InputError, match="grey levels must be >= 0"):
+        wrapper.generate_events(np.full((4, 4), -1.0), 0.0)
+    with pytest.raises(InputError, match="luma"):
+        wrapper.generate_events(np.zeros((4, 4, 3)), 0.0)
+    wrapper.generate_events(np.zeros((4, 4)), 1.0)
+    calls = emulator.frame_counter
+    with pytest.raises(ParameterError, match="before the previous frame"):
+        wrapper.generate_events(np.zeros((4, 4)), 0.5)
+    with pytest.raises(InputError, match="shape"):
+        wrapper.generate_events(np.zeros((5, 4)), 2.0)
+    assert emulator.frame_counter == calls  # rejected before the emulator saw the frame
+
+
+# --------------------------------------------------------------------------------------
+# the README's snippets run as written
+# --------------------------------------------------------------------------------------
+def _readme_snippet(heading):
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
+    match = re.search(rf"^### {re.escape(heading)}\n(.*?)(?=^##|\Z)", text, flags=re.S | re.M)
+    assert match, f"README has no section '### {heading}'"
+    blocks = re.findall(r"```python\n(.*?)```", match.group(1), flags=re.S)
+    assert blocks, f"README section '{heading}' has no python snippet"
+    return "\n".join(blocks)
+
+
+def test_readme_tonic_snippet_runs():
+    namespace = {}
+    exec(compile(_readme_snippet("Use inside tonic"), "README:tonic", "exec"), namespace)
+    assert "frames" in namespace and namespace["frames"].ndim == 4
+
+
+def test_readme_v2e_snippet_runs_against_the_stand_in(monkeypatch):
+    v2ecore = types.ModuleType("v2ecore")
+    emulator_module = types.ModuleType("v2ecore.emulator")
+    emulator_module.EventEmulator = StandInEmulator
+    v2ecore.emulator = emulator_module
+    monkeypatch.setitem(sys.modules, "v2ecore", v2ecore)
+    monkeypatch.setitem(sys.modules, "v2ecore.emulator", emulator_module)
+    namespace = {}
+    exec(compile(_readme_snippet("Use inside v2e"), "README:v2e", "exec"), namespace)
+    assert namespace["events"] is not None and namespace["events"].shape[1] == 4
