@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pickle
 import re
 import sys
 import types
@@ -156,6 +157,8 @@ def test_tonic_rng_semantics(nmnist):
     a(other_sample)
     assert np.array_equal(a(events), first)
     assert np.array_equal(b(events), first)
+    # DataLoader workers get the transform pickled: the copy adds the same noise
+    assert np.array_equal(pickle.loads(pickle.dumps(a))(events), first)
     # ... but another sample (or another seed) gets other noise
     assert not np.array_equal(a.noise(other_sample), a.noise(events)[: a.noise(other_sample).size])
     assert not np.array_equal(tonic_plugin.PhotonNoise(sensor_size, PARAMS, 2.0, rng=6).noise(events), a.noise(events))
