@@ -123,6 +123,10 @@ class EventWriter:
         ``t < t_end_us``. It sets the length of ``/ms_to_idx`` (one entry per millisecond
         up to and including ``ceil(t_end_us / 1000)``) and is stored as an attribute.
         Without it ``/ms_to_idx`` ends one entry after the last event's millisecond.
+    t_offset_us : int
+        Stored as ``/t_offset`` (DSEC): events are given on the recording's clock and stored as
+        ``t - t_offset_us`` (as is ``t_end_us``), so a camera recording whose clock reads, say,
+        1.6e15 µs keeps a short ``/ms_to_idx``. :func:`read_events` adds it back.
 
     Examples
     --------
@@ -132,7 +136,7 @@ class EventWriter:
     """
 
     def __init__(self, path, shape, attrs=None, *, overwrite: bool = False, compression: str | None = "gzip",
-                 t_end_us: int | None = None):
+                 t_end_us: int | None = None, t_offset_us: int = 0):
         import h5py
 
         self.shape = _check_shape(shape)
@@ -142,6 +146,11 @@ class EventWriter:
             if isinstance(t_end_us, bool) or int(t_end_us) != t_end_us or t_end_us < 0:
                 raise ParameterError(f"t_end_us must be a non-negative integer of microseconds, got {t_end_us!r}")
             t_end_us = int(t_end_us)
+        if isinstance(t_offset_us, bool) or int(t_offset_us) != t_offset_us or t_offset_us < 0:
+            raise ParameterError(f"t_offset_us must be a non-negative integer of microseconds, got {t_offset_us!r}")
+        self.t_offset_us = int(t_offset_us)
+        if t_end_us is not None:
+            t_end_us -= self.t_offset_us
         self.t_end_us = t_end_us
         encoded = {}
         json_keys = []
@@ -192,7 +201,7 @@ class EventWriter:
             }
             self._ms = f.create_dataset("ms_to_idx", shape=(0,), maxshape=(None,), dtype=np.uint64,
                                         chunks=(CHUNK_MS,), **filt)
-            f.create_dataset("t_offset", data=np.int64(0))
+            f.create_dataset("t_offset", data=np.int64(self.t_offset_us))
         except BaseException:
             self.abort()
             raise
@@ -231,6 +240,9 @@ class EventWriter:
         n = events.size
         if n == 0:
             return
+        if self.t_offset_us:
+            events = events.copy()
+            events["t"] -= self.t_offset_us
         t = events["t"]
         if t[0] < 0:
             raise InputError(f"event times must be >= 0 microseconds in an events.h5 file, got t = {t[0]}")
@@ -459,14 +471,15 @@ class EventFileWriter:
     """
 
     def __new__(cls, path, shape, attrs=None, *, overwrite: bool = False, compression: str | None = "gzip",
-                t_end_us: int | None = None, file_format: str | None = None):
+                t_end_us: int | None = None, file_format: str | None = None, t_offset_us: int = 0):
         fmt = file_format or output_format(path)
         if fmt == "h5":
-            return EventWriter(path, shape, attrs, overwrite=overwrite, compression=compression, t_end_us=t_end_us)
+            return EventWriter(path, shape, attrs, overwrite=overwrite, compression=compression, t_end_us=t_end_us,
+                               t_offset_us=t_offset_us)
         return super().__new__(cls)
 
     def __init__(self, path, shape, attrs=None, *, overwrite: bool = False, compression: str | None = "gzip",
-                 t_end_us: int | None = None, file_format: str | None = None):
+                 t_end_us: int | None = None, file_format: str | None = None, t_offset_us: int = 0):
         from ._atomic import temporary_name
 
         self.format = file_format or output_format(path)
@@ -478,6 +491,7 @@ class EventFileWriter:
         self.overwrite = overwrite
         self.n_events = 0
         self._last_t = None
+        self._t0 = None
         self._closed = False
         self._encoder = None
         faery = _import_faery()
@@ -493,9 +507,10 @@ class EventFileWriter:
                 enc = aedat.Encoder(self._tmp, _aedat_description(aedat, width, height, dict(attrs or {})),
                                     ("lz4", 1))
             elif self.format == "evt3":
-                enc = evt.Encoder(self._tmp, "evt3", False, (width, height), True)
+                # zero_t0: the clock's origin goes into the header (% t0), the words count from it
+                enc = evt.Encoder(self._tmp, "evt3", True, (width, height), True)
             elif self.format == "dat":
-                enc = dat.Encoder(self._tmp, "dat2", "cd", False, (width, height))
+                enc = dat.Encoder(self._tmp, "dat2", "cd", True, (width, height))
             elif self.format == "es":
                 enc = es.Encoder(self._tmp, "dvs", False, (width, height))
             else:
@@ -547,6 +562,7 @@ class EventFileWriter:
             raise InputError(f"events are not sorted across chunks: t = {t[0]} after t = {self._last_t}")
         if self.t_end_us is not None and t[-1] >= self.t_end_us:
             raise InputError(f"event at t = {t[-1]} us is not before t_end_us = {self.t_end_us}")
+        self._check_time_base(t)
         out = np.empty(events.size, dtype=self._faery_dtype)
         out["t"] = t
         out["x"] = events["x"]
@@ -567,6 +583,38 @@ class EventFileWriter:
             self._encoder.write(out)
         self.n_events += int(events.size)
         self._last_t = int(t[-1])
+
+    #: EVT 3.0 time base: 12-bit TIME_HIGH of 4096 µs, wrapping every 2**24 µs
+    _EVT3_WRAP_US = 1 << 24
+
+    def _check_time_base(self, t):
+        """Refuse what the format cannot hold (before anything of the chunk is written)."""
+        if self._t0 is None:
+            self._t0 = int(t[0])
+            if self.format == "es" and self._t0 >= 1 << 32:
+                raise OutputError(f"cannot write {self.what} {self.path}: Event Stream counts time from 0 and this "
+                                  f"recording's clock starts at {self._t0 * 1e-6:.6g} s; write .h5 or .aedat4")
+        rel = t - self._t0
+        if self.format == "dat" and int(rel[-1]) >= 1 << 32:
+            raise OutputError(f"cannot write {self.what} {self.path}: DAT holds 32-bit timestamps (71.6 minutes "
+                              f"from the first event); write .h5 or .aedat4")
+        if self.format == "evt3":
+            # faery 0.7.1 decodes a TIME_HIGH wrap only when the words step 4095 -> 0: a stream
+            # without an event in the last and first 4096 us around a wrap would read back wrong
+            prev = np.empty(rel.size, dtype=np.int64)
+            prev[0] = rel[0] if self._last_t is None else self._last_t - self._t0
+            prev[1:] = rel[:-1]
+            crossed = (rel >> 24) != (prev >> 24)
+            if crossed.any():
+                ok = (((prev >> 12) & 0xFFF) == 0xFFF) & (((rel >> 12) & 0xFFF) == 0) & ((rel >> 24) == (prev >> 24) + 1)
+                bad = np.flatnonzero(crossed & ~ok)
+                if bad.size:
+                    k = int(bad[0])
+                    raise OutputError(
+                        f"cannot write {self.what} {self.path} as EVT 3.0: the stream has no event near "
+                        f"{(self._t0 + ((int(rel[k]) >> 24) << 24)) * 1e-6:.6g} s, where the EVT 3.0 time base "
+                        f"(16.8 s) wraps, and faery's decoder would misread every later time; write .h5, "
+                        f".aedat4 or .dat, or a shorter or denser stream")
 
     def close(self) -> Path:
         """Finish the file and rename it to its final name; returns the path."""
@@ -605,9 +653,13 @@ class EventFileWriter:
 
 
 def open_event_writer(path, shape, attrs=None, *, overwrite: bool = False, compression: str | None = "gzip",
-                      t_end_us: int | None = None):
-    """A writer for ``path`` in the format its suffix names (:class:`EventWriter` or :class:`EventFileWriter`)."""
-    return EventFileWriter(path, shape, attrs, overwrite=overwrite, compression=compression, t_end_us=t_end_us)
+                      t_end_us: int | None = None, t_offset_us: int = 0):
+    """A writer for ``path`` in the format its suffix names (:class:`EventWriter` or :class:`EventFileWriter`).
+
+    ``t_offset_us`` applies to events.h5 only (the other formats store the clock as it is).
+    """
+    return EventFileWriter(path, shape, attrs, overwrite=overwrite, compression=compression, t_end_us=t_end_us,
+                           t_offset_us=t_offset_us)
 
 
 def _unlink_quietly(path):

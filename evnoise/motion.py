@@ -394,14 +394,15 @@ def _check_fps(fps) -> float:
 
 
 def iter_motion(source, shape=None, *, fps: float, window_s: float, separator="density", is_signal=None,
-                mask: MaskParams | None = None, count: str = "noise", on_motion: str = "skip", t_start_s: float = 0.0,
+                mask: MaskParams | None = None, count: str = "noise", on_motion: str = "skip", t_start_s: float | None = None,
                 t_end_s: float | None = None, stats: dict | None = None) -> Iterator[MotionFrame]:
     """Motion masks and moving-window noise counts of a recording, one :class:`MotionFrame` per step.
 
     Parameters
     ----------
     source : path or numpy.ndarray
-        An events.h5 file (read block by block: memory stays bounded) or an event array
+        An event file, events.h5 or any camera file :mod:`evnoise.readers` opens (read block by
+        block: memory stays bounded), or an event array
         (:data:`evnoise.EVENT_DTYPE`, sorted).
     shape : (H, W), optional
         Sensor size; required for an array, read from the file otherwise.
@@ -422,7 +423,8 @@ def iter_motion(source, shape=None, *, fps: float, window_s: float, separator="d
     on_motion : {"skip", "restart"}
         What a masked step does to a pixel's window (:data:`ON_MOTION`).
     t_start_s, t_end_s : float, optional
-        Time span in seconds (default: from 0 to the end of the recording: the file's
+        Time span in seconds on the recording's clock (default: from its start, 0 for an
+        events.h5 file and the first event for a camera file, to its end: the file's
         ``t_end_us`` attribute, or the last event + 1 µs). Only whole steps are produced.
     stats : dict, optional
         Filled with ``n_events``, ``n_signal`` (as labelled) while iterating.
@@ -431,12 +433,13 @@ def iter_motion(source, shape=None, *, fps: float, window_s: float, separator="d
     ------
     MotionFrame
     """
-    from .separation import Separator, _as_filter, _h5_blocks, _h5_info
+    from .separation import Separator, _as_filter, _h5_blocks, _h5_info, _recording_start_us
 
     fps = _check_fps(fps)
     window_s = _check_float(window_s, "window_s", "seconds")
-    t_start_s = _check_float(t_start_s, "t_start_s", "seconds", strict=False)
-    t_start_us = int(round(t_start_s * 1e6))
+    if t_start_s is not None:
+        t_start_s = _check_float(t_start_s, "t_start_s", "seconds", strict=False)
+    t_start_us = 0 if t_start_s is None else int(round(t_start_s * 1e6))
     if isinstance(source, np.ndarray):
         if shape is None:
             raise InputError("shape (H, W) is required with an event array")
@@ -453,10 +456,11 @@ def iter_motion(source, shape=None, *, fps: float, window_s: float, separator="d
     else:
         if is_signal is not None:
             raise InputError("is_signal can only be given with an event array")
-        file_shape, n, _, t_last, t_file_end = _h5_info(source)
-        if shape is not None and _check_shape(shape) != file_shape:
-            raise InputError(f"shape {tuple(shape)} does not match the file's sensor {file_shape}")
+        file_shape, n, t_first, t_last, t_file_end = _h5_info(source, shape)  # any event file; shape for one without
         shape = file_shape
+        if t_start_s is None:
+            t_start_us = _recording_start_us(source, t_first)
+            t_start_s = t_start_us * 1e-6
         if n == 0:
             raise InputError(f"{source} has no events: nothing to reconstruct")
     if t_end_s is not None:
@@ -476,7 +480,7 @@ def iter_motion(source, shape=None, *, fps: float, window_s: float, separator="d
         else:
             blocks = _array_blocks(events, t_start_us, t_end_us, block_us)
     else:
-        blocks = _h5_blocks(source, t_start_us, t_end_us, block_us)
+        blocks = _h5_blocks(source, t_start_us, t_end_us, block_us, shape)
     sep = None
     if is_signal is None and separator is not None:
         sep = Separator(shape, _as_filter(separator))
@@ -602,7 +606,8 @@ def _write_rgb_png(path: Path, rgb: np.ndarray) -> None:
 def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: float | None = None,
                       separator="density", mask: MaskParams | None = None, count: str = "noise",
                       on_motion: str = "skip", min_exposure_s: float | None = None, binning: int | None = None,
-                      t_start_s: float = 0.0, t_end_s: float | None = None, max_frames: int | None = None,
+                      t_start_s: float | None = None, t_end_s: float | None = None, max_frames: int | None = None,
+                      sensor=None,
                       overlay: bool = True, overwrite: bool = False, threads: int | None = None,
                       progress: bool = True) -> dict:
     """Reconstruct the static background of a recording over time, one PNG per step.
@@ -610,7 +615,7 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
     Parameters
     ----------
     events_h5 : path
-        events.h5 recording (streamed block by block).
+        Recording (streamed block by block): events.h5 or any camera file :mod:`evnoise.readers` opens.
     model_path : path
         Reconstructor checkpoint (``evnoise train``).
     out_dir : path
@@ -632,10 +637,12 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
         What a masked step does to a pixel's window (see :data:`ON_MOTION`).
     min_exposure_s : float, optional
         Motion-free time after which a pixel's estimate is refreshed (default: the window).
+    sensor : str or (int, int), optional
+        Sensor size ``"WxH"`` for a recording whose header has none.
     binning : int, optional
         Check that the model uses this binning (a guard; a mismatch is a ParameterError).
     t_start_s, t_end_s : float, optional
-        Time span in seconds.
+        Time span in seconds on the recording's clock (default: all of it; see :func:`iter_motion`).
     max_frames : int, optional
         Stop after this many frames.
     overlay : bool
@@ -661,7 +668,8 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
     """
     from .reconstruct.imaging import write_png
     from .reconstruct.infer import Reconstructor
-    from .separation import _h5_info
+    from .readers import parse_sensor
+    from .separation import _h5_info, _recording_start_us
 
     fps = _check_fps(fps)
     if max_frames is not None:
@@ -674,7 +682,7 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
         raise OutputError(f"cannot create output folder {out_dir}: {parent} does not exist")
     if out_dir.is_dir() and not overwrite and (any(out_dir.glob("frame_*.png")) or any(out_dir.glob("overlay_*.png"))):
         raise OutputError(f"{out_dir} already holds frames; pass --overwrite (overwrite=True) to replace them")
-    shape, n, _, t_last, t_file_end = _h5_info(events_h5)  # clear errors about the input before loading the model
+    shape, n, t_first, t_last, t_file_end = _h5_info(events_h5, parse_sensor(sensor))  # input errors before the model
     if n == 0:
         raise InputError(f"{events_h5} has no events: nothing to reconstruct")
     rec = Reconstructor(model_path, threads=threads)
@@ -691,7 +699,10 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
     window_s = _check_float(window_s, "window_s", "seconds")
     step_us = int(round(1e6 / fps))
     window_steps = max(1, int(round(window_s * 1e6 / step_us)))
-    t_start_us = int(round(_check_float(t_start_s, "t_start_s", "seconds", strict=False) * 1e6))
+    if t_start_s is None:
+        t_start_us = _recording_start_us(events_h5, t_first)
+    else:
+        t_start_us = int(round(_check_float(t_start_s, "t_start_s", "seconds", strict=False) * 1e6))
     if t_end_s is None:
         t_end_us = max(t_file_end or 0, t_last + 1)
     else:
@@ -719,7 +730,7 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
     written = 0
     masked = []
     try:
-        frames = iter_motion(events_h5, fps=fps, window_s=window_s, separator=separator, mask=mask, count=count,
+        frames = iter_motion(events_h5, shape, fps=fps, window_s=window_s, separator=separator, mask=mask, count=count,
                              on_motion=on_motion, t_start_s=t_start_us * 1e-6, t_end_s=t_end_us * 1e-6, stats=stats)
         for frame in frames:
             rates = hold.update(frame)

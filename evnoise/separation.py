@@ -406,40 +406,92 @@ def separation_scores(predicted, truth) -> dict:
 # --------------------------------------------------------------------------------------
 # events.h5 files, streamed
 # --------------------------------------------------------------------------------------
-def _h5_info(path):
-    """``(shape, n_events, t_first, t_last, t_end_attr)`` of an events.h5 file, reading little."""
-    from .io import _event_datasets, _metadata, _open_h5
+def _h5_info(path, shape=None, *, csv_columns=None):
+    """``(shape, n_events, t_first, t_last, t_end_attr)`` of an event file (events.h5 or any camera file).
 
-    with _open_h5(path) as f:
-        ds = _event_datasets(f, path)
-        meta = _metadata(f, ds)
-        n = meta["n_events"]
-        t_first = int(ds["t"][0]) if n else None
-        t_last = int(ds["t"][n - 1]) if n else None
-    if meta["shape"] is None:
-        raise InputError(f"{path} has no width/height attributes: the sensor size is unknown")
-    t_end = meta.get("t_end_us")
-    return meta["shape"], n, t_first, t_last, (None if t_end is None else int(t_end))
+    An events.h5 file is read little (its attributes and two timestamps); a camera file is
+    scanned once (streaming). ``shape`` (H, W) is the sensor size for files whose header has
+    none; a file that does give one must agree.
+    """
+    from .readers import open_events, scan_events
+
+    sensor = None if shape is None else (int(shape[1]), int(shape[0]))
+    src = open_events(path, csv_columns=csv_columns)
+    if shape is not None and src.shape is not None and tuple(src.shape) != tuple(_check_shape(shape)):
+        raise InputError(f"shape {tuple(shape)} does not match the file's sensor {src.shape}")
+    if src.shape is None:
+        if sensor is None:
+            raise InputError(f"{path}: the sensor size is unknown (no width/height in the file); "
+                             f"give it with --sensor WxH")
+        src = open_events(path, sensor=sensor, csv_columns=csv_columns)
+    if src.format == "h5":
+        n, t_first, t_last = src.n_events, src.t_first_us, src.t_last_us
+        t_end = src.meta.get("t_end_us")
+        t_end = None if t_end is None else int(t_end) + src.t_offset_us
+    else:
+        info = scan_events(src)
+        n, t_first, t_last, t_end = info["n_events"], info["t_first_us"], info["t_last_us"], None
+    return src.shape, n, t_first, t_last, t_end
 
 
-def _h5_blocks(path, t_start_us: int, t_end_us: int, block_us: int):
-    """``(events, t_block_end)`` for consecutive blocks ``[a, b)`` of an events.h5 file."""
-    from .events import make_events
-    from .io import _event_datasets, _first_index, _open_h5
+def _recording_start_us(path, t_first) -> int:
+    """Where a recording starts when no start is given: 0 for events.h5 (evnoise's clock starts
+    at 0), the first event for camera files (whose clocks start anywhere)."""
+    from .readers import detect_format
 
-    with _open_h5(path) as f:
-        ds = _event_datasets(f, path)
-        a = t_start_us
-        lo = _first_index(f, ds["t"], a)
-        while a < t_end_us:
+    if detect_format(path) == "h5" or t_first is None:
+        return 0
+    return int(t_first)
+
+
+def _h5_blocks(path, t_start_us: int, t_end_us: int, block_us: int, shape=None, *, csv_columns=None):
+    """``(events, t_block_end)`` for consecutive blocks ``[a, b)`` of an event file (every block,
+    empty ones too); events.h5 seeks through ``/ms_to_idx``, other formats are decoded in order."""
+    from .readers import open_events
+
+    sensor = None if shape is None else (int(shape[1]), int(shape[0]))
+    src = open_events(path, sensor=sensor, csv_columns=csv_columns)
+    if src.format == "h5" and not src.t_offset_us:
+        from .events import make_events
+        from .io import _event_datasets, _first_index, _open_h5
+
+        with _open_h5(path) as f:
+            ds = _event_datasets(f, path)
+            a = t_start_us
+            lo = _first_index(f, ds["t"], a)
+            while a < t_end_us:
+                b = min(a + block_us, t_end_us)
+                hi = _first_index(f, ds["t"], b)
+                try:
+                    events = make_events(ds["t"][lo:hi], ds["x"][lo:hi], ds["y"][lo:hi], ds["p"][lo:hi])
+                except OSError as exc:
+                    raise InputError(f"cannot read events from {path}: {exc}") from None
+                yield events, b
+                lo, a = hi, b
+        return
+    yield from _reblock(src.chunks(t_start_us, t_end_us), t_start_us, t_end_us, block_us)
+
+
+def _reblock(chunks, t_start_us: int, t_end_us: int, block_us: int):
+    """Cut a stream of time-sorted chunks into consecutive blocks ``[a, a + block_us)``."""
+    pending = []
+    a = t_start_us
+    for chunk in chunks:
+        pending.append(chunk)
+        while a < t_end_us and int(chunk["t"][-1]) >= min(a + block_us, t_end_us):
             b = min(a + block_us, t_end_us)
-            hi = _first_index(f, ds["t"], b)
-            try:
-                events = make_events(ds["t"][lo:hi], ds["x"][lo:hi], ds["y"][lo:hi], ds["p"][lo:hi])
-            except OSError as exc:
-                raise InputError(f"cannot read events from {path}: {exc}") from None
-            yield events, b
-            lo, a = hi, b
+            buf = np.concatenate(pending) if len(pending) > 1 else pending[0]
+            cut = int(np.searchsorted(buf["t"], b, side="left"))
+            yield buf[:cut], b
+            pending = [buf[cut:]]
+            a = b
+    while a < t_end_us:
+        b = min(a + block_us, t_end_us)
+        buf = np.concatenate(pending) if pending else empty_events(0)
+        cut = int(np.searchsorted(buf["t"], b, side="left"))
+        yield buf[:cut], b
+        pending = [buf[cut:]]
+        a = b
 
 
 #: Time span of the blocks read from a file at a time, in microseconds.
@@ -447,16 +499,22 @@ FILE_BLOCK_US = 250_000
 
 
 def separate_file(path, signal_out=None, noise_out=None, method="density", *, overwrite: bool = False,
-                  progress: bool = False, **params) -> dict:
-    """Split an events.h5 file into signal and noise files, streaming (bounded memory).
+                  progress: bool = False, sensor=None, csv_columns=None, **params) -> dict:
+    """Split an event file into signal and noise files, streaming (bounded memory).
 
     Parameters
     ----------
     path : path
-        Input events.h5 (needs ``width``/``height`` attributes).
+        Input: events.h5 or any camera file :mod:`evnoise.readers` opens.
     signal_out, noise_out : path, optional
-        Output events.h5 files for the events labelled signal and noise (at least one).
-        Written atomically (temporary name, renamed on success).
+        Output files for the events labelled signal and noise (at least one); the suffix
+        decides the format (``.h5``, ``.aedat4``, ``.raw``, ``.dat``, ``.es``, ``.csv``).
+        Written atomically (temporary name, renamed on success). An events.h5 output of a
+        recording whose clock does not start near 0 stores it as ``/t_offset``.
+    sensor : str or (int, int), optional
+        Sensor size ``"WxH"`` for inputs whose header has none.
+    csv_columns : str, optional
+        Column order of a CSV input (e.g. ``"x,y,p,t"``).
     method, **params
         The filter, as in :class:`Separator`.
     overwrite : bool
@@ -471,7 +529,8 @@ def separate_file(path, signal_out=None, noise_out=None, method="density", *, ov
     """
     import contextlib
 
-    from .io import EventWriter, open_output_path
+    from .io import EventFileWriter, open_output_path, output_format
+    from .readers import parse_sensor
 
     flt = _as_filter(method, **params)
     if signal_out is None and noise_out is None:
@@ -482,9 +541,14 @@ def separate_file(path, signal_out=None, noise_out=None, method="density", *, ov
     for out in outs:
         if out.resolve() == Path(path).resolve():
             raise ParameterError(f"the output {out} is the input file")
+        output_format(out)
         open_output_path(out, overwrite=overwrite, what="event file")
-    shape, n, t_first, t_last, t_end_attr = _h5_info(path)
+    user = parse_sensor(sensor)
+    shape, n, t_first, t_last, t_end_attr = _h5_info(path, user, csv_columns=csv_columns)
     t_end = max(t_end_attr or 0, (t_last + 1) if n else 0)
+    t_begin = _recording_start_us(path, t_first)
+    t_begin = min(t_begin, t_first) if n else t_begin
+    t_offset = t_begin // 1_000_000 * 1_000_000  # whole seconds: a camera clock that reads 1.6e15 us
     sep = Separator(shape, flt)
     attrs = {"source": str(path), "separator": {"name": type(flt).__name__, **dataclasses.asdict(flt)}}
     counts = {"n_events": 0, "n_signal": 0, "n_noise": 0}
@@ -492,14 +556,15 @@ def separate_file(path, signal_out=None, noise_out=None, method="density", *, ov
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=t_end * 1e-6, desc="separate", unit="s", leave=False,
+        bar = tqdm(total=(t_end - t_begin) * 1e-6, desc="separate", unit="s", leave=False,
                    bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.1f}/{total:.1f} s [{elapsed}<{remaining}]")
     with contextlib.ExitStack() as stack:
         writers = {}
         for key, out in (("signal", signal_out), ("noise", noise_out)):
             if out is not None:
-                writers[key] = stack.enter_context(EventWriter(out, shape, {**attrs, "kind": key},
-                                                               overwrite=overwrite, t_end_us=t_end))
+                writers[key] = stack.enter_context(EventFileWriter(out, shape, {**attrs, "kind": key},
+                                                                   overwrite=overwrite, t_end_us=t_end,
+                                                                   t_offset_us=t_offset))
 
         def emit(done, labels):
             counts["n_events"] += int(labels.size)
@@ -510,10 +575,10 @@ def separate_file(path, signal_out=None, noise_out=None, method="density", *, ov
                 writers["noise"].write(done[~labels])
 
         if n:
-            for chunk, b in _h5_blocks(path, min(0, t_first), t_end, FILE_BLOCK_US):
+            for chunk, b in _h5_blocks(path, t_begin, t_end, FILE_BLOCK_US, shape, csv_columns=csv_columns):
                 emit(*sep.push(chunk, t_complete_us=b))
                 if bar is not None:
-                    bar.update(min(b, t_end) * 1e-6 - bar.n)
+                    bar.update((min(b, t_end) - t_begin) * 1e-6 - bar.n)
             emit(*sep.finish())
     if bar is not None:
         bar.close()

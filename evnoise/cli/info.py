@@ -181,16 +181,18 @@ def summarise_events(path, *, sensor=None, t_start=None, t_end=None, csv_columns
     out["on_fraction"] = n_on / n if n else None
     out["t_first_us"] = t_first
     out["t_last_us"] = t_last
-    t_end_attr = meta.get("t_end_us") if src.format == "h5" else None
+    # evnoise's own clock starts at 0 and the file stores its end; a shifted (t_offset) or camera clock
+    # has neither, and the recording spans first to last event
+    t_end_attr = meta.get("t_end_us") if src.format == "h5" and not meta.get("t_offset") else None
     if a_us is not None and b_us is not None:
         duration_us = b_us - a_us
-    elif src.format == "h5" and t_end_attr is not None and b_us is None:
-        duration_us = int(t_end_attr) + int(meta.get("t_offset") or 0) - (a_us if a_us is not None else
-                                                                            int(meta.get("t_start_us", 0)))
+    elif t_end_attr is not None and b_us is None:
+        duration_us = int(t_end_attr) - (a_us if a_us is not None else int(meta.get("t_start_us", 0)))
     elif n:
         start = a_us if a_us is not None else t_first
         end = b_us if b_us is not None else t_last
-        duration_us = end - start + (1 if src.format == "h5" and a_us is None and b_us is None else 0)
+        own = src.format == "h5" and not meta.get("t_offset")
+        duration_us = end - start + (1 if own and a_us is None and b_us is None else 0)
     else:
         duration_us = 0
     out["duration_s"] = duration_us * 1e-6

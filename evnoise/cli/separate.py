@@ -1,4 +1,6 @@
-"""``evnoise separate IN.h5 --out signal.h5 --noise-out noise.h5``: split signal from noise events."""
+"""``evnoise separate IN --out signal.h5 --noise-out noise.h5``: split signal from noise events.
+
+IN is an events.h5 file or any camera recording evnoise reads; the output suffixes decide the formats."""
 
 from __future__ import annotations
 
@@ -6,16 +8,19 @@ from __future__ import annotations
 def register(subparsers):
     p = subparsers.add_parser(
         "separate",
-        help="split an events.h5 file into signal and noise events (density or background-activity filter)",
-        description="Label every event of an events.h5 recording as signal (caused by an intensity change) or "
+        help="split an event file (events.h5 or a camera recording) into signal and noise events",
+        description="Label every event of a recording (events.h5 or a camera file: .raw, .dat, .aedat4, .aedat, "
+        ".es, .csv, .bin) as signal (caused by an intensity change) or "
         "noise with a spatio-temporal correlation filter, streaming the file, and write the two parts to "
-        "events.h5 files. density: YNoise-style event density in a (2R+1)x(2R+1) neighbourhood and the time "
+        "event files (the suffix decides the format: .h5, .aedat4, .raw (EVT3), .dat, .es, .csv). density: YNoise-style event density in a (2R+1)x(2R+1) neighbourhood and the time "
         "window [t - WINDOW, t + LOOKAHEAD] (signal if >= THRESHOLD other events); activity: the background-"
         "activity filter (signal if another pixel within R fired in the last WINDOW).",
     )
-    p.add_argument("events", help="input events.h5 (with width/height attributes)")
-    p.add_argument("--out", default=None, help="events.h5 for the signal events")
-    p.add_argument("--noise-out", default=None, help="events.h5 for the noise events")
+    p.add_argument("events", help="input event file: events.h5 or a camera recording")
+    p.add_argument("--out", default=None, help="event file for the signal events (.h5, .aedat4, .raw, .dat, .es, .csv)")
+    p.add_argument("--noise-out", default=None, help="event file for the noise events (same formats)")
+    p.add_argument("--sensor", metavar="WxH", help="sensor size, e.g. 640x480, for inputs whose header has none")
+    p.add_argument("--csv-columns", metavar="COLS", help="column order of a CSV input, e.g. x,y,p,t")
     p.add_argument("--method", choices=("density", "activity"), default="density", help="filter (default density)")
     p.add_argument("--radius", type=int, default=None, metavar="PX",
                    help="neighbourhood half-side in pixels (default 2 for density, 1 for activity)")
@@ -58,7 +63,7 @@ def run(args) -> int:
                           [("the input events file", args.events)])
     check_png_output(args.png, [args.out, args.noise_out], overwrite=args.overwrite)
     res = separate_file(args.events, args.out, args.noise_out, args.method, overwrite=args.overwrite,
-                        progress=not args.quiet, **params)
+                        progress=not args.quiet, sensor=args.sensor, csv_columns=args.csv_columns, **params)
     if not args.quiet:
         n = res["n_events"]
         share = res["n_signal"] / n if n else 0.0
