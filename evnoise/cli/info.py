@@ -222,6 +222,10 @@ def summarise_events(path, *, sensor=None, t_start=None, t_end=None, csv_columns
         _h5_details(path, meta, out)
     else:
         header = {k: _plain(v) for k, v in meta.items() if v is not None}
+        if "evnoise_version" in header:  # written by evnoise (.aedat4 keeps its attributes)
+            for key in ("evnoise_version", "seed", "source", "preset", "method", "scene", "params"):
+                if key in header:
+                    out[key] = header.pop(key)
         if header:
             out["header"] = header
     return out

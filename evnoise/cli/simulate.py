@@ -38,7 +38,10 @@ def register(subparsers) -> None:
     p.add_argument("input", nargs="?", metavar="INPUT",
                    help="an image (PNG, JPEG, TIFF, OpenEXR) or a folder of frames")
     p.add_argument("--example", action="store_true", help="use the bundled 1280x720 example image as INPUT")
-    p.add_argument("-o", "--out", required=True, metavar="FILE", help="output event file: events.h5 (DSEC layout), or .aedat4 (see --format)")
+    p.add_argument("-o", "--out", required=True, metavar="FILE",
+                   help="output event file; the suffix decides the format: .h5 (events.h5, DSEC layout, with "
+                   "parameters and seed), .aedat4 (parameters and seed in its description), .raw (Prophesee EVT 3.0), "
+                   ".dat (Prophesee DAT), .es (Event Stream), .csv (t,x,y,on)")
     p.add_argument("--duration", type=float, metavar="S",
                    help="length of a static scene in seconds (default 1); not used for a folder")
     p.add_argument("--fps", type=float, metavar="F",
@@ -63,9 +66,9 @@ def register(subparsers) -> None:
     p.add_argument("--clip-invalid", action="store_true",
                    help="clip NaN, Inf and negative pixel values (with a warning) instead of failing")
     p.add_argument("--threads", type=int, metavar="N", help="worker threads (default: all CPUs)")
-    p.add_argument("--format", choices=("h5", "aedat4"),
-                   help="output format: h5 (events.h5, DSEC layout, with parameters and seed) or aedat4 "
-                   "(needs the faery package) (default: from the --out suffix, .aedat4 or else h5)")
+    p.add_argument("--format", choices=("h5", "aedat4", "evt3", "dat", "es", "csv"),
+                   help="check the output format: the --out suffix decides it, and this must agree "
+                   "(formats other than h5 need the faery package)")
     p.add_argument("--compression", choices=("gzip", "lzf", "none"), default="gzip",
                    help="HDF5 compression of the events (default: %(default)s)")
     p.add_argument("--png", metavar="FILE",
@@ -153,9 +156,13 @@ def run(args) -> int:
         raise ParameterError(f"--seed must be a non-negative integer, got {args.seed}")
     sensor = parse_sensor(args.sensor)
     params = load_preset(args.preset)
-    fmt = args.format or ("aedat4" if str(args.out).lower().endswith(".aedat4") else "h5")
+    from ..io import output_format
+
+    fmt = output_format(args.out)  # the suffix decides; a folder or an unknown suffix is an error
+    if args.format is not None and args.format != fmt:
+        raise ParameterError(f"--format {args.format} disagrees with --out {args.out} ({fmt}); the suffix decides")
     out = open_output_path(args.out, overwrite=args.overwrite, what="event file")
-    if fmt == "aedat4":
+    if fmt != "h5":
         from ..io import _import_faery
 
         _import_faery()  # fail before the work if faery is missing
@@ -265,7 +272,7 @@ def _write_outputs(args, fmt, out, png, scene: _Scene, attrs):
     import numpy as np
 
     from .._atomic import temporary_name
-    from ..io import EventWriter, write_aedat4
+    from ..io import open_event_writer
 
     height, width = scene.shape
     counts = np.zeros(2 * height * width, dtype=np.int64)
@@ -279,20 +286,14 @@ def _write_outputs(args, fmt, out, png, scene: _Scene, attrs):
 
     png_tmp = None
     try:
-        if fmt == "aedat4":
-            write_aedat4(out, counted(scene.stream), scene.shape, overwrite=args.overwrite)
-            if png is not None:
+        compression = None if args.compression == "none" else args.compression
+        with open_event_writer(out, scene.shape, attrs, overwrite=args.overwrite, compression=compression,
+                               t_end_us=scene.t_end_us) as writer:  # the format of the --out suffix
+            for chunk in counted(scene.stream):
+                writer.write(chunk)
+            if png is not None:  # written before the event file is renamed: both or neither
                 png_tmp = temporary_name(png)
                 _write_png_file(counts.reshape(2, height, width), png_tmp, scene)
-        else:
-            compression = None if args.compression == "none" else args.compression
-            with EventWriter(out, scene.shape, attrs, overwrite=args.overwrite, compression=compression,
-                             t_end_us=scene.t_end_us) as writer:
-                for chunk in counted(scene.stream):
-                    writer.write(chunk)
-                if png is not None:  # written before the event file is renamed: both or neither
-                    png_tmp = temporary_name(png)
-                    _write_png_file(counts.reshape(2, height, width), png_tmp, scene)
         if png_tmp is not None:
             _replace(png_tmp, png)
             png_tmp = None
