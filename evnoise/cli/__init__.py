@@ -17,7 +17,7 @@ from .._version import __version__
 from ..errors import EvnoiseError
 
 # subcommand modules, in the order they appear in --help
-COMMANDS = ["simulate", "make_dataset", "calibrate", "train", "reconstruct", "separate", "info"]
+COMMANDS = ["simulate", "make_dataset", "calibrate", "train", "evaluate", "reconstruct", "separate", "info"]
 
 log = logging.getLogger("evnoise")
 
@@ -101,10 +101,18 @@ class Terminated(KeyboardInterrupt):
 
 
 _NO_HANDLER = object()
+#: while a SIGTERM is pending, how often (seconds) to raise Terminated again if it was swallowed
+_RETRY_S = 0.5
 
 
 def _catch_sigterm():
-    """Turn SIGTERM into :class:`Terminated` while a command runs; returns the previous handler."""
+    """Turn SIGTERM into :class:`Terminated` while a command runs; returns what to restore.
+
+    An exception raised from a signal handler can land where Python ignores it (a weakref
+    callback, a ``__del__``): the command would then run on. So, once a SIGTERM has arrived, a
+    timer raises :class:`Terminated` again every ``_RETRY_S`` seconds until the command is left,
+    but only where no exception is being handled (not into the cleanup of the first one).
+    """
     import os
     import signal
     import threading
@@ -112,26 +120,63 @@ def _catch_sigterm():
     if threading.current_thread() is not threading.main_thread():
         return _NO_HANDLER
     pid = os.getpid()
+    timer = hasattr(signal, "setitimer") and hasattr(signal, "SIGALRM")
+    pending = []
+
+    def raise_unless_unwinding():
+        if sys.exc_info()[1] is None:
+            raise Terminated()
 
     def on_sigterm(signum, frame):
         if os.getpid() != pid:  # a forked worker process: die as SIGTERM would (pools terminate workers so)
             signal.signal(signal.SIGTERM, signal.SIG_DFL)
             os.kill(os.getpid(), signal.SIGTERM)
             return
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second SIGTERM must not break the cleanup
+        if pending:
+            raise_unless_unwinding()
+            return
+        pending.append(True)
+        _interrupt_workers()
+        if timer:
+            signal.setitimer(signal.ITIMER_REAL, _RETRY_S, _RETRY_S)
         raise Terminated()
 
+    def on_alarm(signum, frame):
+        raise_unless_unwinding()
+
     try:
-        return signal.signal(signal.SIGTERM, on_sigterm)
+        previous = signal.signal(signal.SIGTERM, on_sigterm)
     except (ValueError, OSError):  # pragma: no cover - no signals here (embedded interpreter)
         return _NO_HANDLER
+    previous_alarm = signal.signal(signal.SIGALRM, on_alarm) if timer else _NO_HANDLER
+    return previous, previous_alarm
+
+
+def _interrupt_workers() -> None:
+    """Send SIGINT to this process's multiprocessing workers (make-dataset's pool), as Ctrl-C in a
+    terminal does to the whole process group: they stop their shard and remove its temporary file
+    instead of finishing it while the main process waits."""
+    import multiprocessing
+    import os
+    import signal
+
+    for child in multiprocessing.active_children():
+        try:
+            os.kill(child.pid, signal.SIGINT)
+        except (OSError, TypeError):  # already gone, or not started
+            pass
 
 
 def _restore_sigterm(previous) -> None:
     import signal
 
-    if previous is not _NO_HANDLER:
-        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+    if previous is _NO_HANDLER:
+        return
+    term, alarm = previous
+    if alarm is not _NO_HANDLER:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, alarm if alarm is not None else signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, term if term is not None else signal.SIG_DFL)
 
 
 class _ProgressAwareHandler(logging.Handler):
