@@ -33,7 +33,7 @@ def register(subparsers) -> None:
         description="Simulate event-camera events of an image (a static scene, for --duration seconds) "
         "or of a folder of frames (a video at --fps) and write them to an events.h5 file (DSEC layout).",
         epilog="example: evnoise simulate --example --duration 10 --out example.h5 --png example.png "
-        "(put -q before 'simulate' for no progress bar and no summary)",
+        "(-q: no progress bar and no summary)",
     )
     p.add_argument("input", nargs="?", metavar="INPUT",
                    help="an image (PNG, JPEG, TIFF, OpenEXR) or a folder of frames")
@@ -72,7 +72,7 @@ def register(subparsers) -> None:
     p.add_argument("--compression", choices=("gzip", "lzf", "none"), default="gzip",
                    help="HDF5 compression of the events (default: %(default)s)")
     p.add_argument("--png", metavar="FILE",
-                   help="also write a PNG of the ON/OFF event-count maps (side by side, log scale)")
+                   help="also write a PNG of the scene beside its ON/OFF event-rate maps (log scales, colour bars)")
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
     p.set_defaults(func=run)
 
