@@ -516,9 +516,9 @@ class EventFileWriter:
             else:
                 enc = csv.Encoder(self._tmp, ord(","), True, (width, height), True)
             self._encoder = enc.__enter__()
-        except BaseException as exc:
+        except BaseException as exc:  # faery's Rust encoders raise PanicException (a BaseException)
             self.abort()
-            if isinstance(exc, Exception) and not isinstance(exc, EvnoiseError):
+            if not isinstance(exc, (EvnoiseError, KeyboardInterrupt, SystemExit, GeneratorExit)):
                 raise OutputError(f"cannot write {what} {self.path}: {' '.join(str(exc).split())}") from None
             raise
 
@@ -547,7 +547,7 @@ class EventFileWriter:
             self._write(events)
         except BaseException as exc:
             self.abort()
-            if isinstance(exc, Exception) and not isinstance(exc, EvnoiseError):
+            if not isinstance(exc, (EvnoiseError, KeyboardInterrupt, SystemExit, GeneratorExit)):
                 raise OutputError(f"writing {self.what} {self.path} failed: {' '.join(str(exc).split())}") from None
             raise
 

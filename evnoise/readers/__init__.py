@@ -138,6 +138,7 @@ def open_events(path, *, sensor=None, csv_columns=None) -> EventSource:
         ``shape`` (H, W) or ``None``, ``format``, ``meta`` and :meth:`EventSource.chunks`.
     """
     path = Path(path)
+    parse_sensor(sensor)  # a malformed --sensor is reported before anything is read
     fmt = detect_format(path)
     if csv_columns is not None and fmt != "csv":
         raise ParameterError(f"--csv-columns applies to CSV files only; {path} is {_NAMES[fmt]}")

@@ -68,7 +68,14 @@ def require(module: str, what: str):
 
 
 def decoder_error(path, what: str, exc: BaseException) -> InputError:
-    """One-line :class:`InputError` for a third-party decoder's failure on ``path``."""
+    """One-line :class:`InputError` for a third-party decoder's failure on ``path``.
+
+    Interrupts and generator shutdown are re-raised as they are (decoders written in Rust raise
+    ``PanicException``, a ``BaseException``, on malformed input: callers catch ``BaseException``
+    and pass it here).
+    """
+    if isinstance(exc, (KeyboardInterrupt, SystemExit, GeneratorExit, InputError)):
+        raise exc
     text = " ".join(str(exc).split()) or type(exc).__name__
     return InputError(f"cannot read {path} as {what}: {text}")
 

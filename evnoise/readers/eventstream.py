@@ -24,7 +24,7 @@ class EsSource(EventSource):
         try:
             with es.Decoder(self.path, 0) as dec:
                 kind, dims, version = dec.event_type, dec.dimensions, dec.version
-        except Exception as exc:  # noqa: BLE001 - faery raises plain exceptions
+        except BaseException as exc:  # noqa: BLE001 - see decoder_error
             raise decoder_error(self.path, "Event Stream", exc) from None
         if kind not in ("dvs", "atis"):
             raise InputError(f"{self.path}: Event Stream type {kind!r} holds no polarity events (dvs or atis needed)")
@@ -53,7 +53,5 @@ class EsSource(EventSource):
                     yield to_events(packet["t"], packet["x"], (self._height - 1) - packet["y"].astype("i4"), on)
                     if t_end_us is not None and int(packet["t"][-1]) >= t_end_us:
                         return
-        except InputError:
-            raise
-        except Exception as exc:  # noqa: BLE001
+        except BaseException as exc:  # noqa: BLE001 - see decoder_error
             raise decoder_error(self.path, "Event Stream", exc) from None

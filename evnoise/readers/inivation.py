@@ -65,7 +65,7 @@ class Aedat4Source(EventSource):
             with aedat.Decoder(self.path) as dec:
                 tracks = dec.tracks()
                 description = dec.description()
-        except Exception as exc:  # noqa: BLE001 - faery raises plain exceptions
+        except BaseException as exc:  # noqa: BLE001 - see decoder_error
             raise decoder_error(self.path, "AEDAT 4", exc) from None
         events = [t for t in tracks if t.data_type == "events"]
         if not events:
@@ -90,9 +90,7 @@ class Aedat4Source(EventSource):
                     yield from_faery(packet)
                     if t_end_us is not None and int(packet["t"][-1]) >= t_end_us:
                         return
-        except InputError:
-            raise
-        except Exception as exc:  # noqa: BLE001
+        except BaseException as exc:  # noqa: BLE001 - see decoder_error
             raise decoder_error(self.path, "AEDAT 4", exc) from None
 
 
@@ -151,7 +149,7 @@ class Aedat2Source(EventSource):
         tio = _tonic_io()
         try:
             version, _, created_ms = tio.read_aedat_header_from_file(str(self.path))
-        except Exception as exc:  # noqa: BLE001 - tonic raises plain errors on a bad header
+        except BaseException as exc:  # noqa: BLE001 - see decoder_error
             raise decoder_error(self.path, "jAER AEDAT 2.0", exc) from None
         if not 2 <= version < 3:
             raise InputError(f"{self.path}: AEDAT version {version:g}; this reader handles AEDAT 2.0")

@@ -37,7 +37,7 @@ class NmnistSource(EventSource):
         tio = _tonic_io()
         try:
             raw = tio.read_mnist_file(str(self.path), dtype=_DTYPE)
-        except Exception as exc:  # noqa: BLE001
+        except BaseException as exc:  # noqa: BLE001 - see decoder_error
             raise decoder_error(self.path, "N-MNIST", exc) from None
         if raw.size:
             yield to_events(raw["t"], raw["x"], raw["y"], raw["p"])

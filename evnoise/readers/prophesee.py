@@ -54,13 +54,13 @@ class RawSource(EventSource):
             try:
                 with evt.Decoder(self.path, NO_GEOMETRY, None) as dec:
                     version, dims = dec.version, dec.dimensions
-            except Exception as exc2:  # noqa: BLE001 - faery raises plain exceptions
+            except BaseException as exc2:  # noqa: BLE001 - see decoder_error
                 raise decoder_error(self.path, "Prophesee RAW (EVT)", exc2) from None
-        except Exception as exc:  # noqa: BLE001
+        except BaseException as exc:  # noqa: BLE001 - see decoder_error
             raise decoder_error(self.path, "Prophesee RAW (EVT)", exc) from None
         self.format = str(version)
         self.meta["evt_version"] = str(version)
-        self._fallback = NO_GEOMETRY if self._user_shape is None else (self._user_shape[1], self._user_shape[0])
+        self._fallback = NO_GEOMETRY  # faery checks nothing against it; evnoise checks the sensor itself
         self._set_shape((dims[1], dims[0]) if geometry else None)
         if not geometry:
             self.meta["geometry"] = "none in the header"
@@ -79,9 +79,7 @@ class RawSource(EventSource):
                     yield from_faery(events)
                     if t_end_us is not None and int(events["t"][-1]) >= t_end_us:
                         return
-        except InputError:
-            raise
-        except Exception as exc:  # noqa: BLE001
+        except BaseException as exc:  # noqa: BLE001 - see decoder_error
             raise decoder_error(self.path, f"Prophesee RAW ({self.format})", exc) from None
 
 
@@ -110,7 +108,7 @@ class DatSource(EventSource):
                 geometry = False
                 with dat.Decoder(self.path, NO_GEOMETRY, None) as dec:
                     kind, dims = dec.event_type, dec.dimensions
-        except Exception as exc:  # noqa: BLE001
+        except BaseException as exc:  # noqa: BLE001 - see decoder_error
             raise decoder_error(self.path, "Prophesee DAT", exc) from None
         if kind not in ("cd", "2d"):
             raise InputError(f"{self.path}: a DAT file of {kind} events holds no change-detection events")
@@ -118,7 +116,7 @@ class DatSource(EventSource):
         self._kind = kind
         if kind == "2d":
             require("expelliarmus", "Prophesee DAT Event2d files")
-        self._fallback = NO_GEOMETRY if self._user_shape is None else (self._user_shape[1], self._user_shape[0])
+        self._fallback = NO_GEOMETRY
         self._set_shape((dims[1], dims[0]) if geometry and dims else None)
         if self.shape is None and not geometry:
             self.meta["geometry"] = "none in the header"
@@ -141,9 +139,7 @@ class DatSource(EventSource):
                         yield to_events(packet["t"], packet["x"], packet["y"], packet["payload"])
                         if t_end_us is not None and int(packet["t"][-1]) >= t_end_us:
                             return
-            except InputError:
-                raise
-            except Exception as exc:  # noqa: BLE001
+            except BaseException as exc:  # noqa: BLE001 - see decoder_error
                 raise decoder_error(self.path, "Prophesee DAT", exc) from None
             return
         import expelliarmus
@@ -160,7 +156,5 @@ class DatSource(EventSource):
                 yield to_events(packet["t"], packet["x"], packet["y"], packet["p"])
                 if t_end_us is not None and int(packet["t"][-1]) >= t_end_us:
                     return
-        except InputError:
-            raise
-        except Exception as exc:  # noqa: BLE001
+        except BaseException as exc:  # noqa: BLE001 - see decoder_error
             raise decoder_error(self.path, "Prophesee DAT (Event2d)", exc) from None

@@ -98,7 +98,5 @@ class CsvSource(EventSource):
                     yield from_faery(packet)
                     if t_end_us is not None and int(packet["t"][-1]) >= t_end_us:
                         return
-        except InputError:
-            raise
-        except Exception as exc:  # noqa: BLE001 - faery raises plain exceptions
+        except BaseException as exc:  # noqa: BLE001 - see decoder_error - faery raises plain exceptions
             raise decoder_error(self.path, "CSV events", exc) from None
