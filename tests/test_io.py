@@ -327,3 +327,101 @@ def test_aedat4_failure_leaves_no_file(tmp_path):
     with pytest.raises(OutputError, match="already exists"):
         write_aedat4(tmp_path / "old.aedat4", events, SHAPE)
     assert leftovers(tmp_path) == ["old.aedat4"]
+
+
+# --------------------------------------------------------------------------------------
+# t_offset (DSEC): foreign files and camera clocks far from 0
+# --------------------------------------------------------------------------------------
+def test_t_offset_is_honoured(tmp_path):
+    events = random_events(3000, 2_000_000, seed=30)
+    off = 1_633_953_690_000_000  # a Unix-time clock, as the DAVIS recordings have
+    with h5py.File(tmp_path / "dsec.h5", "w") as f:  # what DSEC's tools write: stored t, /t_offset, no sizes
+        for k in "xytp":
+            f.create_dataset(f"events/{k}", data=events[k])
+        f.create_dataset("t_offset", data=np.int64(off))
+    got, meta = read_events(tmp_path / "dsec.h5")
+    np.testing.assert_array_equal(got["t"], events["t"] + off)  # on the file's own clock
+    assert meta["t_offset"] == off and meta["shape"] is None
+    a, b = off + 500_000, off + 1_500_000
+    got, _ = read_events(tmp_path / "dsec.h5", a, b)
+    np.testing.assert_array_equal(got["t"], events["t"][(events["t"] >= 500_000) & (events["t"] < 1_500_000)] + off)
+    got, meta = read_events(tmp_path / "dsec.h5", sensor="64x48", t_start=a * 1e-6, t_end=b * 1e-6)
+    assert meta["shape"] == SHAPE and got.size == np.count_nonzero((events["t"] >= 500_000) & (events["t"] < 1_500_000))
+    # the writer stores such a clock as t - t_offset, keeping /ms_to_idx short
+    shifted = events.copy()
+    shifted["t"] += off
+    with EventWriter(tmp_path / "w.h5", SHAPE, t_offset_us=off, t_end_us=off + 2_000_000) as out:
+        out.write(shifted)
+    with h5py.File(tmp_path / "w.h5", "r") as f:
+        assert int(f["t_offset"][()]) == off and f["ms_to_idx"].shape[0] == 2001
+        np.testing.assert_array_equal(f["events/t"][:], events["t"])
+    assert read_events(tmp_path / "w.h5")[0].tobytes() == shifted.tobytes()
+
+
+# --------------------------------------------------------------------------------------
+# output formats: the suffix decides (issue 17, item 3)
+# --------------------------------------------------------------------------------------
+def test_output_format_by_suffix(tmp_path):
+    from evnoise.io import output_format
+
+    assert [output_format(f"a{s}") for s in (".h5", ".HDF5", ".aedat4", ".raw", ".dat", ".es", ".csv")] == \
+        ["h5", "h5", "aedat4", "evt3", "dat", "es", "csv"]
+    with pytest.raises(ParameterError, match="unknown event file suffix '.txt'"):
+        output_format("out.txt")
+    with pytest.raises(ParameterError, match="suffix"):
+        output_format("events")
+    with pytest.raises(OutputError, match="folder"):
+        output_format("outdir/")
+    with pytest.raises(OutputError, match="folder"):
+        output_format(tmp_path)
+
+
+def test_cli_outputs_follow_the_suffix(tmp_path, capsys):
+    from evnoise.cli import main
+
+    png = tmp_path / "scene.png"
+    from PIL import Image
+
+    Image.fromarray(np.full((12, 16), 128, dtype=np.uint8)).save(png)
+    for out in ("outdir/", "out.txt"):
+        assert main(["simulate", str(png), "--out", str(tmp_path / out), "--duration", "0.1", "--seed", "1"]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("evnoise: error:") and err.count("\n") == 1
+    assert not (tmp_path / "outdir").exists() and not (tmp_path / "out.txt").exists()
+    code = main(["-q", "simulate", str(png), "--out", str(tmp_path / "ev.h5"), "--duration", "2", "--seed", "4"])
+    assert code == 0
+    events, _ = read_events(tmp_path / "ev.h5")
+    # separate --out sig.aedat4 writes AEDAT 4 (it wrote HDF5 under that name before)
+    assert main(["-q", "separate", str(tmp_path / "ev.h5"), "--out", str(tmp_path / "sig.aedat4"),
+                 "--noise-out", str(tmp_path / "noise.raw")]) == 0
+    assert (tmp_path / "sig.aedat4").read_bytes()[:10] == b"#!AER-DAT4"
+    assert (tmp_path / "noise.raw").read_bytes()[:1] == b"%"
+    sig, smeta = read_events(tmp_path / "sig.aedat4")
+    noise, _ = read_events(tmp_path / "noise.raw")
+    assert sig.size + noise.size == events.size and smeta["kind"] == "signal"
+    # simulate --out x.aedat4 keeps the parameters and seed (item 7), and info reads the file
+    assert main(["-q", "simulate", str(png), "--out", str(tmp_path / "ev.aedat4"), "--duration", "2", "--seed",
+                 "4"]) == 0
+    capsys.readouterr()
+    assert main(["info", str(tmp_path / "ev.aedat4"), "--json"]) == 0
+    import json
+
+    info = json.loads(capsys.readouterr().out)
+    assert info["events"] == events.size and info["seed"] == 4 and info["params"]["eps_pos"] > 0
+    assert info["size_bytes"] == (tmp_path / "ev.aedat4").stat().st_size  # a number, not "91.4 kB"
+
+
+def test_unwritable_output_is_one_clean_line(tmp_path, capsys):
+    from evnoise.cli import main
+
+    if not os.path.isdir("/proc"):
+        pytest.skip("no /proc")
+    png = tmp_path / "scene.png"
+    from PIL import Image
+
+    Image.fromarray(np.full((12, 16), 128, dtype=np.uint8)).save(png)
+    for out in ("/proc/x.h5", "/proc/x.raw"):
+        assert main(["simulate", str(png), "--out", out, "--duration", "0.1", "--seed", "1"]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and err.startswith(f"evnoise: error: cannot write") and "h5py" not in err
+        assert "Unable to" not in err and "errno" not in err
