@@ -22,7 +22,9 @@ Rate table (CSV)
         (``var = mu + mu^2 / r``); needs ``duration_s``. Lets the fit determine ``eps_sigma``.
 
 Flat-field listing (TOML or CSV)
-    One events.h5 recording of a uniformly lit sensor per level. TOML::
+    One recording of a uniformly lit sensor per level: events.h5 or any camera file evnoise reads
+    (``sensor = "WxH"`` and ``csv_columns`` keys where the file needs them; a camera file's window
+    is on its own clock and starts at its first event by default). TOML::
 
         [[level]]
         file = "flat_0.h5"        # relative to the listing's folder
@@ -443,7 +445,7 @@ def _listing_entries(path: Path):
         levels = doc.get("level")
         if not isinstance(levels, list) or not levels or not all(isinstance(e, dict) for e in levels):
             raise InputError(f"{path}: expected [[level]] tables with file and lux (or grey)")
-        allowed = {"file", "lux", "grey", "duration_s", "t_start_s", "t_end_s", "roi"}
+        allowed = {"file", "lux", "grey", "duration_s", "t_start_s", "t_end_s", "roi", "sensor", "csv_columns"}
         for i, e in enumerate(levels):
             unknown = set(e) - allowed
             if unknown:
@@ -518,10 +520,14 @@ def read_flat_fields(path, *, monitor: MonitorTable | None = None, monitor_model
         dur = _num(e, "duration_s", lw)
         t0_us = 0 if t0 is None else int(round(t0 * 1e6))
         t1_us = None if t1 is None else int(round(t1 * 1e6))
-        events, meta = read_events(file, t0_us, t1_us)
+        # any event file evnoise reads (events.h5 or a camera recording; sensor = "WxH" where its header has none)
+        events, meta = read_events(file, None if t0 is None else t0_us, t1_us, sensor=e.get("sensor"),
+                                   csv_columns=e.get("csv_columns"))
+        if t0 is None and meta.get("format", "h5") != "h5" and events.size:
+            t0_us = int(events["t"][0])  # a camera clock starts anywhere: count from the first event
         shape = meta.get("shape")
         if shape is None:
-            raise InputError(f"{file}: the file does not record the sensor size (width, height attributes)")
+            raise InputError(f"{file}: the file does not record the sensor size; add sensor = \"WxH\" to its level")
         if t1_us is None:
             if dur is not None:
                 t1_us = t0_us + int(round(dur * 1e6))
