@@ -701,12 +701,18 @@ def _event_datasets(f, path):
     return ds
 
 
-def read_metadata(path) -> dict:
+def read_metadata(path, *, sensor=None, csv_columns=None) -> dict:
     """Root attributes of an events.h5 file, decoded, plus ``shape``, ``n_events`` and ``t_offset``.
 
     ``shape`` is ``(height, width)`` from the attributes, or ``None`` for files without them
     (DSEC files, for example). JSON-encoded attributes (``params``) are decoded to dicts.
+    A camera file gives its header's facts instead (no events are decoded): ``format``,
+    ``shape``, ``shape_from``, ``t_offset`` and, where the header names it, ``camera``.
     """
+    from .readers import detect_format, open_events, source_meta
+
+    if sensor is not None or csv_columns is not None or detect_format(path) != "h5":
+        return source_meta(open_events(path, sensor=sensor, csv_columns=csv_columns))
     with _open_h5(path) as f:
         ds = _event_datasets(f, path)
         return _metadata(f, ds)

@@ -255,3 +255,44 @@ def scan_events(src: EventSource, t_start_us=None, t_end_us=None, *, progress: b
         out["x_max"] = xm if out["x_max"] is None else max(out["x_max"], xm)
         out["y_max"] = ym if out["y_max"] is None else max(out["y_max"], ym)
     return out
+
+
+def recording_span_us(path, *, sensor=None, csv_columns=None) -> tuple[int, int]:
+    """``(start_us, end_us)`` of a recording on its own clock.
+
+    events.h5: from 0 (evnoise's clock; ``t_offset`` added) to the stored ``t_end_us`` or the
+    last event + 1 µs, reading two timestamps. Camera files: first event to last event + 1 µs,
+    from one streaming pass (no header stores the end).
+    """
+    src = open_events(path, sensor=sensor, csv_columns=csv_columns)
+    with src:
+        if src.format == "h5":
+            off = src.t_offset_us
+            last = src.t_last_us + 1 if src.n_events else off
+            end = src.meta.get("t_end_us")
+            start = off if not off else (src.t_first_us if src.n_events else off)
+            return start, max(last, (int(end) + off) if end is not None else last)
+        info = scan_events(src)
+    if not info["n_events"]:
+        raise InputError(f"{path} has no events")
+    return info["t_first_us"], info["t_last_us"] + 1
+
+
+def window_counts(path, t_start_s: float, window_s: float, *, sensor=None, csv_columns=None):
+    """ON/OFF counts ``(2, H, W)`` of ``[t_start_s, t_start_s + window_s)`` (file clock), streamed.
+
+    Memory: the count maps and one decoder packet. The sensor size must be known (header or
+    ``sensor``).
+    """
+    from .stats import pixel_counts
+
+    a = seconds_to_us(t_start_s, "--t-start")
+    w = seconds_to_us(window_s, "--window")
+    if w is None or w <= 0:
+        raise ParameterError(f"--window must be > 0 seconds, got {window_s!r}")
+    src = open_events(path, sensor=sensor, csv_columns=csv_columns)
+    if src.shape is None:
+        raise InputError(f"{path}: the header gives no sensor size; add --sensor WxH")
+    with src:
+        counts, _ = pixel_counts(src.chunks(a, a + w), src.shape)
+    return counts

@@ -159,6 +159,8 @@ class Aedat2Source(EventSource):
         head = "\n".join(lines)
         chip = chip or _header_value(head, "AEChip")
         self.meta = {"aedat_version": float(version), "chip": chip}
+        if chip:
+            self.meta["camera"] = chip.rsplit(".", 1)[-1]  # jAER class name: DVS128, Davis346red, ...
         hw = _header_value(head, "HardwareInterface")
         if hw:
             self.meta["hardware_interface"] = hw.split(" with ")[0]

@@ -60,6 +60,9 @@ class RawSource(EventSource):
             raise decoder_error(self.path, "Prophesee RAW (EVT)", exc) from None
         self.format = str(version)
         self.meta["evt_version"] = str(version)
+        fields = self.meta["header_fields"]
+        if fields.get("plugin_name") or fields.get("integrator_name"):
+            self.meta["camera"] = " ".join(v for v in (fields.get("integrator_name"), fields.get("plugin_name")) if v)
         self._fallback = NO_GEOMETRY  # faery checks nothing against it; evnoise checks the sensor itself
         self._set_shape((dims[1], dims[0]) if geometry else None)
         if not geometry:
