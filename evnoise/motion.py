@@ -395,7 +395,7 @@ def _check_fps(fps) -> float:
 
 def iter_motion(source, shape=None, *, fps: float, window_s: float, separator="density", is_signal=None,
                 mask: MaskParams | None = None, count: str = "noise", on_motion: str = "skip", t_start_s: float | None = None,
-                t_end_s: float | None = None, stats: dict | None = None) -> Iterator[MotionFrame]:
+                t_end_s: float | None = None, stats: dict | None = None, csv_columns=None) -> Iterator[MotionFrame]:
     """Motion masks and moving-window noise counts of a recording, one :class:`MotionFrame` per step.
 
     Parameters
@@ -428,6 +428,8 @@ def iter_motion(source, shape=None, *, fps: float, window_s: float, separator="d
         ``t_end_us`` attribute, or the last event + 1 µs). Only whole steps are produced.
     stats : dict, optional
         Filled with ``n_events``, ``n_signal`` (as labelled) while iterating.
+    csv_columns : str, optional
+        Column order of a CSV recording (e.g. ``"x,y,p,t"``).
 
     Yields
     ------
@@ -456,7 +458,7 @@ def iter_motion(source, shape=None, *, fps: float, window_s: float, separator="d
     else:
         if is_signal is not None:
             raise InputError("is_signal can only be given with an event array")
-        file_shape, n, t_first, t_last, t_file_end = _h5_info(source, shape)  # any event file; shape for one without
+        file_shape, n, t_first, t_last, t_file_end = _h5_info(source, shape, csv_columns=csv_columns)  # any event file
         shape = file_shape
         if t_start_s is None:
             t_start_us = _recording_start_us(source, t_first)
@@ -480,7 +482,7 @@ def iter_motion(source, shape=None, *, fps: float, window_s: float, separator="d
         else:
             blocks = _array_blocks(events, t_start_us, t_end_us, block_us)
     else:
-        blocks = _h5_blocks(source, t_start_us, t_end_us, block_us, shape)
+        blocks = _h5_blocks(source, t_start_us, t_end_us, block_us, shape, csv_columns=csv_columns)
     sep = None
     if is_signal is None and separator is not None:
         sep = Separator(shape, _as_filter(separator))
@@ -607,7 +609,7 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
                       separator="density", mask: MaskParams | None = None, count: str = "noise",
                       on_motion: str = "skip", min_exposure_s: float | None = None, binning: int | None = None,
                       t_start_s: float | None = None, t_end_s: float | None = None, max_frames: int | None = None,
-                      sensor=None,
+                      sensor=None, csv_columns=None,
                       overlay: bool = True, overwrite: bool = False, threads: int | None = None,
                       progress: bool = True) -> dict:
     """Reconstruct the static background of a recording over time, one PNG per step.
@@ -639,6 +641,8 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
         Motion-free time after which a pixel's estimate is refreshed (default: the window).
     sensor : str or (int, int), optional
         Sensor size ``"WxH"`` for a recording whose header has none.
+    csv_columns : str, optional
+        Column order of a CSV recording (e.g. ``"x,y,p,t"``).
     binning : int, optional
         Check that the model uses this binning (a guard; a mismatch is a ParameterError).
     t_start_s, t_end_s : float, optional
@@ -682,7 +686,8 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
         raise OutputError(f"cannot create output folder {out_dir}: {parent} does not exist")
     if out_dir.is_dir() and not overwrite and (any(out_dir.glob("frame_*.png")) or any(out_dir.glob("overlay_*.png"))):
         raise OutputError(f"{out_dir} already holds frames; pass --overwrite (overwrite=True) to replace them")
-    shape, n, t_first, t_last, t_file_end = _h5_info(events_h5, parse_sensor(sensor))  # input errors before the model
+    shape, n, t_first, t_last, t_file_end = _h5_info(events_h5, parse_sensor(sensor),
+                                                     csv_columns=csv_columns)  # input errors before the model
     if n == 0:
         raise InputError(f"{events_h5} has no events: nothing to reconstruct")
     rec = Reconstructor(model_path, threads=threads)
@@ -731,7 +736,8 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
     masked = []
     try:
         frames = iter_motion(events_h5, shape, fps=fps, window_s=window_s, separator=separator, mask=mask, count=count,
-                             on_motion=on_motion, t_start_s=t_start_us * 1e-6, t_end_s=t_end_us * 1e-6, stats=stats)
+                             on_motion=on_motion, t_start_s=t_start_us * 1e-6, t_end_s=t_end_us * 1e-6, stats=stats,
+                             csv_columns=csv_columns)
         for frame in frames:
             rates = hold.update(frame)
             if frame.index < window_steps - 1:
