@@ -263,32 +263,31 @@ PREVIEW = "preview.png"
 def dataset_preview(root, *, n_pairs: int = 4):
     """A sheet of up to ``n_pairs`` pairs of a dataset: image | ON | OFF counts per row (PIL image).
 
-    Pairs are taken from the first split that has any (train, val, test), one per source image
-    where possible, at the dataset's longest window (the least noisy counts).
+    Pairs are taken from the splits in turn (train, val, test), one per source image, at the
+    dataset's longest window (the least noisy counts).
     """
     from ..generators.reader import PairDataset
 
-    ds = None
-    for split in ("train", "val", "test"):
-        candidate = PairDataset(root, split)
-        if len(candidate):
-            ds = candidate
-            break
-    if ds is None:
+    splits = [PairDataset(root, split) for split in ("train", "val", "test")]
+    splits = [ds for ds in splits if len(ds)]
+    if not splits:
         return None
-    longest = max(ds.windows_s)
+    n_total = sum(len(ds) for ds in splits)
+    longest = max(splits[0].windows_s)
     picked, seen = [], set()
-    for i, source in enumerate(ds.sources):
-        if source in seen:
-            continue
-        item = ds[i]
-        if abs(item["window_s"] - longest) > 1e-9:
+    for ds in splits:
+        for i, source in enumerate(ds.sources):
+            if len(picked) == n_pairs:
+                break
+            if source in seen:
+                continue
+            seen.add(source)
             item = next((ds[j] for j in range(i, min(i + 64, len(ds)))
-                         if ds.sources[j] == source and abs(ds[j]["window_s"] - longest) <= 1e-9), item)
-        seen.add(source)
-        picked.append(item)
-        if len(picked) == n_pairs:
-            break
+                         if ds.sources[j] == source and abs(ds[j]["window_s"] - longest) <= 1e-9), None)
+            picked.append((item if item is not None else ds[i], ds.split))
+    ds = splits[0]
+    labels = [split for _, split in picked]
+    picked = [item for item, _ in picked]
     counts = [np.asarray(p["counts"], dtype=np.float64) / p["window_s"] for p in picked]
     width = counts[0].shape[2]
     enlarge = max(1, 200 // max(width, 1))
@@ -297,12 +296,12 @@ def dataset_preview(root, *, n_pairs: int = 4):
     size = 14
     rows = []
     b = ds.binning
-    for item, c in zip(picked, counts, strict=True):
+    for item, c, split in zip(picked, counts, labels, strict=True):
         image = resample(np.asarray(item["image"], dtype=np.float64), shrink, enlarge)
         grey = np.round(255 * np.clip(image, 0, 1)).astype(np.uint8)
         source = str(item["source"])
-        cells = [titled(np.repeat(grey[..., None], 3, axis=2), f"{source} (white {item['max_lux']:.3g} lux)",
-                        size=size, min_lines=2)]
+        cells = [titled(np.repeat(grey[..., None], 3, axis=2),
+                        f"{source} ({split}; source white {item['max_lux']:.3g} lux)", size=size, min_lines=2)]
         for k, name in enumerate(("ON", "OFF")):
             shown = resample(c[k], shrink, enlarge)
             cells.append(titled(colormap(scale(shown)), f"{name} events, {item['window_s']:g} s window", size=size,
@@ -311,8 +310,7 @@ def dataset_preview(root, *, n_pairs: int = 4):
     bar = colour_bar(rows[0].width, scale, f"event rate, events/s per {b}x{b}-binned pixel, log scale",
                      size=size - 1)
     head = titled(np.zeros((1, rows[0].width, 3), np.uint8) + np.uint8(BACKGROUND[0]),
-                  f"{len(picked)} of {sum(len(PairDataset(root, s)) for s in ('train', 'val', 'test'))} pairs "
-                  f"({ds.split} split), image = sRGB(lux / {ds.max_lux:g} lux)", size=size + 2)
+                  f"{len(picked)} of {n_total} pairs, image = sRGB(lux / {ds.max_lux:g} lux)", size=size + 2)
     return vstack([head, *rows, bar], gap=8, pad=8)
 
 
