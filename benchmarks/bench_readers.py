@@ -9,7 +9,7 @@ Usage::
    :func:`evnoise.readers.iter_event_chunks`; the real recordings of ``../shared/data/realdata``
    are read too. Speed = events / wall time of the best of 3 reads (file in the page cache).
 2. Memory: a ``--big`` event file is written as ``.raw`` (EVT 3.0) and ``.h5``; each measurement
-   runs in a fresh Python process and reports its peak resident memory (``ru_maxrss``):
+   runs in a fresh Python process and reports its peak resident memory (``VmHWM``):
    ``evnoise info FILE``, ``evnoise info FILE --stats``, and reading one 1 s window from the
    middle of the recording and counting it, as ``evnoise reconstruct --window 1`` does.
 
@@ -86,18 +86,21 @@ def read_speed(path: Path, repeats: int = 3, **kw) -> tuple[int, float]:
     return n, best
 
 
+# VmHWM (peak resident set of this process image), not ru_maxrss: a child's ru_maxrss can include
+# the parent's pages at fork time
 _PROBE = """
-import resource, sys, time
+import sys, time
 sys.argv = ["evnoise"]
 tic = time.perf_counter()
 {body}
 wall = time.perf_counter() - tic
-print("RESULT", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, wall, file=sys.stderr)
+hwm = [line.split()[1] for line in open("/proc/self/status") if line.startswith("VmHWM:")][0]
+print("RESULT", hwm, wall, file=sys.stderr)
 """
 
 
 def probe(body: str) -> tuple[float, float]:
-    """Run ``body`` in a fresh Python; ``(peak RSS in MiB, wall seconds)``."""
+    """Run ``body`` in a fresh Python; ``(peak resident memory in MiB, wall seconds)``."""
     proc = subprocess.run([sys.executable, "-c", _PROBE.format(body=body)], capture_output=True, text=True,
                           cwd=REPO, check=False)
     line = [x for x in proc.stderr.splitlines() if x.startswith("RESULT")]
