@@ -156,10 +156,12 @@ def _interrupt_workers() -> None:
     """Send SIGINT to this process's multiprocessing workers (make-dataset's pool), as Ctrl-C in a
     terminal does to the whole process group: they stop their shard and remove its temporary file
     instead of finishing it while the main process waits."""
-    import multiprocessing
     import os
     import signal
 
+    multiprocessing = sys.modules.get("multiprocessing")
+    if multiprocessing is None:  # no pool was ever started
+        return
     for child in multiprocessing.active_children():
         try:
             os.kill(child.pid, signal.SIGINT)
