@@ -332,31 +332,35 @@ def write_dataset_preview(root, *, n_pairs: int = 4):
 # --------------------------------------------------------------------------------------
 # separate --png
 # --------------------------------------------------------------------------------------
-def count_map(path, *, block: int = 1 << 22) -> tuple[np.ndarray, float]:
-    """``(counts (2, H, W), duration_s)`` of an events.h5 file, read in blocks."""
-    from ..io import _event_datasets, _open_h5, read_metadata
+def count_map(path, *, sensor=None, csv_columns=None, shape=None) -> tuple[np.ndarray, float]:
+    """``(counts (2, H, W), duration_s)`` of an event file of any format, read chunk by chunk.
 
+    ``shape`` (H, W) is used where the file does not give the sensor size (a CSV output);
+    the duration is the file's ``t_end_us`` (evnoise's events.h5) or the span of its events.
+    """
     from ..errors import InputError
+    from ..readers import open_events
 
-    meta = read_metadata(path)
-    if not meta.get("shape"):
-        raise InputError(f"{path} has no width/height attributes: cannot draw its events")
-    height, width = meta["shape"]
-    flat = np.zeros(2 * height * width, dtype=np.int64)
-    t_last = 0
-    with _open_h5(path) as f:
-        ds = _event_datasets(f, path)
-        n = ds["t"].shape[0]
-        for start in range(0, n, block):
-            stop = min(start + block, n)
-            x = ds["x"][start:stop].astype(np.int64)
-            y = ds["y"][start:stop].astype(np.int64)
-            p = ds["p"][start:stop].astype(np.int64)
+    src = open_events(path, sensor=sensor, csv_columns=csv_columns)
+    with src:
+        hw = src.shape or (tuple(shape) if shape is not None else None)
+        if hw is None:
+            raise InputError(f"{path}: the sensor size is unknown (give --sensor WxH) to draw its events")
+        height, width = hw
+        flat = np.zeros(2 * height * width, dtype=np.int64)
+        t_first = t_last = None
+        for chunk in src.chunks():
+            x, y = chunk["x"].astype(np.int64), chunk["y"].astype(np.int64)
+            p = chunk["p"].astype(np.int64)
             flat += np.bincount((1 - p) * (height * width) + y * width + x, minlength=flat.size)
-        if n:
-            t_last = int(ds["t"][n - 1])
-    t_end = meta.get("t_end_us") or (t_last + 1)
-    return flat.reshape(2, height, width), max(int(t_end), 1) * 1e-6
+            t_first = int(chunk["t"][0]) if t_first is None else t_first
+            t_last = int(chunk["t"][-1])
+        t_end = src.meta.get("t_end_us")
+    if t_end:
+        duration_us = int(t_end)
+    else:
+        duration_us = (t_last - t_first + 1) if t_first is not None else 1
+    return flat.reshape(2, height, width), max(duration_us, 1) * 1e-6
 
 
 def separation_sheet(total, signal, duration_s: float, *, filter_text: str = ""):
@@ -406,15 +410,17 @@ def check_png_output(png, others, *, overwrite: bool) -> None:
             raise OutputError(f"--png and an event output name the same file: {png}")
 
 
-def write_separation_png(events, signal_out, noise_out, png, *, overwrite: bool, filter_text: str = ""):
+def write_separation_png(events, signal_out, noise_out, png, *, overwrite: bool, filter_text: str = "",
+                         sensor=None, csv_columns=None):
     """``separate --png``: count the written outputs (and the input where one is missing) and draw them."""
     from .._atomic import atomic_output
 
-    total, duration = count_map(events)
+    total, duration = count_map(events, sensor=sensor, csv_columns=csv_columns)
+    shape = total.shape[1:]
     if signal_out is not None:
-        signal, _ = count_map(signal_out)
+        signal, _ = count_map(signal_out, shape=shape)
     else:
-        signal = total - count_map(noise_out)[0]
+        signal = total - count_map(noise_out, shape=shape)[0]
     sheet = separation_sheet(total, signal, duration, filter_text=filter_text)
     with atomic_output(png, overwrite=overwrite, what="PNG file") as tmp:
         save_png(sheet, tmp)

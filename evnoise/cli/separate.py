@@ -75,5 +75,5 @@ def run(args) -> int:
         from ._pictures import write_separation_png
 
         write_separation_png(args.events, args.out, args.noise_out, args.png, overwrite=args.overwrite,
-                             filter_text=str(res["filter"]))
+                             filter_text=str(res["filter"]), sensor=args.sensor, csv_columns=args.csv_columns)
     return 0
