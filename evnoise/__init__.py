@@ -24,6 +24,8 @@ _LAZY = {
     "NoiseStream": "evnoise.simulate",
     "write_events": "evnoise.io",
     "read_events": "evnoise.io",
+    "iter_event_chunks": "evnoise.readers",
+    "open_events": "evnoise.readers",
     "EventWriter": "evnoise.io",
     "image_to_lux": "evnoise.radiometry",
     "read_image": "evnoise.radiometry",
