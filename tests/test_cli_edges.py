@@ -359,3 +359,11 @@ def test_sigterm_stops_make_dataset_workers_promptly(tmp_path):
     assert proc.returncode == 143, err.decode()
     assert stop_s < 15, stop_s
     assert not [p.name for p in (tmp_path / "ds").rglob("*") if p.name.endswith(".tmp")]
+
+
+def test_info_stats_png_never_replaces_the_recording(tmp_path, capsys):
+    events = small_events_file(tmp_path / "rec.h5")
+    before = events.read_bytes()
+    code, _, err = run_cli(capsys, "info", events, "--stats", "--png", events, "--overwrite")
+    one_error_line(code, err, f"--png {events} is the input file")
+    assert events.read_bytes() == before

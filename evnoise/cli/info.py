@@ -83,6 +83,9 @@ def summarise(path) -> dict:
 
 def run(args) -> int:
     path = Path(args.file)
+    from ._paths import refuse_writing_inputs
+
+    refuse_writing_inputs([("--png", getattr(args, "png", None))], [("the input file", path)])
     kind = detect_kind(path)
     given = [f"--{k.replace('_', '-')}" for k in _EVENT_FLAGS if getattr(args, k, None) is not None]
     if getattr(args, "stats", False):
