@@ -355,6 +355,18 @@ def _prepare_folder(root: Path, overwrite: bool) -> None:
         _clear(root)
 
 
+def _discard_empty(root: Path, created: bool) -> None:
+    """Remove the files of a run that made no pair (every source unreadable), so that no empty
+    folder looks like a dataset; the folder itself goes too when this run created it."""
+    shutil.rmtree(root / SHARDS_DIR, ignore_errors=True)
+    (root / PREVIEW).unlink(missing_ok=True)
+    if created:
+        for p in root.iterdir():
+            if p.name != PROGRESS_DIR:
+                return  # something else appeared: leave the folder
+        shutil.rmtree(root, ignore_errors=True)
+
+
 def _clear(root: Path) -> None:
     """Remove an existing dataset's files (only evnoise's own)."""
     (root / MANIFEST).unlink(missing_ok=True)
@@ -517,6 +529,7 @@ def make_dataset(sources, out_dir, config: PairConfig | None = None, *, workers:
             log.info("no seed given; using seed %d (stored in the manifest)", seed)
         config = config.replace(seed=seed)
     plan = plan_dataset(sources, config)  # lists the sources: fails before anything is written
+    created = not root.exists()
     _prepare_folder(root, overwrite)
     progress_dir = root / PROGRESS_DIR
     progress_dir.mkdir(exist_ok=True)
@@ -585,6 +598,11 @@ def make_dataset(sources, out_dir, config: PairConfig | None = None, *, workers:
             if bar is not None:
                 bar.close()
         manifest = _manifest(plan, valid)
+        if manifest["totals"]["samples"] == 0 and manifest["skipped"]:
+            _discard_empty(root, created)
+            first = manifest["skipped"][0]
+            raise InputError(f"no pair could be made: all {len(manifest['skipped'])} source image(s) were "
+                             f"skipped (first: {first['source']}: {first['reason']})")
         _write_json(root / MANIFEST, manifest)
         shutil.rmtree(progress_dir, ignore_errors=True)
     from .pairs import CountSampler

@@ -1,0 +1,35 @@
+"""make-dataset on sources that yield nothing: an error, and no folder that looks like a dataset."""
+
+from __future__ import annotations
+
+import pytest
+
+from evnoise.cli import main
+
+
+@pytest.fixture
+def unreadable_images(tmp_path):
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    (folder / "a.png").write_bytes(b"not an image")
+    (folder / "b.jpg").write_bytes(b"\xff\xd8 truncated")
+    return folder
+
+
+def test_only_unreadable_images_is_an_error_and_leaves_nothing(unreadable_images, tmp_path, capsys):
+    out = tmp_path / "ds"
+    code = main(["make-dataset", str(unreadable_images), "--out", str(out), "--crop", "64", "-q", "--seed", "1"])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "no pair could be made" in err and "a.png" in err
+    assert not out.exists()
+
+
+def test_existing_empty_folder_is_kept_but_holds_no_manifest(unreadable_images, tmp_path, capsys):
+    out = tmp_path / "ds"
+    out.mkdir()
+    code = main(["make-dataset", str(unreadable_images), "--out", str(out), "--crop", "64", "-q", "--seed", "1"])
+    assert code == 2
+    assert out.is_dir()
+    assert not (out / "manifest.json").exists()
+    assert not (out / "shards").exists()
