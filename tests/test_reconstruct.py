@@ -151,7 +151,7 @@ def test_checkpoint_round_trip_with_weights_only(tmp_path):
     with torch.no_grad():
         torch.testing.assert_close(model(x), net.eval()(x), rtol=0, atol=0)
     text = describe_checkpoint(path)
-    assert "parameters" in text and "2x2 binning" in text
+    assert "parameters" in text and "binning: 2x2" in text
 
 
 class _Evil:
@@ -164,7 +164,7 @@ def test_read_checkpoint_rejects_foreign_files(tmp_path):
         read_checkpoint(tmp_path / "missing.pt")
     junk = tmp_path / "junk.pt"
     junk.write_bytes(b"not a checkpoint at all")
-    with pytest.raises(InputError, match="not a readable"):
+    with pytest.raises(InputError, match=r"not an evnoise model checkpoint \(not a PyTorch file\)"):
         read_checkpoint(junk)
     other = tmp_path / "other.pt"
     torch.save({"weights": torch.zeros(3)}, other)
@@ -418,7 +418,7 @@ def test_cli_reconstruct_errors(trained, tmp_path, capsys, case):
     args = ["reconstruct", str(events), "--model", str(model), "--out", str(out), "--window", "1"]
     expect = {
         "missing-model": "model file not found",
-        "not-a-model": "not a readable evnoise model",
+        "not-a-model": "not an evnoise model checkpoint",
         "other-binning": "trained on 2x2-binned counts",
         "not-events": "not an HDF5 events file",
         "exists": "exists",

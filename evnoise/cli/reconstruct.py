@@ -1,4 +1,8 @@
-"""``evnoise reconstruct events.h5 --model model.pt --out image.png``: image from noise events."""
+"""``evnoise reconstruct events.h5 --out image.png [--model model.pt]``: image from noise events.
+
+Without ``--model`` the reconstructor shipped with evnoise (``evnoise/models/evk3-hd.pt``,
+trained for the ``evk3-hd`` preset) is used.
+"""
 
 from __future__ import annotations
 
@@ -16,10 +20,12 @@ def register(subparsers):
         "position (OUT_0000.png, OUT_0001.png, ...).",
     )
     p.add_argument("events", help="events.h5 (DSEC layout: /events/{t,x,y,p}, /ms_to_idx)")
-    p.add_argument("--model", required=True, help="checkpoint written by `evnoise train`")
+    p.add_argument("--model", default=None,
+                   help="checkpoint written by `evnoise train` (default: the shipped evk3-hd model)")
     p.add_argument("--out", required=True, help="output PNG")
     p.add_argument("--window", type=float, default=None, metavar="S",
-                   help="integration window in seconds (default: the model's training window)")
+                   help="integration window in seconds (default: the longest window the model was trained on "
+                   "that fits into the recording)")
     p.add_argument("--t-start", type=float, default=0.0, metavar="S",
                    help="start of the window in seconds (default 0)")
     p.add_argument("--step", type=float, default=None, metavar="S",
@@ -36,6 +42,9 @@ def register(subparsers):
     video.add_argument("--separator", choices=("density", "activity", "none"), default="density",
                        help="signal/noise separator of the video mode (default density; none: no motion mask)")
     video.add_argument("--no-overlay", action="store_true", help="video mode: do not write the overlay PNGs")
+    video.add_argument("--no-sheet", action="store_true",
+                       help="video mode: do not write contact_sheet.png and frames.gif (a sheet of frames spread "
+                       "over the run and an animation, both with a legend of the overlay colours)")
     p.set_defaults(func=run)
 
 
@@ -45,24 +54,33 @@ def run(args) -> int:
 
     from ..errors import OutputError, ParameterError
     from ..reconstruct.imaging import write_png
-    from ..reconstruct.infer import Reconstructor, counts_from_h5, h5_duration_s
+    from ..reconstruct.infer import Reconstructor, counts_from_h5, default_model_path, h5_duration_s
 
     from ._paths import refuse_writing_inputs
 
     refuse_writing_inputs([("--out", args.out)], [("the events file", args.events), ("the --model", args.model)],
-                          folder_files=("frame_*.png", "overlay_*.png", "frames.csv") if args.fps else None)
+                          folder_files=("frame_*.png", "overlay_*.png", "frames.csv", "contact_sheet.png",
+                                        "frames.gif") if args.fps else None)
+    model_path = args.model if args.model is not None else default_model_path()
     if args.fps is not None:
         if args.step is not None:
             raise ParameterError("--step and --fps are two different moving-window modes; give one")
         from ..motion import reconstruct_video
 
-        res = reconstruct_video(args.events, args.model, args.out, fps=args.fps, window_s=args.window,
+        res = reconstruct_video(args.events, model_path, args.out, fps=args.fps, window_s=args.window,
                                 separator=None if args.separator == "none" else args.separator,
                                 binning=args.binning, t_start_s=args.t_start, max_frames=args.frames,
                                 overlay=not args.no_overlay, overwrite=args.overwrite, threads=args.threads,
                                 progress=not args.quiet)
+        extra = ""
+        if not args.no_sheet:
+            from ..reconstruct.sheets import animated_gif, contact_sheet
+
+            sheet = contact_sheet(res["out_dir"])
+            gif = animated_gif(res["out_dir"], fps=res["fps"])
+            extra = f"; {sheet.name} and {gif.name}"
         if not args.quiet:
-            print(f"wrote {res['n_frames']} frames to {res['out_dir']} ({res['fps']:g} fps, window "
+            print(f"wrote {res['n_frames']} frames{extra} to {res['out_dir']} ({res['fps']:g} fps, window "
                   f"{res['window_s']:g} s, {res['mean_masked']:.1%} of the pixels masked on average)")
         return 0
     out = Path(args.out)
@@ -75,15 +93,21 @@ def run(args) -> int:
     if args.frames is not None and args.frames < 1:
         raise ParameterError(f"--frames must be >= 1, got {args.frames}")
     duration = h5_duration_s(args.events)  # checks the events file first: cheap, clear errors
-    rec = Reconstructor(args.model, threads=args.threads)
+    rec = Reconstructor(model_path, threads=args.threads)
+    _warn_mismatch(args.events, rec)
     if args.binning is not None and args.binning != rec.binning:
         raise ParameterError(
             f"the model was trained on {rec.binning}x{rec.binning}-binned counts; "
             f"--binning {args.binning} does not match"
         )
-    window = args.window if args.window is not None else rec.spec.window_s
-    if window is None:
-        raise ParameterError("the model does not record its training window: give --window")
+    if args.window is not None:
+        window = args.window
+    else:
+        from ..reconstruct.infer import choose_window
+
+        window, note = choose_window(rec.spec, duration, args.t_start)
+        if note:
+            log.warning(note)
     starts = [args.t_start]
     if args.step is not None:
         starts = []
@@ -117,3 +141,18 @@ def run(args) -> int:
         print(f"wrote {what} ({image.shape[1]}x{image.shape[0]}, window {window:g} s, "
               f"U-Net {sum(times) / len(times):.0f} ms per image)")
     return 0
+
+
+def _warn_mismatch(events, rec) -> None:
+    """Warn when the recording's preset or sensor differs from the model's (names both)."""
+    from ..errors import EvnoiseError
+    from ..reconstruct.infer import recording_mismatch
+
+    try:
+        from ..io import read_metadata
+
+        meta = read_metadata(events)
+    except (EvnoiseError, OSError, KeyError, ValueError):
+        return  # no metadata to compare (other formats, foreign files)
+    for message in recording_mismatch(meta, rec.doc):
+        log.warning(message)

@@ -23,7 +23,9 @@ def register(subparsers):
     p.add_argument("--epochs", type=int, default=60, help="maximum epochs (default 60)")
     p.add_argument("--steps-per-epoch", type=int, default=50, help="batches per epoch (default 50)")
     p.add_argument("--batch-size", type=int, default=16, help="crops per batch (default 16)")
-    p.add_argument("--crop", type=int, default=64, help="crop side in binned pixels (default 64)")
+    p.add_argument("--crop", type=int, default=None,
+                   help="training crop side in binned pixels, i.e. make-dataset's sensor-pixel --crop divided by "
+                   "its --binning (default: 64, or the largest size that fits the pairs)")
     p.add_argument("--lr", type=float, default=2e-3, help="AdamW learning rate (default 2e-3)")
     p.add_argument("--ssim-weight", type=float, default=0.2, help="weight of the 1 - SSIM loss term (default 0.2)")
     p.add_argument("--patience", type=int, default=12, help="early stopping after N epochs without improvement "
@@ -31,6 +33,12 @@ def register(subparsers):
     p.add_argument("--max-minutes", type=float, default=None, help="wall-clock budget in minutes (default: none)")
     p.add_argument("--polarities", choices=("both", "on", "off"), default="both", help="count channels used")
     p.add_argument("--base-channels", type=int, default=None, help="U-Net width (default 16)")
+    p.add_argument("--transform", choices=("rate", "anscombe"), default="rate",
+                   help="input transform of the counts: rate, or the variance-stabilising Anscombe square root "
+                   "(default rate)")
+    p.add_argument("--ml-sigma", type=float, default=None, metavar="S",
+                   help="add the closed-form ML estimate (counts smoothed with a Gaussian of S binned pixels) as "
+                   "an input channel")
     p.add_argument("--seed", type=int, default=0, help="seed of everything random (default 0)")
     p.add_argument("--threads", type=int, default=1,
                    help="torch CPU threads (default 1: on a busy 2-core machine one thread was 3-10x faster "
@@ -63,11 +71,6 @@ def run(args) -> int:
 
     if args.patience is not None and args.patience < 0:
         raise ParameterError(f"--patience must be >= 0, got {args.patience}")
-    config = TrainConfig(
-        epochs=args.epochs, steps_per_epoch=args.steps_per_epoch, batch_size=args.batch_size, crop=args.crop,
-        lr=args.lr, ssim_weight=args.ssim_weight, patience=args.patience or None, max_minutes=args.max_minutes,
-        val_fraction=args.val_fraction, polarities=args.polarities, seed=args.seed,
-    )
     from pathlib import Path
 
     from ._paths import refuse_writing_inputs
@@ -78,16 +81,43 @@ def run(args) -> int:
                           [("the dataset", args.dataset), ("the --val dataset", args.val)])
     data = open_pairs(args.dataset, split="train")
     val = _open_val(args.dataset, args)
+    crop = args.crop if args.crop is not None else _default_crop(data, val)
+    config = TrainConfig(
+        epochs=args.epochs, steps_per_epoch=args.steps_per_epoch, batch_size=args.batch_size, crop=crop,
+        lr=args.lr, ssim_weight=args.ssim_weight, patience=args.patience or None, max_minutes=args.max_minutes,
+        val_fraction=args.val_fraction, polarities=args.polarities, seed=args.seed, transform=args.transform,
+        ml_sigma=args.ml_sigma,
+    )
     model = {"base_channels": args.base_channels} if args.base_channels else None
     result = train(data, args.out, val_data=val, config=config, model=model, resume=args.resume,
                    overwrite=args.overwrite, progress=not args.quiet, plot=not args.no_plot, threads=args.threads,
                    data_description=str(args.dataset))
+    scores = ""
+    if result.get("val_psnr") is not None:
+        scores = f"validation PSNR {result['val_psnr']:.2f} dB, SSIM {result['val_ssim']:.3f} (best epoch " \
+                 f"{result['best_epoch']}); "
     print(
         f"trained {result['epochs']} epochs ({result['steps']} steps, {result['elapsed_s'] / 60:.1f} min, "
-        f"stopped by {result['stopped']}); best validation loss {result['best_val']:.4f} at epoch "
-        f"{result['best_epoch']}; wrote {result['out']}" + (f" and {result['plot']}" if result["plot"] else "")
+        f"stopped by {result['stopped']}); {scores}wrote {result['out']}"
+        + (f" and {result['plot']}" if result["plot"] else "")
     )
     return 0
+
+
+def _default_crop(data, val) -> int:
+    """64 binned pixels, or the largest multiple of the model's size step that fits every pair."""
+    import numpy as np
+
+    from ..errors import InputError
+    from ..reconstruct.train import DEFAULT_MODEL
+
+    multiple = int(DEFAULT_MODEL.get("stem", 1)) * 2 ** (len(DEFAULT_MODEL["channel_mults"]) - 1)
+    side = min(min(np.asarray(ds[0]["image"]).shape) for ds in (data, val) if ds is not None and len(ds))
+    crop = min(64, side // multiple * multiple)
+    if crop < multiple:
+        raise InputError(f"the pairs are {side} binned pixels across, smaller than the {multiple} the U-Net needs: "
+                         f"make the dataset with a larger make-dataset --crop (sensor pixels)")
+    return crop
 
 
 def _register_info_kind() -> None:
@@ -103,14 +133,9 @@ def _register_info_kind() -> None:
             return any(name.endswith("data.pkl") for name in z.namelist())
 
     def summarise(path):
-        from ..reconstruct.checkpoint import describe_checkpoint
+        from ..reconstruct.checkpoint import checkpoint_summary
 
-        first, *rest = describe_checkpoint(path).splitlines()
-        out = {"checkpoint": first}
-        for line in rest:
-            key, _, value = line.partition(":")
-            out[key.strip()] = value.strip()
-        return out
+        return checkpoint_summary(path)
 
     info.register_kind("checkpoint", detect, summarise)
 

@@ -7,10 +7,17 @@ with ``torch.load(path, weights_only=True)`` (no arbitrary code runs on load)::
     format_version   1
     evnoise_version  version that wrote it;  torch_version
     model            U-Net hyper-parameters (UNetConfig.to_dict())
-    input            {"binning", "rate_scale_hz", "polarities", "window_s", "encoding", "max_lux"}
+    input            {"binning", "rate_scale_hz", "polarities", "window_s", "encoding", "max_lux",
+                     "transform", "ml_sigma", "params", "windows_s"}  (InputSpec.to_dict())
     state_dict       weights of the best model (lowest validation loss)
     train            training state: config, epoch, step, history, best_epoch, best_val,
                      last_state_dict, optimizer, elapsed_s, finished, data (description)
+                     (a shipped model keeps everything but the last weights and the optimizer)
+    card             model card (format 2): preset, sensor, windows, binning, training data,
+                     steps, white-level range, held-out scores ... (plain values; may be empty)
+
+Format 2 added the input transform, the optional ML-estimate channel, the trained windows and
+the card; format-1 files load unchanged (their missing entries take the format-1 meaning).
 
 Files are written to a temporary name and renamed, so an interrupted save never leaves a
 truncated checkpoint behind.
@@ -35,15 +42,17 @@ __all__ = [
     "read_checkpoint",
     "load_model",
     "describe_checkpoint",
+    "checkpoint_summary",
 ]
 
 FORMAT = "evnoise-reconstructor"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 POLARITIES = {"both": (0, 1), "on": (0,), "off": (1,)}
+TRANSFORMS = ("rate", "anscombe")
 
 
 class InputSpec:
-    """How counts become network input: binning, polarities and the rate scale.
+    """How counts become network input: binning, polarities, the rate scale and the transform.
 
     Parameters
     ----------
@@ -54,13 +63,27 @@ class InputSpec:
     polarities : {"both", "on", "off"}
         Which count channels the network sees.
     window_s : float or None
-        Integration window of the training data, seconds (a default for inference).
+        Default integration window for inference, seconds (the longest window trained on).
     max_lux : float or None
         Illuminance shown as white in the training targets, if known (for the ML baseline).
+    transform : {"rate", "anscombe"}
+        ``"rate"``: ``counts / (window_s * rate_scale_hz)``. ``"anscombe"``: the variance-
+        stabilised ``sqrt(counts + 3/8) / sqrt(window_s * rate_scale_hz)`` (Poisson noise of
+        about the same size at every brightness, for a given window).
+    ml_sigma : float or None
+        When set, the closed-form maximum-likelihood estimate of the display image (from both
+        polarities, counts smoothed with a Gaussian of this many binned pixels) is an extra
+        input channel; needs ``params`` and ``max_lux``.
+    params : dict or None
+        The noise model of the training data (``NoiseParams.to_dict()``).
+    windows_s : sequence of float or None
+        Every integration window trained on (default: ``[window_s]``).
     """
 
     def __init__(self, *, binning: int = 2, rate_scale_hz: float = 1.0, polarities: str = "both",
-                 window_s: float | None = None, max_lux: float | None = None, encoding: str = "srgb"):
+                 window_s: float | None = None, max_lux: float | None = None, encoding: str = "srgb",
+                 transform: str = "rate", ml_sigma: float | None = None, params: dict | None = None,
+                 windows_s=None):
         if isinstance(binning, bool) or not isinstance(binning, int) or binning < 1:
             raise ParameterError(f"binning must be an integer >= 1, got {binning!r}")
         if not (isinstance(rate_scale_hz, (int, float)) and math.isfinite(rate_scale_hz) and rate_scale_hz > 0):
@@ -70,27 +93,66 @@ class InputSpec:
         for name, v in (("window_s", window_s), ("max_lux", max_lux)):
             if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ParameterError(f"{name} must be finite and > 0 (or None), got {v!r}")
+        if transform not in TRANSFORMS:
+            raise ParameterError(f"transform must be one of {TRANSFORMS}, got {transform!r}")
+        if ml_sigma is not None:
+            if not (isinstance(ml_sigma, (int, float)) and math.isfinite(ml_sigma) and ml_sigma >= 0):
+                raise ParameterError(f"ml_sigma must be finite and >= 0 (or None), got {ml_sigma!r}")
+            if params is None or max_lux is None:
+                raise ParameterError("the ML-estimate input channel (ml_sigma) needs params and max_lux")
+        if params is not None and not isinstance(params, dict):
+            raise ParameterError(f"params must be a dict (NoiseParams.to_dict()), got {type(params).__name__}")
+        if windows_s is not None:
+            windows_s = [float(w) for w in windows_s]
+            if not windows_s or not all(math.isfinite(w) and w > 0 for w in windows_s):
+                raise ParameterError(f"windows_s must be windows > 0 seconds, got {windows_s!r}")
         self.binning = int(binning)
         self.rate_scale_hz = float(rate_scale_hz)
         self.polarities = polarities
         self.window_s = None if window_s is None else float(window_s)
         self.max_lux = None if max_lux is None else float(max_lux)
         self.encoding = str(encoding)
+        self.transform = transform
+        self.ml_sigma = None if ml_sigma is None else float(ml_sigma)
+        self.params = None if params is None else dict(params)
+        if windows_s is None:
+            windows_s = [] if self.window_s is None else [self.window_s]
+        self.windows_s = sorted(set(windows_s))
+        self._ml = None
 
     @property
     def channels(self) -> tuple:
+        """Count channels used (0 = ON, 1 = OFF)."""
         return POLARITIES[self.polarities]
+
+    @property
+    def in_channels(self) -> int:
+        """Channels of the network input (count channels, plus one for the ML estimate)."""
+        return len(self.channels) + (1 if self.ml_sigma is not None else 0)
+
+    def ml_inversion(self):
+        """The :class:`~evnoise.reconstruct.baselines.MLInversion` of the ML input channel (cached)."""
+        if self._ml is None:
+            from ..params import NoiseParams
+            from .baselines import MLInversion
+
+            self._ml = MLInversion(NoiseParams.from_dict(self.params), max_lux=self.max_lux, binning=self.binning,
+                                   smoothing_sigma=self.ml_sigma, grid_size=256, count_step=0.25)
+        return self._ml
 
     def to_dict(self) -> dict:
         return {"binning": self.binning, "rate_scale_hz": self.rate_scale_hz, "polarities": self.polarities,
-                "window_s": self.window_s, "max_lux": self.max_lux, "encoding": self.encoding}
+                "window_s": self.window_s, "max_lux": self.max_lux, "encoding": self.encoding,
+                "transform": self.transform, "ml_sigma": self.ml_sigma, "params": self.params,
+                "windows_s": list(self.windows_s)}
 
     @classmethod
     def from_dict(cls, data: dict) -> "InputSpec":
         return cls(**data)
 
     def __repr__(self):
-        return f"InputSpec({', '.join(f'{k}={v!r}' for k, v in self.to_dict().items())})"
+        shown = {k: v for k, v in self.to_dict().items() if k != "params"}
+        return f"InputSpec({', '.join(f'{k}={v!r}' for k, v in shown.items())})"
 
 
 def _atomic_torch_save(obj, path: Path):
@@ -99,7 +161,8 @@ def _atomic_torch_save(obj, path: Path):
         torch.save(obj, tmp)
 
 
-def save_checkpoint(path, *, model_config, input_spec: InputSpec, state_dict, train_state=None) -> Path:
+def save_checkpoint(path, *, model_config, input_spec: InputSpec, state_dict, train_state=None,
+                    card: dict | None = None) -> Path:
     """Write a checkpoint (see the module docstring for the layout); returns the path."""
     torch = require_torch()
     doc = {
@@ -111,6 +174,7 @@ def save_checkpoint(path, *, model_config, input_spec: InputSpec, state_dict, tr
         "input": input_spec.to_dict(),
         "state_dict": {k: v.detach().cpu().clone() for k, v in state_dict.items()},
         "train": train_state if train_state is not None else {},
+        "card": dict(card) if card else {},
     }
     _atomic_torch_save(doc, Path(path))
     return Path(path)
@@ -127,8 +191,17 @@ def read_checkpoint(path) -> dict:
     try:
         doc = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for foreign or corrupt files
-        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise InputError(f"{path} is not a readable evnoise model checkpoint ({msg[:200]})") from None
+        # torch's own text talks about weights_only and unpickling: say what it means here
+        import pickle
+        import zipfile
+
+        if isinstance(exc, pickle.UnpicklingError) and zipfile.is_zipfile(path):
+            why = "a PyTorch file holding objects other than plain tensors and values"
+        elif zipfile.is_zipfile(path):
+            why = "a damaged or foreign PyTorch file"
+        else:
+            why = "not a PyTorch file"
+        raise InputError(f"{path} is not an evnoise model checkpoint ({why})") from None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise InputError(f"{path} is not an evnoise reconstructor checkpoint")
     version = doc.get("format_version")
@@ -173,32 +246,82 @@ def load_model(path, *, which: str = "best"):
     return model, spec, doc
 
 
-def describe_checkpoint(path) -> str:
-    """A few human-readable lines about a reconstructor checkpoint (for ``evnoise info``)."""
+_METHOD_NAMES = {"unet": "U-Net", "counts-affine": "count image, affine fit (oracle)",
+                 "counts-minmax": "count image, min-max"}
+
+
+def _scores_line(vals: dict) -> str:
+    def f(key, digits, unit=""):
+        v = vals.get(key)
+        return "n/a" if v is None else f"{v:.{digits}f}{unit}"
+
+    return f"PSNR {f('psnr', 2, ' dB')}, SSIM {f('ssim', 3)}, LPIPS {f('lpips', 3)}"
+
+
+def checkpoint_summary(path) -> dict:
+    """``{label: value}`` about a reconstructor checkpoint, model card first (for ``evnoise info``)."""
     doc = read_checkpoint(path)
     model = doc["model"]
     spec = doc["input"]
     train = doc.get("train") or {}
+    card = doc.get("card") or {}
     n_params = sum(int(v.numel()) for v in doc["state_dict"].values())
-    lines = [
-        f"evnoise reconstructor checkpoint (format {doc['format_version']}, written by evnoise "
-        f"{doc.get('evnoise_version', '?')}, torch {doc.get('torch_version', '?')})",
-        f"model: U-Net, {n_params:,} parameters, base_channels={model.get('base_channels')}, "
-        f"channel_mults={tuple(model.get('channel_mults', ()))}, stem={model.get('stem', 1)}",
-        f"input: {spec.get('polarities')} polarities, {spec.get('binning')}x{spec.get('binning')} binning, "
-        f"rates / {spec.get('rate_scale_hz'):.4g} Hz, trained window {spec.get('window_s')} s, "
-        f"max_lux {spec.get('max_lux')}",
-    ]
+    out = {"checkpoint": f"evnoise reconstructor (format {doc['format_version']}, written by evnoise "
+                         f"{doc.get('evnoise_version', '?')}, torch {doc.get('torch_version', '?')})"}
+    if card.get("preset"):
+        out["preset"] = card["preset"]
+    if card.get("sensor"):
+        out["sensor"] = card["sensor"]
+    windows = spec.get("windows_s") or ([spec.get("window_s")] if spec.get("window_s") else [])
+    out["windows_s"] = ", ".join(f"{w:g}" for w in windows) if windows else "not recorded"
+    out["default_window_s"] = spec.get("window_s")
+    out["binning"] = f"{spec.get('binning')}x{spec.get('binning')}"
+    out["input"] = (f"{spec.get('polarities')} polarities, {spec.get('transform', 'rate')} of the counts"
+                    + (f" + ML estimate (sigma {spec['ml_sigma']:g})" if spec.get("ml_sigma") is not None else "")
+                    + f", rates / {spec.get('rate_scale_hz'):.4g} Hz")
+    out["white_lux"] = spec.get("max_lux")
+    if card.get("white_lux_range"):
+        lo, hi = card["white_lux_range"]
+        out["white_lux_range"] = f"{lo:g} .. {hi:g} lux (scene white, log-uniform)"
+    out["model"] = (f"U-Net, {n_params:,} parameters, base_channels={model.get('base_channels')}, "
+                    f"channel_mults={tuple(model.get('channel_mults', ()))}, stem={model.get('stem', 1)}")
+    if card.get("training_data") or train.get("data"):
+        out["training_data"] = card.get("training_data") or train.get("data")
     if train:
         hist = train.get("history") or {}
         val = hist.get("val_loss") or []
-        lines.append(
-            f"training: {train.get('epoch', 0)} epochs, {train.get('step', 0)} steps, "
-            f"{float(train.get('elapsed_s', 0.0)) / 60:.1f} min, "
+        out["training"] = (
+            f"{train.get('epoch', 0)} epochs, {train.get('step', 0)} steps of {train.get('config', {}).get('batch_size', '?')} "
+            f"crops, {float(train.get('elapsed_s', 0.0)) / 60:.1f} min, "
             f"{'finished' if train.get('finished') else 'resumable (not finished)'}; "
             f"best epoch {train.get('best_epoch')} (val loss {train.get('best_val', float('nan')):.4g})"
             + (f", last val loss {val[-1]:.4g}" if val else "")
         )
-        if train.get("data"):
-            lines.append(f"data: {train['data']}")
+    validation = card.get("validation") or {}
+    if validation:
+        out["validation"] = f"PSNR {validation.get('psnr_db', float('nan')):.2f} dB, SSIM {validation.get('ssim', float('nan')):.3f}"
+    scores = card.get("held_out_scores") or {}
+    if scores:
+        block = {}
+        for test, methods in scores.items():
+            for m, vals in methods.items():
+                if isinstance(vals, dict):
+                    name = _METHOD_NAMES.get(m, m.replace("ml-inversion@", "ML inversion, sigma ")
+                                           .replace("ml-inversion", "ML inversion"))
+                    block[f"{test} ({methods.get('pairs', '?')} pairs): {name}"] = _scores_line(vals)
+        out["held_out_scores"] = block
+    if card.get("recipe"):
+        out["recipe"] = card["recipe"]
+    return out
+
+
+def describe_checkpoint(path) -> str:
+    """Human-readable lines about a reconstructor checkpoint, its model card included."""
+    lines = []
+    for key, value in checkpoint_summary(path).items():
+        if isinstance(value, dict):
+            lines.append(f"{key}:")
+            lines.extend(f"  {k}: {v}" for k, v in value.items())
+        else:
+            lines.append(f"{key}: {value}")
     return "\n".join(lines)

@@ -223,6 +223,7 @@ class ResampledPairs:
         self.binning = int(binning)
         self.seed = int(seed)
         self.distribution = distribution
+        self.windows_s = (self.window_s,)
         self.sources = [str(s) for s in (sources if sources is not None else range(len(self.lux)))]
         if len(self.sources) != len(self.lux):
             raise InputError(f"{len(self.sources)} sources for {len(self.lux)} images")
@@ -307,6 +308,7 @@ class Subset:
         self.max_lux = getattr(dataset, "max_lux", None)
         self.params = getattr(dataset, "params", None)
         self.binning = getattr(dataset, "binning", 2)
+        self.windows_s = getattr(dataset, "windows_s", None)
         if hasattr(dataset, "sample"):
             self.sample = lambda i, rng, crop=None: dataset.sample(self.indices[i], rng, crop)
 
@@ -360,7 +362,8 @@ def random_crop(item: dict, crop: int, rng) -> dict:
     counts, image, window = _check_item(item, "pair")
     h, w = image.shape
     if crop > h or crop > w:
-        raise InputError(f"crop {crop} is larger than a pair of {h}x{w} pixels; use a smaller crop")
+        raise InputError(f"crop {crop} is larger than a pair of {h}x{w} binned pixels; use a smaller crop "
+                         "(training crops count binned pixels, make-dataset --crop sensor pixels)")
     r0 = int(rng.integers(0, h - crop + 1))
     c0 = int(rng.integers(0, w - crop + 1))
     out = dict(item)

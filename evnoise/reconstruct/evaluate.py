@@ -198,7 +198,7 @@ def comparison_figure(examples, path, *, methods=None) -> Path:
         axes[r, 0].set_ylabel(f"{ex['source']} ({ex['window_s']:g} s)", fontsize=8)
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=100)
+    fig.savefig(path, dpi=100, format="png")
     plt.close(fig)
     return path
 

@@ -14,7 +14,86 @@ import numpy as np
 from ..errors import InputError, ParameterError
 from .imaging import bin_counts
 
-__all__ = ["counts_from_h5", "h5_duration_s", "counts_to_input", "Reconstructor"]
+__all__ = ["counts_from_h5", "h5_duration_s", "counts_to_input", "Reconstructor", "default_model_path",
+           "choose_window", "recording_mismatch"]
+
+#: file name of the shipped reconstructor inside the package folder ``evnoise/models``
+DEFAULT_MODEL_FILE = "evk3-hd.pt"
+
+
+def default_model_path() -> Path:
+    """Path of the reconstructor shipped with evnoise (``evnoise/models/evk3-hd.pt``)."""
+    from importlib.resources import files
+
+    try:
+        path = Path(str(files("evnoise.models") / DEFAULT_MODEL_FILE))
+    except ModuleNotFoundError:  # pragma: no cover - a broken installation
+        path = None
+    if path is None or not path.is_file():
+        raise InputError(f"this evnoise installation has no shipped reconstructor (evnoise/models/"
+                         f"{DEFAULT_MODEL_FILE}); give a model trained with `evnoise train` (--model)")
+    return path
+
+
+def choose_window(spec, duration_s: float, t_start_s: float = 0.0):
+    """``(window_s, note)``: the longest trained window that fits into the recording after ``t_start_s``.
+
+    A model trained on several windows (``spec.windows_s``) is best used at the longest one
+    (the least noisy); a recording shorter than every trained window is used whole, with a
+    ``note`` saying so (``note`` is None otherwise).
+    """
+    windows = list(getattr(spec, "windows_s", None) or ([] if spec.window_s is None else [spec.window_s]))
+    if not windows:
+        raise ParameterError("the model does not record its training window: give --window")
+    available = duration_s - t_start_s
+    fitting = [w for w in windows if w <= available + 1e-9]
+    if fitting:
+        return max(fitting), None
+    if available <= 0:
+        raise InputError(f"the recording ({duration_s:.6g} s) has nothing after t = {t_start_s:g} s")
+    trained = ", ".join(f"{w:g}" for w in sorted(windows))
+    return available, (f"the recording ({available:.6g} s after the start) is shorter than every window the "
+                       f"model was trained on ({trained} s): using all of it; expect a noisier image")
+
+
+_PARAM_KEYS = ("eps_pos", "eps_neg", "bias_pr", "trial_rate_hz", "photons_per_lux", "dark_lux", "refractory_s",
+               "eps_sigma")
+
+
+def recording_mismatch(meta: dict, doc: dict) -> list:
+    """Warnings (strings) when a recording's sensor or noise preset differs from the model's.
+
+    ``meta``: the recording's metadata (:func:`evnoise.io.read_metadata`); ``doc``: the
+    checkpoint (:func:`~evnoise.reconstruct.checkpoint.read_checkpoint`). Compared: the preset
+    name, the noise parameters when the recording stores them, and the camera/sensor name when
+    the recording names one.
+    """
+    card = doc.get("card") or {}
+    spec = doc.get("input") or {}
+    model_preset = card.get("preset")
+    model_params = spec.get("params")
+    out = []
+    rec_preset = meta.get("preset")
+    rec_params = meta.get("params") if isinstance(meta.get("params"), dict) else None
+    differs = False
+    if rec_params and model_params:
+        for key in _PARAM_KEYS:
+            a, b = rec_params.get(key), model_params.get(key)
+            if a is None or b is None:
+                continue
+            if not math.isclose(float(a), float(b), rel_tol=1e-6, abs_tol=1e-12):
+                differs = True
+                break
+    elif rec_preset and model_preset and Path(str(rec_preset)).stem != model_preset:
+        differs = True
+    if differs:
+        out.append(f"the recording was made with preset {rec_preset or 'custom'} but the model was trained for "
+                   f"preset {model_preset or 'custom'} (different noise parameters): the image may be wrong")
+    rec_sensor = meta.get("camera") or meta.get("sensor")
+    model_sensor = card.get("sensor")
+    if isinstance(rec_sensor, str) and model_sensor and rec_sensor.split()[0].lower() not in model_sensor.lower():
+        out.append(f"the recording's sensor is {rec_sensor} but the model was trained for {model_sensor}")
+    return out
 
 
 def _open_h5(path):
@@ -41,12 +120,25 @@ def _open_h5(path):
     return f, (height, width)
 
 
+def _end_us(f) -> int:
+    """End of the recording in µs: the stored ``t_end_us`` (events lie before it), else last event + 1."""
+    t = f["events/t"]
+    last = int(t[-1]) + 1 if t.shape[0] else 0
+    if "t_end_us" in f.attrs:
+        try:
+            return max(int(f.attrs["t_end_us"]), last)
+        except (TypeError, ValueError):
+            pass
+    return last
+
+
 def h5_duration_s(path) -> float:
-    """Time of the last event in seconds (0 for an empty stream)."""
+    """Length of the recording in seconds: its stored end time ``t_end_us`` when it has one
+    (a 10 s simulation lasts 10 s even if its last event came earlier), else the time just
+    after the last event (0 for an empty stream without ``t_end_us``)."""
     f, _ = _open_h5(path)
     with f:
-        t = f["events/t"]
-        return float(t[-1]) * 1e-6 if t.shape[0] else 0.0
+        return _end_us(f) * 1e-6
 
 
 def _index_at(f, t_us: int) -> int:
@@ -78,7 +170,8 @@ def _index_at(f, t_us: int) -> int:
 def counts_from_h5(path, *, t_start_s: float = 0.0, window_s: float | None = None):
     """Counts ``(2, H, W)`` ``[ON, OFF]`` of ``[t_start, t_start + window)`` and the window used.
 
-    Without ``window_s`` the window runs to the last event. Returns ``(counts, window_s)``.
+    Without ``window_s`` the window runs to the end of the recording (its stored ``t_end_us``,
+    else the last event). Returns ``(counts, window_s)``.
     """
     if not (math.isfinite(t_start_s) and t_start_s >= 0):
         raise ParameterError(f"t_start_s must be >= 0 seconds, got {t_start_s!r}")
@@ -89,18 +182,18 @@ def counts_from_h5(path, *, t_start_s: float = 0.0, window_s: float | None = Non
         t = f["events/t"]
         n = t.shape[0]
         t0 = int(round(t_start_s * 1e6))
-        last = int(t[-1]) if n else 0
+        end = _end_us(f)
         if window_s is None:
-            if n == 0 or last < t0:
+            if end <= t0:
                 raise InputError(f"{path} has no events after t = {t_start_s:g} s")
-            t1 = last + 1
+            t1 = end
             window_s = (t1 - t0) * 1e-6
         else:
             t1 = t0 + int(round(window_s * 1e6))
-            if t1 > last + 1:
+            if t1 > end:
                 raise InputError(
-                    f"the window {t_start_s:g} s + {window_s:g} s runs past the end of the stream "
-                    f"({last * 1e-6:.6g} s)"
+                    f"the window {t_start_s:g} s + {window_s:g} s runs past the end of the recording "
+                    f"({end * 1e-6:.6g} s)"
                 )
         lo, hi = _index_at(f, t0), _index_at(f, t1)
         x = f["events/x"][lo:hi].astype(np.int64)
@@ -114,11 +207,26 @@ def counts_from_h5(path, *, t_start_s: float = 0.0, window_s: float | None = Non
 
 
 def counts_to_input(counts, window_s: float, spec) -> np.ndarray:
-    """Binned counts ``(2, h, w)`` -> network input ``(C, h, w)`` float32 (rates / rate scale)."""
-    c = np.asarray(counts, dtype=np.float32)
+    """Binned counts ``(2, h, w)`` -> network input ``(C, h, w)`` float32 (see :class:`InputSpec`).
+
+    Count channels are ``counts / (window_s * rate_scale_hz)`` (transform ``"rate"``) or
+    ``sqrt(counts + 3/8) / sqrt(window_s * rate_scale_hz)`` (``"anscombe"``); with
+    ``spec.ml_sigma`` set, the closed-form ML estimate of the display image follows as a last
+    channel.
+    """
+    c = np.asarray(counts)
     if c.ndim != 3 or c.shape[0] != 2:
         raise InputError(f"counts must have shape (2, h, w), got {c.shape}")
-    return c[list(spec.channels)] / np.float32(window_s * spec.rate_scale_hz)
+    scale = float(window_s) * spec.rate_scale_hz
+    x = c[list(spec.channels)].astype(np.float64)
+    if getattr(spec, "transform", "rate") == "anscombe":
+        x = np.sqrt(x + 0.375) / math.sqrt(scale)
+    else:
+        x = x / scale
+    if getattr(spec, "ml_sigma", None) is not None:
+        ml = spec.ml_inversion().display(c, float(window_s))
+        x = np.concatenate([x, ml[None]], axis=0)
+    return x.astype(np.float32)
 
 
 class Reconstructor:

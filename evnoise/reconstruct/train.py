@@ -64,6 +64,11 @@ class TrainConfig:
         Random flips and 90-degree rotations of the crops.
     seed : int
         Seed of everything random.
+    transform : {"rate", "anscombe"}
+        Input transform of the counts (see :class:`~evnoise.reconstruct.checkpoint.InputSpec`).
+    ml_sigma : float or None
+        Add the closed-form ML estimate (counts smoothed with this Gaussian sigma, binned
+        pixels) as an input channel; needs a dataset with ``params`` and ``max_lux``.
     """
 
     epochs: int = 60
@@ -80,6 +85,8 @@ class TrainConfig:
     polarities: str = "both"
     augment: bool = True
     seed: int = 0
+    transform: str = "rate"
+    ml_sigma: float | None = None
 
     def __post_init__(self):
         for name in ("epochs", "steps_per_epoch", "batch_size", "crop"):
@@ -106,6 +113,10 @@ class TrainConfig:
             raise ParameterError(f"polarities must be 'both', 'on' or 'off', got {self.polarities!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ParameterError(f"seed must be a non-negative integer, got {self.seed!r}")
+        if self.transform not in ("rate", "anscombe"):
+            raise ParameterError(f"transform must be 'rate' or 'anscombe', got {self.transform!r}")
+        if self.ml_sigma is not None and not (math.isfinite(self.ml_sigma) and self.ml_sigma >= 0):
+            raise ParameterError(f"ml_sigma must be >= 0 or None, got {self.ml_sigma!r}")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -145,6 +156,15 @@ def _centre_crop(item, size):
     out["counts"] = np.asarray(item["counts"])[:, r0:r0 + size, c0:c0 + size]
     out["image"] = np.asarray(item["image"])[r0:r0 + size, c0:c0 + size]
     return out
+
+
+def dataset_windows(dataset, n=64) -> list:
+    """Integration windows (s) of a pair dataset: its ``windows_s`` attribute, else those of up to ``n`` items."""
+    windows = getattr(dataset, "windows_s", None)
+    if windows:
+        return sorted({float(w) for w in windows})
+    idx = np.linspace(0, len(dataset) - 1, min(n, len(dataset))).round().astype(int)
+    return sorted({float(dataset[int(i)]["window_s"]) for i in set(idx.tolist())})
 
 
 def _estimate_rate_scale(dataset, n=16) -> float:
@@ -215,7 +235,8 @@ def plot_history(history: dict, path) -> Path | None:
 
 def train(train_data, out, *, val_data=None, config: TrainConfig | None = None, model: dict | None = None,
           resume: bool = False, overwrite: bool = False, progress: bool = True, plot=True,
-          threads: int | None = None, data_description: str | None = None, on_epoch_end=None) -> dict:
+          threads: int | None = None, data_description: str | None = None, on_epoch_end=None,
+          card: dict | None = None) -> dict:
     """Train a U-Net reconstructor on a pair dataset and write the checkpoint ``out``.
 
     Parameters
@@ -246,13 +267,16 @@ def train(train_data, out, *, val_data=None, config: TrainConfig | None = None, 
     on_epoch_end : callable, optional
         Called as ``on_epoch_end(epoch, history)`` after each epoch's checkpoint is written;
         returning True stops the run there (it stays resumable).
+    card : dict, optional
+        Model card stored in the checkpoint (see :mod:`~evnoise.reconstruct.checkpoint`); the
+        trainer adds the windows, binning, steps and validation scores.
 
     Returns
     -------
     dict
         Summary: ``epochs``, ``steps``, ``best_epoch``, ``best_val``, ``elapsed_s``, ``history``,
         ``stopped`` (``"epochs"``, ``"early-stopping"``, ``"time-budget"`` or ``"callback"``),
-        ``out``, ``plot``.
+        ``out``, ``plot``, ``val_psnr`` and ``val_ssim`` (of the best epoch).
 
     Notes
     -----
@@ -274,11 +298,6 @@ def train(train_data, out, *, val_data=None, config: TrainConfig | None = None, 
     if len(train_data) == 0:
         raise InputError("the training set is empty")
 
-    settings = dict(DEFAULT_MODEL)
-    settings.update(model or {})
-    settings["in_channels"] = 2 if config.polarities == "both" else 1
-    model_config = UNetConfig(**settings)
-
     if val_data is None:
         train_idx, val_idx = split_by_source(train_data, val_fraction=config.val_fraction, seed=config.seed)
         val_data = Subset(train_data, val_idx)
@@ -290,6 +309,11 @@ def train(train_data, out, *, val_data=None, config: TrainConfig | None = None, 
         raise InputError(f"source image(s) in both training and validation sets: {sorted(overlap)[:5]}")
 
     state = None
+    settings = dict(DEFAULT_MODEL)
+    settings.update(model or {})
+    settings["in_channels"] = 2 if config.polarities == "both" else 1
+    settings["in_channels"] += 1 if config.ml_sigma is not None else 0
+    model_config = UNetConfig(**settings)
     if resume:
         if not out.exists():
             raise InputError(f"cannot resume: {out} does not exist")
@@ -306,26 +330,33 @@ def train(train_data, out, *, val_data=None, config: TrainConfig | None = None, 
             raise ParameterError(f"cannot resume {out}: the model settings differ")
         spec = InputSpec.from_dict(dict(doc["input"]))
     else:
-        window = float(train_data[0]["window_s"])
+        windows = dataset_windows(train_data)
         max_lux = getattr(train_data, "max_lux", None)
+        params = getattr(train_data, "params", None)
+        if config.ml_sigma is not None and (params is None or max_lux is None):
+            raise ParameterError("the ML-estimate input channel needs a dataset that records its noise "
+                                 "parameters and white level (params, max_lux)")
+        # the longest window is the default for inference: the least noisy one trained on
         spec = InputSpec(binning=int(getattr(train_data, "binning", 2)), rate_scale_hz=_estimate_rate_scale(train_data),
-                         polarities=config.polarities, window_s=window,
-                         max_lux=None if max_lux is None else float(max_lux))
+                         polarities=config.polarities, window_s=max(windows), windows_s=windows,
+                         max_lux=None if max_lux is None else float(max_lux), transform=config.transform,
+                         ml_sigma=config.ml_sigma, params=None if params is None else params.to_dict())
     if config.crop % model_config.multiple:
         raise ParameterError(f"crop must be a multiple of {model_config.multiple} for this model, got {config.crop}")
+    card = dict(card or {})
 
     old_threads = torch.get_num_threads()
     if threads is not None:
         torch.set_num_threads(max(1, int(threads)))
     try:
         return _run(torch, UNet, model_config, spec, config, train_data, val_data, out, state, progress, plot,
-                    data_description, on_epoch_end)
+                    data_description, on_epoch_end, card)
     finally:
         torch.set_num_threads(old_threads)
 
 
 def _run(torch, UNet, model_config, spec, config, train_data, val_data, out, state, progress, plot, data_description,
-         on_epoch_end):
+         on_epoch_end, card):
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(config.seed)
         net = UNet(config=model_config)
@@ -336,7 +367,7 @@ def _run(torch, UNet, model_config, spec, config, train_data, val_data, out, sta
         frac = min(1.0, step / max(1, total_steps))
         return 0.05 + 0.95 * 0.5 * (1.0 + math.cos(math.pi * frac))
 
-    history = {"train_loss": [], "val_loss": [], "val_psnr": []}
+    history = {"train_loss": [], "val_loss": [], "val_psnr": [], "val_ssim": []}
     epoch, step, elapsed0 = 0, 0, 0.0
     best_val, best_epoch, best_state = math.inf, 0, None
     if state is not None:
@@ -344,7 +375,8 @@ def _run(torch, UNet, model_config, spec, config, train_data, val_data, out, sta
         opt.load_state_dict(state["optimizer"])
         epoch, step = int(state["epoch"]), int(state["step"])
         elapsed0 = float(state.get("elapsed_s", 0.0))
-        history = {k: list(v) for k, v in state.get("history", history).items()}
+        history.update({k: list(v) for k, v in state.get("history", history).items()})
+        card = {**(read_checkpoint(out).get("card") or {}), **card}
         best_val, best_epoch = float(state.get("best_val", math.inf)), int(state.get("best_epoch", 0))
         best_state = read_checkpoint(out)["state_dict"]
     for group in opt.param_groups:
@@ -363,15 +395,17 @@ def _run(torch, UNet, model_config, spec, config, train_data, val_data, out, sta
 
     def validate():
         net.eval()
-        losses, psnrs = [], []
+        losses, psnrs, ssims = [], [], []
         with torch.no_grad():
             for x, y in zip(val_x, val_y, strict=True):
                 pred = net(x)
                 losses.append(float(loss_fn(pred, y)))
-                mse = float(((pred.clamp(0, 1) - y) ** 2).mean())
+                clamped = pred.clamp(0, 1)
+                mse = float(((clamped - y) ** 2).mean())
                 psnrs.append(10 * math.log10(1.0 / max(mse, 1e-12)))
+                ssims.append(1.0 - float(_ssim_loss(torch, clamped, y)))
         net.train()
-        return float(np.mean(losses)), float(np.mean(psnrs))
+        return float(np.mean(losses)), float(np.mean(psnrs)), float(np.mean(ssims))
 
     plot_path = None
     if plot:
@@ -380,7 +414,6 @@ def _run(torch, UNet, model_config, spec, config, train_data, val_data, out, sta
     start = time.perf_counter()
     stopped = "epochs"
     n_train = len(train_data)
-    channels = list(spec.channels)
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -402,8 +435,7 @@ def _run(torch, UNet, model_config, spec, config, train_data, val_data, out, sta
                     item = _draw_pair(train_data, idx, rng, config.crop)
                     counts, image = _augment(np.asarray(item["counts"]), np.asarray(item["image"]), rng,
                                              config.augment)
-                    c = counts[channels].astype(np.float32) / np.float32(float(item["window_s"]) * spec.rate_scale_hz)
-                    xs.append(c)
+                    xs.append(counts_to_input(counts, float(item["window_s"]), spec))
                     ys.append(image.astype(np.float32)[None])
                 x = torch.from_numpy(np.stack(xs))
                 y = torch.from_numpy(np.stack(ys))
@@ -423,10 +455,11 @@ def _run(torch, UNet, model_config, spec, config, train_data, val_data, out, sta
                     over_budget = True
                     break
             epoch += 1
-            val_loss, val_psnr = validate()
+            val_loss, val_psnr, val_ssim = validate()
             history["train_loss"].append(running / max(n_run, 1))
             history["val_loss"].append(val_loss)
             history["val_psnr"].append(val_psnr)
+            history["val_ssim"].append(val_ssim)
             if val_loss < best_val:
                 best_val, best_epoch = val_loss, epoch
                 best_state = {k: v.detach().clone() for k, v in net.state_dict().items()}
@@ -436,7 +469,7 @@ def _run(torch, UNet, model_config, spec, config, train_data, val_data, out, sta
             if over_budget:
                 stopped = "time-budget"
             _save(out, model_config, spec, best_state, net, opt, config, epoch, step, history, best_epoch, best_val,
-                  elapsed0 + time.perf_counter() - start, finished, data_description)
+                  elapsed0 + time.perf_counter() - start, finished, data_description, card)
             if plot_path is not None:
                 plot_history(history, plot_path)
             if over_budget:
@@ -448,17 +481,20 @@ def _run(torch, UNet, model_config, spec, config, train_data, val_data, out, sta
             stopped = "epochs"
         if stopped == "early-stopping":
             _save(out, model_config, spec, best_state, net, opt, config, epoch, step, history, best_epoch, best_val,
-                  elapsed0 + time.perf_counter() - start, True, data_description)
+                  elapsed0 + time.perf_counter() - start, True, data_description, card)
     finally:
         if bar is not None:
             bar.close()
+    best = best_epoch - 1
     return {"epochs": epoch, "steps": step, "best_epoch": best_epoch, "best_val": best_val,
             "elapsed_s": elapsed0 + time.perf_counter() - start, "history": history, "stopped": stopped,
-            "out": out, "plot": plot_path, "n_parameters": net.n_parameters(), "input": spec.to_dict()}
+            "out": out, "plot": plot_path, "n_parameters": net.n_parameters(), "input": spec.to_dict(),
+            "val_psnr": history["val_psnr"][best] if 0 <= best < len(history["val_psnr"]) else None,
+            "val_ssim": history["val_ssim"][best] if 0 <= best < len(history["val_ssim"]) else None}
 
 
 def _save(out, model_config, spec, best_state, net, opt, config, epoch, step, history, best_epoch, best_val,
-          elapsed, finished, data_description):
+          elapsed, finished, data_description, card=None):
     train_state = {
         "config": config.to_dict(),
         "epoch": epoch,
@@ -472,5 +508,16 @@ def _save(out, model_config, spec, best_state, net, opt, config, epoch, step, hi
         "finished": bool(finished),
         "data": data_description or "",
     }
+    card = dict(card or {})
+    best = best_epoch - 1
+    card.update({
+        "windows_s": list(spec.windows_s), "binning": spec.binning, "white_lux": spec.max_lux,
+        "steps": int(step), "epochs": int(epoch), "batch_size": config.batch_size, "crop": config.crop,
+        "input": spec.transform + (f" + ML estimate (sigma {spec.ml_sigma:g})" if spec.ml_sigma is not None else ""),
+        "validation": ({"psnr_db": float(history["val_psnr"][best]), "ssim": float(history["val_ssim"][best]),
+                        "best_epoch": int(best_epoch)} if 0 <= best < len(history.get("val_ssim", [])) else {}),
+    })
+    card.setdefault("training_data", data_description or "")
     save_checkpoint(out, model_config=model_config, input_spec=spec,
-                    state_dict=best_state if best_state is not None else net.state_dict(), train_state=train_state)
+                    state_dict=best_state if best_state is not None else net.state_dict(), train_state=train_state,
+                    card=card)
