@@ -19,15 +19,19 @@ def register(subparsers):
         "U-Net and write an 8-bit grayscale PNG. With --step, a moving window writes one PNG per "
         "position (OUT_0000.png, OUT_0001.png, ...).",
     )
-    p.add_argument("events", help="events.h5 (DSEC layout: /events/{t,x,y,p}, /ms_to_idx)")
+    p.add_argument("events", help="events.h5 (DSEC layout) or a camera recording (.raw, .dat, .aedat4, .aedat, .es, "
+                   ".csv, .bin)")
+    p.add_argument("--sensor", metavar="WxH", help="sensor size, e.g. 640x480, for recordings whose header has none")
+    p.add_argument("--csv-columns", metavar="COLS", help="column order of a CSV recording, e.g. x,y,p,t")
     p.add_argument("--model", default=None,
                    help="checkpoint written by `evnoise train` (default: the shipped evk3-hd model)")
     p.add_argument("--out", required=True, help="output PNG")
     p.add_argument("--window", type=float, default=None, metavar="S",
                    help="integration window in seconds (default: the longest window the model was trained on "
                    "that fits into the recording)")
-    p.add_argument("--t-start", type=float, default=0.0, metavar="S",
-                   help="start of the window in seconds (default 0)")
+    p.add_argument("--t-start", type=float, default=None, metavar="S",
+                   help="start of the window in seconds on the recording's clock (default: its start, 0 for "
+                   "events.h5, the first event of a camera file)")
     p.add_argument("--step", type=float, default=None, metavar="S",
                    help="moving window: advance by S seconds per frame")
     p.add_argument("--frames", type=int, default=None, help="with --step or --fps: at most this many frames")
@@ -52,7 +56,7 @@ def run(args) -> int:
     import time
     from pathlib import Path
 
-    from ..errors import OutputError, ParameterError
+    from ..errors import InputError, OutputError, ParameterError
     from ..reconstruct.imaging import write_png
     from ..reconstruct.infer import Reconstructor, counts_from_h5, default_model_path, h5_duration_s
 
@@ -70,6 +74,7 @@ def run(args) -> int:
         res = reconstruct_video(args.events, model_path, args.out, fps=args.fps, window_s=args.window,
                                 separator=None if args.separator == "none" else args.separator,
                                 binning=args.binning, t_start_s=args.t_start, max_frames=args.frames,
+                                sensor=args.sensor, csv_columns=args.csv_columns,
                                 overlay=not args.no_overlay, overwrite=args.overwrite, threads=args.threads,
                                 progress=not args.quiet)
         extra = ""
@@ -92,9 +97,28 @@ def run(args) -> int:
         raise ParameterError(f"--step must be > 0 seconds, got {args.step}")
     if args.frames is not None and args.frames < 1:
         raise ParameterError(f"--frames must be >= 1, got {args.frames}")
-    duration = h5_duration_s(args.events)  # checks the events file first: cheap, clear errors
+    from ..readers import recording_span_us, window_counts
+
+    camera = (args.sensor is not None or args.csv_columns is not None
+              or Path(args.events).suffix.lower() not in (".h5", ".hdf5"))
+    if camera:  # any camera file, streamed: the span on its own clock
+        start_us, end_us = recording_span_us(args.events, sensor=args.sensor, csv_columns=args.csv_columns)
+        duration = end_us * 1e-6
+    else:
+        start_us, duration = 0, h5_duration_s(args.events)  # checks the events file first: cheap, clear errors
+    if args.t_start is None:
+        args.t_start = start_us * 1e-6
     rec = Reconstructor(model_path, threads=args.threads)
     _warn_mismatch(args.events, rec)
+    if camera:  # a real camera's noise is not the model's simulated preset: say so, do not fail
+        from ..io import read_metadata
+
+        meta = read_metadata(args.events, sensor=args.sensor, csv_columns=args.csv_columns)
+        card = rec.doc.get("card") or {}
+        size = f"{meta['shape'][1]}x{meta['shape'][0]}" if meta.get("shape") else "unknown size"
+        log.warning("%s comes from a camera (%s, %s), the model from simulated noise (preset %s%s): the noise "
+                    "statistics may differ", args.events, meta.get("camera") or meta.get("format"), size,
+                    card.get("preset") or "unknown", f", {card['sensor']}" if card.get("sensor") else "")
     if args.binning is not None and args.binning != rec.binning:
         raise ParameterError(
             f"the model was trained on {rec.binning}x{rec.binning}-binned counts; "
@@ -128,7 +152,14 @@ def run(args) -> int:
             raise OutputError(f"{path} exists (use --overwrite)")
     times = []
     for t0, path in zip(starts, targets, strict=True):
-        counts, used = counts_from_h5(args.events, t_start_s=t0, window_s=window)
+        if camera:
+            if t0 + window > duration + 1e-6:
+                raise InputError(f"the window {t0:.6f} s + {window:g} s runs past the end of the recording "
+                                 f"({duration:.6f} s)")
+            counts, used = window_counts(args.events, t0, window, sensor=args.sensor,
+                                         csv_columns=args.csv_columns), window
+        else:
+            counts, used = counts_from_h5(args.events, t_start_s=t0, window_s=window)
         tic = time.perf_counter()
         image = rec.predict(counts, used)
         ms = 1000 * (time.perf_counter() - tic)
