@@ -377,3 +377,22 @@ def test_reconstruct_real_recordings(tiny_model, tmp_path, capsys):
     code, _, err = run_cli(capsys, "-q", "reconstruct", REALDATA / "faery/evt2.raw", "--model", tiny_model, "--out",
                            tmp_path / "raw.png", "--window", "0.05")
     assert code == 2 and "--sensor" in err and not (tmp_path / "raw.png").exists()
+
+
+def test_davis346_address_table(tmp_path):
+    """jAER DAVIS addresses: y bits 22-30, x = 345 - bits 12-21, ON = bit 11; APS (bit 31) and
+    external-input (bit 10) events are dropped."""
+    xs, ys, ons = np.array([0, 345, 100, 7]), np.array([0, 259, 50, 3]), np.array([1, 0, 1, 0])
+    addr = (ys << 22) | ((345 - xs) << 12) | (ons << 11)
+    addr = np.concatenate([addr, [(1 << 31) | (5 << 22), 1 << 10]])  # an APS sample, an external input
+    ts = np.arange(addr.size) * 10 + 1000
+    rec = np.empty(addr.size, dtype=[("a", ">u4"), ("t", ">u4")])
+    rec["a"], rec["t"] = addr, ts
+    path = tmp_path / "davis.aedat"
+    path.write_bytes(b"#!AER-DAT2.0\r\n# AEChip: eu.seebetter.ini.chips.davis.Davis346red\r\n" + rec.tobytes())
+    events, meta = read_events(path)
+    assert meta["shape"] == (260, 346) and meta["camera"] == "Davis346red"
+    np.testing.assert_array_equal(events["x"], xs)
+    np.testing.assert_array_equal(events["y"], ys)
+    np.testing.assert_array_equal(events["p"], ons)
+    np.testing.assert_array_equal(events["t"], ts[:4])
