@@ -29,6 +29,7 @@ METHODS = ("poisson", "gaussian")
 _TABLE_MIN_SIZE = 4096  # below this many elements the direct sum is cheaper than a table
 _TABLE_UNITS = (-40, 16)  # unit panels of log(lam) covered by tables: lam in [4e-18, 2.4e7)
 _SKIP_CHECK_MIN_LAM = 100.0  # below this the exact sum is cheap: no bound needed
+_LOG_TINY = -746.0  # exp(x) rounds to exactly 0 for every x below about -745.13
 _tables: dict = {}
 _tables_lock = threading.Lock()
 
@@ -100,6 +101,15 @@ def _log_p_poisson(lam, eps, bias, shape, skip_below=None):
     out = np.empty(lam_b.shape)
     uniform = eps.size == 1 or np.all(eps == eps.flat[0])
     uniform = uniform and (bias.size == 1 or np.all(bias == bias.flat[0]))
+    if uniform and lam_b.size >= _TABLE_MIN_SIZE and (skip_below is None or skip_below <= _LOG_TINY):
+        c = float(np.expm1(eps.flat[0]))
+        table = _table_for(c, float(bias.flat[0]))
+        # The skip test (a Chernoff bound, ~100 exp per value) costs more than a table lookup, so the
+        # table applies it only where it would fall back to the exact sum; a tabulated log p below
+        # skip_below gives exp(log p) = 0 exactly as -inf does (skip_below <= _LOG_TINY), so p is unchanged.
+        if skip_below is None:
+            return table.evaluate(lam_b).reshape(shape)
+        return table.evaluate(lam_b, float(skip_below), _SKIP_CHECK_MIN_LAM).reshape(shape)
     todo = np.ones(lam_b.shape, dtype=bool)
     if skip_below is not None:
         # only where the exact sum is costly (large lam) is a bound worth computing
@@ -114,20 +124,15 @@ def _log_p_poisson(lam, eps, bias, shape, skip_below=None):
             skip = big[bound < skip_below]
             todo[skip] = False
             out[skip] = -np.inf
-    if uniform and lam_b.size >= _TABLE_MIN_SIZE:
-        c = float(np.expm1(eps.flat[0]))
-        table = _table_for(c, float(bias.flat[0]))
-        out[todo] = table.evaluate(np.ascontiguousarray(lam_b[todo]))
-    else:
-        c_b = np.ascontiguousarray(np.broadcast_to(np.expm1(eps), shape)).ravel()
-        if bias.size == 1 or np.all(bias == bias.flat[0]):
-            # per-pixel thresholds (mismatch) on shared lam levels: tabulate once per level
-            todo &= ~_grouped(lam_b, c_b, float(bias.flat[0]), todo, out)
-        b_b = np.ascontiguousarray(np.broadcast_to(bias, shape), dtype=np.float64).ravel()[todo]
-        sub = np.empty(b_b.shape)
-        log_event_probability_exact_array(np.ascontiguousarray(lam_b[todo]), np.ascontiguousarray(c_b[todo]),
-                                          b_b, sub)
-        out[todo] = sub
+    c_b = np.ascontiguousarray(np.broadcast_to(np.expm1(eps), shape)).ravel()
+    if bias.size == 1 or np.all(bias == bias.flat[0]):
+        # per-pixel thresholds (mismatch) on shared lam levels: tabulate once per level
+        todo &= ~_grouped(lam_b, c_b, float(bias.flat[0]), todo, out)
+    b_b = np.ascontiguousarray(np.broadcast_to(bias, shape), dtype=np.float64).ravel()[todo]
+    sub = np.empty(b_b.shape)
+    log_event_probability_exact_array(np.ascontiguousarray(lam_b[todo]), np.ascontiguousarray(c_b[todo]),
+                                      b_b, sub)
+    out[todo] = sub
     return out.reshape(shape)
 
 

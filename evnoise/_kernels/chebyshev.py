@@ -18,6 +18,7 @@ import numpy as np
 from numba import prange
 
 from ._jit import kernel
+from .bounds import log_chernoff_bound
 from .poisson import log_event_probability_exact
 
 DEGREE = 16
@@ -135,8 +136,14 @@ class LogPTable:
         direct = np.array([np.isnan(cf[0]) for cf in coefs], dtype=np.bool_)
         return unit_start, bounds, coef_arr, direct
 
-    def evaluate(self, lam: np.ndarray) -> np.ndarray:
-        """``log p`` at the 1-D float64 array ``lam`` (units outside the table use the exact kernel)."""
+    def evaluate(self, lam: np.ndarray, skip_below: float = -math.inf, skip_min_lam: float = math.inf) -> np.ndarray:
+        """``log p`` at the 1-D float64 array ``lam`` (units outside the table use the exact kernel).
+
+        Where the exact kernel would be used (outside the table, or in a panel too rippled to
+        tabulate) and ``lam > skip_min_lam``, a Chernoff bound is computed first and ``-inf``
+        returned where it shows ``log p < skip_below``. Tabulated values cost no more than the
+        bound, so they are returned as they are (``exp`` of them underflows to 0 all the same).
+        """
         units = np.floor(np.log(lam[(lam > 0) & np.isfinite(lam)]))
         if units.size:
             lo = int(max(units.min(), self.first_unit))
@@ -148,12 +155,20 @@ class LogPTable:
             self._arrays = self._pack()
         out = np.empty_like(lam)
         unit_start, bounds, coef, direct = self._arrays
-        _evaluate(lam, unit_start, bounds, coef, direct, self.first_unit, self.c, self.b, out)
+        _evaluate(lam, unit_start, bounds, coef, direct, self.first_unit, self.c, self.b,
+                  float(skip_below), float(skip_min_lam), out)
         return out
 
 
+@kernel
+def _exact_or_skip(x, c, b, skip_below, skip_min_lam):
+    if x > skip_min_lam and log_chernoff_bound(x, c, b) < skip_below:
+        return -math.inf
+    return log_event_probability_exact(x, c, b)
+
+
 @kernel(parallel=True)
-def _evaluate(lam, unit_start, bounds, coef, direct, first_unit, c, b, out):
+def _evaluate(lam, unit_start, bounds, coef, direct, first_unit, c, b, skip_below, skip_min_lam, out):
     n_units = unit_start.shape[0] - 1
     for i in prange(lam.shape[0]):
         x = lam[i]
@@ -163,7 +178,7 @@ def _evaluate(lam, unit_start, bounds, coef, direct, first_unit, c, b, out):
         u = math.log(x)
         unit = int(math.floor(u)) - first_unit
         if unit < 0 or unit >= n_units or unit_start[unit] == unit_start[unit + 1]:
-            out[i] = log_event_probability_exact(x, c, b)
+            out[i] = _exact_or_skip(x, c, b, skip_below, skip_min_lam)
             continue
         lo = unit_start[unit]
         hi = unit_start[unit + 1] - 1
@@ -174,7 +189,7 @@ def _evaluate(lam, unit_start, bounds, coef, direct, first_unit, c, b, out):
             else:
                 hi = mid - 1
         if direct[lo]:
-            out[i] = log_event_probability_exact(x, c, b)
+            out[i] = _exact_or_skip(x, c, b, skip_below, skip_min_lam)
             continue
         u_lo = bounds[lo, 0]
         u_hi = bounds[lo, 1]

@@ -1,0 +1,123 @@
+"""Issue 16, part 1: per-pixel set-up cost of the renewal tier and counts with threshold mismatch.
+
+    nice -n 10 python benchmarks/bench_speed16.py                       # this checkout
+    PYTHONPATH=/tmp/ev_before nice -n 10 python benchmarks/bench_speed16.py --label before
+        # the same measurements on an older tree, e.g. ``git archive 1044ad2 evnoise generators | tar -x -C /tmp/ev_before``
+
+Scene: ``benchmarks/run.py:scene`` at 1280x720 (0.2-18 lux, lam 13-1160 photons per trial),
+preset ``evk3-hd``. Each figure is the median of ``--repeats`` runs after one warm-up run
+(Numba compilation excluded), with the min-max range. Prints one JSON object per measurement.
+The machine these ran on is shared: compare the before/after runs made back to back.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+
+
+def timed(fn, repeats):
+    fn()
+    times, out = [], None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times)), float(np.min(times)), float(np.max(times)), out
+
+
+def scene(shape, rng=0, lux_max=18.0):
+    # same scene as benchmarks/run.py (copied so that this script runs against an older tree too)
+    h, w = shape
+    y, x = np.mgrid[0:h, 0:w] / max(h, w)
+    base = 0.5 + 0.35 * np.sin(7 * x) * np.cos(5 * y)
+    r = np.random.default_rng(rng)
+    for _ in range(12):
+        cx, cy, rad, val = r.uniform(0, w / max(h, w)), r.uniform(0, h / max(h, w)), r.uniform(0.03, 0.15), r.uniform()
+        base = np.where((x - cx) ** 2 + (y - cy) ** 2 < rad**2, val, base)
+    return 0.2 + (lux_max - 0.2) * np.clip(base, 0, 1)
+
+
+def emit(label, what, t, **extra):
+    rec = {"label": label, "what": what, "median_s": round(t[0], 5), "min_s": round(t[1], 5),
+           "max_s": round(t[2], 5), **extra}
+    print(json.dumps(rec), flush=True)
+    return rec
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--label", default="this")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--only", default="setup,simulate,stream,mismatch,dataset",
+                    help="comma-separated subset of setup,simulate,stream,mismatch,dataset")
+    ap.add_argument("--sigma", type=float, default=0.03, help="eps_sigma of the mismatch runs")
+    args = ap.parse_args(argv)
+    import evnoise as ev
+
+    which = set(args.only.split(","))
+    params = ev.load_preset("evk3-hd")
+    lux = scene((720, 1280))
+    n_pix = lux.size
+    lam = params.photons_per_trial(lux)
+    th = args.threads
+    print(json.dumps({"label": args.label, "evnoise": str(Path(ev.__file__).parent), "pixels": n_pix,
+                      "lam_range": [float(lam.min()), float(lam.max())]}), flush=True)
+
+    if "setup" in which:
+        t = timed(lambda: ev.event_probability(lam, params.eps_pos, params.bias_pr), args.repeats)
+        emit(args.label, "event_probability 1280x720 (uniform eps)", t, us_per_pixel=t[0] / n_pix * 1e6)
+    if "simulate" in which:
+        for dur in (1.0, 10.0):
+            t = timed(lambda: ev.simulate_events(lux, params, dur, rng=1, threads=th), args.repeats)
+            n = int(t[3].size)
+            emit(args.label, f"simulate_events 1280x720 {dur:g} s, {th} threads", t, events=n,
+                 events_per_s=n / t[0])
+        t = timed(lambda: ev.sample_counts(lux, params, 1.0, rng=1, threads=th), args.repeats)
+        emit(args.label, f"sample_counts 1280x720 1 s, {th} threads", t)
+    if "stream" in which:
+        stream = ev.NoiseStream(lux.shape, params, rng=3, threads=th)
+        state = {"t": 0}
+
+        def step():
+            state["t"] += 10_000
+            return stream.advance(lux, state["t"])
+
+        t = timed(step, max(5, args.repeats))
+        emit(args.label, f"NoiseStream.advance 1280x720 10 ms, {th} threads", t,
+             us_per_pixel=t[0] / n_pix * 1e6)
+    if "mismatch" in which:
+        mism = params.replace(eps_sigma=args.sigma)
+        thr = ev.draw_thresholds(lux.shape, mism, rng=2)
+        t = timed(lambda: ev.trial_probabilities(lam.ravel(), mism, (thr[0].ravel(), thr[1].ravel())),
+                  args.repeats)
+        emit(args.label, f"trial_probabilities with mismatch (sigma {args.sigma}) 1280x720", t,
+             values_per_s=2 * n_pix / t[0])
+        t = timed(lambda: ev.sample_counts(lux, mism, 1.0, rng=1, threads=th), args.repeats)
+        emit(args.label, f"sample_counts with mismatch (sigma {args.sigma}) 1280x720 1 s, {th} threads", t)
+    if "dataset" in which:
+        sys.path.insert(0, str(Path(ev.__file__).parent.parent))
+        from generators.config import PairConfig
+        from generators.pairs import CountSampler
+
+        codes = np.minimum((lux / 18.0 * 16383).astype(np.int64), 16383)
+        for sigma in (0.0, args.sigma):
+            cfg = PairConfig(params=params.replace(eps_sigma=sigma), binning=2)
+            sampler = CountSampler(cfg, threads=th)
+            seeds = iter(range(10**6))
+            t = timed(lambda: sampler.sample(codes, 1_000_000, next(seeds)), args.repeats)
+            emit(args.label, f"make-dataset sampler (1280x720, bin 2, 1 s window), eps_sigma {sigma}", t,
+                 pairs_per_s=1.0 / t[0], sampler=sampler.method)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,101 @@
+"""Fast paths of issue 16 against the code they replaced and against the slow exact reference.
+
+``PINNED`` holds sha256 digests of small fixed-seed outputs computed ONCE with the code *before*
+the issue-16 changes (commit 1044ad2, by running ``_pinned_outputs()`` of this file there). The
+speed work (dropping the per-pixel Chernoff skip bound where the Chebyshev table evaluates the
+value anyway) must leave every one of these outputs bit-identical for a given seed.
+"""
+
+import hashlib
+
+import numpy as np
+import pytest
+
+import evnoise as ev
+
+PRESET = ev.load_preset("evk3-hd")
+
+
+def _lux_image(shape=(64, 96), seed=5):
+    """Illuminance from darkness to far beyond where p underflows (lam ~ 6e8), log-spaced.
+
+    Most pixels span 0..1e4 lux (lam up to ~6.4e5, crossing the skip threshold log p = -760 near
+    lam = 1.6e5); a handful sit beyond the Chebyshev table (lam > 2.4e7) or at exactly 0 lux.
+    """
+    g = np.random.default_rng(seed)
+    lux = 10.0 ** g.uniform(-3.0, 4.0, size=shape)
+    lux.flat[:5] = 0.0
+    lux.flat[5:9] = [1e6, 1e7, 3e5, 5e4]
+    return lux
+
+
+def _digest(*arrays) -> str:
+    h = hashlib.sha256()
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(str(a.dtype).encode() + str(a.shape).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _pinned_outputs() -> dict:
+    """Fixed-seed outputs of every public path that goes through ``event_probability``."""
+    lux = _lux_image()
+    out = {}
+    lam = PRESET.photons_per_trial(lux)
+    out["p_nominal"] = _digest(ev.event_probability(lam, PRESET.eps_pos, PRESET.bias_pr))
+    out["p_small"] = _digest(ev.event_probability(lam[:4, :50], PRESET.eps_neg, PRESET.bias_pr))
+    out["p_big_eps"] = _digest(ev.event_probability(lam, 3.0, 2.0))
+    out["simulate"] = _digest(ev.simulate_events(lux, PRESET, 0.2, rng=7))
+    out["iter"] = _digest(*ev.iter_events(lux, PRESET, 0.2, rng=7, threads=1))
+    out["counts"] = _digest(ev.sample_counts(lux, PRESET, 2.0, rng=8))
+    stream = ev.NoiseStream(lux.shape, PRESET, rng=9)
+    out["stream"] = _digest(stream.advance(lux, 50_000), stream.advance(lux * 0.5, 120_000),
+                            stream.advance(lux * 3.0, 200_000))
+    mism = PRESET.replace(eps_sigma=0.03)
+    out["simulate_mismatch"] = _digest(ev.simulate_events(lux, mism, 0.2, rng=7))
+    out["counts_mismatch"] = _digest(ev.sample_counts(lux, mism, 2.0, rng=8))
+    from generators.config import PairConfig
+    from generators.pairs import CountSampler
+
+    codes = np.minimum((np.sqrt(lux / 1e4) * 16383).astype(np.int64), 16383)
+    sampler = CountSampler(PairConfig(binning=2, max_lux=18.0))
+    out["dataset_counts"] = _digest(sampler.sample(codes, 250_000, 123))
+    return out
+
+
+PINNED = {  # sha256 of _pinned_outputs() computed with commit 1044ad2 (before the issue-16 changes)
+    "p_nominal": "c4c7fa927304e87ece06062a220c521331b1d29369e056bd3e8da6a00eddfe19",
+    "p_small": "8c24d56aa707fb71829f937e1e62d47cecb8579142c9282fc3ead8dc9dd70ae6",
+    "p_big_eps": "c38af057fecc677aa5146cd2fe7ff473fb6d512d64275f29796cf20e0216902c",
+    "simulate": "1b10099c3bbf424de56cc521c804474193ef7c66b568a57160cb76d1fa34afcd",
+    "iter": "1b10099c3bbf424de56cc521c804474193ef7c66b568a57160cb76d1fa34afcd",
+    "counts": "a2e8373f37fd2e8e691d827d78e24193c903eba28a30d300142020f748232ddf",
+    "stream": "2af210181c3b466728a95bed167e553d4be05903cee44a69d775cf264b427c37",
+    "simulate_mismatch": "fba7d34e76b324fccd938428150ac1cd70c142bdf76072087686d94594cb08d1",
+    "counts_mismatch": "a26d5828acec1620994f1279e1a59e80c8e2f923ce917555b9b356773e69f1ed",
+    "dataset_counts": "957c7e56ba14d3423e52102a19c49a9d3acfb6efcb9d089980c5d25699504b20",
+}
+
+
+@pytest.fixture(scope="module")
+def pinned_now():
+    return _pinned_outputs()
+
+
+@pytest.mark.parametrize("name", sorted(PINNED))
+def test_outputs_bit_identical_to_code_before_issue16(name, pinned_now):
+    assert pinned_now[name] == PINNED[name]
+
+
+def test_pinned_scene_exercises_the_skipped_region():
+    """The pinned scene has tabulated values below the skip threshold (now tabulated, formerly skipped)
+    and values beyond the table (still skipped by the bound), so the digests above cover both."""
+    lam = PRESET.photons_per_trial(_lux_image()).ravel()
+    log_p = ev.log_event_probability(lam, PRESET.eps_pos, PRESET.bias_pr)
+    p = ev.event_probability(lam, PRESET.eps_pos, PRESET.bias_pr)
+    tabulated = (lam > 100) & (lam < np.exp(17.0))
+    assert np.count_nonzero(tabulated & (log_p < -760) & np.isfinite(log_p)) > 100
+    assert np.count_nonzero(lam > np.exp(17.0)) >= 1
+    assert np.all(p[log_p < -760] == 0.0)
+    assert np.all(p[log_p > -700] > 0.0)
