@@ -25,12 +25,31 @@ Fit
     changes along a ridge of (``photons_per_lux``, ``bias_pr``, thresholds) that carries several
     local optima of the exact model; two seeds per stratum are refined on the stand-in, a few
     Levenberg-Marquardt-damped Fisher-scoring steps of the full likelihood screen them, the
-    best two are run to convergence, and short fits along the least-constrained direction look
-    for a better optimum on the ridge. For the mismatch-free model (a step function of ``eps``
-    and ``bias_pr``) a Nelder-Mead polish follows. Uncertainties come from the expected
-    information (or the sandwich) computed by central differences in log-parameter space;
-    each step is checked against half of it, because without mismatch the likelihood is
-    step-like.
+    best :data:`N_CONVERGED` are run to convergence, and short fits along the least-constrained
+    direction look for a better optimum on the ridge. For the mismatch-free model (a step
+    function of ``eps`` and ``bias_pr``) a Nelder-Mead polish follows. Uncertainties come from
+    the expected information (or the sandwich) computed by central differences in
+    log-parameter space; each step is checked against half of it, because without mismatch the
+    likelihood is step-like.
+
+Rate tables: profile of ``photons_per_lux``
+    Along the ridge (``photons_per_lux`` up, thresholds down like its inverse square root,
+    ``bias_pr`` up in proportion) the rate curve approaches the many-photon limit, where it no
+    longer changes; the exact likelihood is rough there (a step function of the thresholds), so
+    its local curvature says nothing about how far the ridge extends. The fit therefore profiles
+    ``photons_per_lux`` (steps of :data:`PROFILE_STEP` in log, the others refitted at each) out
+    to where the log-likelihood has dropped by 4.5 or to the bound: its standard error is the
+    half-width of the interval where it is within 0.5 of the maximum (0.5 plus half of
+    :data:`PROFILE_ROUGH` for the step-like mismatch-free likelihood), and the others'
+    uncertainties add their movement along the profile to the conditional ones; a profile
+    sharper than its steps falls back to the local information. An interval that reaches a
+    bound means *not identified*, and so are the parameters that move with it.
+
+Fit status
+    :attr:`CalibrationResult.fit_status` is ``"accepted"``, ``"rejected"`` (goodness-of-fit
+    p-value below :data:`REJECT_P`, or for rates without exposure an rms relative residual above
+    :data:`REJECT_RMS`; the parameters are then marked ``"fitted (fit rejected)"``) and
+    :attr:`CalibrationResult.warnings` says so, and names every parameter that sits on a bound.
 
 Identifiability
     A parameter whose relative standard error exceeds ``max_rel_se`` is reported as *not
@@ -41,8 +60,8 @@ Identifiability
 
 from __future__ import annotations
 
+import copy
 import dataclasses
-import datetime as _dt
 import logging
 import math
 
@@ -58,17 +77,18 @@ __all__ = ["calibrate", "CalibrationResult", "FIT_NAMES"]
 
 log = logging.getLogger("evnoise.calibration")
 
-FIT_NAMES = ("eps_pos", "eps_neg", "bias_pr", "trial_rate_hz", "photons_per_lux", "dark_lux", "refractory_s",
-             "eps_sigma")
+#: Every parameter of :class:`NoiseParams`, in its order.
+FIT_NAMES = tuple(f.name for f in dataclasses.fields(NoiseParams))
 CORE = FIT_NAMES[:6]
 DISTRIBUTIONS = ("binomial", "poisson")
 #: Bounds of the fit (natural units). ``None`` entries are set from the data: ``trial_rate_hz``
 #: from the highest rate (p < 1/2), ``photons_per_lux`` so that the brightest level has 1e-3 to
-#: ``LAM_MAX`` photons per trial, ``dark_lux`` from 1e-6 to 10 times the brightest level,
-#: ``refractory_s`` below half the shortest mean interval between events.
+#: :data:`LAM_MAX` photons per trial (:data:`LAM_MAX_MISMATCH` with threshold mismatch),
+#: ``dark_lux`` from 1e-6 to 10 times the brightest level, ``refractory_s`` below half the
+#: shortest mean interval between events. ``calibrate(bounds=...)`` overrides any of them.
 BOUNDS = {
-    "eps_pos": (0.02, 5.0),
-    "eps_neg": (0.02, 5.0),
+    "eps_pos": (1e-3, 5.0),
+    "eps_neg": (1e-3, 5.0),
     "bias_pr": (1e-6, 1e4),
     "trial_rate_hz": (None, 5e5),
     "photons_per_lux": (None, None),
@@ -76,11 +96,17 @@ BOUNDS = {
     "refractory_s": (1e-8, None),
     "eps_sigma": (1e-3, 1.5),
 }
-#: Most photons per trial at the brightest level the fit explores. Beyond a few hundred photons
-#: the exact model is indistinguishable from its Gaussian limit, in which only combinations of
-#: ``photons_per_lux``, ``bias_pr`` and the thresholds are determined (and the exact
-#: distribution across pixels gets slow); a fit that runs into this bound reports it.
-LAM_MAX = 300.0
+#: Most photons per trial at the brightest level that the fit explores without threshold
+#: mismatch: the range over which :mod:`evnoise.model`'s exact probability is verified (its cost
+#: grows like ``sqrt(lam)``: about 10 ms for a 15-level table at 1e4 photons per trial). Real
+#: sensors (the shipped EVK3-HD preset has 3200 at 50 lux) are far in this range; a fit that
+#: runs into it is in the many-photon limit, where ``photons_per_lux`` is not identified.
+LAM_MAX = 1e6
+#: The same with threshold mismatch (``eps_sigma > 0``): the exact distribution of ``p`` across
+#: pixels (:func:`evnoise.calibration.threshold_distribution`) costs O(lam) per level and
+#: polarity (about 0.1 s at 3000 photons per trial, 30 s at 3e5), so the search stops here; the
+#: mismatch-free alternative of a mean-rate table (see :data:`TABLE_SIGMA`) is not limited by it.
+LAM_MAX_MISMATCH = 3000.0
 _DEFAULTS = dict(eps_pos=0.5, eps_neg=0.5, bias_pr=1.0, trial_rate_hz=100.0, photons_per_lux=1.0, dark_lux=0.1,
                  refractory_s=0.0, eps_sigma=0.0)
 #: Threshold mismatch assumed when the measurements carry no dispersion (mean rates only), unless
@@ -88,9 +114,28 @@ _DEFAULTS = dict(eps_pos=0.5, eps_neg=0.5, bias_pr=1.0, trial_rate_hz=100.0, pho
 #: is always present in real sensors, and without it the exact likelihood is a step function of
 #: the thresholds and the bias (see ``SMOOTHING``).
 TABLE_SIGMA = 0.05
-#: Mismatch levels of the continuation used to fit the mismatch-free (step-like) model.
+#: Mismatch levels of the continuation used to fit the mismatch-free (step-like) model to flat
+#: fields (rate tables are fitted directly: their stand-in search is already smoothed).
 SMOOTHING = (0.05, 0.02, 0.008)
-N_CONVERGED = 4  # starts fitted to convergence after the short screening fits (optima are close in likelihood)
+#: Starts fitted to convergence after the short screening fits (optima are close in likelihood).
+N_CONVERGED = 4
+#: Goodness-of-fit p-value below which a fit is rejected (tables with counts, flat fields).
+REJECT_P = 1e-4
+#: Rates without exposure (no absolute noise scale): rms relative residual above which a fit is rejected.
+REJECT_RMS = 0.25
+#: Step of the profile of ``photons_per_lux`` (rate tables), in log units.
+PROFILE_STEP = 0.35
+#: Largest profile step (steps grow by half while the profile stays within its interval).
+PROFILE_MAX_STEP = 1.5
+#: The profile stops where twice the log-likelihood has dropped by this much from its maximum
+#: (plus :data:`PROFILE_ROUGH` for step-like likelihoods).
+PROFILE_STOP = 9.0
+#: Without threshold mismatch the exact likelihood is a step function of the thresholds and the
+#: bias, and fits along the profile land a few log-likelihood units apart by chance (up to about
+#: 4 on tables simulated from the EVK3-HD preset, where the smooth profile is flat): a profile
+#: point counts as inside the interval when twice its log-likelihood is within 1 + this of the
+#: maximum, so that such jitter is not mistaken for information (it errs towards "not identified").
+PROFILE_ROUGH = 10.0
 _AT_BOUND_OK = ("bias_pr", "dark_lux", "eps_sigma", "refractory_s")  # a lower bound standing for 0
 
 
@@ -186,19 +231,22 @@ class _Problem:
         variance (relative errors), levels with zero rate left out.
         """
         y = self.y
-        with np.errstate(divide="ignore"):
-            log_mu = np.log(mu)
         if self.quasi_counts:
             r = self.log_residuals(mu)
             return np.where(np.isfinite(r), -0.5 * r**2, -1e300)
+        # y log(mu) only where y > 0 (elsewhere 0, also for mu = 0: no 0 * -inf)
+        with np.errstate(divide="ignore"):
+            log_mu = np.log(np.where(y > 0, mu, 1.0))
+        y_log_mu = np.where(y > 0, y * log_mu, 0.0)
         if self.nb_total_shape is None:
-            out = np.where(y > 0, y * log_mu, 0.0) - mu
+            out = y_log_mu - mu
         else:
             R = self.nb_total_shape
             finite = np.isfinite(R)
             Rf = np.where(finite, R, 1.0)
-            nb = np.where(y > 0, y * (log_mu - np.log(mu + Rf)), 0.0) + Rf * (np.log(Rf) - np.log(mu + Rf))
-            out = np.where(finite, nb, np.where(y > 0, y * log_mu, 0.0) - mu)
+            log_mu_r = np.log(mu + Rf)
+            nb = y_log_mu - np.where(y > 0, y * log_mu_r, 0.0) + Rf * (np.log(Rf) - log_mu_r)
+            out = np.where(finite, nb, y_log_mu - mu)
         return np.where(np.isfinite(out), out, -1e300)
 
     def log_residuals(self, mu) -> np.ndarray:
@@ -431,8 +479,10 @@ class _MeanProxy:
     closed-form), which leaves the shape parameters to search.
     """
 
-    SEED_BOX = {"eps_pos": (0.05, 3.0), "eps_neg": (0.05, 3.0), "bias_pr": (1e-3, 1e2), "eps_sigma": (0.01, 0.3)}
-    MIN_SIGMA = 0.02  # smoothing used when the mismatch is fixed below it (or at 0)
+    SEED_BOX = {"eps_pos": (0.02, 3.0), "eps_neg": (0.02, 3.0), "bias_pr": (1e-3, 1e3), "eps_sigma": (0.01, 0.3)}
+    SEED_LAM_MAX = 1e4  # photons per trial at the brightest level, most of the seeds
+    MIN_SIGMA = 0.02  # smoothing used when the mismatch is fixed below it (or at 0) ...
+    MIN_REL_SIGMA = 0.1  # ... or below this fraction of the threshold, if that is smaller
     N_NODES = 9
 
     def __init__(self, problem: _Problem):
@@ -446,7 +496,9 @@ class _MeanProxy:
         pos = lux[lux > 0]
         lux_min = float(pos.min()) if pos.size else lux_max
         box = dict(self.SEED_BOX)
-        box["photons_per_lux"] = (0.3 / lux_max, 0.5 * LAM_MAX / lux_max)
+        # seeds up to a few thousand photons per trial; the profile of rate tables walks further
+        box["photons_per_lux"] = (0.3 / lux_max, min(0.5 * problem.bounds["photons_per_lux"][1],
+                                                     self.SEED_LAM_MAX / lux_max))
         box["dark_lux"] = (min(1e-3 * lux_min, 1e-4 * lux_max), lux_max)
         self.lo = np.array([math.log(max(box[n][0], problem.bounds[n][0])) for n in self.names])
         self.hi = np.array([math.log(min(box[n][1], problem.bounds[n][1])) for n in self.names])
@@ -471,13 +523,16 @@ class _MeanProxy:
         lam = vals["photons_per_lux"][:, None] * (pr.lux[None, :] + vals["dark_lux"][:, None])
         # mismatch smooths the mean curve (without it, it is a step function of eps and bias_pr,
         # which direct search handles badly): average over Gauss-Hermite nodes of eps
-        sigma = np.maximum(vals["eps_sigma"], self.MIN_SIGMA)[:, None]
+        # (relative to small thresholds, so that the smoothing is the same along the many-photon
+        # ridge, where eps scales like 1/sqrt(photons_per_lux))
+        sigma = {e: np.maximum(vals["eps_sigma"], np.minimum(self.MIN_SIGMA, self.MIN_REL_SIGMA * vals[e]))[:, None]
+                 for e in ("eps_pos", "eps_neg")}
         if x.shape[0] == 1:
             from ._kernels import log_probability_serial
 
             j = lam.shape[1]
             k = self.nodes.size
-            eps = np.concatenate([np.maximum(vals[e][0] + sigma[0] * self.nodes, 1e-3)
+            eps = np.concatenate([np.maximum(vals[e][0] + sigma[e][0] * self.nodes, 1e-4)
                                   for e in ("eps_pos", "eps_neg")])  # (2K,)
             lam2 = np.ascontiguousarray(np.tile(lam[0], 2 * k))
             c2 = np.repeat(np.expm1(eps), j)
@@ -487,7 +542,7 @@ class _MeanProxy:
         else:
             p = np.stack([
                 np.einsum("skj,k->sj", event_probability(
-                    lam[:, None, :], np.maximum(vals[e][:, None] + sigma * self.nodes[None, :], 1e-3)[:, :, None],
+                    lam[:, None, :], np.maximum(vals[e][:, None] + sigma[e] * self.nodes[None, :], 1e-4)[:, :, None],
                     vals["bias_pr"][:, None, None]), self.weights)
                 for e in ("eps_pos", "eps_neg")], axis=1)  # (S, 2, J)
         base = p * pr.exposure[None, None, :]
@@ -541,7 +596,7 @@ def _local_fit(problem: _Problem, theta0, *, max_iter: int = 80, polish: bool = 
     lo, hi = problem.lo, problem.hi
     theta = np.clip(np.asarray(theta0, dtype=np.float64), lo, hi)
     ll = problem.loglik(theta)
-    lam = 1e-3
+    damping = 1e-3
     h = _steps(problem, 1e-4)
     for _ in range(max_iter):
         info, _, extras = _information(problem, theta, h, want_meat=False, central=central)
@@ -552,11 +607,11 @@ def _local_fit(problem: _Problem, theta0, *, max_iter: int = 80, polish: bool = 
         improved = False
         for _ in range(30):
             a = info[np.ix_(free_dir, free_dir)]
-            a = a + lam * np.diag(np.diag(a) + 1e-12 * max(np.max(np.diag(a)), 1e-300))
+            a = a + damping * np.diag(np.diag(a) + 1e-12 * max(np.max(np.diag(a)), 1e-300))
             try:
                 step_f = np.linalg.solve(a, score[free_dir])
             except np.linalg.LinAlgError:
-                lam *= 10.0
+                damping *= 10.0
                 continue
             step = np.zeros_like(theta)
             step[free_dir] = step_f
@@ -568,13 +623,13 @@ def _local_fit(problem: _Problem, theta0, *, max_iter: int = 80, polish: bool = 
             if ll_c > ll:
                 gain = ll_c - ll
                 theta, ll = cand, ll_c
-                lam = max(lam / 3.0, 1e-9)
+                damping = max(damping / 3.0, 1e-9)
                 improved = True
                 break
-            lam *= 4.0
-            if lam > 1e12:
+            damping *= 4.0
+            if damping > 1e12:
                 break
-        log.debug("LM: log-likelihood %.12g (damping %.3g)", ll, lam)
+        log.debug("LM: log-likelihood %.12g (damping %.3g)", ll, damping)
         if not improved or gain < 1e-10 * (1.0 + abs(ll)):
             break
     if polish and "eps_sigma" not in problem.free and problem.values["eps_sigma"] == 0 \
@@ -615,7 +670,8 @@ class CalibrationResult:
     free : tuple of str
         Parameters that were fitted.
     status : dict
-        Per parameter: ``"fitted"``, ``"fixed"``, ``"not identified"`` or ``"at lower bound"``.
+        Per parameter: ``"fitted"``, ``"fitted (fit rejected)"``, ``"fixed"``, ``"fixed (assumed)"``,
+        ``"not identified"`` or ``"at lower bound"``.
     std_error : dict
         Standard errors in the parameters' units (NaN where not available).
     rel_error : dict
@@ -631,6 +687,19 @@ class CalibrationResult:
     dispersion : dict
         Measured vs predicted NB shape per level (``r_measured``, ``r_model``, ``(2, J)``).
     measurements : Measurements
+    fit_status : str
+        ``"accepted"`` or ``"rejected"`` (the goodness of fit says the model does not describe
+        the data; see :data:`REJECT_P`).
+    warnings : list of str
+        What a user must not miss: a rejected fit, parameters on a bound.
+    at_bound : dict
+        Parameters that ended on a bound: name -> ``"lower"`` or ``"upper"``.
+    bounds : dict
+        The bounds of the free parameters (natural units).
+    profile : dict
+        Rate tables with ``photons_per_lux`` free: its profile-likelihood range (``name``,
+        ``best``, ``low``, ``high``, ``closed_low``, ``closed_high``: whether the likelihood falls
+        by more than ``loglik_tolerance`` on that side; an open side means not identified).
     """
 
     params: NoiseParams
@@ -649,6 +718,11 @@ class CalibrationResult:
     loglik: float
     notes: list = dataclasses.field(default_factory=list)
     seed: object = None
+    fit_status: str = "accepted"
+    warnings: list = dataclasses.field(default_factory=list)
+    at_bound: dict = dataclasses.field(default_factory=dict)
+    bounds: dict = dataclasses.field(default_factory=dict)
+    profile: dict = dataclasses.field(default_factory=dict)
 
     def population_rate(self, lux) -> np.ndarray:
         """Fitted mean rate over pixels, events/s, ``(2, *lux.shape)``."""
@@ -660,10 +734,11 @@ class CalibrationResult:
         """``(rate, rel_sd)``: fitted population rate and its relative standard deviation (delta method)."""
         lux = np.asarray(lux, dtype=np.float64)
         rate = self.population_rate(lux)
-        names = [n for n in self.free if self.status.get(n) != "at lower bound"]
+        # parameters with an uncertainty (not those held on a bound, or not identified by a profile)
+        idx = [i for i in range(len(self.free)) if np.isfinite(self.cov_log[i, i])]
+        names = [self.free[i] for i in idx]
         if not names:
             return rate, np.zeros_like(rate)
-        idx = [self.free.index(n) for n in names]
         cov = self.cov_log[np.ix_(idx, idx)]
         jac = np.zeros((*rate.shape, len(names)))
         h = 1e-3
@@ -684,6 +759,8 @@ class CalibrationResult:
         """A readable report: parameters, uncertainties, identifiability, fit quality, dispersion."""
         lines = [f"evnoise calibration ({self.method} closed form, {self.measurements.kind}: "
                  f"{self.measurements.n_levels} levels from {self.measurements.source})"]
+        lines.append(f"fit status: {self.fit_status.upper()}")
+        lines += [f"WARNING: {t}" for t in self.warnings]
         lines.append(f"{'parameter':<16} {'value':>13} {'std error':>11} {'rel':>7}  status")
         for n in FIT_NAMES:
             v = getattr(self.params, n)
@@ -768,7 +845,7 @@ def _resolve(meas: Measurements, free, fixed, initial, fit_dispersion: bool = Tr
     return free, fixed, values
 
 
-def _bounds(meas: Measurements, free, values):
+def _bounds(meas: Measurements, free, values, override=None):
     b = dict(BOUNDS)
     lux_ref = float(max(meas.lux.max(), 1e-6))
     rate_max = float(meas.rate_hz.max())
@@ -776,9 +853,14 @@ def _bounds(meas: Measurements, free, values):
     if meas.kind == "flat-field":
         n_lo = max(n_lo, max(float(c.max()) / d for c, d in zip(meas.pixel_counts, meas.duration_s)))
     b["trial_rate_hz"] = (max(n_lo * (1 + 1e-6), 1e-3), 5e5)
-    b["photons_per_lux"] = (1e-3 / lux_ref, LAM_MAX / lux_ref)
+    mismatch = "eps_sigma" in free or values["eps_sigma"] > 0
+    b["photons_per_lux"] = (1e-3 / lux_ref, (LAM_MAX_MISMATCH if mismatch else LAM_MAX) / lux_ref)
     b["dark_lux"] = (1e-6 * lux_ref, 10.0 * lux_ref)
+    # the bias moves with photons_per_lux along the many-photon ridge: allow it as many photons
+    b["bias_pr"] = (BOUNDS["bias_pr"][0], max(BOUNDS["bias_pr"][1], 10.0 * b["photons_per_lux"][1] * lux_ref))
     b["refractory_s"] = (1e-8, min(1.0, 0.5 / max(rate_max, 1e-9)))
+    for n, (lo, hi) in (override or {}).items():
+        b[n] = (float(lo), float(hi))
     for n in free:
         lo, hi = b[n]
         v = values[n]
@@ -789,8 +871,8 @@ def _bounds(meas: Measurements, free, values):
 
 def calibrate(measurements: Measurements, *, method: str = "poisson", distribution: str = "binomial",
               free=None, fixed: dict | None = None, initial: NoiseParams | None = None, n_starts: int = 4,
-              n_seeds: int = 2048, rng=0, unidentified: str = "report", max_rel_se: float = 0.5,
-              dispersion: str = "fit", progress: bool = False) -> CalibrationResult:
+              n_seeds: int = 2048, rng=None, unidentified: str = "report", max_rel_se: float = 0.5,
+              dispersion: str = "fit", bounds: dict | None = None, progress: bool = False) -> CalibrationResult:
     """Fit the noise model to measurements by maximum likelihood.
 
     Parameters
@@ -811,13 +893,14 @@ def calibrate(measurements: Measurements, *, method: str = "poisson", distributi
         Starting point and values of parameters neither free nor fixed (default: zeros for
         ``refractory_s`` and ``eps_sigma``).
     n_starts : int
-        Strata of starting points along ``bias_pr`` (two starts each are screened, the best two
-        fitted to convergence): the rate curve is not monotonic and the likelihood has several
-        local optima. More strata are slower and safer.
+        Strata of starting points along ``bias_pr`` (two starts each are screened, the best
+        :data:`N_CONVERGED` fitted to convergence): the rate curve is not monotonic and the
+        likelihood has several local optima. More strata are slower and safer.
     n_seeds : int
         Quasi-random parameter vectors scored to choose the starts.
     rng : int, Generator or None
-        Scrambling of the quasi-random seeds.
+        Scrambling of the quasi-random seeds (None: fresh entropy; pass a seed for a
+        reproducible fit).
     unidentified : {"report", "fix"}
         What to do with parameters the data do not constrain: keep the fitted value and report
         them (default), or fix them (at ``fixed``/``initial`` values if given, else at the
@@ -827,6 +910,9 @@ def calibrate(measurements: Measurements, *, method: str = "poisson", distributi
     dispersion : {"fit", "report"}
         Rate tables with measured NB shapes: fit them (default; determines ``eps_sigma``) or
         only compare them with the model (``eps_sigma`` then fixed, at 0 unless given).
+    bounds : dict, optional
+        ``{name: (low, high)}`` in natural units, replacing the default bounds of those
+        parameters (see :data:`BOUNDS`); a parameter that ends on one is flagged.
     progress : bool
         Show a progress bar over the starts.
 
@@ -865,38 +951,32 @@ def calibrate(measurements: Measurements, *, method: str = "poisson", distributi
             f"{meas.n_levels} illuminance levels give {n_points} rates, too few to fit {needed - 1} parameters "
             f"({', '.join(n for n in free if n != 'eps_sigma')}); measure more levels or fix some parameters"
         )
-    bounds = _bounds(meas, free, values)
-    problem = _Problem(meas, method, distribution, free, values, bounds)
-    problem.assumed_sigma = ("eps_sigma" not in free and "eps_sigma" not in fixed and initial is None
-                             and values["eps_sigma"] == TABLE_SIGMA)
-    problem.fit_shape = problem.use_shape and dispersion == "fit"
-    if problem.use_shape and not problem.fit_shape:
-        problem.weights["shape"] = 0.0
-    quasi = problem.quasi_counts or (problem.fit_shape and problem.quasi_shape)
-    if quasi and problem.fit_shape:
-        problem.weights["shape"] = 0.0  # unknown scales: fit the mean curve first
-    if problem.values["eps_sigma"] == 0.0 and "eps_sigma" not in free and method == "poisson":
-        # Without mismatch the exact likelihood is a step function of eps and bias_pr: optimise
-        # a smoothed problem (a little mismatch) and follow its optimum as the mismatch goes to 0.
-        problem.set_value("eps_sigma", SMOOTHING[0])
-        theta = _optimise(problem, problem.values, gen, n_starts, n_seeds, progress, initial is not None)
-        for s_c in SMOOTHING[1:] + (0.0,):
-            problem.set_value("eps_sigma", s_c)
-            theta, _ = _local_fit(problem, theta)
-    else:
-        theta = _optimise(problem, values, gen, n_starts, n_seeds, progress, initial is not None)
-        if _looks_bad(problem, theta):
-            # the level means are not matched: a missed optimum is likely; search again, wider
-            log.info("fit does not match the level means; searching again with %d strata", 2 * n_starts)
-            theta2 = _optimise(problem, values, gen, 2 * n_starts, 2 * n_seeds, progress, False)
-            if problem.objective(theta2) < problem.objective(theta):
-                theta = theta2
-    if quasi:
-        # blocks with unknown noise scale: weight each by its residual dispersion, refit
-        for _ in range(3):
-            _update_weights(problem, theta)
-            theta, _ = _local_fit(problem, theta)
-    result = _finish(problem, theta, max_rel_se)
+    bounds = _check_bounds(bounds)
+    assumed = ("eps_sigma" not in free and "eps_sigma" not in fixed and initial is None
+               and values["eps_sigma"] == TABLE_SIGMA)
+    fit_args = dict(gen=gen, n_starts=n_starts, n_seeds=n_seeds, progress=progress, have_initial=initial is not None,
+                    dispersion=dispersion, bounds=bounds)
+    problem, theta = _fit(meas, method, distribution, free, values, assumed=assumed, **fit_args)
+    want_profile = meas.kind == "table" and "photons_per_lux" in free and len(free) >= 2
+    profile = sigma_note = None
+    if assumed and TABLE_SIGMA > 0 and _rejected(problem, theta):
+        # The assumed mismatch changes the shape of the mean curve where photons are many (its
+        # bright tail no longer falls as fast), and the data reject it: fit without mismatch as
+        # well and keep that when the data clearly prefer it (twice the log-likelihood ratio above 4).
+        problem0, theta0 = _fit(meas, method, distribution, free, dict(values, eps_sigma=0.0), assumed=True,
+                                **fit_args)
+        profile0 = None
+        if want_profile:
+            theta0, profile0 = _profile(problem0, theta0, "photons_per_lux")
+        ll_a, ll_0 = _comparable_loglik(problem, theta), _comparable_loglik(problem0, theta0)
+        if 2.0 * (ll_0 - ll_a) > 4.0:
+            problem, theta, profile = problem0, theta0, profile0
+        sigma_note = (f"the fit with the assumed {TABLE_SIGMA:g} is rejected; of it and 0 the data prefer "
+                      f"{problem.values['eps_sigma']:g} (twice the log-likelihood ratio {2.0 * (ll_0 - ll_a):+.3g} "
+                      f"for 0; 0 is kept when above 4)")
+    if want_profile and profile is None:
+        theta, profile = _profile(problem, theta, "photons_per_lux")
+    result = _finish(problem, theta, max_rel_se, profile=profile, sigma_note=sigma_note)
     if unidentified == "fix":
         flagged = [n for n in result.free if result.status[n] == "not identified"]
         if flagged:
@@ -910,7 +990,7 @@ def calibrate(measurements: Measurements, *, method: str = "poisson", distributi
                 result2 = calibrate(meas, method=method, distribution=distribution, free=rest, fixed=new_fixed,
                                     initial=init2, n_starts=1, n_seeds=max(n_starts, 1), rng=gen,
                                     unidentified="report", max_rel_se=max_rel_se, dispersion=dispersion,
-                                    progress=False)
+                                    bounds=bounds, progress=False)
                 for n in flagged:
                     result2.status[n] = "fixed (not identified)"
                 result2.identifiability = result.identifiability + [
@@ -918,6 +998,194 @@ def calibrate(measurements: Measurements, *, method: str = "poisson", distributi
                     f"these values"] + [t for t in result2.identifiability if t not in result.identifiability]
                 return result2
     return result
+
+
+def _check_bounds(bounds):
+    if bounds is None:
+        return None
+    if not isinstance(bounds, dict):
+        raise ParameterError(f"bounds must be a dict name -> (low, high), got {type(bounds).__name__}")
+    out = {}
+    for n, v in bounds.items():
+        if n not in FIT_NAMES:
+            raise ParameterError(f"bounds: unknown parameter {n!r}; parameters: {', '.join(FIT_NAMES)}")
+        try:
+            lo, hi = (float(x) for x in v)
+        except (TypeError, ValueError):
+            raise ParameterError(f"bounds[{n!r}] must be a pair (low, high), got {v!r}") from None
+        if not (0 < lo < hi < math.inf):
+            raise ParameterError(f"bounds[{n!r}] must satisfy 0 < low < high < inf, got ({lo:g}, {hi:g})")
+        out[n] = (lo, hi)
+    return out
+
+
+def _fit(meas, method, distribution, free, values, *, assumed, gen, n_starts, n_seeds, progress, have_initial,
+         dispersion, bounds):
+    """Build the problem and find its best optimum; ``(problem, theta)``."""
+    values = dict(values)
+    problem = _Problem(meas, method, distribution, free, values, _bounds(meas, free, values, bounds))
+    problem.assumed_sigma = assumed
+    problem.fit_shape = problem.use_shape and dispersion == "fit"
+    if problem.use_shape and not problem.fit_shape:
+        problem.weights["shape"] = 0.0
+    quasi = problem.quasi_counts or (problem.fit_shape and problem.quasi_shape)
+    if quasi and problem.fit_shape:
+        problem.weights["shape"] = 0.0  # unknown scales: fit the mean curve first
+    step_like = problem.values["eps_sigma"] == 0.0 and "eps_sigma" not in free and method == "poisson"
+    if step_like and meas.kind == "flat-field":
+        theta = _continuation(problem, gen, n_starts, n_seeds, progress, have_initial)
+    elif step_like:
+        # Rate tables: first a direct search (its starts come from a smoothed stand-in, and the exact
+        # mismatch statistics of the continuation cost O(lam) per level at the large photon counts a
+        # table may need); the continuation, within the bounds of a fit with mismatch, only when the
+        # direct fit is rejected (few photons, where the steps of the likelihood are coarse).
+        theta = _optimise(problem, problem.values, gen, n_starts, n_seeds, progress, have_initial)
+        if _rejected(problem, theta):
+            log.info("direct fit rejected; fitting the mismatch-free model by continuation")
+            smooth = _Problem(meas, method, distribution, free, problem.values,
+                              _bounds(meas, free, dict(problem.values, eps_sigma=SMOOTHING[0]), bounds))
+            smooth.assumed_sigma, smooth.fit_shape, smooth.weights = assumed, problem.fit_shape, problem.weights
+            theta2 = np.clip(_continuation(smooth, gen, n_starts, n_seeds, progress, have_initial),
+                             problem.lo, problem.hi)
+            theta2, _ = _local_fit(problem, theta2)
+            if problem.objective(theta2) < problem.objective(theta):
+                theta = theta2
+    else:
+        theta = _optimise(problem, problem.values, gen, n_starts, n_seeds, progress, have_initial)
+        if _looks_bad(problem, theta):
+            # the level means are not matched: a missed optimum is likely; search again, wider
+            log.info("fit does not match the level means; searching again with %d strata", 2 * n_starts)
+            theta2 = _optimise(problem, problem.values, gen, 2 * n_starts, 2 * n_seeds, progress, False)
+            if problem.objective(theta2) < problem.objective(theta):
+                theta = theta2
+    if quasi:
+        # blocks with unknown noise scale: weight each by its residual dispersion, refit
+        for _ in range(3):
+            _update_weights(problem, theta)
+            theta, _ = _local_fit(problem, theta)
+    return problem, theta
+
+
+def _continuation(problem: _Problem, gen, n_starts, n_seeds, progress, have_initial):
+    """Fit the mismatch-free (step-like) model by continuation: optimise with a little mismatch
+    (:data:`SMOOTHING`) and follow the optimum as the mismatch goes to 0."""
+    problem.set_value("eps_sigma", SMOOTHING[0])
+    theta = _optimise(problem, problem.values, gen, n_starts, n_seeds, progress, have_initial)
+    for s_c in SMOOTHING[1:] + (0.0,):
+        problem.set_value("eps_sigma", s_c)
+        theta, _ = _local_fit(problem, theta)
+    return theta
+
+
+def _rejected(problem: _Problem, theta) -> bool:
+    """Whether the goodness of fit at ``theta`` rejects the model (see :func:`_verdict`)."""
+    gof, _ = _goodness(problem, theta, {"ranges": None}, len(problem.free))
+    return _verdict(problem, gof)[0] == "rejected"
+
+
+def _comparable_loglik(problem: _Problem, theta) -> float:
+    """Log-likelihood of the level totals with unit weights (profiled scale for rates without exposure)."""
+    mu = problem.model_counts(problem.stats(theta))
+    if problem.quasi_counts:
+        used = problem.y > 0
+        rss = float(np.sum(problem.log_residuals(mu)[used] ** 2))
+        n = int(np.count_nonzero(used))
+        return -0.5 * n * math.log(max(rss / n, 1e-300))
+    return float(np.sum(problem.count_terms(mu)))
+
+
+def _with_fixed(problem: _Problem, name: str, value: float):
+    """A copy of ``problem`` with ``name`` held at ``value``; returns it and the indices of the others."""
+    keep = [i for i, n in enumerate(problem.free) if n != name]
+    sub = copy.copy(problem)
+    sub.free = [problem.free[i] for i in keep]
+    sub.lo, sub.hi = problem.lo[keep], problem.hi[keep]
+    sub.values = dict(problem.values)
+    sub.values[name] = float(value)
+    sub._cache_key = sub._cache_val = None
+    return sub, keep
+
+
+def _step_like(problem: _Problem) -> bool:
+    """Whether the likelihood is a step function of the thresholds (exact form, no mismatch)."""
+    return problem.method == "poisson" and problem.values.get("eps_sigma", 0.0) == 0.0 \
+        and "eps_sigma" not in problem.free
+
+
+def _profile(problem: _Problem, theta, name: str, *, max_steps: int = 30):
+    """Profile likelihood of ``name`` (log steps of :data:`PROFILE_STEP`), the others refitted.
+
+    Walks out from ``theta`` both ways until twice the log-likelihood has dropped by
+    :data:`PROFILE_STOP` (at two points in a row) or the bound is reached, each point started
+    from the previous one moved along the path; while the profile stays flat the steps grow
+    (up to :data:`PROFILE_MAX_STEP`). If a point is better than ``theta``, the full fit is resumed from it.
+    Returns ``(theta, profile)`` with ``profile = {"name", "points": [(t, loglik, theta)],
+    "lo_bound", "hi_bound"}`` (points sorted by ``t``, the log of the value).
+    """
+    i = problem.free.index(name)
+    ll0 = problem.loglik(theta)
+    stop = PROFILE_STOP + (PROFILE_ROUGH if _step_like(problem) else 0.0)
+    points = [(float(theta[i]), ll0, np.array(theta, dtype=np.float64))]
+    reached = {1: False, -1: False}
+    ridge = np.zeros(len(problem.free))
+    for j, n in enumerate(problem.free):
+        ridge[j] = {name: 1.0, "eps_pos": -0.5, "eps_neg": -0.5, "bias_pr": 1.0}.get(n, 0.0)
+    for sign in (1, -1):
+        path = [np.array(theta, dtype=np.float64)]
+        best = ll0
+        beyond = 0
+        step = PROFILE_STEP
+        for _ in range(max_steps):
+            edge = float(problem.hi[i] if sign > 0 else problem.lo[i])
+            t = float(path[-1][i] + sign * step)
+            if sign * (t - edge) >= 0:
+                t = edge
+            if abs(t - path[-1][i]) < 1e-9:
+                reached[sign] = True
+                break
+            # starts: the last point moved along the many-photon ridge (thresholds ~ 1/sqrt,
+            # bias ~ photons_per_lux), and the path extrapolated linearly
+            last = path[-1]
+            starts = [last + (t - last[i]) * ridge]
+            if len(path) >= 2 and path[-1][i] != path[-2][i]:
+                starts.append(last + (last - path[-2]) * ((t - last[i]) / (path[-1][i] - path[-2][i])))
+            sub, keep = _with_fixed(problem, name, math.exp(t))
+            ll, full = -math.inf, None
+            for start in starts:
+                x, _ = _local_fit(sub, np.clip(start[keep], sub.lo, sub.hi), max_iter=40, polish=False,
+                                  central=False)
+                cand = start.copy()
+                cand[keep] = x
+                cand[i] = t
+                ll_c = problem.loglik(cand)
+                if ll_c > ll:
+                    ll, full = ll_c, cand
+            points.append((t, ll, full))
+            path.append(full)
+            best = max(best, ll)
+            log.info("profile %s = %.4g: log-likelihood %.6f", name, math.exp(t), ll)
+            if t == edge:
+                reached[sign] = True
+                break
+            if 2.0 * (best - ll) > stop:
+                beyond += 1
+                if beyond >= 2:
+                    break
+            else:
+                beyond = 0
+            # where the profile is flat (within the interval's tolerance), walk faster
+            flat = 2.0 * (best - ll) <= 1.0 + (PROFILE_ROUGH if _step_like(problem) else 0.0)
+            step = min(step * 1.5, PROFILE_MAX_STEP) if flat else PROFILE_STEP
+    points.sort(key=lambda q: q[0])
+    k_best = int(np.argmax([q[1] for q in points]))
+    if points[k_best][1] > ll0 + 1e-9 * (1.0 + abs(ll0)):
+        # a better optimum along the profile: resume the full fit from it
+        cand, _ = _local_fit(problem, points[k_best][2])
+        theta = cand if problem.loglik(cand) >= points[k_best][1] else points[k_best][2]
+        log.info("profile of %s found a better optimum: %.4g", name, math.exp(theta[i]))
+        points.append((float(theta[i]), problem.loglik(theta), np.array(theta)))
+        points.sort(key=lambda q: q[0])
+    return theta, {"name": name, "points": points, "lo_bound": reached[-1], "hi_bound": reached[1]}
 
 
 def _optimise(problem: _Problem, values, gen, n_starts, n_seeds, progress, have_initial):
@@ -973,7 +1241,7 @@ def _optimise(problem: _Problem, values, gen, n_starts, n_seeds, progress, have_
         from tqdm.auto import tqdm
 
         bar = tqdm(total=len(starts), desc="calibrate", unit="start", leave=False)
-    # a few iterations from every start, then the best two to convergence
+    # a few iterations from every start, then the best N_CONVERGED to convergence
     trial = []
     for k, s0 in enumerate(starts):
         t, f = _local_fit(problem, s0, max_iter=10, polish=False, central=False) if len(starts) > 2 \
@@ -1068,22 +1336,32 @@ def _update_weights(problem: _Problem, theta):
         problem.weights["shape"] = 1.0 / max(float(np.sum(e**2)) / dof_share(n_s), 1e-300)
 
 
-def _finish(problem: _Problem, theta, max_rel_se) -> CalibrationResult:
+def _finish(problem: _Problem, theta, max_rel_se, *, profile=None, sigma_note=None) -> CalibrationResult:
     meas = problem.meas
     params = problem.params(theta)
     free = list(problem.free)
     p = len(free)
     status = {n: "fixed" for n in FIT_NAMES}
-    at_bound = []
+    at_bound = []  # indices held at a bound
+    bound_side = {}  # name -> "lower" | "upper"
     for i, n in enumerate(free):
         status[n] = "fitted"
-        if n in _AT_BOUND_OK and theta[i] <= problem.lo[i] + 1e-3:
+        if theta[i] <= problem.lo[i] + 1e-3:
+            bound_side[n] = "lower"
+        elif theta[i] >= problem.hi[i] - 1e-3:
+            bound_side[n] = "upper"
+        if n in _AT_BOUND_OK and bound_side.get(n) == "lower":
             status[n] = "at lower bound"
             at_bound.append(i)
-        elif theta[i] <= problem.lo[i] + 1e-3 or theta[i] >= problem.hi[i] - 1e-3:
+        elif n in bound_side:
             status[n] = "not identified"
             at_bound.append(i)
-    inner = [i for i in range(p) if i not in at_bound]
+    # a profile that falls beyond its tolerance within one step on both sides is sharper than its
+    # grid resolves: the local information is the better uncertainty then
+    sharp = profile is not None and _profile_is_sharp(problem, theta, profile)
+    i_prof = free.index(profile["name"]) if profile is not None and not sharp else None
+    held = sorted(set(at_bound) | ({i_prof} if i_prof is not None else set()))
+    inner = [i for i in range(p) if i not in held]
     notes = []
     h = _steps(problem)
     info, meat, extras = _information(problem, theta, h)
@@ -1104,13 +1382,31 @@ def _finish(problem: _Problem, theta, max_rel_se) -> CalibrationResult:
                              f"treat it as approximate")
     else:
         null_dirs = []
+    ident = []
+    moving = []  # parameters that move with an unbounded profile
+    profile_range = {}
+    if i_prof is not None:
+        text, cov, moving, closed, profile_range = _profile_uncertainty(problem, theta, profile, cov, inner,
+                                                                        max_rel_se)
+        ident.append(text)
+        if closed and i_prof not in at_bound:
+            inner = sorted(inner + [i_prof])
+        else:
+            status[free[i_prof]] = "not identified"
+        for n in moving:
+            status[n] = "not identified"
+        inner = [i for i in inner if free[i] not in moving]
     rel = {n: math.nan for n in FIT_NAMES}
     se = {n: math.nan for n in FIT_NAMES}
     for i, n in enumerate(free):
         if i in inner:
             rel[n] = float(math.sqrt(max(cov[i, i], 0.0)))
             se[n] = rel[n] * getattr(params, n)
-    ident = []
+    if sharp:
+        n = profile["name"]
+        profile_range = {"name": n, "best": getattr(params, n), "low": getattr(params, n) * math.exp(-rel[n]),
+                         "high": getattr(params, n) * math.exp(rel[n]), "closed_low": True, "closed_high": True,
+                         "loglik_tolerance": 0.5}
     flagged = [free[i] for i in inner if not (rel[free[i]] <= max_rel_se)]
     for n in flagged:
         status[n] = "not identified"
@@ -1120,28 +1416,151 @@ def _finish(problem: _Problem, theta, max_rel_se) -> CalibrationResult:
     ident += _identifiability_text(free, inner, cov, corr, flagged, null_dirs, max_rel_se)
     if problem.assumed_sigma:
         status["eps_sigma"] = "fixed (assumed)"
-        ident.append(f"eps_sigma is not determined by mean rates; it is fixed at an assumed {TABLE_SIGMA:g} (give "
-                     f"per-pixel counts or measured NB shapes to fit it, or --fix eps_sigma=...)")
+        ident.append(f"eps_sigma is not determined by mean rates; it is fixed at an assumed "
+                     f"{problem.values['eps_sigma']:g}" + (f" ({sigma_note})" if sigma_note else "")
+                     + " (give per-pixel counts or measured NB shapes to fit it, or --fix eps_sigma=...)")
     for i in at_bound:
         n = free[i]
         v = getattr(params, n)
         if status[n] == "at lower bound":
             ident.append(f"{n} is at its lower bound ({v:.3g}): the data are consistent with 0; it is held there "
                          f"for the other uncertainties")
-        elif n == "photons_per_lux" and theta[i] >= problem.hi[i] - 1e-3:
-            ident.append(f"photons_per_lux ran into its upper bound ({v:.3g}, {LAM_MAX:g} photons per trial at the "
-                         f"brightest level): the rates look like the many-photon (Gaussian) limit, where only "
-                         f"photons_per_lux / bias_pr and eps scaled by sqrt(photons_per_lux) are determined; it is "
-                         f"not identified, fix it if it is known (--fix photons_per_lux=...)")
+        elif n == "photons_per_lux" and bound_side.get(n) == "upper":
+            ident.append(f"photons_per_lux ran into its upper bound ({v:.3g}, {v * float(meas.lux.max()):.3g} "
+                         f"photons per trial at the brightest level): the rates look like the many-photon (Gaussian) "
+                         f"limit, where only photons_per_lux / bias_pr and eps scaled by sqrt(photons_per_lux) are "
+                         f"determined; it is not identified, fix it if it is known (--fix photons_per_lux=...)")
         else:
-            side = "upper" if theta[i] >= problem.hi[i] - 1e-3 else "lower"
-            ident.append(f"{n} ran into its {side} bound ({v:.3g}) and is not identified by these data; it is "
-                         f"held there for the other uncertainties")
+            ident.append(f"{n} ran into its {bound_side[n]} bound ({v:.3g}) and is not identified by these data; "
+                         f"it is held there for the other uncertainties")
     gof, dispersion = _goodness(problem, theta, extras, p)
+    fit_status, why = _verdict(problem, gof)
+    warnings = []
+    if fit_status == "rejected":
+        warnings.append(f"fit rejected: {why}; the model with these parameters does not describe the data (check "
+                        f"the measurements, fixed values and bounds)")
+        for n in free:
+            if status[n] == "fitted":
+                status[n] = "fitted (fit rejected)"
+    for n, side in bound_side.items():
+        v = getattr(params, n)
+        lo, hi = problem.bounds[n]
+        extra = " (consistent with 0)" if status[n] == "at lower bound" else " (not identified)"
+        warnings.append(f"{n} is on its {side} bound {v:.4g} (bounds {lo:.3g} .. {hi:.3g}){extra}")
     return CalibrationResult(params=params, method=problem.method, distribution=problem.distribution,
                              free=tuple(free), status=status, std_error=se, rel_error=rel, cov_log=cov,
                              correlation=corr, identifiability=ident, gof=gof, dispersion=dispersion,
-                             measurements=meas, loglik=float(problem.loglik(theta)), notes=notes)
+                             measurements=meas, loglik=float(problem.loglik(theta)), notes=notes,
+                             fit_status=fit_status, warnings=warnings, at_bound=dict(bound_side),
+                             bounds={n: tuple(problem.bounds[n]) for n in free}, profile=profile_range)
+
+
+def _verdict(problem: _Problem, gof) -> tuple[str, str]:
+    """``("accepted" | "rejected", reason)`` from the goodness of fit."""
+    if problem.meas.kind == "flat-field":
+        pv, z = gof.get("histogram_p_value", math.nan), gof.get("mean_rate_max_abs_z", math.nan)
+        if not pv >= REJECT_P:
+            return "rejected", (f"the count histograms do not match (G/dof = {gof['histogram_G_per_dof']:.3g}, "
+                                f"p = {pv:.2g} < {REJECT_P:g})")
+        if not z <= 6.0:
+            return "rejected", f"a level's mean count is {z:.3g} standard errors off"
+        return "accepted", ""
+    if problem.quasi_counts:
+        rms = gof.get("rate_rms_log_residual", math.nan)
+        if not rms <= REJECT_RMS:
+            return "rejected", f"rms relative residual of the rates {rms:.3g} > {REJECT_RMS:g}"
+        return "accepted", ""
+    pv = gof.get("p_value", math.nan)
+    if not pv >= REJECT_P:
+        return "rejected", (f"Pearson chi2/dof = {gof['pearson_chi2_per_dof']:.3g} on {gof['dof']} dof "
+                            f"(p = {pv:.2g} < {REJECT_P:g})")
+    return "accepted", ""
+
+
+def _profile_levels(problem: _Problem, theta, profile):
+    """``(t, dev, k0, level)``: profile points, twice the log-likelihood drop, index of the best, tolerance."""
+    i = problem.free.index(profile["name"])
+    pts = profile["points"]
+    t = np.array([q[0] for q in pts])
+    ll = np.array([q[1] for q in pts])
+    dev = 2.0 * (max(float(ll.max()), float(problem.loglik(theta))) - ll)
+    k0 = int(np.argmin(np.abs(t - theta[i])))
+    level = 1.0 + (PROFILE_ROUGH if _step_like(problem) else 0.0)
+    return t, dev, k0, level
+
+
+def _profile_is_sharp(problem: _Problem, theta, profile) -> bool:
+    t, dev, k0, level = _profile_levels(problem, theta, profile)
+    return 0 < k0 < t.size - 1 and dev[k0 - 1] > level and dev[k0 + 1] > level
+
+
+def _profile_uncertainty(problem: _Problem, theta, profile, cov, inner, max_rel_se):
+    """Uncertainty of the profiled parameter and the others' movement along its profile.
+
+    Returns ``(finding, cov, moving, closed, range)``: ``cov`` with the profiled parameter's row (and
+    the others' path term) filled in when its interval is closed; ``moving``: parameters that
+    change by more than ``max_rel_se`` (in log) while it runs over an open interval.
+    """
+    name = profile["name"]
+    free = problem.free
+    i = free.index(name)
+    th = np.array([q[2] for q in profile["points"]])
+    t, dev, k0, level = _profile_levels(problem, theta, profile)
+    rough = level - 1.0
+
+    def crossing(step):
+        k = k0
+        while 0 <= k + step < t.size:
+            if dev[k + step] > level:
+                a, b = dev[k], dev[k + step]
+                w = (level - a) / (b - a) if b != a else 0.0
+                return t[k] + w * (t[k + step] - t[k]), True
+            k += step
+        return t[k], False
+
+    t_lo, closed_lo = crossing(-1)
+    t_hi, closed_hi = crossing(+1)
+    closed = closed_lo and closed_hi
+    info = {"name": name, "best": math.exp(theta[i]), "low": math.exp(t_lo), "high": math.exp(t_hi),
+            "closed_low": closed_lo, "closed_high": closed_hi, "loglik_tolerance": (1.0 + rough) / 2.0}
+    cov = cov.copy()
+    v = math.exp(theta[i])
+    within = dev <= (4.0 + rough if closed else level)
+    others = [j for j in inner if j != i]
+    moving = []
+    if closed:
+        var_t = ((t_hi - t_lo) / 2.0) ** 2
+        g = np.zeros(len(free))
+        g[i] = 1.0
+        if np.count_nonzero(within) >= 2:
+            for j in others:
+                g[j] = np.polyfit(t[within], th[within, j], 1)[0]
+        idx = others + [i]
+        base = np.where(np.isfinite(cov), cov, 0.0)
+        full = base + np.outer(g, g) * var_t
+        cov[np.ix_(idx, idx)] = full[np.ix_(idx, idx)]
+        text = (f"{name}: profile likelihood within {level / 2:g} of its maximum from {math.exp(t_lo):.4g} to "
+                f"{math.exp(t_hi):.4g} (best {v:.4g}); the other uncertainties include their movement along it")
+        return text, cov, moving, True, info
+    # open interval: how far the others move over it
+    parts = []
+    for j in others:
+        spread = float(th[within, j].max() - th[within, j].min()) if within.any() else 0.0
+        if spread / 2.0 > max_rel_se:
+            moving.append(free[j])
+            slope = np.polyfit(t[within], th[within, j], 1)[0] if np.count_nonzero(within) >= 2 else math.nan
+            parts.append(f"{free[j]} ~ {name}^{slope:+.2f}")
+        elif spread > 0:
+            cov[j, j] = cov[j, j] + (spread / 2.0) ** 2
+    lo_txt = f"{math.exp(t_lo):.4g}" + (" (its lower bound)" if not closed_lo and profile["lo_bound"] else
+                                        "" if closed_lo else " (end of the profile)")
+    hi_txt = f"{math.exp(t_hi):.4g}" + (" (its upper bound)" if not closed_hi and profile["hi_bound"] else
+                                        "" if closed_hi else " (end of the profile)")
+    text = (f"{name} is not identified: the profile likelihood stays within {level / 2:g} of its maximum from "
+            f"{lo_txt} to {hi_txt} (best {v:.4g})")
+    if parts:
+        text += f"; {', '.join(moving)} move with it ({', '.join(parts)}) and are not identified either"
+    return text, cov, moving, False, info
 
 
 def _identifiability_text(free, inner, cov, corr, flagged, null_dirs, max_rel_se):
@@ -1282,6 +1701,3 @@ def _goodness(problem: _Problem, theta, extras, n_free):
                                f"(measured r {np.nanmin(r_o[both]):.3g} .. {np.nanmax(r_o[both]):.3g})")
     return gof, disp
 
-
-def _today() -> str:
-    return _dt.date.today().isoformat()

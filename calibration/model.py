@@ -101,6 +101,9 @@ class LevelStats:
         self.mass = [[None] * n, [None] * n]
         self.log_m1 = np.empty((2, n))
         self.log_m2 = np.empty((2, n))
+        if method == "poisson" and params.eps_sigma <= 0 and n:
+            self._no_mismatch(lam, params)
+            return
         for k, eps in enumerate((params.eps_pos, params.eps_neg)):
             for j in range(n):
                 lp, mass, m1, m2 = _atoms(lam[j], params.bias_pr, eps, params.eps_sigma, method)
@@ -108,6 +111,27 @@ class LevelStats:
                 self.mass[k][j] = mass
                 self.log_m1[k, j] = m1
                 self.log_m2[k, j] = m2
+        self.trial_rate_hz = params.trial_rate_hz
+        self.refractory_s = params.refractory_us * 1e-6
+
+    def _no_mismatch(self, lam, params):
+        """Every pixel at the nominal thresholds: one atom per level, all levels in one kernel call."""
+        from ._kernels import LOG_ZERO, log_probability_serial
+
+        n = lam.size
+        pos = lam > 0
+        lam2 = np.ascontiguousarray(np.tile(np.where(pos, lam, 1.0), 2))
+        c2 = np.repeat([math.expm1(params.eps_pos), math.expm1(params.eps_neg)], n)
+        out = np.empty(2 * n)
+        log_probability_serial(lam2, c2, np.full(2 * n, float(params.bias_pr)), out)
+        lp = np.where(np.tile(pos, 2), out, -math.inf).reshape(2, n)
+        self.log_m1[...] = lp
+        self.log_m2[...] = 2.0 * lp
+        one = np.ones(1)
+        for k in range(2):
+            for j in range(n):
+                self.log_p[k][j] = np.array([max(lp[k, j], LOG_ZERO)])
+                self.mass[k][j] = one
         self.trial_rate_hz = params.trial_rate_hz
         self.refractory_s = params.refractory_us * 1e-6
 

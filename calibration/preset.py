@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import json
 import math
@@ -53,14 +54,13 @@ def _table(name: str, items: dict, *, digits: int | None = 7) -> list[str]:
 
 def result_to_toml(result, *, extra_provenance: dict | None = None, header: str | None = None) -> str:
     """The preset document of a :class:`~evnoise.calibration.CalibrationResult`."""
-    from .fit import FIT_NAMES
-
     p = result.params
+    names = [f.name for f in dataclasses.fields(p)]  # every parameter, in NoiseParams' order
     lines = []
     if header:
         lines += [f"# {ln}" if ln else "#" for ln in header.splitlines()]
         lines.append("")
-    lines += _table("params", {n: float(getattr(p, n)) for n in FIT_NAMES}, digits=None)
+    lines += _table("params", {n: float(getattr(p, n)) for n in names}, digits=None)
     lines.append("")
     prov = {
         "source": result.measurements.source,
@@ -75,10 +75,13 @@ def result_to_toml(result, *, extra_provenance: dict | None = None, header: str 
         prov.update(extra_provenance)
     lines += _table("provenance", prov)
     lines.append("")
-    fit = {"free": list(result.free), "log_likelihood": float(result.loglik)}
+    fit = {"free": list(result.free), "log_likelihood": float(result.loglik),
+           "fit_status": getattr(result, "fit_status", "accepted"), "warnings": list(getattr(result, "warnings", []))}
+    if getattr(result, "at_bound", None):
+        fit["at_bound"] = dict(result.at_bound)
     lines += _table("fit", fit)
     lines.append("")
-    lines += _table("fit.status", {n: result.status.get(n, "fixed") for n in FIT_NAMES})
+    lines += _table("fit.status", {n: result.status.get(n, "fixed") for n in names})
     lines.append("")
     lines += _table("fit.std_error", {n: float(result.std_error[n]) for n in result.free})
     lines.append("")

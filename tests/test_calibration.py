@@ -265,7 +265,7 @@ def test_rates_without_exposure_use_residual_scatter(tmp_path):
     rate = cal.population_rate(lux, truth) * np.exp(np.random.default_rng(2).normal(0, 0.03, (2, lux.size)))
     path = _write_csv(tmp_path / "r.csv", ["lux", "rate_on_hz", "rate_off_hz"],
                       [(lx, rate[0, i], rate[1, i]) for i, lx in enumerate(lux)])
-    result = cal.calibrate(cal.read_measurements(path), n_starts=3)
+    result = cal.calibrate(cal.read_measurements(path), n_starts=3, rng=0)
     assert "unknown" in result.gof["counts"]
     assert result.gof["rate_rms_relative_residual"] < 0.05, result.summary()
 
@@ -356,7 +356,7 @@ def test_bad_inputs_more(tmp_path):
 def test_preset_round_trip(tmp_path):
     truth = _random_params(9)
     meas = _flat_fields(truth, 10, shape=(20, 20), lux=LUX_LEVELS[1:])
-    result = cal.calibrate(meas, n_starts=1, initial=truth, fixed={"refractory_s": 0.0})
+    result = cal.calibrate(meas, n_starts=1, initial=truth, fixed={"refractory_s": 0.0}, rng=0)
     path = result.write_preset(tmp_path / "p.toml")
     assert ev.load_preset(path) == result.params
     with pytest.raises(ev.OutputError):

@@ -15,6 +15,8 @@ from ..errors import ParameterError
 
 log = logging.getLogger(__name__)
 
+EXAMPLE = "rates-example.csv"
+
 PARAMETERS = ("eps_pos", "eps_neg", "bias_pr", "trial_rate_hz", "photons_per_lux", "dark_lux", "refractory_s",
               "eps_sigma")
 
@@ -26,12 +28,16 @@ def register(subparsers) -> None:
         description="Fit evnoise's noise model to measurements by maximum likelihood (exact closed form, "
         "threshold mismatch, multi-start) and write the parameters as a preset TOML with uncertainties, "
         "goodness of fit and what the data do not determine.",
-        epilog="examples: evnoise calibrate rates.csv --out cam.toml --plot cam.png ; "
+        epilog="examples: evnoise calibrate --example --out cam.toml --plot cam.png ; "
+        "evnoise calibrate rates.csv --out cam.toml --plot cam.png ; "
         "evnoise calibrate flats.toml --out cam.toml --fix refractory_s=0 ; "
         "evnoise calibrate grey_rates.csv --monitor monitor.csv --out cam.toml",
     )
-    p.add_argument("measurements", metavar="MEASUREMENTS",
+    p.add_argument("measurements", metavar="MEASUREMENTS", nargs="?",
                    help="rate table (CSV) or flat-field listing (TOML, or CSV with a 'file' column)")
+    p.add_argument("--example", action="store_true",
+                   help=f"use the bundled example rate table ({EXAMPLE}, simulated from the evk3-hd preset) "
+                   "as MEASUREMENTS")
     p.add_argument("-o", "--out", required=True, metavar="TOML", help="preset file to write")
     p.add_argument("--plot", metavar="PNG", help="also write a figure of the data and the fitted curves")
     p.add_argument("--monitor", metavar="CSV", help="grey -> lux table of a monitor (columns grey, lux)")
@@ -76,12 +82,30 @@ def _parse_fix(items) -> dict:
     return out
 
 
+def _measurements_path(args):
+    from ..errors import InputError
+
+    if args.example and args.measurements:
+        raise InputError(f"give either MEASUREMENTS ({args.measurements}) or --example, not both")
+    if not args.example:
+        if not args.measurements:
+            raise InputError("no input: give MEASUREMENTS (a rate table or flat-field listing) or --example")
+        return args.measurements
+    from importlib import resources
+
+    path = resources.files("evnoise.data") / EXAMPLE
+    if not path.is_file():
+        raise InputError(f"the bundled example table {EXAMPLE} is missing from the installed evnoise package")
+    return str(path)
+
+
 def run(args) -> int:
     from ..io import open_output_path
     from ..params import load_preset
 
     if args.starts < 1:
         raise ParameterError(f"--starts must be >= 1, got {args.starts}")
+    source = _measurements_path(args)
     fixed = _parse_fix(args.fix)
     from ._paths import refuse_writing_inputs
 
@@ -94,14 +118,18 @@ def run(args) -> int:
 
     from ..calibration import calibrate, read_measurements
 
-    meas = read_measurements(args.measurements, monitor=args.monitor, monitor_model=args.monitor_model,
+    meas = read_measurements(source, monitor=args.monitor, monitor_model=args.monitor_model,
                              progress=not args.quiet)
     log.info("%d levels (%s), %.4g to %.4g lux", meas.n_levels, meas.kind, meas.lux.min(), meas.lux.max())
     result = calibrate(meas, method=args.method, distribution=args.distribution, free=args.fit, fixed=fixed,
                        initial=initial, n_starts=args.starts, n_seeds=max(2048, args.starts), rng=args.seed,
                        unidentified=args.unidentified, progress=not args.quiet)
+    # a rejected fit or a parameter on a bound must not go unnoticed (shown with -q too)
+    for text in result.warnings:
+        log.warning("calibrate: %s", text)
     result.write_preset(out, overwrite=args.overwrite,
-                        extra_provenance={"command": "evnoise calibrate " + str(args.measurements)})
+                        extra_provenance={"command": "evnoise calibrate "
+                                          + ("--example" if args.example else str(args.measurements))})
     if plot is not None:
         result.plot(plot, overwrite=args.overwrite)
     if not args.quiet:
