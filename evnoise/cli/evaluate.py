@@ -39,7 +39,8 @@ def register(subparsers):
     p.add_argument("--title", help="title line of the table (default: the dataset and split)")
     p.add_argument("--out", metavar="TABLE.md", help="write the markdown table here")
     p.add_argument("--json", metavar="RESULTS.json", help="write every number (per pair too) here")
-    p.add_argument("--figure", metavar="FIG.png", help="PNG of counts / ML baseline / U-Net / ground truth")
+    p.add_argument("--figure", metavar="FIG.png",
+                   help="PNG of counts / ML baseline / U-Net / ground truth (first pair of up to 6 source images)")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
     p.set_defaults(func=run)
@@ -108,7 +109,7 @@ def run(args) -> int:
         params = load_preset(args.preset)
     sigmas = args.ml_sigma or [0.7]
     result = evaluate(data, model, params=params, max_lux=args.max_lux, lpips=not args.no_lpips,
-                      max_items=args.max_items, keep_predictions=4 if args.figure else 0,
+                      max_items=args.max_items, keep_predictions=len(data) if args.figure else 0,
                       progress=not args.quiet, smoothing_sigma=sigmas[0] if len(sigmas) == 1 else sigmas)
     table = format_table(result, title=args.title or f"{args.dataset} [{args.split}]")
     print(table)
@@ -125,5 +126,15 @@ def run(args) -> int:
                 tmp.write_text(json.dumps(doc, indent=1, default=float), encoding="utf-8")
         else:
             with atomic_output(path, overwrite=args.overwrite, what="figure") as tmp:
-                comparison_figure(result["examples"], tmp)
+                comparison_figure(_one_per_source(result["examples"]), tmp)
     return 0
+
+
+def _one_per_source(examples, limit: int = 6):
+    """The first pair of each source image, up to ``limit`` (a figure that shows different scenes)."""
+    seen, out = set(), []
+    for ex in examples:
+        if ex["source"] not in seen:
+            seen.add(ex["source"])
+            out.append(ex)
+    return (out if len(out) > 1 else examples)[:limit]

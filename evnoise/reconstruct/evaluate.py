@@ -182,7 +182,9 @@ def comparison_figure(examples, path, *, methods=None) -> Path:
     if not examples:
         raise InputError("no examples to plot")
     if methods is None:
-        methods = [m for m in examples[0]["predictions"] if m.startswith("ml-inversion")][:1] + ["unet"]
+        preds = examples[0]["predictions"]
+        methods = ([m for m in ("counts-affine",) if m in preds]
+                   + [m for m in preds if m.startswith("ml-inversion")][-1:] + ["unet"])
     cols = ["counts (ON + OFF)"] + [LABELS.get(m, m).split(" (")[0] for m in methods] + ["ground truth"]
     cols = [c.replace("ml-inversion@", "ML inversion, sigma ") for c in cols]
     fig, axes = plt.subplots(len(examples), len(cols), figsize=(2.6 * len(cols), 2.6 * len(examples)), squeeze=False)
