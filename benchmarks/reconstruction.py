@@ -893,7 +893,24 @@ def write_report(*, run, info, size_name, size, args, machine_start, machine_end
     add("`--quick` (about 15 minutes) and `--tiny` (a smoke run) use smaller data and budgets; `--work DIR` keeps "
         "the datasets, checkpoints and cached job results (a second run reuses finished jobs; `--fresh` "
         "ignores them).")
-    out.write_text("\n".join(L) + "\n", encoding="utf-8")
+    text = "\n".join(L) + "\n"
+    kept = shipped_model_section(out)
+    if kept:  # the shipped model's section is written by hand from `evnoise evaluate`: keep it
+        text = text.replace("## Setup\n", kept + "\n\n## Setup\n", 1)
+    out.write_text(text, encoding="utf-8")
+
+
+SHIPPED_BEGIN, SHIPPED_END = "<!-- shipped-model:begin -->", "<!-- shipped-model:end -->"
+
+
+def shipped_model_section(path: Path) -> str:
+    """The block between the shipped-model markers of an existing report ('' when absent)."""
+    try:
+        old = Path(path).read_text(encoding="utf-8")
+    except OSError:
+        return ""
+    i, j = old.find(SHIPPED_BEGIN), old.find(SHIPPED_END)
+    return old[i:j + len(SHIPPED_END)] if 0 <= i < j else ""
 
 
 # ==================================================================================== main
