@@ -97,7 +97,9 @@ def main(argv=None) -> int:
     if "mismatch" in which:
         mism = params.replace(eps_sigma=args.sigma)
         thr = ev.draw_thresholds(lux.shape, mism, rng=2)
-        t = timed(lambda: ev.trial_probabilities(lam.ravel(), mism, (thr[0].ravel(), thr[1].ravel())),
+        from evnoise.rates import trial_probabilities
+
+        t = timed(lambda: trial_probabilities(lam.ravel(), mism, (thr[0].ravel(), thr[1].ravel())),
                   args.repeats)
         emit(args.label, f"trial_probabilities with mismatch (sigma {args.sigma}) 1280x720", t,
              values_per_s=2 * n_pix / t[0])

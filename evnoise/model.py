@@ -111,23 +111,22 @@ def _log_p_poisson(lam, eps, bias, shape, skip_below=None):
             return table.evaluate(lam_b).reshape(shape)
         return table.evaluate(lam_b, float(skip_below), _SKIP_CHECK_MIN_LAM).reshape(shape)
     todo = np.ones(lam_b.shape, dtype=bool)
-    if skip_below is not None:
-        # only where the exact sum is costly (large lam) is a bound worth computing
-        big = np.flatnonzero(lam_b > _SKIP_CHECK_MIN_LAM)
-        if big.size:
-            from ._kernels.bounds import log_chernoff_bound_array
-
-            c_b = np.ascontiguousarray(np.broadcast_to(np.expm1(eps), shape)).ravel()[big]
-            b_b = np.ascontiguousarray(np.broadcast_to(bias, shape)).ravel()[big]
-            bound = np.empty(big.size)
-            log_chernoff_bound_array(np.ascontiguousarray(lam_b[big]), c_b, b_b, bound)
-            skip = big[bound < skip_below]
-            todo[skip] = False
-            out[skip] = -np.inf
     c_b = np.ascontiguousarray(np.broadcast_to(np.expm1(eps), shape)).ravel()
     if bias.size == 1 or np.all(bias == bias.flat[0]):
         # per-pixel thresholds (mismatch) on shared lam levels: tabulate once per level
         todo &= ~_grouped(lam_b, c_b, float(bias.flat[0]), todo, out)
+    if skip_below is not None:
+        # only where the exact sum is costly (large lam) is a bound worth computing
+        big = np.flatnonzero(todo & (lam_b > _SKIP_CHECK_MIN_LAM))
+        if big.size:
+            from ._kernels.bounds import log_chernoff_bound_array
+
+            b_big = np.ascontiguousarray(np.broadcast_to(bias, shape)).ravel()[big]
+            bound = np.empty(big.size)
+            log_chernoff_bound_array(np.ascontiguousarray(lam_b[big]), np.ascontiguousarray(c_b[big]), b_big, bound)
+            skip = big[bound < skip_below]
+            todo[skip] = False
+            out[skip] = -np.inf
     b_b = np.ascontiguousarray(np.broadcast_to(bias, shape), dtype=np.float64).ravel()[todo]
     sub = np.empty(b_b.shape)
     log_event_probability_exact_array(np.ascontiguousarray(lam_b[todo]), np.ascontiguousarray(c_b[todo]),
@@ -152,7 +151,7 @@ def _grouped(lam, c, b, todo, out) -> np.ndarray:
     p = np.empty(cand.size)
     event_probability_grouped(levels, starts.astype(np.int64), order.astype(np.int64),
                               np.ascontiguousarray(c[cand]), b, p)
-    good = p > 1e-280
+    good = p > 1e-280  # NaN (terms ran past the level's table) is not good either
     with np.errstate(divide="ignore"):
         out[cand[good]] = np.log(p[good])
     done[cand[good]] = True

@@ -99,3 +99,60 @@ def test_pinned_scene_exercises_the_skipped_region():
     assert np.count_nonzero(lam > np.exp(17.0)) >= 1
     assert np.all(p[log_p < -760] == 0.0)
     assert np.all(p[log_p > -700] > 0.0)
+
+
+# --------------------------------------------------------------------------------------
+# threshold mismatch: the grouped per-level path against the windowed exact sum
+# --------------------------------------------------------------------------------------
+HARD_EPS = {
+    "tiny eps": (1e-4, 3e-3),
+    "preset-like eps": (0.08, 0.3),
+    "large eps": (0.7, 5.0),
+}
+
+
+@pytest.mark.parametrize("bias", [0.0, 1.7, 105.0])
+@pytest.mark.parametrize("eps_range", sorted(HARD_EPS))
+def test_grouped_mismatch_path_matches_exact_sum(eps_range, bias):
+    """Per-pixel thresholds on shared lam levels (1e-3 .. 1e6, i.e. far beyond the old limit of 200)
+    agree with the windowed exact sum to 1e-10 relative wherever p > 1e-300 (tiny p included)."""
+    from evnoise import model
+    from evnoise._kernels.poisson import log_event_probability_exact_array
+
+    g = np.random.default_rng(11)
+    levels = np.concatenate([10.0 ** np.linspace(-3, 6, 28), [200.0, 201.0, 1e3, 3e4, 1e5]])
+    per_level = 128
+    lam = np.repeat(levels, per_level)
+    lo, hi = HARD_EPS[eps_range]
+    eps = np.exp(g.uniform(np.log(lo), np.log(hi), lam.size))
+    got = ev.log_event_probability(lam, eps, bias)
+    ref = np.empty(lam.size)
+    log_event_probability_exact_array(lam, np.expm1(eps), np.full(lam.size, bias), ref)
+    sel = ref > np.log(1e-300)
+    assert np.count_nonzero(sel) > 500
+    assert np.all(np.abs(np.expm1(got[sel] - ref[sel])) <= 1e-10), np.max(np.abs(got[sel] - ref[sel]))
+    assert np.all(got[~sel] < np.log(1e-290))
+    # the grouped path itself did the work (it is what is under test), also above lam = 200
+    out = np.empty(lam.size)
+    done = model._grouped(lam, np.expm1(eps), bias, np.ones(lam.size, dtype=bool), out)
+    big = lam > 200
+    assert np.count_nonzero(done & big & sel) >= 0.5 * np.count_nonzero(big & sel)
+    assert np.all(np.abs(out[done] - ref[done]) <= 1e-10)
+
+
+def test_grouped_path_tail_bound_handles_tiny_probabilities():
+    """Where p is far below 1e-25 the summand's peak sits many sqrt(lam) below lam (a fixed window
+    around lam loses it): the grouped path must still agree with the exact sum or defer to it."""
+    from evnoise import model
+    from evnoise._kernels.poisson import log_event_probability_exact_array
+
+    lam = np.repeat([3e3, 1e4, 1e5, 3e5], 1024)
+    eps = np.linspace(0.15, 0.35, lam.size) % 0.2 + 0.15
+    c = np.expm1(eps)
+    ref = np.empty(lam.size)
+    log_event_probability_exact_array(lam, c, np.zeros(lam.size), ref)
+    assert np.count_nonzero((ref < np.log(1e-25)) & (ref > np.log(1e-280))) > 1000
+    out = np.full(lam.size, np.nan)
+    done = model._grouped(lam, c, 0.0, np.ones(lam.size, dtype=bool), out)
+    assert np.count_nonzero(done & (ref < np.log(1e-25))) > 500
+    assert np.all(np.abs(out[done] - ref[done]) <= 1e-10)

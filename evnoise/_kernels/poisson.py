@@ -285,7 +285,92 @@ def log_event_probability_exact_array(lam, c, b, out):
         out[i] = log_event_probability_exact(lam[i], c[i], b[i])
 
 
-GROUPED_MAX_LAM = 200.0  # above this the per-pixel loop of the grouped path costs more than the windowed sum
+GROUPED_MAX_LAM = 1e6  # above this a level's table (~ (c_max - c_min) lam entries) grows too large
+GROUPED_MAX_TABLE = 1 << 20  # entries of one level's pmf / tail tables (16 MiB)
+GROUPED_TOL = 1e-17  # the neglected terms of each pixel's sum are at most this fraction of the sum kept
+
+
+@kernel
+def _peak_m(lam, c, b):
+    """Where ``pmf(m) P(N > k(m))`` peaks, roughly: the mean of ``n0`` under the exponential tilt
+    that makes the event typical (the Chernoff point of :func:`evnoise._kernels.bounds.log_chernoff_bound`).
+    Only a starting point and a table extent: every sum is stopped by a rigorous bound."""
+    a = 1.0 + c
+    T = c * b
+    hi = 1.0
+    for _ in range(200):
+        if lam * (math.exp(hi) - a * math.exp(-a * hi)) >= T:
+            break
+        hi *= 2.0
+    lo = 0.0
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if lam * (math.exp(mid) - a * math.exp(-a * mid)) < T:
+            lo = mid
+        else:
+            hi = mid
+    return lam * math.exp(-a * 0.5 * (lo + hi))
+
+
+@kernel
+def _grouped_pixel(lam, ci, b, j0, j1, pmf, sf, m_start, tol):
+    """``p = sum_m pmf(m) P(N > k(m))`` for one pixel from a level's tables (``pmf[j - j0]``, ``sf[j - j0]``).
+
+    Summed outwards from ``m_start``; each side stops once a rigorous bound on all its remaining
+    terms is below ``tol`` times the sum so far. The bound: ``pmf(m') <= pmf(m) (m / lam)^j``
+    for ``m' = m - j`` (and ``(lam / (m + 1))^j`` for ``m' = m + j``); ``k(m) - k(m')`` lies within
+    ``j (1 + c) +- 1``; and the Poisson law is log-concave, so ``log P(N > k)`` is concave in ``k``
+    and ``P(N > k - x) <= P(N > k) r^x`` with ``r = P(N > k - 1) / P(N > k)`` (``P(N > k + x) <=
+    P(N > k) q^x``, ``q = P(N > k + 1) / P(N > k)``). The rest is then below a geometric series,
+    ``t(m) r^2 rho / (1 - rho)`` with ``rho = (m / lam) r^(1 + c)`` downwards and
+    ``t(m) q^-1 rho / (1 - rho)`` with ``rho = lam / (m + 1) q^(1 + c)`` upwards. Returns NaN
+    where the terms run past the tables (the caller falls back to the windowed sum).
+    """
+    a_hi = 1.0 + ci * (1.0 + 1e-8)  # margins for the rounding of c (m + b)
+    a_lo = 1.0 + ci * (1.0 - 1e-8)
+    s = 0.0
+    # upwards from m_start
+    m = m_start
+    n_step = 0
+    while True:
+        k = m + math.floor(ci * (m + b))
+        if k + 1.0 > j1 or m > j1:
+            return math.nan
+        sk = sf[int(k) - j0]
+        t = pmf[int(m) - j0] * sk
+        s += t
+        n_step += 1
+        if sk == 0.0:
+            break  # every later term is below the smallest double: nothing left that counts
+        if n_step % 8 == 0:
+            q = sf[int(k) + 1 - j0] / sk
+            rho = lam / (m + 1.0) * math.exp(a_lo * math.log(q)) if q > 0.0 else 0.0
+            if rho < 1.0 and t * rho <= tol * s * q * (1.0 - rho):
+                break
+        m += 1.0
+    # downwards from m_start - 1
+    m = m_start - 1.0
+    n_step = 0
+    while m >= 0.0:
+        if m < j0:
+            return math.nan
+        k = m + math.floor(ci * (m + b))
+        sk = sf[int(k) - j0]
+        t = pmf[int(m) - j0] * sk
+        s += t
+        n_step += 1
+        if n_step % 8 == 0 and sk > 0.0:
+            if k - 1.0 < j0:
+                if j0 > 0:
+                    return math.nan
+                r = 1.0 / sk  # P(N > -1) = 1
+            else:
+                r = sf[int(k) - 1 - j0] / sk
+            rho = m / lam * math.exp(a_hi * math.log(r))
+            if rho < 1.0 and t * r * r * rho <= tol * s * (1.0 - rho):
+                break
+        m -= 1.0
+    return s
 
 
 @kernel(parallel=True)
@@ -293,32 +378,47 @@ def event_probability_grouped(lam_levels, starts, order, c, b, out):
     """``p`` for pixels that share a few ``lam`` levels but each have their own threshold.
 
     Pixels ``order[starts[g]:starts[g + 1]]`` all have ``lam = lam_levels[g]`` (``0 < lam <=``
-    :data:`GROUPED_MAX_LAM`) and thresholds ``c[i] = expm1(eps_i)``. Per level, ``pmf(m)`` and
-    ``P(N > k)`` are tabulated once (the tails summed downwards, so they only grow); per pixel
-    ``p = sum_m pmf(m) P(N > m + floor(c_i (m + b)))`` over ``m <= lam + 12 sqrt(lam) + 20``,
-    beyond which the terms are below 1e-30 of the sum. Linear arithmetic: results below about
-    1e-280 lose relative accuracy and should be recomputed with the windowed sum.
+    :data:`GROUPED_MAX_LAM`) and thresholds ``c[i] = expm1(eps_i)``. Per level, ``pmf(j)`` and
+    ``P(N > j)`` are tabulated once over the ``j`` that the level's pixels need (the tails summed
+    downwards, so they only grow); per pixel ``p = sum_m pmf(m) P(N > m + floor(c_i (m + b)))``
+    is summed outwards from its peak until a rigorous bound on the remaining terms (see
+    :func:`_grouped_pixel`) is below :data:`GROUPED_TOL` of the sum. Linear arithmetic: results
+    below about 1e-280 lose relative accuracy, and NaN marks a pixel whose terms ran past the
+    table; both should be recomputed with the windowed sum.
     """
     for g in prange(lam_levels.shape[0]):
         lam = lam_levels[g]
         lo = starts[g]
         hi = starts[g + 1]
+        c_min = math.inf
         c_max = 0.0
         for q in range(lo, hi):
+            c_min = min(c_min, c[order[q]])
             c_max = max(c_max, c[order[q]])
-        m_top = int(math.floor(lam + 12.0 * math.sqrt(lam) + 20.0))
-        k_top = m_top + int(math.floor(c_max * (m_top + b))) + 1
-        pmf = np.empty(k_top + 2)
-        for k in range(k_top + 2):
-            pmf[k] = math.exp(log_pmf(float(k), lam))
-        sf = np.empty(k_top + 1)
-        sf[k_top] = math.exp(log_sf(float(k_top), lam))
-        for k in range(k_top - 1, -1, -1):
-            sf[k] = sf[k + 1] + pmf[k + 1]
+        width = 12.0 * math.sqrt(lam) + 40.0
+        peak_lo = _peak_m(lam, c_max, b)  # the peak moves down as the threshold grows
+        peak_hi = _peak_m(lam, c_min, b)
+        m_a = max(0.0, math.floor(peak_lo - width))
+        m_b = math.ceil(peak_hi + width)
+        k_a = m_a + math.floor(c_min * (m_a + b)) - 3.0 - math.floor(c_max)
+        k_b = m_b + math.floor(c_max * (m_b + b)) + 1.0 + math.floor(c_max)
+        j0 = int(max(0.0, min(m_a, k_a)))
+        j1 = int(max(m_b, k_b)) + 1
+        n = j1 - j0 + 1
+        if n > GROUPED_MAX_TABLE:  # widely spread or large thresholds: leave the level to the windowed sum
+            for q in range(lo, hi):
+                out[order[q]] = math.nan
+            continue
+        pmf = np.empty(n + 1)
+        for j in range(n + 1):
+            pmf[j] = math.exp(log_pmf(float(j0 + j), lam))
+        sf = np.empty(n)
+        sf[n - 1] = math.exp(log_sf(float(j1), lam))
+        for j in range(n - 2, -1, -1):
+            sf[j] = sf[j + 1] + pmf[j + 1]
         for q in range(lo, hi):
             i = order[q]
             ci = c[i]
-            s = 0.0
-            for m in range(m_top + 1):
-                s += pmf[m] * sf[m + int(math.floor(ci * (m + b)))]
-            out[i] = s
+            f = (ci - c_min) / (c_max - c_min) if c_max > c_min else 0.0
+            m_start = min(max(math.floor(peak_hi + f * (peak_lo - peak_hi)), float(j0)), float(j1))
+            out[i] = _grouped_pixel(lam, ci, b, j0, j1, pmf, sf, m_start, GROUPED_TOL)
