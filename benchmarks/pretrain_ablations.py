@@ -69,7 +69,8 @@ def main(argv=None) -> int:
         runs = list(pool.map(lambda kv: run_variant(kv[0], kv[1], work, args.steps, args.dead_leaves, args.seed,
                                                          args.nice),
                              variants.items()))
-    rows = ["| variant | dead leaves PSNR ↑ | SSIM ↑ | LPIPS ↓ | photos PSNR ↑ | SSIM ↑ | LPIPS ↓ | train wall (min) |",
+    rows = ["| variant | dead leaves PSNR ↑ | SSIM ↑ | LPIPS ↓ | photos PSNR ↑ | SSIM ↑ | LPIPS ↓ "
+            "| train wall (min) |",
             "|---|---|---|---|---|---|---|---|"]
     results = {}
     for r in runs:

@@ -1,10 +1,12 @@
 """The reconstructor: a small PyTorch U-Net from noise-event counts to images (needs ``evnoise[train]``).
 
 Importing this package is cheap and does not import torch; each name loads its module on first
-use. Modules: ``unet`` (model), ``train`` (training loop), ``checkpoint`` (files),
-``infer`` (events.h5 -> image), ``data`` (pair datasets), ``metrics`` (PSNR, SSIM, LPIPS),
-``lpips`` (offline AlexNet LPIPS), ``baselines`` (count image, ML inversion), ``evaluate``
-(the comparison table), ``imaging`` (sRGB encoding, binning, PNG). The functions ``train`` and
+use. Modules: ``unet`` (model), ``train`` (training loop), ``checkpoint`` (files, model
+cards), ``infer`` (events.h5 -> image; the shipped model), ``data`` (pair datasets),
+``metrics`` (PSNR, SSIM, LPIPS), ``lpips`` (offline AlexNet LPIPS), ``baselines`` (count
+image, ML inversion), ``evaluate`` (the comparison table; ``evnoise evaluate``), ``imaging``
+(sRGB encoding, binning, PNG), ``pretrain`` (the script that trains the shipped model),
+``sheets`` (contact sheet and GIF of ``reconstruct --fps``). The functions ``train`` and
 ``evaluate`` live in the modules of the same name (``from evnoise.reconstruct.train import train``).
 """
 
@@ -21,6 +23,9 @@ _LAZY = {
     "read_checkpoint": ".checkpoint",
     "load_model": ".checkpoint",
     "describe_checkpoint": ".checkpoint",
+    "checkpoint_summary": ".checkpoint",
+    "default_model_path": ".infer",
+    "choose_window": ".infer",
     "Reconstructor": ".infer",
     "counts_from_h5": ".infer",
     "PairList": ".data",

@@ -291,7 +291,8 @@ def checkpoint_summary(path) -> dict:
         hist = train.get("history") or {}
         val = hist.get("val_loss") or []
         out["training"] = (
-            f"{train.get('epoch', 0)} epochs, {train.get('step', 0)} steps of {train.get('config', {}).get('batch_size', '?')} "
+            f"{train.get('epoch', 0)} epochs, {train.get('step', 0)} steps of "
+            f"{train.get('config', {}).get('batch_size', '?')} "
             f"crops, {float(train.get('elapsed_s', 0.0)) / 60:.1f} min, "
             f"{'finished' if train.get('finished') else 'resumable (not finished)'}; "
             f"best epoch {train.get('best_epoch')} (val loss {train.get('best_val', float('nan')):.4g})"
@@ -299,7 +300,8 @@ def checkpoint_summary(path) -> dict:
         )
     validation = card.get("validation") or {}
     if validation:
-        out["validation"] = f"PSNR {validation.get('psnr_db', float('nan')):.2f} dB, SSIM {validation.get('ssim', float('nan')):.3f}"
+        out["validation"] = (f"PSNR {validation.get('psnr_db', float('nan')):.2f} dB, "
+                             f"SSIM {validation.get('ssim', float('nan')):.3f}")
     scores = card.get("held_out_scores") or {}
     if scores:
         block = {}

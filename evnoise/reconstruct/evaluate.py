@@ -2,7 +2,7 @@
 
 Usage (once a dataset exists)::
 
-    python -m evnoise.reconstruct.evaluate DATASET --model model.pt [--split test] \\
+    evnoise evaluate DATASET [--model model.pt] [--split test] \\
         [--out table.md] [--json results.json] [--figure examples.png] [--no-lpips]
 
 Methods, each on the same pairs:
@@ -208,7 +208,8 @@ def comparison_figure(examples, path, *, methods=None) -> Path:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m evnoise.reconstruct.evaluate", description=__doc__.split("\n")[0])
     parser.add_argument("dataset", help="make-dataset folder or .npz pairs file")
-    parser.add_argument("--model", required=True, help="checkpoint written by evnoise train")
+    parser.add_argument("--model", default=None,
+                        help="checkpoint written by evnoise train (default: the shipped evk3-hd model)")
     parser.add_argument("--split", default="test", help="dataset split (default: test)")
     parser.add_argument("--preset", help="noise preset for the ML baseline (default: the dataset's)")
     parser.add_argument("--max-lux", type=float, help="white level in lux for the ML baseline (default: the dataset's)")
@@ -224,6 +225,10 @@ def main(argv=None) -> int:
         from ..params import load_preset
         from .data import open_pairs
 
+        from .infer import default_model_path
+
+        if args.model is None:
+            args.model = default_model_path()
         data = open_pairs(args.dataset, split=args.split)
         params = load_preset(args.preset) if args.preset else None
         result = evaluate(data, args.model, params=params, max_lux=args.max_lux, lpips=not args.no_lpips,

@@ -106,8 +106,8 @@ def dead_leaves_scenes(count: int, seed: int, tag: str, *, progress: bool = Fals
         from tqdm.auto import tqdm
 
         iterator = tqdm(iterator, desc=f"dead leaves ({tag})", unit="scene")
-    return {f"dead-leaves-{tag}/{k:04d}": srgb_to_linear(dead_leaves(SENSOR_SHAPE, np.random.default_rng([seed, word, k])))
-            for k in iterator}
+    return {f"dead-leaves-{tag}/{k:04d}":
+            srgb_to_linear(dead_leaves(SENSOR_SHAPE, np.random.default_rng([seed, word, k]))) for k in iterator}
 
 
 class SceneCrops:
@@ -299,7 +299,8 @@ def main(argv=None) -> int:
     ap.add_argument("--make-test-sets", metavar="DIR", help="write the held-out test sets to DIR and stop")
     ap.add_argument("--ship", metavar="CHECKPOINT", help="strip CHECKPOINT's training state, add --scores, write --out")
     ap.add_argument("--scores", nargs="*", default=[], metavar="NAME=JSON",
-                    help="with --ship: held-out scores, e.g. dead-leaves=id.json photos=ood.json (from evnoise evaluate)")
+                    help="with --ship: held-out scores, e.g. dead-leaves=id.json photos=ood.json "
+                    "(from evnoise evaluate --json)")
     ap.add_argument("--max-minutes", type=float, default=55.0, help="wall-clock budget (default 55)")
     ap.add_argument("--epochs", type=int, default=90, help="epochs of --steps-per-epoch steps (default 90)")
     ap.add_argument("--steps-per-epoch", type=int, default=100)
