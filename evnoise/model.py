@@ -116,8 +116,16 @@ def _log_p_poisson(lam, eps, bias, shape, skip_below=None):
         # per-pixel thresholds (mismatch) on shared lam levels: tabulate once per level
         todo &= ~_grouped(lam_b, c_b, float(bias.flat[0]), todo, out)
     if skip_below is not None:
-        # only where the exact sum is costly (large lam) is a bound worth computing
-        big = np.flatnonzero(todo & (lam_b > _SKIP_CHECK_MIN_LAM))
+        # only where the exact sum is costly (large lam) and p may be negligible is a bound worth
+        # computing: a pre-filter on the Gaussian form's exponent z^2 (log p ~ -z^2) leaves out the
+        # values that are nowhere near skip_below. Either way p is unchanged (a skipped value has
+        # log p < skip_below <= _LOG_TINY, whose exp is 0), only the work differs.
+        big = todo & (lam_b > _SKIP_CHECK_MIN_LAM)
+        if big.any():
+            z = _gaussian_z(lam_b, np.broadcast_to(eps, shape).ravel(), np.broadcast_to(bias, shape).ravel(),
+                            lam_b.shape)
+            big &= z * z > 0.5 * -skip_below
+        big = np.flatnonzero(big)
         if big.size:
             from ._kernels.bounds import log_chernoff_bound_array
 
