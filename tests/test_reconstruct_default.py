@@ -76,15 +76,18 @@ def test_shipped_model_is_package_data_and_small():
     assert {"dead-leaves", "photos"} <= set(card["held_out_scores"])
 
 
-def test_reconstruct_without_model_uses_the_shipped_one_and_sees_the_scene(tmp_path, capsys):
-    """The done-when check: a simulated recording of the bundled example scene, no --model."""
+@pytest.mark.parametrize("suffix", [".h5", ".raw"])
+def test_reconstruct_without_model_uses_the_shipped_one_and_sees_the_scene(tmp_path, capsys, suffix):
+    """The done-when check: a simulated recording of the bundled example scene, no --model (.raw: EVT3)."""
+    if suffix == ".raw":
+        pytest.importorskip("faery")
     from importlib.resources import files
 
     from PIL import Image
 
     from evnoise.reconstruct.imaging import bin_mean, srgb_encode
 
-    rec = tmp_path / "rec.h5"
+    rec = tmp_path / f"rec{suffix}"
     assert main(["-q", "simulate", "--example", "--sensor", "256x144", "--duration", "2", "--seed", "3",
                  "--threads", "1", "--out", str(rec)]) == 0
     out = tmp_path / "img.png"
