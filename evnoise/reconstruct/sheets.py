@@ -106,7 +106,8 @@ def contact_sheet(folder, out=None, *, max_tiles: int = 12, columns: int = 4, ov
         if overlays:
             ov = Image.open(overlays[idx]).convert("RGB").resize((w * scale, h * scale), Image.Resampling.NEAREST)
             sheet.paste(ov, (x0 + w * scale + 4, y0 + 14))
-        label = f"frame {idx}" + (f", t = {times[idx]:.3f} s" if idx in times else "")
+        label = f"frame {idx}" + (f", t = {times[idx]:.3f} s" if idx in times else "") + \
+            ("  (image | overlay)" if overlays and k == 0 else "")
         draw.text((x0, y0), label, fill=(0, 0, 0), font=font)
     sheet.paste(legend, (0, rows * (tile_h + 6)))
     path = Path(out) if out is not None else folder / "contact_sheet.png"
