@@ -31,7 +31,7 @@ _LAZY = {
     "read_monitor_table": ".measurements",
     "grey_to_lux": ".measurements",
     "calibrate": ".fit",
-    "CalibrationResult": ".fit",
+    "CalibrationResult": ".result",
     "FIT_NAMES": ".fit",
     "population_rate": ".model",
     "nb_shape": ".model",

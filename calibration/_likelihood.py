@@ -1,0 +1,208 @@
+"""The likelihood of the measurements: rate tables (Poisson or negative binomial of level totals, or
+relative residuals without exposure, plus measured NB shapes) and flat fields (composite likelihood
+of per-pixel counts, exact mixtures over the threshold distribution). Internal.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from evnoise.params import NoiseParams
+
+from .measurements import Measurements
+from .model import LevelStats
+
+
+class _Problem:
+    def __init__(self, meas: Measurements, method, distribution, free, values, bounds):
+        self.meas = meas
+        self.method = method
+        self.distribution = distribution
+        self.free = list(free)
+        self.values = dict(values)  # every field of NoiseParams: current value
+        self.bounds = bounds  # name -> (lo, hi), natural units
+        self.lo = np.log([bounds[n][0] for n in self.free])
+        self.hi = np.log([bounds[n][1] for n in self.free])
+        self.lux = meas.lux
+        self.weights = {"counts": 1.0, "shape": 1.0}
+        self.fit_shape = False
+        self.assumed_sigma = False
+        self._cache_key = None
+        self._cache_val = None
+        self.n_eval = 0
+        if meas.kind == "flat-field":
+            self._prepare_histograms()
+        self._prepare_table()
+
+    # -- parameters --------------------------------------------------------------------
+    def params(self, theta) -> NoiseParams:
+        vals = dict(self.values)
+        for name, t in zip(self.free, theta, strict=True):
+            vals[name] = float(math.exp(t))
+        return NoiseParams(**vals)
+
+    def theta(self, params: NoiseParams) -> np.ndarray:
+        return np.array([math.log(getattr(params, n)) for n in self.free])
+
+    def set_value(self, name, value):
+        """Change a fixed parameter (invalidates the cached model statistics)."""
+        self.values[name] = float(value)
+        self._cache_key = None
+
+    def stats(self, theta) -> LevelStats:
+        key = tuple(np.asarray(theta, dtype=np.float64).tolist())
+        if key != self._cache_key:
+            p = self.params(theta)
+            self._cache_val = LevelStats(p.photons_per_trial(self.lux), p, self.method)
+            self._cache_key = key
+            self.n_eval += 1
+        return self._cache_val
+
+    # -- data preparation ----------------------------------------------------------------
+    def _prepare_histograms(self):
+        """Unique counts and multiplicities of every (polarity, level)."""
+        m = self.meas
+        self.hist = {}
+        self.max_count = 0
+        for j, c in enumerate(m.pixel_counts):
+            for k in range(2):
+                vals, mult = np.unique(c[k], return_counts=True)
+                self.hist[k, j] = (vals.astype(np.float64), mult.astype(np.float64))
+                self.max_count = max(self.max_count, int(vals[-1]))
+
+    def _prepare_table(self):
+        m = self.meas
+        self.exposure = (m.duration_s * m.n_pixels) if m.exposure_known else np.ones(m.n_levels)
+        self.y = m.rate_hz * self.exposure  # (2, J) counts (or rates with unit exposure)
+        self.quasi_counts = not m.exposure_known
+        self.use_shape = m.kind == "table" and m.nb_shape is not None
+        if m.nb_shape is not None and m.exposure_known:
+            self.nb_total_shape = m.nb_shape * m.n_pixels  # shape of the sum over n pixels
+        else:
+            self.nb_total_shape = None
+        if self.use_shape:
+            k_obs = 1.0 / m.nb_shape  # 0 where inf
+            self.k_obs = k_obs
+            if m.n_pixels is not None:
+                se = _nb_log_shape_se(m.rate_hz * m.duration_s, m.nb_shape, m.n_pixels)
+                self.k_sd = np.maximum(k_obs * se, 1e-6)
+                self.quasi_shape = False
+            else:
+                self.k_sd = np.maximum(k_obs, 1e-3)
+                self.quasi_shape = True
+
+    # -- objective -------------------------------------------------------------------------
+    def model_counts(self, stats: LevelStats) -> np.ndarray:
+        return stats.mean_rate() * self.exposure
+
+    def count_terms(self, mu):
+        """Per-(polarity, level) log-likelihood of the level totals (up to constants).
+
+        Unknown exposure (rates only): a normal likelihood of ``log rate`` with a common, unknown
+        variance (relative errors), levels with zero rate left out.
+        """
+        y = self.y
+        if self.quasi_counts:
+            r = self.log_residuals(mu)
+            return np.where(np.isfinite(r), -0.5 * r**2, -1e300)
+        # y log(mu) only where y > 0 (elsewhere 0, also for mu = 0: no 0 * -inf)
+        with np.errstate(divide="ignore"):
+            log_mu = np.log(np.where(y > 0, mu, 1.0))
+        y_log_mu = np.where(y > 0, y * log_mu, 0.0)
+        if self.nb_total_shape is None:
+            out = y_log_mu - mu
+        else:
+            R = self.nb_total_shape
+            finite = np.isfinite(R)
+            Rf = np.where(finite, R, 1.0)
+            log_mu_r = np.log(mu + Rf)
+            nb = y_log_mu - np.where(y > 0, y * log_mu_r, 0.0) + Rf * (np.log(Rf) - log_mu_r)
+            out = np.where(finite, nb, y_log_mu - mu)
+        return np.where(np.isfinite(out), out, -1e300)
+
+    def log_residuals(self, mu) -> np.ndarray:
+        """``log y - log mu`` where ``y > 0`` (0 elsewhere): the quasi block of rate tables."""
+        y = self.y
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = np.log(np.where(y > 0, y, 1.0)) - np.log(mu)
+        return np.where(y > 0, r, 0.0)
+
+    def shape_residuals(self, stats: LevelStats) -> np.ndarray:
+        k_model = stats.inverse_shape(self.meas.duration_s)
+        return (k_model - self.k_obs) / self.k_sd
+
+    def hist_tables(self, stats: LevelStats, k, j, counts):
+        """``log P(c)`` of the mixture count distribution at ``counts`` for polarity k, level j."""
+        from scipy.special import gammaln
+
+        lq, mass = stats.atom_q(k, j)
+        lq = np.asarray(lq)
+        trials = stats.trial_rate_hz * self.meas.duration_s[j]
+        c = np.asarray(counts, dtype=np.float64)
+        q = np.exp(lq)
+        log_mass = np.log(mass)[:, None]
+        if self.distribution == "binomial":
+            log1mq = np.log1p(-np.minimum(q, 1.0 - 1e-16))
+            term = (gammaln(trials + 1.0) - gammaln(c + 1.0) - gammaln(np.maximum(trials - c, 0.0) + 1.0))[None, :]
+            term = term + c[None, :] * lq[:, None] + (trials - c)[None, :] * log1mq[:, None]
+            if np.any(c > trials):
+                term[:, c > trials] = -np.inf
+        else:
+            lm = lq + math.log(trials)
+            term = c[None, :] * lm[:, None] - np.exp(lm)[:, None] - gammaln(c + 1.0)[None, :]
+        z = term + log_mass
+        top = np.max(z, axis=0)
+        out = np.full(c.size, -np.inf)
+        ok = np.isfinite(top)
+        out[ok] = top[ok] + np.log(np.sum(np.exp(z[:, ok] - top[ok]), axis=0))
+        return out
+
+    def loglik(self, theta) -> float:
+        stats = self.stats(theta)
+        if self.meas.kind == "flat-field":
+            total = 0.0
+            for (k, j), (vals, mult) in self.hist.items():
+                lp = self.hist_tables(stats, k, j, vals)
+                if not np.all(np.isfinite(lp)):
+                    return -1e300
+                total += float(np.dot(mult, lp))
+            return total
+        mu = self.model_counts(stats)
+        total = self.weights["counts"] * float(np.sum(self.count_terms(mu)))
+        if self.use_shape:
+            e = self.shape_residuals(stats)
+            total -= 0.5 * self.weights["shape"] * float(np.sum(e**2))
+        return total
+
+    def objective(self, theta) -> float:
+        """Negative log-likelihood, scaled per data point (for the optimisers)."""
+        theta = np.clip(theta, self.lo, self.hi)
+        return -self.loglik(theta) / self.n_data
+
+    @property
+    def n_data(self) -> int:
+        j = self.meas.n_levels
+        return 2 * j * (2 if self.meas.has_dispersion else 1)
+
+
+def _nb_log_shape_se(mean_count, r, n_pixels):
+    """Standard error of ``log r`` estimated by maximum likelihood from ``n_pixels`` NB counts."""
+    from scipy.stats import nbinom
+
+    mean_count = np.asarray(mean_count, dtype=np.float64)
+    r = np.asarray(r, dtype=np.float64)
+    n = np.broadcast_to(np.asarray(n_pixels, dtype=np.float64), r.shape[-1:])
+    out = np.full(r.shape, np.inf)
+    for idx in np.ndindex(r.shape):
+        mu, rr = mean_count[idx], r[idx]
+        if not (np.isfinite(rr) and rr > 0 and mu > 0):
+            continue
+        prob = rr / (rr + mu)
+        hi = int(nbinom.ppf(1 - 1e-12, rr, prob)) + 2
+        j = np.arange(hi)
+        info = float(np.sum(nbinom.sf(j, rr, prob) / (rr + j) ** 2) - mu / (rr * (rr + mu)))
+        if info > 0:
+            out[idx] = math.sqrt(1.0 / (n[idx[-1]] * info)) / rr
+    return out
