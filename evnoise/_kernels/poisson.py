@@ -373,6 +373,25 @@ def _grouped_pixel(lam, ci, b, j0, j1, pmf, sf, m_start, tol):
     return s
 
 
+@kernel
+def _pmf_run(lam, j0, pmf):
+    """``pmf[j] = P(N = j0 + j)``: exact ``log_pmf`` at every 32nd entry, the ratio recurrence
+    ``pmf(j + 1) = pmf(j) lam / (j + 1)`` in between (relative error below ~32 ulps; values that
+    underflow are recomputed from the anchors, never carried as 0)."""
+    n = pmf.shape[0]
+    for a in range(0, n, 32):
+        v = math.exp(log_pmf(float(j0 + a), lam))
+        pmf[a] = v
+        top = min(a + 32, n)
+        if v < 1e-290:
+            for j in range(a + 1, top):
+                pmf[j] = math.exp(log_pmf(float(j0 + j), lam))
+            continue
+        for j in range(a + 1, top):
+            v *= lam / float(j0 + j)
+            pmf[j] = v
+
+
 @kernel(parallel=True)
 def event_probability_grouped(lam_levels, starts, order, c, b, out):
     """``p`` for pixels that share a few ``lam`` levels but each have their own threshold.
@@ -410,8 +429,7 @@ def event_probability_grouped(lam_levels, starts, order, c, b, out):
                 out[order[q]] = math.nan
             continue
         pmf = np.empty(n + 1)
-        for j in range(n + 1):
-            pmf[j] = math.exp(log_pmf(float(j0 + j), lam))
+        _pmf_run(lam, j0, pmf)
         sf = np.empty(n)
         sf[n - 1] = math.exp(log_sf(float(j1), lam))
         for j in range(n - 2, -1, -1):
