@@ -57,8 +57,8 @@ def main(argv=None) -> int:
     ap.add_argument("--label", default="this")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--only", default="setup,simulate,stream,mismatch,dataset",
-                    help="comma-separated subset of setup,simulate,stream,mismatch,dataset")
+    ap.add_argument("--only", default="limit,setup,simulate,stream,mismatch,dataset",
+                    help="comma-separated subset of limit,setup,simulate,stream,mismatch,dataset")
     ap.add_argument("--sigma", type=float, default=0.03, help="eps_sigma of the mismatch runs")
     args = ap.parse_args(argv)
     import evnoise as ev
@@ -72,6 +72,13 @@ def main(argv=None) -> int:
     print(json.dumps({"label": args.label, "evnoise": str(Path(ev.__file__).parent), "pixels": n_pix,
                       "lam_range": [float(lam.min()), float(lam.max())]}), flush=True)
 
+    if "limit" in which:
+        # a measured limit in the same run: numpy's Generator drawing as many doubles as there are
+        # pixels (two per pixel: one uniform for the first gap, one for the polarity)
+        g = np.random.default_rng(0)
+        t = timed(lambda: g.random(2 * n_pix), args.repeats)
+        emit(args.label, "limit: numpy Generator.random, 2 doubles per pixel of 1280x720 (1 thread)", t,
+             draws_per_s=2 * n_pix / t[0])
     if "setup" in which:
         t = timed(lambda: ev.event_probability(lam, params.eps_pos, params.bias_pr), args.repeats)
         emit(args.label, "event_probability 1280x720 (uniform eps)", t, us_per_pixel=t[0] / n_pix * 1e6)
