@@ -400,6 +400,11 @@ def test_evk3_preset_reproduces_the_authors_curve():
 
 @pytest.mark.slow
 @needs_reference
+@pytest.mark.xfail(strict=True, reason=(
+    "known, kept on purpose: since the fit's photons-per-trial cap was lifted (issue 17 item 2), "
+    "refit_evk3 finds a better optimum (0.99 % rms vs 2.5 %; trial_rate_hz 42.47 vs 39.98) than the "
+    "shipped evk3-hd preset, which the shipped reconstructor and the benchmark figures were made with; "
+    "the preset is refitted with its OFF floor in the sensor-noise issue (15) -- remove this mark then"))
 def test_evk3_refit_is_reproducible(tmp_path):
     from evnoise.calibration import refit_evk3
     from evnoise.params import load_preset_document
