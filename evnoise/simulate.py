@@ -108,10 +108,41 @@ class _PixelState:
         self.lam_prev = np.zeros(n)
 
 
-def _sorted_window(parts, t_lo: int, t_hi: int, labels: bool = False):
+class _Collector:
+    """One output array that windows are sorted straight into (no final concatenation).
+
+    ``capacity`` is the expected number of events plus a margin of many standard deviations;
+    should a run still produce more, the array grows (a copy, correct but no longer in place).
+    """
+
+    def __init__(self, capacity: int):
+        self.buf = np.empty(max(0, int(capacity)), dtype=EVENT_DTYPE)
+        self.n = 0
+
+    def reserve(self, n: int) -> np.ndarray:
+        """The next ``n`` slots of the output (a contiguous view)."""
+        if self.n + n > self.buf.size:
+            grown = np.empty(max(self.n + n, int(1.25 * self.buf.size) + 1024), dtype=EVENT_DTYPE)
+            grown[:self.n] = self.buf[:self.n]
+            self.buf = grown
+        view = self.buf[self.n:self.n + n]
+        self.n += n
+        return view
+
+    def result(self) -> np.ndarray:
+        buf, self.buf = self.buf, None
+        try:
+            buf.resize((self.n,), refcheck=True)  # gives back the unused margin, in place
+        except ValueError:  # a view of it is still referenced somewhere: return a view instead
+            return buf[:self.n]
+        return buf
+
+
+def _sorted_window(parts, t_lo: int, t_hi: int, labels: bool = False, sink: _Collector | None = None):
     """Concatenate ``(t, x, y, p)`` parts (in a fixed order) into one event array sorted stably by time.
 
-    With ``labels`` also returns a bool array, True for signal events.
+    With ``labels`` also returns a bool array, True for signal events. With ``sink`` the window
+    is sorted straight into the sink's next slots (and that view is returned).
     """
     from ._kernels.simulate import sort_into_events
 
@@ -119,7 +150,8 @@ def _sorted_window(parts, t_lo: int, t_hi: int, labels: bool = False):
     if not parts:
         return (empty_events(0), np.zeros(0, dtype=bool)) if labels else empty_events(0)
     cols = [np.concatenate([p[i] for p in parts]) if len(parts) > 1 else parts[0][i] for i in range(4)]
-    out = np.empty(cols[0].size, dtype=EVENT_DTYPE)
+    del parts
+    out = np.empty(cols[0].size, dtype=EVENT_DTYPE) if sink is None else sink.reserve(cols[0].size)
     lab = np.empty(cols[0].size if labels else 0, dtype=np.uint8)
     sort_into_events(*cols, np.int64(t_lo), np.int64(t_hi), out, lab)
     return (out, lab.astype(bool)) if labels else out
@@ -180,6 +212,11 @@ def iter_events(
     the full, sorted event stream, and memory stays bounded by one window (a few million
     events). Validation happens at the call, before the first window.
     """
+    return _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, threads, progress)
+
+
+def _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, threads, progress, sink=None):
+    """:func:`iter_events`; with ``sink`` (static scenes) each window is sorted straight into it."""
     params = check_params(params)
     lux = check_lux(lux)
     duration_us = duration_to_us(duration_s)
@@ -194,7 +231,7 @@ def iter_events(
         frames = _FrameSource([lux], name="lux")
         return _iter_dynamic(frames, np.array([0.0, float(duration_us)]), params, key, eps_on, eps_off,
                              np.zeros(lux.size, dtype=bool), t_start_us, duration_us, threads, progress)
-    return _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, threads, progress)
+    return _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, threads, progress, sink)
 
 
 def _check_t_start(t_start_us) -> int:
@@ -213,7 +250,7 @@ def _key(gen):
     return key_from(gen)
 
 
-def _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, threads, progress):
+def _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, threads, progress, sink=None):
     height, width = lux.shape
     lam = params.photons_per_trial(lux).ravel()
     p_on, p_off = trial_probabilities(lam, params, (eps_on, eps_off))
@@ -222,9 +259,13 @@ def _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, thr
     refr = params.refractory_us
     nu = params.trial_rate_hz * (p_on + p_off)
     nu = nu / (1.0 + nu * refr * 1e-6)
+    del lam, p_on, p_off  # not needed while the windows run: keep the per-pixel memory small
     total = float(nu.sum()) * duration_us * 1e-6
     n_win = max(1, math.ceil(total / TARGET_EVENTS_PER_WINDOW), math.ceil(duration_us / MAX_WINDOW_US))
     ends = [duration_us * (k + 1) // n_win for k in range(n_win)]
+    if sink is not None:
+        # counts are under-dispersed against Poisson (renewal with dead time): 8 sigma is ample
+        sink.__init__(int(math.ceil(total + 8.0 * math.sqrt(total) + 4096)))
 
     def gen():
         state = _PixelState(np.arange(lux.size), key, threads)
@@ -234,7 +275,11 @@ def _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, thr
             expected = nu * (w_end - t_prev) * 1e-6
             parts = _renewal_step(state, width, log1m_p, q_on, dt, refr, 0, w_end, math.inf,
                                   t_start_us, threads, expected=expected)
-            yield _sorted_window(parts, t_start_us + t_prev, t_start_us + w_end)
+            del expected
+            window = _sorted_window(parts, t_start_us + t_prev, t_start_us + w_end, sink=sink)
+            del parts  # not held while the caller has the window
+            yield window
+            del window
             if bar is not None:
                 bar.update((w_end - t_prev) * 1e-6)
             t_prev = w_end
@@ -284,9 +329,18 @@ def simulate_events(
     numpy.ndarray
         Events (:data:`evnoise.EVENT_DTYPE`), sorted by time.
     """
-    parts = list(iter_events(lux, params, duration_s, rng, method, thresholds=thresholds,
-                             t_start_us=t_start_us, threads=threads, progress=progress))
-    return np.concatenate(parts) if parts else empty_events(0)
+    # static scenes: one output array, each window sorted straight into it (peak memory about the
+    # output plus one window, instead of twice the output for a final concatenation)
+    sink = _Collector(0)
+    parts = []
+    for window in _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, threads, progress,
+                               sink):
+        if method == "trials":
+            parts.append(window)
+    window = None  # the last window is a view of the sink's array: let it shrink in place
+    if method == "trials":
+        return np.concatenate(parts) if parts else empty_events(0)
+    return sink.result()
 
 
 # --------------------------------------------------------------------------------------

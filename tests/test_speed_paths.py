@@ -156,3 +156,25 @@ def test_grouped_path_tail_bound_handles_tiny_probabilities():
     done = model._grouped(lam, c, 0.0, np.ones(lam.size, dtype=bool), out)
     assert np.count_nonzero(done & (ref < np.log(1e-25))) > 500
     assert np.all(np.abs(out[done] - ref[done]) <= 1e-10)
+
+
+# --------------------------------------------------------------------------------------
+# simulate_events sorts each window straight into one output array
+# --------------------------------------------------------------------------------------
+def test_simulate_events_collects_windows_in_place_identically(monkeypatch):
+    """Many windows (small window target) give exactly the concatenation of iter_events' windows,
+    also when the output outgrows its first allocation (forced by shrinking the margin)."""
+    from evnoise import simulate as sim
+
+    lux = np.full((40, 60), 5.0)
+    monkeypatch.setattr(sim, "TARGET_EVENTS_PER_WINDOW", 500)
+    windows = list(ev.iter_events(lux, PRESET, 3.0, rng=4))
+    assert len(windows) > 5
+    want = np.concatenate(windows)
+    got = ev.simulate_events(lux, PRESET, 3.0, rng=4)
+    assert got.flags.owndata and got.size == want.size > 1000
+    assert np.array_equal(got, want)
+
+    init = sim._Collector.__init__
+    monkeypatch.setattr(sim._Collector, "__init__", lambda self, capacity: init(self, capacity // 10))
+    assert np.array_equal(ev.simulate_events(lux, PRESET, 3.0, rng=4), want)
