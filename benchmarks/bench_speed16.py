@@ -58,7 +58,9 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--only", default="limit,setup,simulate,stream,mismatch,dataset",
-                    help="comma-separated subset of limit,setup,simulate,stream,mismatch,dataset")
+                    help="comma-separated subset of limit,setup,simulate,stream,mismatch,dataset,memory")
+    ap.add_argument("--memory-durations", default="10,60,240",
+                    help="durations (s) of the peak-memory runs of simulate_events (`--only memory`)")
     ap.add_argument("--sigma", type=float, default=0.03, help="eps_sigma of the mismatch runs")
     args = ap.parse_args(argv)
     import evnoise as ev
@@ -112,6 +114,21 @@ def main(argv=None) -> int:
              values_per_s=2 * n_pix / t[0])
         t = timed(lambda: ev.sample_counts(lux, mism, 1.0, rng=1, threads=th), args.repeats)
         emit(args.label, f"sample_counts with mismatch (sigma {args.sigma}) 1280x720 1 s, {th} threads", t)
+    if "memory" in which:
+        import tracemalloc
+
+        ev.simulate_events(lux, params, 0.1, rng=1, threads=th)  # compile outside the traced runs
+        for dur in (float(d) for d in args.memory_durations.split(",")):
+            tracemalloc.start()  # NumPy reports its allocations to tracemalloc
+            t0 = time.perf_counter()
+            out = ev.simulate_events(lux, params, dur, rng=1, threads=th)
+            wall = time.perf_counter() - t0
+            peak = tracemalloc.get_traced_memory()[1]
+            tracemalloc.stop()
+            emit(args.label, f"simulate_events peak memory 1280x720 {dur:g} s", (wall, wall, wall),
+                 events=int(out.size), output_mib=out.nbytes / 2**20, peak_mib=peak / 2**20,
+                 peak_over_output=peak / out.nbytes)
+            del out
     if "dataset" in which:
         sys.path.insert(0, str(Path(ev.__file__).parent.parent))
         from generators.config import PairConfig
