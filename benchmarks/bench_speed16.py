@@ -58,7 +58,7 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--only", default="limit,setup,simulate,stream,mismatch,dataset",
-                    help="comma-separated subset of limit,setup,simulate,stream,mismatch,dataset,memory")
+                    help="comma-separated subset of limit,setup,simulate,stream,mismatch,dataset,memory,h5")
     ap.add_argument("--memory-durations", default="10,60,240",
                     help="durations (s) of the peak-memory runs of simulate_events (`--only memory`)")
     ap.add_argument("--sigma", type=float, default=0.03, help="eps_sigma of the mismatch runs")
@@ -129,6 +129,35 @@ def main(argv=None) -> int:
                  events=int(out.size), output_mib=out.nbytes / 2**20, peak_mib=peak / 2**20,
                  peak_over_output=peak / out.nbytes)
             del out
+    if "h5" in which:
+        import os
+        import tempfile
+        import zlib
+        from concurrent.futures import ThreadPoolExecutor
+
+        from evnoise.io import write_events
+
+        events = ev.simulate_events(lux, params, 10.0, rng=1, threads=th)
+        with tempfile.TemporaryDirectory() as tmp:
+            for comp in ("gzip", "lzf", None):
+                path = os.path.join(tmp, f"events_{comp}.h5")
+                t = timed(lambda: write_events(path, events, lux.shape, overwrite=True, compression=comp),
+                          args.repeats)
+                emit(args.label, f"write_events events.h5 compression={comp}", t, events=int(events.size),
+                     events_per_s=events.size / t[0], bytes_per_event=os.path.getsize(path) / events.size)
+        # the limit of threaded gzip: zlib level 1 on byte-shuffled 64 Ki-event chunks of each column
+        # (what HDF5's shuffle + deflate filters do), 1 and 2 threads (zlib releases the GIL)
+        chunks = []
+        for name in ("x", "y", "t", "p"):
+            col = np.ascontiguousarray(events[name])
+            for lo in range(0, col.size, 1 << 16):
+                part = col[lo:lo + (1 << 16)]
+                chunks.append(part.view(np.uint8).reshape(-1, part.itemsize).T.copy().tobytes())
+        for workers in (1, 2):
+            with ThreadPoolExecutor(workers) as pool:
+                t = timed(lambda: list(pool.map(lambda b: zlib.compress(b, 1), chunks)), args.repeats)
+            emit(args.label, f"limit: zlib level 1 on shuffled chunks, {workers} thread(s)", t,
+                 events_per_s=events.size / t[0])
     if "dataset" in which:
         sys.path.insert(0, str(Path(ev.__file__).parent.parent))
         from generators.config import PairConfig
