@@ -474,9 +474,24 @@ def main(argv=None):
         "percent between runs; ratios within one run are more stable.",
         "",
     ]
-    (args.out / "REPORT.md").write_text("\n".join(head + report) + "\n", encoding="utf-8")
+    kept = _kept_sections(args.out / "REPORT.md")
+    (args.out / "REPORT.md").write_text("\n".join(head + report) + "\n" + kept, encoding="utf-8")
     print(f"wrote {args.out / 'REPORT.md'}")
     return 0
+
+
+#: Sections of REPORT.md below this line are written by other scripts (bench_readers.py,
+#: bench_speed16.py) or by hand; run.py keeps them when it regenerates the report.
+KEEP_MARKER = "<!-- sections below are written by other benchmark scripts; run.py keeps them -->"
+
+
+def _kept_sections(path: Path) -> str:
+    """The part of an existing report from :data:`KEEP_MARKER` on ('' when there is none)."""
+    if not path.exists():
+        return ""
+    text = path.read_text(encoding="utf-8")
+    at = text.find(KEEP_MARKER)
+    return "\n" + text[at:] if at >= 0 else ""
 
 
 if __name__ == "__main__":

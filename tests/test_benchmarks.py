@@ -18,6 +18,13 @@ SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "run.py"
 
 
 def test_benchmark_report_tiny_run(tmp_path):
+    sys.path.insert(0, str(SCRIPT.parent))
+    try:
+        from run import KEEP_MARKER
+    finally:
+        sys.path.remove(str(SCRIPT.parent))
+    # a report with sections written by other scripts below the marker: regenerating keeps them
+    (tmp_path / "REPORT.md").write_text(f"# old\n\n## 1. stale\n\n{KEEP_MARKER}\n\n## Readers (kept)\nkept text\n")
     proc = subprocess.run([sys.executable, str(SCRIPT), "--tiny", "--out", str(tmp_path)], capture_output=True,
                           text=True, check=False)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-4000:]
@@ -27,6 +34,8 @@ def test_benchmark_report_tiny_run(tmp_path):
                     "## Dynamic scenes"):
         assert heading in text, heading
     assert "Machine:" in text and "python benchmarks/run.py --tiny" in text
+    assert "## 1. stale" not in text and text.count(KEEP_MARKER) == 1
+    assert text.rstrip().endswith("## Readers (kept)\nkept text")
     for line in text.splitlines():
         if line.startswith("![") and "](" in line:
             name = line.split("](", 1)[1].rstrip(")")
