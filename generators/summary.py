@@ -34,12 +34,6 @@ def is_dataset(path) -> bool:
     return f'"format": "{FORMAT}"'.encode() in head or FORMAT.encode() in head
 
 
-def _human(n: int) -> str:
-    from evnoise.cli.info import human_bytes
-
-    return human_bytes(n)
-
-
 def summarise_dataset(path, *, sanity: bool = True) -> dict:
     """``{label: value}`` for ``evnoise info`` (plain JSON types, display order)."""
     from .dataset import load_manifest
@@ -52,13 +46,12 @@ def summarise_dataset(path, *, sanity: bool = True) -> dict:
     b = pair["counts"]["binning"]
     out = {
         "layout": f"evnoise pairs dataset ({totals['shards']} HDF5 shards + manifest.json)",
-        "size": _human(int(totals["bytes"])),
+        "size_bytes": int(totals["bytes"]),
         "pairs": int(totals["samples"]),
         "pair": f"counts {c}x{h}x{w} uint16 [ON, OFF] ({b}x{b} binned); image {h}x{w} float32, sRGB in [0, 1]",
-        "windows_s": ", ".join(f"{x:g}" for x in cfg["windows_s"]),
-        "splits": {s: f"{v['samples']} pairs from {v['sources']} sources"
-                      + (f" ({v['sources_planned'] - v['sources']} skipped)" if v["sources_planned"] != v["sources"]
-                         else "") + f", {v['shards']} shards"
+        "windows_s": [float(x) for x in cfg["windows_s"]],
+        "splits": {s: {"pairs": int(v["samples"]), "sources": int(v["sources"]),
+                       "sources_skipped": int(v["sources_planned"] - v["sources"]), "shards": int(v["shards"])}
                    for s, v in sorted(m["splits"].items(), key=lambda kv: ("train", "val", "test").index(kv[0]))},
         "skipped_sources": len(m["skipped"]),
     }

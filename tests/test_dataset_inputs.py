@@ -33,3 +33,20 @@ def test_existing_empty_folder_is_kept_but_holds_no_manifest(unreadable_images, 
     assert out.is_dir()
     assert not (out / "manifest.json").exists()
     assert not (out / "shards").exists()
+
+
+def test_info_json_of_a_dataset_has_numbers_not_text(tmp_path, capsys):
+    """Issue 17: ``info --json`` wrote ``"size": "69.4 kB"``; numbers are JSON numbers, units in the keys."""
+    import json
+
+    out = tmp_path / "dl"
+    assert main(["make-dataset", "--procedural", "dead-leaves", "--count", "4", "--crop", "64", "--out", str(out),
+                 "--seed", "1", "-q"]) == 0
+    capsys.readouterr()
+    assert main(["info", str(out), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert "size" not in info
+    assert isinstance(info["size_bytes"], int) and info["size_bytes"] == sum(
+        p.stat().st_size for p in (out / "shards").iterdir())
+    assert info["windows_s"] == [1.0]
+    assert sum(v["pairs"] for v in info["splits"].values()) == info["pairs"] == 4
