@@ -1,11 +1,14 @@
 """Atomic file output: write under a temporary name in the target folder, rename on success.
 
 A failure (an exception inside the ``with`` block, or the rename itself) removes the temporary
-file, so nothing half-written ever carries the final name.
+file, so nothing half-written ever carries the final name. :class:`AtomicFile` is the one home of
+the temporary-name / rename / remove steps; :func:`atomic_output` wraps it for a ``with`` block, and
+writers that stay open across calls (``EventWriter``, ``ShardWriter``) hold one.
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import secrets
 from contextlib import contextmanager
@@ -13,10 +16,66 @@ from pathlib import Path
 
 from .errors import EvnoiseError, OutputError
 
+log = logging.getLogger(__name__)
 
-def temporary_name(path: Path) -> Path:
-    """A hidden, unique temporary name next to ``path``."""
-    return path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")
+
+def temporary_name(path: Path, *, suffix: str = ".tmp") -> Path:
+    """A hidden, unique temporary name next to ``path`` (ending in ``suffix``)."""
+    path = Path(path)
+    return path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}{suffix}")
+
+
+class AtomicFile:
+    """A temporary file next to ``path`` that becomes ``path`` on :meth:`commit`.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Final name.
+    overwrite : bool
+        When false, :meth:`commit` refuses to replace a file that appeared at ``path`` meanwhile.
+    what : str
+        What the file is, for error messages ("event file", "shard", ...).
+    suffix : str
+        Ending of the temporary name (e.g. ``".tmp.png"`` for writers that infer the format from it).
+
+    The caller writes ``tmp`` itself (any library, kept open across calls), then calls :meth:`commit`
+    (rename) or :meth:`discard` (remove). :meth:`commit` raises ``OSError`` from the rename as it is, so
+    each writer keeps its own wording of that error.
+    """
+
+    def __init__(self, path, *, overwrite: bool = True, what: str = "file", suffix: str = ".tmp"):
+        self.path = Path(path)
+        self.overwrite = overwrite
+        self.what = what
+        self.tmp = temporary_name(self.path, suffix=suffix)
+        self.done = False
+
+    def create(self) -> Path:
+        """Create the temporary file (empty), turning an OS error into one clean :class:`OutputError` line."""
+        try:
+            with open(self.tmp, "xb"):
+                pass
+        except OSError as exc:
+            raise OutputError(f"cannot write {self.what} {self.path}: {exc.strerror or exc}") from None
+        return self.tmp
+
+    def commit(self) -> Path:
+        """Rename the temporary file to its final name (``OutputError`` if ``path`` appeared and not ``overwrite``)."""
+        if not self.overwrite and self.path.exists():
+            raise OutputError(f"{self.what} {self.path} appeared while writing; not replacing it")
+        os.replace(self.tmp, self.path)
+        self.done = True
+        return self.path
+
+    def discard(self) -> None:
+        """Remove the temporary file if it is there (a failure to remove is logged, not raised)."""
+        try:
+            os.unlink(self.tmp)
+        except FileNotFoundError:
+            pass
+        except OSError as exc:
+            log.warning("could not remove temporary file %s: %s", self.tmp, exc)
 
 
 @contextmanager
@@ -32,20 +91,18 @@ def atomic_output(path, *, overwrite: bool = True, what: str = "file"):
         raise OutputError(f"cannot write {what} {path}: directory {folder} does not exist")
     if path.exists() and not overwrite:
         raise OutputError(f"{what} {path} already exists; pass --overwrite (overwrite=True in Python) to replace it")
-    tmp = temporary_name(path)
+    out = AtomicFile(path, overwrite=overwrite, what=what)
     try:
-        yield tmp
-        if not overwrite and path.exists():
-            raise OutputError(f"{what} {path} appeared while writing; not replacing it")
-        os.replace(tmp, path)
+        yield out.tmp
+        out.commit()
     except EvnoiseError:
-        tmp.unlink(missing_ok=True)
+        out.discard()
         raise
     except OSError as exc:
-        tmp.unlink(missing_ok=True)
+        out.discard()
         raise OutputError(f"cannot write {what} {path}: {exc}") from None
     except BaseException:
-        tmp.unlink(missing_ok=True)
+        out.discard()
         raise
 
 

@@ -20,11 +20,11 @@ from __future__ import annotations
 import json
 import logging
 import os
-import secrets
 from pathlib import Path
 
 import numpy as np
 
+from ._atomic import AtomicFile
 from ._version import __version__
 from .errors import EvnoiseError, InputError, OutputError, ParameterError
 from .events import _check_shape, check_events, make_events
@@ -166,12 +166,13 @@ class EventWriter:
                 json_keys.append(key)
         self.path = open_output_path(path, overwrite=overwrite, what="event file")
         self.overwrite = overwrite
-        self._tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")
+        self._out = AtomicFile(self.path, overwrite=overwrite, what="event file")
+        self._tmp = self._out.tmp
         self._closed = False
         self.n_events = 0
         self._last_t = None
         self._next_ms = 0  # entries of ms_to_idx already written
-        _probe_tmp(self._tmp, self.path, "event file")  # a clean one-line error (not h5py's) if it cannot be created
+        self._out.create()  # a clean one-line error (not h5py's) if it cannot be created
         try:
             self._file = h5py.File(self._tmp, "w")
         except OSError as exc:
@@ -285,9 +286,7 @@ class EventWriter:
             if n_ms > self._next_ms:
                 self._append_ms(np.full(n_ms - self._next_ms, self.n_events, dtype=np.uint64))
             self._file.close()
-            if not self.overwrite and self.path.exists():
-                raise OutputError(f"event file {self.path} appeared while writing; not replacing it")
-            os.replace(self._tmp, self.path)
+            self._out.commit()
         except OutputError:
             self.abort()
             raise
@@ -312,7 +311,9 @@ class EventWriter:
         self._remove_tmp()
 
     def _remove_tmp(self):
-        _unlink_quietly(self._tmp)
+        out = getattr(self, "_out", None)
+        if out is not None:
+            out.discard()
 
 
 def write_events(path, events, shape, attrs=None, *, overwrite: bool = False, compression: str | None = "gzip",
@@ -406,15 +407,6 @@ def output_format(path, *, flag: str = "--out") -> str:
     return OUTPUT_FORMATS[suffix]
 
 
-def _probe_tmp(tmp: Path, path: Path, what: str) -> None:
-    """Create the temporary file (empty), turning an OS error into one clean line."""
-    try:
-        with open(tmp, "xb"):
-            pass
-    except OSError as exc:
-        raise OutputError(f"cannot write {what} {path}: {exc.strerror or exc}") from None
-
-
 def _aedat_description(aedat, width: int, height: int, attrs: dict):
     """AEDAT 4 description: the event track (as DV writes it) and evnoise's attributes."""
     A = aedat.DescriptionAttribute
@@ -480,8 +472,6 @@ class EventFileWriter:
 
     def __init__(self, path, shape, attrs=None, *, overwrite: bool = False, compression: str | None = "gzip",
                  t_end_us: int | None = None, file_format: str | None = None, t_offset_us: int = 0):
-        from ._atomic import temporary_name
-
         self.format = file_format or output_format(path)
         what = {"aedat4": "AEDAT4 file", "evt3": "RAW file", "dat": "DAT file", "es": "Event Stream file",
                 "csv": "CSV file"}[self.format]
@@ -498,8 +488,9 @@ class EventFileWriter:
         from faery.extension import aedat, csv, dat, es, evt
 
         self.path = open_output_path(path, overwrite=overwrite, what=what)
-        self._tmp = temporary_name(self.path)
-        _probe_tmp(self._tmp, self.path, what)
+        self._out = AtomicFile(self.path, overwrite=overwrite, what=what)
+        self._tmp = self._out.tmp
+        self._out.create()
         height, width = self.shape
         self._faery_dtype = faery.EVENTS_DTYPE
         try:
@@ -623,9 +614,7 @@ class EventFileWriter:
         try:
             enc, self._encoder = self._encoder, None
             enc.__exit__(None, None, None)
-            if not self.overwrite and self.path.exists():
-                raise OutputError(f"{self.what} {self.path} appeared while writing; not replacing it")
-            os.replace(self._tmp, self.path)
+            self._out.commit()
         except EvnoiseError:
             self.abort()
             raise
@@ -647,9 +636,9 @@ class EventFileWriter:
                 enc.__exit__(None, None, None)
             except Exception:
                 pass
-        tmp = getattr(self, "_tmp", None)
-        if tmp is not None:
-            _unlink_quietly(tmp)
+        out = getattr(self, "_out", None)
+        if out is not None:
+            out.discard()
 
 
 def open_event_writer(path, shape, attrs=None, *, overwrite: bool = False, compression: str | None = "gzip",
@@ -660,15 +649,6 @@ def open_event_writer(path, shape, attrs=None, *, overwrite: bool = False, compr
     """
     return EventFileWriter(path, shape, attrs, overwrite=overwrite, compression=compression, t_end_us=t_end_us,
                            t_offset_us=t_offset_us)
-
-
-def _unlink_quietly(path):
-    try:
-        os.unlink(path)
-    except FileNotFoundError:
-        pass
-    except OSError as exc:
-        log.warning("could not remove temporary file %s: %s", path, exc)
 
 
 # --------------------------------------------------------------------------------------

@@ -762,11 +762,12 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
             bar.close()
     if written == 0:
         raise InputError("no frame could be made: the recording is shorter than one window")
-    with open(out_dir / "frames.csv", "w", newline="", encoding="utf-8") as fh:
-        w = csv.writer(fh)
-        w.writerow(["frame", "step", "t_end_s", "masked_fraction", "full_window_fraction", "noise_events_in_step",
-                    "signal_events_in_step"])
-        w.writerows(rows)
+    with atomic_output(out_dir / "frames.csv", what="frames table") as tmp:
+        with open(tmp, "w", newline="", encoding="utf-8") as fh:
+            w = csv.writer(fh)
+            w.writerow(["frame", "step", "t_end_s", "masked_fraction", "full_window_fraction",
+                        "noise_events_in_step", "signal_events_in_step"])
+            w.writerows(rows)
     step_s = step_us * 1e-6
     return {
         "n_frames": written,

@@ -30,12 +30,11 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
-import secrets
 from pathlib import Path
 
 import numpy as np
 
+from evnoise._atomic import AtomicFile
 from evnoise.errors import InputError, OutputError
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "ShardWriter", "file_sha256", "META_COLUMNS", "read_meta"]
@@ -91,7 +90,8 @@ class ShardWriter:
 
         self.path = Path(path)
         self.h, self.w = (int(s) for s in pair_shape)
-        self._tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")
+        self._out = AtomicFile(self.path, overwrite=True, what="shard")
+        self._tmp = self._out.tmp
         self.n = 0
         self.n_images = 0
         self._meta = {k: [] for k in META_COLUMNS}
@@ -171,7 +171,7 @@ class ShardWriter:
                     f.create_dataset(key, data=np.asarray(values, dtype=dtype).reshape(len(values)))
             f.create_dataset("crop_box", data=np.asarray(self._boxes, dtype=np.int32).reshape(len(self._boxes), 4))
             f.close()
-            os.replace(self._tmp, self.path)
+            self._out.commit()
         except OSError as exc:
             self.abort()
             raise OutputError(f"cannot finish shard {self.path}: {exc}") from None
@@ -187,12 +187,7 @@ class ShardWriter:
             self._file.close()
         except Exception:
             pass
-        try:
-            os.unlink(self._tmp)
-        except FileNotFoundError:
-            pass
-        except OSError:
-            pass
+        self._out.discard()
 
 
 def read_meta(f, path) -> dict:

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import re
 import secrets
 import textwrap
@@ -271,7 +270,7 @@ def _write_outputs(args, fmt, out, png, scene: _Scene, attrs):
     """Run the simulation into the event file (and the PNG); returns the counts ``(2, H, W)``."""
     import numpy as np
 
-    from .._atomic import temporary_name
+    from .._atomic import AtomicFile
     from ..io import open_event_writer
 
     height, width = scene.shape
@@ -284,7 +283,7 @@ def _write_outputs(args, fmt, out, png, scene: _Scene, attrs):
             counts[:] += np.bincount(flat, minlength=counts.size)
             yield chunk
 
-    png_tmp = None
+    png_out = None
     try:
         compression = None if args.compression == "none" else args.compression
         with open_event_writer(out, scene.shape, attrs, overwrite=args.overwrite, compression=compression,
@@ -292,14 +291,16 @@ def _write_outputs(args, fmt, out, png, scene: _Scene, attrs):
             for chunk in counted(scene.stream):
                 writer.write(chunk)
             if png is not None:  # written before the event file is renamed: both or neither
-                png_tmp = temporary_name(png)
-                _write_png_file(counts.reshape(2, height, width), png_tmp, scene)
-        if png_tmp is not None:
-            _replace(png_tmp, png)
-            png_tmp = None
+                png_out = AtomicFile(png, what="PNG file")
+                _write_png_file(counts.reshape(2, height, width), png_out.tmp, scene)
+        if png_out is not None:
+            try:
+                png_out.commit()
+            except OSError as exc:
+                raise OutputError(f"cannot write PNG file {png}: {exc}") from None
     finally:
-        if png_tmp is not None and png_tmp.exists():
-            png_tmp.unlink()
+        if png_out is not None and not png_out.done:
+            png_out.discard()
     return counts.reshape(2, height, width)
 
 
@@ -309,13 +310,6 @@ def _write_png_file(counts, path, scene: _Scene) -> None:
                        scene_title="first frame" if scene.attrs.get("scene") == "video" else "scene")
     except OSError as exc:
         raise OutputError(f"cannot write PNG file {path}: {exc}") from None
-
-
-def _replace(tmp, final) -> None:
-    try:
-        os.replace(tmp, final)
-    except OSError as exc:
-        raise OutputError(f"cannot write PNG file {final}: {exc}") from None
 
 
 def _example_path():

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._atomic import atomic_output
 from ..errors import InputError, ParameterError
 from ..params import NoiseParams
 from .imaging import bin_counts, bin_mean, lux_to_display, srgb_decode
@@ -165,8 +166,9 @@ def save_pairs_npz(path, dataset) -> Path:
     if getattr(dataset, "params", None) is not None:
         arrays["params_json"] = np.array(dataset.params.to_json())
     path = Path(path)
-    with open(path, "wb") as fh:
-        np.savez_compressed(fh, **arrays)
+    with atomic_output(path, what="pairs file") as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
     return path
 
 

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._atomic import atomic_output, write_text_atomic
 from ..errors import EvnoiseError, InputError, ParameterError
 from .baselines import MLInversion, count_image
 from .metrics import psnr, ssim
@@ -200,8 +201,11 @@ def comparison_figure(examples, path, *, methods=None) -> Path:
         axes[r, 0].set_ylabel(f"{ex['source']} ({ex['window_s']:g} s)", fontsize=8)
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=100, format="png")
-    plt.close(fig)
+    try:
+        with atomic_output(path, what="PNG file") as tmp:
+            fig.savefig(tmp, dpi=100, format="png")
+    finally:
+        plt.close(fig)
     return path
 
 
@@ -237,10 +241,10 @@ def main(argv=None) -> int:
         table = format_table(result, title=f"{args.dataset} [{args.split}]")
         print(table)
         if args.out:
-            Path(args.out).write_text(table + "\n", encoding="utf-8")
+            write_text_atomic(args.out, table + "\n", what="table file")
         if args.json:
             doc = {k: v for k, v in result.items() if k != "examples"}
-            Path(args.json).write_text(json.dumps(doc, indent=1, default=float), encoding="utf-8")
+            write_text_atomic(args.json, json.dumps(doc, indent=1, default=float), what="JSON file")
         if args.figure:
             comparison_figure(result["examples"], args.figure)
     except EvnoiseError as exc:

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._atomic import AtomicFile
 from ..errors import InputError, OutputError, ParameterError
 from .checkpoint import InputSpec, read_checkpoint, save_checkpoint
 from .data import Subset, dataset_sources, item_seed, random_crop, split_by_source
@@ -222,11 +223,12 @@ def plot_history(history: dict, path) -> Path | None:
     for a in ax:
         a.grid(alpha=0.3)
     fig.tight_layout()
-    tmp = path.with_name(f".{path.name}.tmp.png")
+    out = AtomicFile(path, what="plot", suffix=".tmp.png")
     try:
-        fig.savefig(tmp, dpi=110)
-        tmp.replace(path)
+        fig.savefig(out.tmp, dpi=110)
+        out.commit()
     except OSError as exc:
+        out.discard()
         raise OutputError(f"cannot write {path}: {exc}") from None
     finally:
         plt.close(fig)
