@@ -50,6 +50,9 @@ CHUNK_PIXELS = 1 << 14
 TARGET_EVENTS_PER_WINDOW = 1_000_000
 TARGET_PIXEL_TRIALS_PER_WINDOW = 40_000_000
 MAX_WINDOW_US = 1 << 22  # bounds the counting sort's histogram
+# Trial tier: pixels static within a window (lam = lam_ref) jump between events with geometric
+# gaps (O(events)); False keeps the per-trial reference algorithm (tests compare the two).
+TRIAL_FAST_STATIC = True
 METHODS = ("auto", "renewal", "trials")
 
 
@@ -106,6 +109,10 @@ class _PixelState:
         self.pend_tau = np.full(n, math.nan)
         self.lam_ref = np.zeros(n)
         self.lam_prev = np.zeros(n)
+        # trial tier: closed-form probabilities of pixels that are static within a window
+        self.cache_lam = np.full(n, math.nan)
+        self.cache_log1m_p = np.zeros(n)
+        self.cache_q_on = np.zeros(n)
 
 
 class _Collector:
@@ -489,6 +496,29 @@ def simulate_video(
     return np.concatenate(parts) if parts else empty_events(0)
 
 
+def _fill_static_cache(state: _PixelState, lams: np.ndarray, params: NoiseParams, eps_on, eps_off):
+    """Closed-form probabilities of the pixels the trial tier will jump through in this window.
+
+    Those whose ``lam`` is the same in every frame ``lams`` (F, n) of the window and equals
+    their ``lam_ref`` and ``lam_prev`` (see :func:`evnoise._kernels.simulate.trial_window`),
+    and whose cache does not already hold that ``lam``. Vectorised here (the grouped closed
+    form) so that the kernel does not evaluate the exact sum pixel by pixel.
+    """
+    lam0 = lams[0]
+    need = (lam0 == state.lam_ref) & (lam0 == state.lam_prev) & ~(state.cache_lam == lam0)
+    for row in lams[1:]:
+        need &= row == lam0
+    sel = np.flatnonzero(need)
+    if sel.size == 0:
+        return
+    p_on, p_off = trial_probabilities(lam0[sel], params, (eps_on[sel], eps_off[sel]))
+    p_all = p_on + p_off
+    with np.errstate(divide="ignore", invalid="ignore"):
+        state.cache_log1m_p[sel] = np.where(p_all < 1.0, np.log1p(-np.minimum(p_all, 1.0)), -np.inf)
+        state.cache_q_on[sel] = np.where(p_all > 0.0, p_on / np.where(p_all > 0.0, p_all, 1.0), 0.0)
+    state.cache_lam[sel] = lam0[sel]
+
+
 def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us, duration_us, threads,
                   progress, labels=False):
     """Generator over windows of a changing scene (renewal for ``static`` pixels, trials for the rest)."""
@@ -566,6 +596,8 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
                         cache[int(i)] = lam_of(int(i))
                 stack = np.stack([cache[int(i)] for i in idx])
                 f_us = np.ascontiguousarray(frame_us[idx]) if frames.n > 1 else np.zeros(1)
+                if TRIAL_FAST_STATIC:
+                    _fill_static_cache(dyn_state, stack[:, dyn_pix], params, dyn_e_on, dyn_e_off)
 
                 def run(lo, hi, stack=stack, f_us=f_us, j_a=j_a, j_b=j_b):
                     s = dyn_state
@@ -573,7 +605,8 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
                         lo, hi, width, s.pix, stack, f_us, j_a, j_b, dyn_c_on[lo:hi], dyn_c_off[lo:hi],
                         dyn_e_on[lo:hi], dyn_e_off[lo:hi], b, s.states[lo:hi], s.last_trial[lo:hi],
                         s.last_tau[lo:hi], s.lam_ref[lo:hi], s.lam_prev[lo:hi], dt, float(refr),
-                        float(duration_us), np.int64(t0_us), 256,
+                        float(duration_us), np.int64(t0_us), 256, TRIAL_FAST_STATIC,
+                        s.cache_lam[lo:hi], s.cache_log1m_p[lo:hi], s.cache_q_on[lo:hi],
                     )
 
                 parts += _map_chunks(run, dyn_pix.size, threads)

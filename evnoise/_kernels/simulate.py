@@ -21,6 +21,7 @@ import numpy as np
 from numba import prange
 
 from ._jit import kernel
+from .poisson import log_event_probability_exact
 from .rng import geometric, poisson_emlam, seed_state, uniform
 
 NO_EVENT = math.nan
@@ -210,7 +211,8 @@ def _level(lam, b):
 @kernel
 def trial_window(
     lo, hi, width, pix, frames_lam, frame_us, j_start, j_end, c_on, c_off, eps_on, eps_off, b,
-    states, last_trial, last_tau, lam_ref, lam_prev, dt, refr_us, tau_limit, t0_us, capacity
+    states, last_trial, last_tau, lam_ref, lam_prev, dt, refr_us, tau_limit, t0_us, capacity,
+    fast_static, cache_lam, cache_log1m_p, cache_q_on
 ):
     """Trial-by-trial simulation of pixels ``pix[lo:hi]`` for trials ``j_start .. j_end - 1``.
 
@@ -231,6 +233,19 @@ def trial_window(
     Per-pixel arrays (``states``, ``last_*``, ``lam_ref``, ``lam_prev``, ``c_*``, ``eps_*``) are
     indexed by ``k = i - lo`` (pass the chunk's slices); ``pix`` maps to flat pixel indices.
     Events at or after ``tau_limit`` (µs) are not emitted (the end of the recording).
+
+    With ``fast_static`` a pixel whose ``lam`` is the same in every frame of the window and
+    equals both ``lam_ref`` and ``lam_prev`` skips the trial-by-trial loop: no signal
+    crossing can happen (``lam = lam_ref``), a noise event resets ``lam_ref`` to the same
+    ``lam``, so every eligible trial fires independently with the same probabilities
+    ``p_on``, ``p_off`` of the static model, and the gap to the next event is geometric in
+    eligible trials (as in :func:`renewal_window`): O(events) instead of O(trials). A gap
+    that ends beyond the window is dropped and redrawn in the next window (exact: the
+    geometric gap is memoryless). ``p_on``, ``p_off`` come from the exact closed form and are
+    cached per pixel (``cache_lam`` is the ``lam`` they belong to, NaN for none;
+    ``cache_log1m_p = log1p(-(p_on + p_off))``, ``cache_q_on = p_on / (p_on + p_off)``). The
+    random stream is consumed differently from the per-trial path, so the output differs in
+    its bits, not in its law; ``fast_static=False`` keeps the per-trial path (the reference).
     """
     t_out = np.empty(capacity, dtype=np.int64)
     x_out = np.empty(capacity, dtype=np.uint16)
@@ -247,6 +262,48 @@ def trial_window(
         e_on = math.exp(eps_on[k])
         e_off = math.exp(eps_off[k])
         ref = lam_ref[k]
+        if fast_static:
+            lam0 = frames_lam[0, flat]
+            const = lam0 == ref and lam_prev[k] == ref
+            for f in range(1, n_frames):
+                if frames_lam[f, flat] != lam0:
+                    const = False
+                    break
+            if const:
+                if cache_lam[k] != lam0:
+                    p_on = math.exp(log_event_probability_exact(lam0, c_on[k], b))
+                    p_off = math.exp(log_event_probability_exact(lam0, c_off[k], b))
+                    p_all = p_on + p_off
+                    cache_lam[k] = lam0
+                    cache_log1m_p[k] = math.log1p(-p_all) if p_all < 1.0 else -math.inf
+                    cache_q_on[k] = p_on / p_all if p_all > 0.0 else 0.0
+                log1m_p = cache_log1m_p[k]
+                q_on = cache_q_on[k]
+                while True:
+                    if last_tau[k] == -math.inf:
+                        j_e = last_trial[k] + 1.0
+                    else:
+                        j_e = _first_eligible(last_trial[k], last_tau[k], refr_us, dt)
+                    j_e = max(j_e, float(j_start))
+                    if j_e >= j_end:
+                        break
+                    g = geometric(s, log1m_p)
+                    jp = j_e + g - 1.0
+                    if jp >= j_end:
+                        break  # dropped; redrawn from the next window on (memoryless)
+                    u_t = uniform(s)
+                    on = uniform(s) < q_on
+                    tau = (jp + u_t) * dt
+                    if tau >= tau_limit:
+                        break
+                    t_out, x_out, y_out, p_out = _push(
+                        t_out, x_out, y_out, p_out, n, t0_us + np.int64(math.floor(tau)), flat, width,
+                        1 if on else 0,
+                    )
+                    n += 1
+                    last_tau[k] = tau
+                    last_trial[k] = jp
+                continue
         # cached exp(-lam) of the last Poisson means (most trials repeat them)
         lam_c = -1.0
         em_c = 1.0
