@@ -566,7 +566,7 @@ class BackgroundHold:
 
 def bin_rates(rates, binning: int) -> np.ndarray:
     """Sum float rates or counts ``(2, H, W)`` over ``binning x binning`` blocks (partial edges dropped)."""
-    from .reconstruct.imaging import block_sum
+    from .radiometry import block_sum
 
     return block_sum(np.asarray(rates, dtype=np.float64), int(binning), "sensor")
 

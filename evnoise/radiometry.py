@@ -41,6 +41,8 @@ __all__ = [
     "image_to_lux",
     "fit_to_sensor",
     "srgb_to_linear",
+    "srgb_encode",
+    "block_sum",
     "luminance",
     "natural_sort_key",
     "list_frames",
@@ -72,11 +74,28 @@ _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 # --------------------------------------------------------------------------------------
 # transfer functions and luminance
 # --------------------------------------------------------------------------------------
+# The one home of the sRGB closed form (IEC 61966-2-1): ``srgb_to_linear`` decodes, ``srgb_encode``
+# encodes. ``reconstruct.imaging.srgb_decode`` / ``srgb_encode`` and ``generators.pairs.linear_to_srgb``
+# are these functions (colour-science is not imported: ``import evnoise`` stays light).
+def srgb_encode(linear) -> np.ndarray:
+    """sRGB encoding (IEC 61966-2-1 OETF) of linear values, clipped to ``[0, 1]`` (float64).
+
+    ``12.92 V`` for ``V <= 0.0031308``, else ``1.055 V ** (1 / 2.4) - 0.055``: the inverse of
+    :func:`srgb_to_linear`.
+    """
+    v = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
+    out = np.asarray(v * 12.92)  # an array also for a scalar input
+    high = v > 0.0031308
+    out[high] = 1.055 * np.power(v[high], 1.0 / 2.4) - 0.055
+    return out
+
+
 def srgb_to_linear(values) -> np.ndarray:
     """Decode sRGB-encoded values in ``[0, 1]`` to linear light (the IEC 61966-2-1 EOTF).
 
     ``V / 12.92`` for ``V <= 0.04045``, else ``((V + 0.055) / 1.055) ** 2.4``; the same
     function as ``colour.models.eotf_sRGB`` (checked in the tests), without importing colour.
+    Values are not clipped (``reconstruct.imaging.srgb_decode`` clips to ``[0, 1]`` first).
     """
     v = np.asarray(values, dtype=np.float64)
     low = v <= 0.04045
@@ -84,6 +103,18 @@ def srgb_to_linear(values) -> np.ndarray:
     out[low] = v[low] / 12.92
     out[~low] = ((v[~low] + 0.055) / 1.055) ** 2.4
     return out
+
+
+def block_sum(arr: np.ndarray, b: int, what: str = "image") -> np.ndarray:
+    """Sum of ``b x b`` blocks over the last two axes; a partial last row or column is dropped.
+
+    Raises :class:`~evnoise.InputError` (naming ``what``) when the array is smaller than one block.
+    """
+    h, w = arr.shape[-2] // b, arr.shape[-1] // b
+    if h == 0 or w == 0:
+        raise InputError(f"{what} of shape {arr.shape} is smaller than one {b}x{b} bin")
+    arr = arr[..., : h * b, : w * b]
+    return arr.reshape(*arr.shape[:-2], h, b, w, b).sum(axis=(-3, -1))
 
 
 @functools.lru_cache(maxsize=8)

@@ -36,6 +36,7 @@ from typing import NamedTuple
 import numpy as np
 
 from evnoise.errors import ParameterError
+from evnoise.radiometry import block_sum, srgb_encode
 
 from .config import COUNT_MAX, LEVELS, PairConfig
 
@@ -153,25 +154,12 @@ def quantise(lux: np.ndarray, step_lux: float):
     return codes, codes * step_lux
 
 
-def linear_to_srgb(linear) -> np.ndarray:
-    """sRGB encoding (IEC 61966-2-1 OETF) of linear values, clipped to ``[0, 1]`` (float64).
-
-    ``12.92 V`` for ``V <= 0.0031308``, else ``1.055 V ** (1 / 2.4) - 0.055``: the inverse of
-    :func:`evnoise.radiometry.srgb_to_linear`.
-    """
-    v = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
-    out = v * 12.92
-    high = v > 0.0031308
-    out[high] = 1.055 * np.power(v[high], 1.0 / 2.4) - 0.055
-    return out
+#: sRGB encoding (IEC 61966-2-1 OETF), clipped to ``[0, 1]``: :func:`evnoise.radiometry.srgb_encode`.
+linear_to_srgb = srgb_encode
 
 
-def bin_sum(arr: np.ndarray, b: int) -> np.ndarray:
-    """Sum over ``b x b`` blocks of the last two axes (which are multiples of ``b``)."""
-    if b == 1:
-        return arr
-    *lead, h, w = arr.shape
-    return arr.reshape(*lead, h // b, b, w // b, b).sum(axis=(-3, -1))
+#: Sum over ``b x b`` blocks of the last two axes: :func:`evnoise.radiometry.block_sum` (kept as a name).
+bin_sum = block_sum
 
 
 def display_image(level_sums: np.ndarray, binning: int, step_lux: float, white_lux: float) -> np.ndarray:
@@ -280,7 +268,8 @@ class CountSampler:
             from evnoise.simulate import sample_counts
 
             counts = sample_counts(lux_q, self.params, window_s, int(seed), threads=self.threads)
-        return bin_sum(np.asarray(counts, dtype=np.int64), b)
+        counts = np.asarray(counts, dtype=np.int64)
+        return counts if b == 1 else block_sum(counts, b, "counts")
 
 
 def to_uint16(binned: np.ndarray):

@@ -14,6 +14,7 @@ import numpy as np
 from .._atomic import atomic_output
 from .._checks import check_positive
 from ..errors import InputError, ParameterError
+from ..radiometry import block_sum, srgb_encode, srgb_to_linear
 
 __all__ = [
     "srgb_encode",
@@ -26,16 +27,12 @@ __all__ = [
 ]
 
 
-def srgb_encode(linear) -> np.ndarray:
-    """sRGB transfer function (IEC 61966-2-1): linear ``[0, 1]`` -> display ``[0, 1]`` (clipped)."""
-    x = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
-
-
 def srgb_decode(display) -> np.ndarray:
-    """Inverse of :func:`srgb_encode`: display ``[0, 1]`` -> linear ``[0, 1]`` (clipped)."""
-    v = np.clip(np.asarray(display, dtype=np.float64), 0.0, 1.0)
-    return np.where(v <= 0.04045, v / 12.92, np.power((v + 0.055) / 1.055, 2.4))
+    """Inverse of :func:`srgb_encode`: display ``[0, 1]`` -> linear ``[0, 1]`` (clipped first).
+
+    :func:`evnoise.radiometry.srgb_to_linear` of the clipped values (the one home of the closed form).
+    """
+    return srgb_to_linear(np.clip(np.asarray(display, dtype=np.float64), 0.0, 1.0))
 
 
 def _check_max_lux(max_lux) -> float:
@@ -67,15 +64,6 @@ def bin_counts(counts, binning: int = 2) -> np.ndarray:
     if arr.ndim < 2:
         raise InputError(f"counts must have at least 2 dimensions (..., H, W), got shape {arr.shape}")
     return block_sum(arr.astype(np.int64, copy=False), _check_binning(binning), "counts")
-
-
-def block_sum(arr: np.ndarray, b: int, what: str = "image") -> np.ndarray:
-    """Sum of ``b x b`` blocks over the last two axes; a partial last row or column is dropped."""
-    h, w = arr.shape[-2] // b, arr.shape[-1] // b
-    if h == 0 or w == 0:
-        raise InputError(f"{what} of shape {arr.shape} is smaller than one {b}x{b} bin")
-    arr = arr[..., : h * b, : w * b]
-    return arr.reshape(*arr.shape[:-2], h, b, w, b).sum(axis=(-3, -1))
 
 
 def bin_mean(image, binning: int = 2) -> np.ndarray:
