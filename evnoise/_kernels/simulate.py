@@ -95,17 +95,31 @@ def renewal_window(
     n = 0
     for i in range(lo, hi):
         k = i - lo
-        s = states[k]
         tau = pend_tau[k]
+        if tau >= w_end:  # (NaN compares false) an event pending beyond the window: nothing to draw
+            if pend_trial[k] >= discard_from_trial:
+                pend_tau[k] = NO_EVENT
+            continue
+        s = states[k]
         jp = pend_trial[k]
+        flat = pix[i]
+        xk = np.uint16(flat % width)
+        yk = np.uint16(flat // width)
+        # the pixel's state in locals and x, y once per pixel (not per event): same draws, same bits
+        lt = last_trial[k]
+        lta = last_tau[k]
+        l1p = log1m_p[k]
+        qk = q_on[k]
+        n_on = 0
+        n_off = 0
         while True:
             if math.isnan(tau):
-                if last_tau[k] == -math.inf:
-                    j_e = last_trial[k] + 1.0
+                if lta == -math.inf:
+                    j_e = lt + 1.0
                 else:
-                    j_e = _first_eligible(last_trial[k], last_tau[k], refr_us, dt)
+                    j_e = _first_eligible(lt, lta, refr_us, dt)
                 j_e = max(j_e, j_min)
-                g = geometric(s, log1m_p[k])
+                g = geometric(s, l1p)
                 if g == math.inf:
                     tau = math.inf
                     jp = math.inf
@@ -114,20 +128,29 @@ def renewal_window(
                 tau = (jp + uniform(s)) * dt
             if tau >= w_end:
                 break
-            on = uniform(s) < q_on[k]
+            on = uniform(s) < qk
             if on:
-                on_counts[k] += 1
+                n_on += 1
             else:
-                off_counts[k] += 1
+                n_off += 1
             if store:
-                t_out, x_out, y_out, p_out = _push(
-                    t_out, x_out, y_out, p_out, n, t0_us + np.int64(math.floor(tau)), pix[i], width,
-                    1 if on else 0,
-                )
+                if n == t_out.shape[0]:
+                    t_out = _grow(t_out, n)
+                    x_out = _grow(x_out, n)
+                    y_out = _grow(y_out, n)
+                    p_out = _grow(p_out, n)
+                t_out[n] = t0_us + np.int64(math.floor(tau))
+                x_out[n] = xk
+                y_out[n] = yk
+                p_out[n] = 1 if on else 0
                 n += 1
-            last_tau[k] = tau
-            last_trial[k] = jp
+            lta = tau
+            lt = jp
             tau = NO_EVENT
+        on_counts[k] = n_on
+        off_counts[k] = n_off
+        last_tau[k] = lta
+        last_trial[k] = lt
         if jp >= discard_from_trial:
             tau = NO_EVENT
         pend_tau[k] = tau
