@@ -13,8 +13,29 @@ from .errors import InputError
 
 EVENT_DTYPE = np.dtype([("t", np.int64), ("x", np.uint16), ("y", np.uint16), ("p", np.uint8)])
 
+# The one polarity convention of evnoise (outside the numba kernels, which follow it):
+#: ``p`` of an ON event (brighter, positive).
+ON = 1
+#: ``p`` of an OFF event (darker, negative).
+OFF = 0
+#: Index of ON along the first axis of ``(2, H, W)`` count and rate maps (OFF is ``1 - ON_INDEX``).
+ON_INDEX = 0
+#: Index of OFF along the first axis of ``(2, H, W)`` maps.
+OFF_INDEX = 1
+
+
+def polarity_index(p) -> np.ndarray:
+    """Map index (``ON_INDEX`` 0 for ON, ``OFF_INDEX`` 1 for OFF) of polarity codes ``p`` (int64)."""
+    return ON - np.asarray(p).astype(np.int64)
+
+
 __all__ = [
     "EVENT_DTYPE",
+    "ON",
+    "OFF",
+    "ON_INDEX",
+    "OFF_INDEX",
+    "polarity_index",
     "empty_events",
     "make_events",
     "count_events",
@@ -79,7 +100,7 @@ def count_events(events, shape, t_start_us=None, t_end_us=None) -> np.ndarray:
     lo = 0 if t_start_us is None else int(np.searchsorted(t, t_start_us, side="left"))
     hi = t.size if t_end_us is None else int(np.searchsorted(t, t_end_us, side="left"))
     ev = events[lo:hi]
-    flat = (1 - ev["p"].astype(np.int64)) * (height * width) + ev["y"].astype(np.int64) * width + ev["x"]
+    flat = polarity_index(ev["p"]) * (height * width) + ev["y"].astype(np.int64) * width + ev["x"]
     return np.bincount(flat, minlength=2 * height * width).reshape(2, height, width)
 
 

@@ -27,7 +27,7 @@ import numpy as np
 from ._atomic import AtomicFile
 from ._version import __version__
 from .errors import EvnoiseError, InputError, OutputError, ParameterError
-from .events import _check_shape, check_events, make_events
+from .events import ON, _check_shape, check_events, make_events
 
 __all__ = ["EventWriter", "EventFileWriter", "open_event_writer", "output_format", "OUTPUT_FORMATS", "write_events",
            "read_events", "read_metadata", "write_aedat4", "open_output_path"]
@@ -558,7 +558,7 @@ class EventFileWriter:
         out["t"] = t
         out["x"] = events["x"]
         out["y"] = events["y"]
-        out["on"] = events["p"] == 1
+        out["on"] = events["p"] == ON
         if self.format == "aedat4":
             self._encoder.write(0, out)
         elif self.format == "evt3":

@@ -59,7 +59,7 @@ import numpy as np
 
 from ._atomic import atomic_output
 from .errors import InputError, OutputError, ParameterError
-from .events import _check_shape, check_events, empty_events
+from .events import _check_shape, check_events, empty_events, polarity_index
 
 __all__ = [
     "MaskParams",
@@ -333,7 +333,7 @@ class MotionTracker:
 
     def _bins(self, events):
         height, width = self.shape
-        flat = ((1 - events["p"].astype(np.int64)) * (height * width) + events["y"].astype(np.int64) * width
+        flat = (polarity_index(events["p"]) * (height * width) + events["y"].astype(np.int64) * width
                 + events["x"])
         return np.bincount(flat, minlength=2 * height * width).reshape(2, height, width)
 

@@ -35,6 +35,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from evnoise._checks import kernel_key_from_seed
 from evnoise.errors import ParameterError
 from evnoise.radiometry import block_sum, srgb_encode
 
@@ -251,7 +252,7 @@ class CountSampler:
             if p_max < 1.0 and -n_full * math.log1p(-p_max) <= _DIRECT_MAX_LOG:
                 from ._kernels import trial_counts_binned
 
-                key = np.random.SeedSequence(int(seed)).generate_state(4, np.uint64)
+                key = kernel_key_from_seed(seed)
                 h, w = codes.shape
                 out = np.zeros((2, h // b, w // b), dtype=np.int64)
                 trial_counts_binned(np.ascontiguousarray(codes), table, n_full, frac, key, b, out)

@@ -30,3 +30,24 @@ def test_block_sum_is_one_function():
     want = np.array([[[a[c, 2 * i:2 * i + 2, 2 * j:2 * j + 2].sum() for j in range(3)] for i in range(2)]
                      for c in range(2)])
     np.testing.assert_array_equal(got, want)
+
+
+def test_kernel_key_is_what_the_simulator_draws():
+    from evnoise._checks import kernel_key, kernel_key_from_seed
+    from evnoise._kernels.rng import key_from
+
+    np.testing.assert_array_equal(kernel_key(np.random.default_rng(7)), key_from(np.random.default_rng(7)))
+    np.testing.assert_array_equal(kernel_key(7), key_from(np.random.default_rng(7)))
+    want = np.random.SeedSequence(7).generate_state(4, np.uint64)
+    np.testing.assert_array_equal(kernel_key_from_seed(7), want)
+    assert kernel_key_from_seed(7).dtype == np.uint64
+
+
+def test_polarity_convention():
+    from evnoise.events import OFF, OFF_INDEX, ON, ON_INDEX, count_events, make_events, polarity_index
+
+    assert (ON, OFF, ON_INDEX, OFF_INDEX) == (1, 0, 0, 1)
+    np.testing.assert_array_equal(polarity_index(np.array([ON, OFF, ON], dtype=np.uint8)), [0, 1, 0])
+    ev = make_events(np.array([0, 1, 2]), np.array([0, 1, 1]), np.array([0, 0, 0]), np.array([ON, OFF, OFF]))
+    c = count_events(ev, (1, 2), 0, 10)
+    assert c[ON_INDEX, 0, 0] == 1 and c[OFF_INDEX, 0, 1] == 2 and c.sum() == 3

@@ -339,6 +339,7 @@ def count_map(path, *, sensor=None, csv_columns=None, shape=None) -> tuple[np.nd
     the duration is the file's ``t_end_us`` (evnoise's events.h5) or the span of its events.
     """
     from ..errors import InputError
+    from ..events import polarity_index
     from ..readers import open_events
 
     src = open_events(path, sensor=sensor, csv_columns=csv_columns)
@@ -351,8 +352,7 @@ def count_map(path, *, sensor=None, csv_columns=None, shape=None) -> tuple[np.nd
         t_first = t_last = None
         for chunk in src.chunks():
             x, y = chunk["x"].astype(np.int64), chunk["y"].astype(np.int64)
-            p = chunk["p"].astype(np.int64)
-            flat += np.bincount((1 - p) * (height * width) + y * width + x, minlength=flat.size)
+            flat += np.bincount(polarity_index(chunk["p"]) * (height * width) + y * width + x, minlength=flat.size)
             t_first = int(chunk["t"][0]) if t_first is None else t_first
             t_last = int(chunk["t"][-1])
         t_end = src.meta.get("t_end_us")

@@ -271,6 +271,7 @@ def _write_outputs(args, fmt, out, png, scene: _Scene, attrs):
     import numpy as np
 
     from .._atomic import AtomicFile
+    from ..events import polarity_index
     from ..io import open_event_writer
 
     height, width = scene.shape
@@ -278,7 +279,7 @@ def _write_outputs(args, fmt, out, png, scene: _Scene, attrs):
 
     def counted(chunks):
         for chunk in chunks:
-            flat = (1 - chunk["p"].astype(np.int64)) * (height * width) + chunk["y"].astype(np.int64) * width
+            flat = polarity_index(chunk["p"]) * (height * width) + chunk["y"].astype(np.int64) * width
             flat += chunk["x"]
             counts[:] += np.bincount(flat, minlength=counts.size)
             yield chunk

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError, ParameterError
+from ..events import polarity_index
 
 #: Default hot-pixel rule: a pixel is hot when its count exceeds this many times the mean count
 #: of the active pixels (and at least :data:`HOT_MIN_COUNT`).
@@ -34,7 +35,7 @@ def pixel_counts(chunks, shape=None):
             grown = np.zeros((2, new_h, new_w), dtype=np.int64)
             grown[:, :height, :width] = counts
             counts, height, width = grown, new_h, new_w
-        flat = (1 - chunk["p"].astype(np.int64)) * (height * width) + chunk["y"].astype(np.int64) * width + chunk["x"]
+        flat = polarity_index(chunk["p"]) * (height * width) + chunk["y"].astype(np.int64) * width + chunk["x"]
         counts += np.bincount(flat, minlength=2 * height * width).reshape(2, height, width)
         n += int(chunk.size)
         if t_first is None:
