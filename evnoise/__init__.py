@@ -34,7 +34,7 @@ _LAZY = {
     "density_filter": "evnoise.separation",
     "activity_filter": "evnoise.separation",
     "iter_motion": "evnoise.motion",
-    "reconstruct_video": "evnoise.motion",
+    "reconstruct_video": "evnoise.reconstruct.video",
 }
 
 __all__ = [

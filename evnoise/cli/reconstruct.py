@@ -69,7 +69,7 @@ def run(args) -> int:
     if args.fps is not None:
         if args.step is not None:
             raise ParameterError("--step and --fps are two different moving-window modes; give one")
-        from ..motion import reconstruct_video
+        from ..reconstruct.video import reconstruct_video
 
         res = reconstruct_video(args.events, model_path, args.out, fps=args.fps, window_s=args.window,
                                 separator=None if args.separator == "none" else args.separator,

@@ -47,6 +47,7 @@ _LAZY = {
     "srgb_decode": ".imaging",
     "lux_to_display": ".imaging",
     "write_png": ".imaging",
+    "reconstruct_video": ".video",
 }
 
 __all__ = sorted(_LAZY)
