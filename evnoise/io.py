@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ._atomic import AtomicFile
+from ._h5 import READ_BLOCK, decode_attr, event_datasets, first_index, h5_metadata, open_h5
 from ._version import __version__
 from .errors import EvnoiseError, InputError, OutputError, ParameterError
 from .events import ON, _check_shape, check_events, make_events
@@ -38,8 +39,6 @@ log = logging.getLogger(__name__)
 CHUNK_EVENTS = 1 << 16
 #: Entries per HDF5 chunk of ``/ms_to_idx``.
 CHUNK_MS = 1 << 14
-#: Events read at a time when scanning a file.
-READ_BLOCK = 1 << 22
 
 _FIELDS = (("x", np.uint16), ("y", np.uint16), ("t", np.int64), ("p", np.uint8))
 _RESERVED = ("width", "height", "time_unit", "evnoise_version", "json_attrs", "t_end_us")
@@ -88,14 +87,6 @@ def _encode_attr(key: str, value):
         return value, False
     raise ParameterError(f"attribute {key!r} has unsupported type {type(value).__name__} "
                          f"(use str, numbers, arrays, dicts or lists)")
-
-
-def _decode_attr(value):
-    if isinstance(value, bytes):
-        return value.decode("utf-8", "replace")
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
 
 
 class EventWriter:
@@ -654,33 +645,6 @@ def open_event_writer(path, shape, attrs=None, *, overwrite: bool = False, compr
 # --------------------------------------------------------------------------------------
 # reading
 # --------------------------------------------------------------------------------------
-def _open_h5(path):
-    import h5py
-
-    path = Path(path)
-    if not path.exists():
-        raise InputError(f"event file not found: {path}")
-    if path.is_dir():
-        raise InputError(f"expected an event file, got a folder: {path}")
-    try:
-        return h5py.File(path, "r")
-    except OSError as exc:
-        raise InputError(f"cannot open event file {path} as HDF5: {exc}") from None
-
-
-def _event_datasets(f, path):
-    group = f.get("events")
-    import h5py
-
-    if not isinstance(group, h5py.Group) or not all(isinstance(group.get(k), h5py.Dataset) for k in "xytp"):
-        raise InputError(f"{path} is not an events.h5 file (no /events/x, y, t, p datasets)")
-    ds = {k: group[k] for k in "xytp"}
-    sizes = {ds[k].shape for k in "xytp"}
-    if len(sizes) != 1 or len(next(iter(sizes))) != 1:
-        raise InputError(f"{path}: /events/x, y, t, p must be 1-D and of equal length, got {sorted(sizes)}")
-    return ds
-
-
 def read_metadata(path, *, sensor=None, csv_columns=None) -> dict:
     """Root attributes of an events.h5 file, decoded, plus ``shape``, ``n_events`` and ``t_offset``.
 
@@ -693,45 +657,9 @@ def read_metadata(path, *, sensor=None, csv_columns=None) -> dict:
 
     if sensor is not None or csv_columns is not None or detect_format(path) != "h5":
         return source_meta(open_events(path, sensor=sensor, csv_columns=csv_columns))
-    with _open_h5(path) as f:
-        ds = _event_datasets(f, path)
-        return _metadata(f, ds)
-
-
-def _metadata(f, ds) -> dict:
-    meta = {k: _decode_attr(v) for k, v in f.attrs.items()}
-    json_keys = meta.pop("json_attrs", None)
-    if json_keys:
-        for key in json.loads(json_keys):
-            if key in meta:
-                try:
-                    meta[key] = json.loads(meta[key])
-                except (TypeError, ValueError):
-                    pass
-    meta["shape"] = (int(meta["height"]), int(meta["width"])) if "height" in meta and "width" in meta else None
-    meta["n_events"] = int(ds["t"].shape[0])
-    meta["t_offset"] = int(f["t_offset"][()]) if "t_offset" in f else 0
-    return meta
-
-
-def _first_index(f, t_ds, t_us: int) -> int:
-    """Index of the first event with ``t >= t_us``, reading only one millisecond of events."""
-    n = t_ds.shape[0]
-    ms = f.get("ms_to_idx")
-    k = t_us // 1000
-    if ms is not None and 0 <= k < ms.shape[0]:
-        lo = int(ms[k])
-        hi = int(ms[k + 1]) if k + 1 < ms.shape[0] else n
-    else:
-        lo, hi = 0, n  # no index for this time: search the whole column in blocks
-    # binary search over [lo, hi) in blocks, reading at most READ_BLOCK values at a time
-    while hi - lo > READ_BLOCK:
-        mid = (lo + hi) // 2
-        if int(t_ds[mid]) < t_us:
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo + int(np.searchsorted(t_ds[lo:hi], t_us, side="left"))
+    with open_h5(path) as f:
+        ds = event_datasets(f, path)
+        return h5_metadata(f, ds)
 
 
 def read_events(path, t_start_us: int | None = None, t_end_us: int | None = None, *, sensor=None,
@@ -777,17 +705,25 @@ def read_events(path, t_start_us: int | None = None, t_end_us: int | None = None
     t_start_us, t_end_us = _window(t_start, t_end, t_start_us, t_end_us)
     if sensor is not None or csv_columns is not None or detect_format(path) != "h5":
         return read_any(path, sensor=sensor, csv_columns=csv_columns, t_start_us=t_start_us, t_end_us=t_end_us)
-    with _open_h5(path) as f:
-        ds = _event_datasets(f, path)
-        meta = _metadata(f, ds)
+    with open_h5(path) as f:
+        ds = event_datasets(f, path)
+        meta = h5_metadata(f, ds)
         n = meta["n_events"]
         off = meta["t_offset"]
         try:
-            lo = 0 if t_start_us is None else _first_index(f, ds["t"], int(t_start_us) - off)
-            hi = n if t_end_us is None else _first_index(f, ds["t"], int(t_end_us) - off)
+            lo = 0 if t_start_us is None else first_index(f, ds["t"], int(t_start_us) - off)
+            hi = n if t_end_us is None else first_index(f, ds["t"], int(t_end_us) - off)
             hi = max(lo, hi)
             t = ds["t"][lo:hi]
             events = make_events(t + off if off else t, ds["x"][lo:hi], ds["y"][lo:hi], ds["p"][lo:hi])
         except OSError as exc:
             raise InputError(f"cannot read events from {path}: {exc}") from None
     return events, meta
+
+
+# old private names, still imported by evnoise/separation.py (use evnoise._h5's public names)
+_open_h5 = open_h5
+_event_datasets = event_datasets
+_metadata = h5_metadata
+_first_index = first_index
+_decode_attr = decode_attr

@@ -22,12 +22,12 @@ class H5Source(EventSource):
     seekable = True
 
     def __init__(self, path, *, sensor=None):
-        from ..io import _event_datasets, _metadata, _open_h5
+        from .._h5 import event_datasets, h5_metadata, open_h5
 
         super().__init__(path, sensor=sensor)
-        with _open_h5(self.path) as f:
-            ds = _event_datasets(f, self.path)
-            meta = _metadata(f, ds)
+        with open_h5(self.path) as f:
+            ds = event_datasets(f, self.path)
+            meta = h5_metadata(f, ds)
             n = meta["n_events"]
             self.t_offset_us = int(meta["t_offset"])
             self.t_first_us = int(ds["t"][0]) + self.t_offset_us if n else None
@@ -37,13 +37,13 @@ class H5Source(EventSource):
         self._set_shape(meta["shape"])
 
     def _chunks(self, t_start_us, t_end_us):
-        from ..io import _event_datasets, _first_index, _open_h5
+        from .._h5 import event_datasets, first_index, open_h5
 
         off = self.t_offset_us
-        with _open_h5(self.path) as f:
-            ds = _event_datasets(f, self.path)
-            lo = 0 if t_start_us is None else _first_index(f, ds["t"], int(t_start_us) - off)
-            hi = self.n_events if t_end_us is None else _first_index(f, ds["t"], int(t_end_us) - off)
+        with open_h5(self.path) as f:
+            ds = event_datasets(f, self.path)
+            lo = 0 if t_start_us is None else first_index(f, ds["t"], int(t_start_us) - off)
+            hi = self.n_events if t_end_us is None else first_index(f, ds["t"], int(t_end_us) - off)
             for a in range(lo, hi, CHUNK_EVENTS):
                 b = min(a + CHUNK_EVENTS, hi)
                 try:
