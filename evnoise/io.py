@@ -341,7 +341,8 @@ def _import_faery():
     try:
         import faery
     except ImportError:
-        raise OutputError("writing .aedat4, .raw, .dat, .es or .csv needs the faery package: pip install 'evnoise[readers]'") from None
+        raise OutputError("writing .aedat4, .raw, .dat, .es or .csv needs the faery package: "
+                          "pip install 'evnoise[readers]'") from None
     return faery
 
 
@@ -588,7 +589,8 @@ class EventFileWriter:
             prev[1:] = rel[:-1]
             crossed = (rel >> 24) != (prev >> 24)
             if crossed.any():
-                ok = (((prev >> 12) & 0xFFF) == 0xFFF) & (((rel >> 12) & 0xFFF) == 0) & ((rel >> 24) == (prev >> 24) + 1)
+                ok = ((((prev >> 12) & 0xFFF) == 0xFFF) & (((rel >> 12) & 0xFFF) == 0)
+                      & ((rel >> 24) == (prev >> 24) + 1))
                 bad = np.flatnonzero(crossed & ~ok)
                 if bad.size:
                     k = int(bad[0])

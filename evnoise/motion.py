@@ -390,8 +390,8 @@ def _check_fps(fps) -> float:
 
 
 def iter_motion(source, shape=None, *, fps: float, window_s: float, separator="density", is_signal=None,
-                mask: MaskParams | None = None, count: str = "noise", on_motion: str = "skip", t_start_s: float | None = None,
-                t_end_s: float | None = None, stats: dict | None = None, csv_columns=None) -> Iterator[MotionFrame]:
+                mask: MaskParams | None = None, count: str = "noise", on_motion: str = "skip",
+                t_start_s: float | None = None, t_end_s: float | None = None, stats: dict | None = None, csv_columns=None) -> Iterator[MotionFrame]:
     """Motion masks and moving-window noise counts of a recording, one :class:`MotionFrame` per step.
 
     Parameters

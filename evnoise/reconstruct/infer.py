@@ -179,8 +179,6 @@ def counts_from_h5(path, *, t_start_s: float = 0.0, window_s: float | None = Non
         raise ParameterError(f"window must be > 0 seconds, got {window_s!r}")
     f, (height, width) = _open_h5(path)
     with f:
-        t = f["events/t"]
-        n = t.shape[0]
         t0 = int(round(t_start_s * 1e6))
         end = _end_us(f)
         if window_s is None:

@@ -14,8 +14,17 @@ import numpy as np
 
 from .._atomic import atomic_output
 from ..errors import InputError, OutputError, ParameterError
-from ..motion import (BackgroundHold, MaskParams, _bin_any, _check_float, _check_fps, _check_int, bin_rates, iter_motion,
-                      overlay_rgb)
+from ..motion import (
+    BackgroundHold,
+    MaskParams,
+    _bin_any,
+    _check_float,
+    _check_fps,
+    _check_int,
+    bin_rates,
+    iter_motion,
+    overlay_rgb,
+)
 
 __all__ = ["reconstruct_video"]
 
