@@ -174,7 +174,7 @@ def _sniff(path: Path) -> bytes:
     return head
 
 
-def _load(path, encoding: str = "srgb"):
+def load_luminance(path, encoding: str = "srgb"):
     """``(values, kind)``: relative linear luminance (float64, H x W) and ``"display"`` or ``"linear"``."""
     path = Path(path)
     encoding = _check_encoding(encoding)
@@ -187,10 +187,10 @@ def _load(path, encoding: str = "srgb"):
         raw = _read_png16(path)  # Pillow would truncate 16-bit colour / grey+alpha PNG to 8 bits
     else:
         raw = _read_pillow(path)
-    return _to_luminance(raw, encoding, _describe(path))
+    return to_luminance(raw, encoding, _describe(path))
 
 
-def _to_luminance(raw: np.ndarray, encoding: str, name: str):
+def to_luminance(raw: np.ndarray, encoding: str, name: str):
     """Luminance of a decoded ``(H, W)`` / ``(H, W, C)`` array; integer = display-referred."""
     if raw.ndim == 3 and raw.shape[2] == 1:
         raw = raw[..., 0]
@@ -312,7 +312,8 @@ def _read_exr(path: Path) -> np.ndarray:
 # --------------------------------------------------------------------------------------
 # invalid values
 # --------------------------------------------------------------------------------------
-def _handle_invalid(values: np.ndarray, name: str, clip_invalid: bool) -> np.ndarray:
+def handle_invalid(values: np.ndarray, name: str, clip_invalid: bool) -> np.ndarray:
+    """``values`` with NaN / infinite / negative pixels refused (``InputError``) or, with ``clip_invalid``, clipped."""
     nan = np.isnan(values)
     inf = np.isinf(values)
     neg = values < 0  # -inf counts as negative too
@@ -365,8 +366,8 @@ def read_image(path, *, encoding: str = "srgb", clip_invalid: bool = False) -> n
         Missing, unreadable or corrupt file; unsupported layout; NaN, Inf or negative values
         (unless ``clip_invalid``).
     """
-    values, _ = _load(path, encoding)
-    return _handle_invalid(values, _describe(path), clip_invalid)
+    values, _ = load_luminance(path, encoding)
+    return handle_invalid(values, _describe(path), clip_invalid)
 
 
 def image_to_lux(
@@ -414,7 +415,7 @@ def image_to_lux(
     encoding = _check_encoding(encoding)
     if isinstance(path_or_array, (str, os.PathLike)):
         label = name or _describe(path_or_array)
-        values, kind = _load(path_or_array, encoding)
+        values, kind = load_luminance(path_or_array, encoding)
     else:
         label = name or "image"
         values, kind = _array_luminance(path_or_array, encoding, label)
@@ -428,7 +429,7 @@ def image_to_lux(
             raise ParameterError(f"max_lux applies to 8/16-bit display-referred images, but {label} is a "
                                  f"linear (EXR / floating-point) image; use lux_scale")
         scale = 1.0 if lux_scale is None else _positive(lux_scale, "lux_scale", "lux per unit")
-    values = _handle_invalid(values, label, clip_invalid)
+    values = handle_invalid(values, label, clip_invalid)
     if sensor_shape is not None:
         values = fit_to_sensor(values, sensor_shape, mode=fit)
     with np.errstate(over="ignore"):
@@ -460,7 +461,7 @@ def _array_luminance(arr, encoding: str, label: str):
                          f"pass floating-point values for linear input")
     if not (arr.ndim == 2 or (arr.ndim == 3 and arr.shape[2] in (1, 3, 4))):
         raise InputError(f"{label} must have shape (H, W) or (H, W, 3), got {arr.shape}")
-    return _to_luminance(arr, encoding, label)
+    return to_luminance(arr, encoding, label)
 
 
 def fit_to_sensor(image, shape, mode: str = "cover") -> np.ndarray:
@@ -571,3 +572,9 @@ def list_frames(folder, extensions=IMAGE_EXTENSIONS) -> list[Path]:
     if not files:
         raise InputError(f"folder {_describe(folder)} holds no image files ({', '.join(exts)})")
     return sorted(files, key=lambda p: natural_sort_key(p.name))
+
+
+# old private names, still imported by generators/sources.py (use the public ones above)
+_load = load_luminance
+_to_luminance = to_luminance
+_handle_invalid = handle_invalid
