@@ -1,8 +1,9 @@
-"""Issue 16, part 1: per-pixel set-up cost of the renewal tier and counts with threshold mismatch.
+"""Issue 16: per-pixel set-up and per-event cost of the renewal tier, the trial tier, counts with mismatch.
 
     nice -n 10 python benchmarks/bench_speed16.py                       # this checkout
     PYTHONPATH=/tmp/ev_before nice -n 10 python benchmarks/bench_speed16.py --label before
         # the same measurements on an older tree, e.g. ``git archive 1044ad2 evnoise generators | tar -x -C /tmp/ev_before``
+    nice -n 10 python benchmarks/bench_speed16.py --only trials,events  # part 2: trial tier, renewal per event
 
 Scene: ``benchmarks/run.py:scene`` at 1280x720 (0.2-18 lux, lam 13-1160 photons per trial),
 preset ``evk3-hd``. Each figure is the median of ``--repeats`` runs after one warm-up run
@@ -14,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -58,7 +60,10 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--only", default="limit,setup,simulate,stream,mismatch,dataset",
-                    help="comma-separated subset of limit,setup,simulate,stream,mismatch,dataset,memory,h5")
+                    help="comma-separated subset of limit,setup,simulate,stream,mismatch,dataset,memory,h5,"
+                         "trials,events")
+    ap.add_argument("--trial-seconds", type=float, default=2.0, help="simulated seconds of the trial-tier runs")
+    ap.add_argument("--event-seconds", type=float, default=30.0, help="simulated seconds of the `events` runs")
     ap.add_argument("--memory-durations", default="10,60,240",
                     help="durations (s) of the peak-memory runs of simulate_events (`--only memory`)")
     ap.add_argument("--sigma", type=float, default=0.03, help="eps_sigma of the mismatch runs")
@@ -158,6 +163,10 @@ def main(argv=None) -> int:
                 t = timed(lambda: list(pool.map(lambda b: zlib.compress(b, 1), chunks)), args.repeats)
             emit(args.label, f"limit: zlib level 1 on shuffled chunks, {workers} thread(s)", t,
                  events_per_s=events.size / t[0])
+    if "trials" in which:
+        _bench_trials(ev, args, params, lux, th)
+    if "events" in which:
+        _bench_events(ev, args, params, lux, th)
     if "dataset" in which:
         sys.path.insert(0, str(Path(ev.__file__).parent.parent))
         from generators.config import PairConfig
@@ -172,6 +181,88 @@ def main(argv=None) -> int:
             emit(args.label, f"make-dataset sampler (1280x720, bin 2, 1 s window), eps_sigma {sigma}", t,
                  pairs_per_s=1.0 / t[0], sampler=sampler.method)
     return 0
+
+
+def _bare_kernels():
+    """Bare Numba loops drawing the random numbers of each tier from evnoise's own per-pixel streams:
+    the measured limit beside the tiers (no state, no output, no branching on the model)."""
+    from evnoise._kernels._jit import kernel
+    from evnoise._kernels.rng import geometric, poisson, uniform
+
+    @kernel
+    def per_trial(states, lam, n_trials):  # the per-trial algorithm: two Poisson draws per pixel-trial
+        acc = 0.0
+        for k in range(states.shape[0]):
+            s = states[k]
+            for _ in range(n_trials):
+                acc += poisson(s, lam[k]) - poisson(s, lam[k])
+        return acc
+
+    @kernel
+    def per_event(states, log1m_p, n_events):  # a geometric gap and two uniforms (time, polarity) per event
+        acc = 0.0
+        for k in range(states.shape[0]):
+            s = states[k]
+            for _ in range(n_events):
+                acc += geometric(s, log1m_p) + uniform(s) + uniform(s)
+        return acc
+
+    return per_trial, per_event
+
+
+def _bench_trials(ev, args, params, lux, th):
+    """Trial tier: a static scene forced through it (method="trials") and a video with a moving disk."""
+    import evnoise.simulate as es
+
+    n_pix = lux.size
+    dur = args.trial_seconds
+    n_trials = math.ceil(dur * params.trial_rate_hz)
+    modes = [("jump over static pixels", True), ("per-trial reference", False)]
+    if not hasattr(es, "TRIAL_FAST_STATIC"):
+        modes = [("per-trial (old code)", None)]
+    # video: a bright disk (radius 60 px) crossing the scene in 2 s at 30 frames/s
+    h, w = lux.shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    times = np.arange(61) / 30.0
+    frames = np.stack([np.where((xx - 100 - 1000 * t / 2.0) ** 2 + (yy - 360) ** 2 < 60**2, 40.0, lux)
+                       for t in times])
+    moving = int((frames != frames[0]).any(axis=0).sum())
+    v_trials = math.ceil(times[-1] * params.trial_rate_hz)
+    for name, fast in modes:
+        if fast is not None:
+            es.TRIAL_FAST_STATIC = fast
+        t = timed(lambda: ev.simulate_events(lux, params, dur, rng=1, method="trials", threads=th), args.repeats)
+        emit(args.label, f"trial tier, static 1280x720 {dur:g} s (method=trials), {name}, {th} threads", t,
+             events=int(t[3].size), pixel_trials_per_s=n_pix * n_trials / t[0])
+        t = timed(lambda: ev.simulate_video(frames, times, params, rng=1, method="trials", threads=th),
+                  args.repeats)
+        emit(args.label, f"trial tier, video 1280x720 2 s, moving disk ({moving} pixels change), {name}, "
+             f"{th} threads", t, events=int(t[3].size), pixel_trials_per_s=n_pix * v_trials / t[0])
+    if hasattr(es, "TRIAL_FAST_STATIC"):
+        es.TRIAL_FAST_STATIC = True
+    per_trial, per_event = _bare_kernels()
+    from evnoise._kernels.rng import seed_state
+
+    states = np.empty((n_pix, 4), dtype=np.uint64)
+    key = np.arange(1, 5, dtype=np.uint64)
+    for i in range(0, n_pix, 97):
+        seed_state(key, i, states[i])
+    lam = params.photons_per_trial(lux).ravel()
+    t = timed(lambda: per_trial(states, lam, 4), args.repeats)
+    emit(args.label, "limit: bare Numba loop, 2 Poisson draws per pixel-trial at the scene's lam (1 thread)", t,
+         pixel_trials_per_s=4 * n_pix / t[0])
+    t = timed(lambda: per_event(states, -1e-3, 8), args.repeats)
+    emit(args.label, "limit: bare Numba loop, geometric gap + 2 uniforms per event (1 thread)", t,
+         events_per_s=8 * n_pix / t[0])
+
+
+def _bench_events(ev, args, params, lux, th):
+    """Renewal tier on a long static run: events/s end to end (set-up, kernels and sorting included)."""
+    dur = args.event_seconds
+    for threads in sorted({1, th}):
+        t = timed(lambda: ev.simulate_events(lux, params, dur, rng=1, threads=threads), args.repeats)
+        emit(args.label, f"renewal tier simulate_events 1280x720 {dur:g} s, {threads} thread(s)", t,
+             events=int(t[3].size), events_per_s=t[3].size / t[0])
 
 
 if __name__ == "__main__":
