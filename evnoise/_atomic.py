@@ -68,6 +68,27 @@ class AtomicFile:
         self.done = True
         return self.path
 
+    def finish(self, close, abort, *, catch=OSError, one_line: bool = False) -> Path:
+        """A writer's ``close()``: run ``close`` (flush and close its handle), then :meth:`commit`.
+
+        On failure ``abort`` is called (it closes the handle and calls :meth:`discard`) and the error
+        re-raised: an :class:`~evnoise.EvnoiseError` as it is, an exception of type ``catch`` as
+        ``OutputError("cannot finish {what} {path}: {exc}")`` (``one_line`` squeezes its whitespace).
+        """
+        try:
+            close()
+            return self.commit()
+        except EvnoiseError:
+            abort()
+            raise
+        except catch as exc:
+            abort()
+            text = " ".join(str(exc).split()) if one_line else str(exc)
+            raise OutputError(f"cannot finish {self.what} {self.path}: {text}") from None
+        except BaseException:
+            abort()
+            raise
+
     def discard(self) -> None:
         """Remove the temporary file if it is there (a failure to remove is logged, not raised)."""
         try:

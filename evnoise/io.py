@@ -268,7 +268,8 @@ class EventWriter:
         """Finish ``/ms_to_idx``, close the file and rename it to its final name; returns the path."""
         if self._closed:
             return self.path
-        try:
+
+        def close():
             if self.t_end_us is not None:
                 n_ms = -(-self.t_end_us // 1000) + 1
             else:
@@ -277,16 +278,8 @@ class EventWriter:
             if n_ms > self._next_ms:
                 self._append_ms(np.full(n_ms - self._next_ms, self.n_events, dtype=np.uint64))
             self._file.close()
-            self._out.commit()
-        except OutputError:
-            self.abort()
-            raise
-        except OSError as exc:
-            self.abort()
-            raise OutputError(f"cannot finish event file {self.path}: {exc}") from None
-        except BaseException:
-            self.abort()
-            raise
+
+        self._out.finish(close, self.abort)
         self._closed = True
         return self.path
 
@@ -604,19 +597,13 @@ class EventFileWriter:
         """Finish the file and rename it to its final name; returns the path."""
         if self._closed:
             return self.path
-        try:
+
+        def close():
             enc, self._encoder = self._encoder, None
             enc.__exit__(None, None, None)
-            self._out.commit()
-        except EvnoiseError:
-            self.abort()
-            raise
-        except Exception as exc:
-            self.abort()
-            raise OutputError(f"cannot finish {self.what} {self.path}: {' '.join(str(exc).split())}") from None
-        except BaseException:
-            self.abort()
-            raise
+
+        # faery's Rust encoders raise errors that are not OSError: catch every Exception, in one line
+        self._out.finish(close, self.abort, catch=Exception, one_line=True)
         self._closed = True
         return self.path
 

@@ -160,7 +160,8 @@ class ShardWriter:
 
         if self._closed:
             return self.path
-        try:
+
+        def close():
             f = self._file
             for key, dtype in META_COLUMNS.items():
                 values = self._meta[key]
@@ -171,13 +172,8 @@ class ShardWriter:
                     f.create_dataset(key, data=np.asarray(values, dtype=dtype).reshape(len(values)))
             f.create_dataset("crop_box", data=np.asarray(self._boxes, dtype=np.int32).reshape(len(self._boxes), 4))
             f.close()
-            self._out.commit()
-        except OSError as exc:
-            self.abort()
-            raise OutputError(f"cannot finish shard {self.path}: {exc}") from None
-        except BaseException:
-            self.abort()
-            raise
+
+        self._out.finish(close, self.abort)
         self._closed = True
         return self.path
 

@@ -43,3 +43,28 @@ def test_suffix_and_atomic_output_failure(tmp_path):
             tmp.write_text("half")
             raise RuntimeError("boom")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_finish_commits_or_aborts_with_one_clean_line(tmp_path):
+    out = AtomicFile(tmp_path / "c.bin", what="thing")
+    out.create()
+    aborted = []
+
+    def abort():
+        aborted.append(1)
+        out.discard()
+
+    assert out.finish(lambda: out.tmp.write_bytes(b"x"), abort) == tmp_path / "c.bin" and not aborted
+
+    out = AtomicFile(tmp_path / "d.bin", what="thing")
+    out.create()
+
+    def failing_close():
+        raise OSError("disk  full\nreally")
+
+    with pytest.raises(OutputError, match=r"^cannot finish thing .*d.bin: disk full really$"):
+        out.finish(failing_close, abort, one_line=True)
+    assert aborted == [1] and sorted(p.name for p in tmp_path.iterdir()) == ["c.bin"]
+    with pytest.raises(ValueError):  # not of type `catch`: re-raised as it is, after the abort
+        AtomicFile(tmp_path / "e.bin").finish(lambda: (_ for _ in ()).throw(ValueError("x")), abort)
+    assert aborted == [1, 1]
