@@ -252,9 +252,9 @@ def _check_t_start(t_start_us) -> int:
 
 
 def _key(gen):
-    from ._kernels.rng import key_from
+    from ._checks import kernel_key
 
-    return key_from(gen)
+    return kernel_key(gen)  # the one home of seed -> kernel key (issue 13)
 
 
 def _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, threads, progress, sink=None):
