@@ -89,7 +89,31 @@ def _encode_attr(key: str, value):
                          f"(use str, numbers, arrays, dicts or lists)")
 
 
-class EventWriter:
+class _AtomicWriter:
+    """What the streaming writers share: a context manager that closes (renames) on success and
+    aborts (removes the temporary file) on an exception, and no temporary file left when dropped."""
+
+    _closed = True
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+        return False
+
+    def __del__(self):  # a writer dropped without close() leaves no temporary file
+        try:
+            if not self._closed:
+                self.abort()
+        except Exception:
+            pass
+
+
+class EventWriter(_AtomicWriter):
     """Write an events.h5 file chunk by chunk (a context manager).
 
     Parameters
@@ -199,23 +223,6 @@ class EventWriter:
             raise
 
     # -- context manager ---------------------------------------------------------------
-    def __enter__(self) -> "EventWriter":
-        return self
-
-    def __exit__(self, exc_type, exc, tb):
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
-        return False
-
-    def __del__(self):  # a writer dropped without close() leaves no temporary file
-        try:
-            if not self._closed:
-                self.abort()
-        except Exception:
-            pass
-
     # -- writing -------------------------------------------------------------------------
     def write(self, events) -> None:
         """Append a chunk of events, sorted by time and not earlier than the previous chunk."""
@@ -424,7 +431,7 @@ def _aedat_description(aedat, width: int, height: int, attrs: dict):
     return nodes
 
 
-class EventFileWriter:
+class EventFileWriter(_AtomicWriter):
     """Write an event file of any output format chunk by chunk, atomically (a context manager).
 
     ``.h5`` goes through :class:`EventWriter`; ``.aedat4``, ``.raw`` (EVT 3.0), ``.dat``
@@ -497,23 +504,6 @@ class EventFileWriter:
             if not isinstance(exc, (EvnoiseError, KeyboardInterrupt, SystemExit, GeneratorExit)):
                 raise OutputError(f"cannot write {what} {self.path}: {' '.join(str(exc).split())}") from None
             raise
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, exc_type, exc, tb):
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
-        return False
-
-    def __del__(self):
-        try:
-            if not self._closed:
-                self.abort()
-        except Exception:
-            pass
 
     def write(self, events) -> None:
         """Append a chunk of events, sorted by time and not earlier than the previous chunk."""
