@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ._atomic import AtomicFile
-from ._h5 import READ_BLOCK, decode_attr, event_datasets, first_index, h5_metadata, open_h5
+from ._h5 import READ_BLOCK, event_datasets, first_index, h5_metadata, open_h5
 from ._version import __version__
 from .errors import EvnoiseError, InputError, OutputError, ParameterError
 from .events import ON, _check_shape, check_events, make_events
@@ -699,10 +699,3 @@ def read_events(path, t_start_us: int | None = None, t_end_us: int | None = None
             raise InputError(f"cannot read events from {path}: {exc}") from None
     return events, meta
 
-
-# old private names, still imported by evnoise/separation.py (use evnoise._h5's public names)
-_open_h5 = open_h5
-_event_datasets = event_datasets
-_metadata = h5_metadata
-_first_index = first_index
-_decode_attr = decode_attr

@@ -573,8 +573,3 @@ def list_frames(folder, extensions=IMAGE_EXTENSIONS) -> list[Path]:
         raise InputError(f"folder {_describe(folder)} holds no image files ({', '.join(exts)})")
     return sorted(files, key=lambda p: natural_sort_key(p.name))
 
-
-# old private names, still imported by generators/sources.py (use the public ones above)
-_load = load_luminance
-_to_luminance = to_luminance
-_handle_invalid = handle_invalid

@@ -453,15 +453,15 @@ def _h5_blocks(path, t_start_us: int, t_end_us: int, block_us: int, shape=None, 
     src = open_events(path, sensor=sensor, csv_columns=csv_columns)
     if src.format == "h5" and not src.t_offset_us:
         from .events import make_events
-        from .io import _event_datasets, _first_index, _open_h5
+        from ._h5 import event_datasets, first_index, open_h5
 
-        with _open_h5(path) as f:
-            ds = _event_datasets(f, path)
+        with open_h5(path) as f:
+            ds = event_datasets(f, path)
             a = t_start_us
-            lo = _first_index(f, ds["t"], a)
+            lo = first_index(f, ds["t"], a)
             while a < t_end_us:
                 b = min(a + block_us, t_end_us)
-                hi = _first_index(f, ds["t"], b)
+                hi = first_index(f, ds["t"], b)
                 try:
                     events = make_events(ds["t"][lo:hi], ds["x"][lo:hi], ds["y"][lo:hi], ds["p"][lo:hi])
                 except OSError as exc:

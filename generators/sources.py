@@ -69,10 +69,10 @@ class LoadContext(NamedTuple):
 
 def _load_file(path, ctx: LoadContext):
     """``(Y, kind)`` of an image file, with evnoise's radiometry (same decoding as ``evnoise simulate``)."""
-    from evnoise.radiometry import _handle_invalid, _load
+    from evnoise.radiometry import handle_invalid, load_luminance
 
-    values, kind = _load(path, ctx.encoding)
-    return _handle_invalid(values, os.fspath(path), ctx.clip_invalid), kind
+    values, kind = load_luminance(path, ctx.encoding)
+    return handle_invalid(values, os.fspath(path), ctx.clip_invalid), kind
 
 
 @dataclass(frozen=True)
@@ -219,7 +219,7 @@ class PackagePhotos:
     def load(self, item_id: str, ctx: LoadContext):
         path = self._path(item_id)
         if path.suffix == ".npz":
-            from evnoise.radiometry import _to_luminance
+            from evnoise.radiometry import to_luminance
 
             try:
                 with np.load(path) as data:
@@ -228,7 +228,7 @@ class PackagePhotos:
                 raise InputError(f"cannot read {path}: {exc}") from None
             if arr.dtype != np.uint8:
                 arr = np.clip(np.rint(arr), 0, 255).astype(np.uint8)
-            return _to_luminance(arr, ctx.encoding, os.fspath(path))
+            return to_luminance(arr, ctx.encoding, os.fspath(path))
         return _load_file(path, ctx)
 
     def spec(self) -> dict:
