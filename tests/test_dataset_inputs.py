@@ -50,3 +50,21 @@ def test_info_json_of_a_dataset_has_numbers_not_text(tmp_path, capsys):
         p.stat().st_size for p in (out / "shards").iterdir())
     assert info["windows_s"] == [1.0]
     assert sum(v["pairs"] for v in info["splits"].values()) == info["pairs"] == 4
+
+
+@pytest.mark.parametrize("content, why", [("objects", "holds Python objects"), ("garbage", "not a NumPy .npz archive")])
+def test_train_on_a_bad_npz_names_the_problem_not_numpys_pickle_advice(tmp_path, capsys, content, why):
+    """Issue 17 follow-up: numpy's "allow_pickle" / "pickle.load()" advice leaked into the one error line."""
+    pytest.importorskip("torch")
+    import numpy as np
+
+    bad = tmp_path / "pairs.npz"
+    if content == "objects":
+        np.savez(bad, counts=np.array([{"x": 1}], dtype=object))
+    else:
+        bad.write_bytes(b"garbage, not a zip archive")
+    code = main(["train", str(bad), "--out", str(tmp_path / "m.pt")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1
+    assert why in err and "pickle" not in err
+    assert not (tmp_path / "m.pt").exists()

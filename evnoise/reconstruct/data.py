@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -131,7 +132,11 @@ class NpzPairs(PairList):
             with np.load(path, allow_pickle=False) as z:
                 data = {k: z[k] for k in z.files}
         except (OSError, ValueError) as exc:
-            raise InputError(f"{path} is not a readable .npz pairs file ({exc})") from None
+            # numpy's own words point at allow_pickle / pickle.load, which evnoise never uses on user files
+            why = "it holds Python objects, not plain arrays" if "pickle" in str(exc) else str(exc)
+            if not zipfile.is_zipfile(path):
+                why = "not a NumPy .npz archive"
+            raise InputError(f"{path} is not a readable .npz pairs file ({why})") from None
         for key in ("counts", "images", "window_s"):
             if key not in data:
                 raise InputError(f"{path} has no array {key!r}: not a pairs file")
