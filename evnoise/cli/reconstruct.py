@@ -116,8 +116,9 @@ def run(args) -> int:
         meta = read_metadata(args.events, sensor=args.sensor, csv_columns=args.csv_columns)
         card = rec.doc.get("card") or {}
         size = f"{meta['shape'][1]}x{meta['shape'][0]}" if meta.get("shape") else "unknown size"
-        log.warning("%s comes from a camera (%s, %s), the model from simulated noise (preset %s%s): the noise "
-                    "statistics may differ", args.events, meta.get("camera") or meta.get("format"), size,
+        log.warning("%s carries no evnoise model parameters (%s, %s: a camera's recording?), the model was "
+                    "trained on simulated noise (preset %s%s): the noise statistics may differ",
+                    args.events, meta.get("camera") or meta.get("format"), size,
                     card.get("preset") or "unknown", f", {card['sensor']}" if card.get("sensor") else "")
     if args.binning is not None and args.binning != rec.binning:
         raise ParameterError(
