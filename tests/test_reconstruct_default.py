@@ -106,11 +106,17 @@ def test_info_prints_the_model_card(capsys):
     assert main(["info", str(default_model_path())]) == 0
     text = capsys.readouterr().out
     for needle in ("preset", "evk3-hd", "windows_s", "binning", "2x2", "training_data", "white_lux_range",
-                   "held_out_scores", "U-Net", "PSNR"):
+                   "held_out_scores", "U-Net", "psnr_db"):
         assert needle in text, needle
     assert main(["info", "--json", str(default_model_path())]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["kind"] == "checkpoint" and doc["preset"] == "evk3-hd"
+    # numbers as JSON numbers, units in the key names (issue 17: info --json wrote numbers as text)
+    unet = doc["held_out_scores"]["photos"]["U-Net"]
+    card = read_checkpoint(default_model_path())["card"]
+    assert unet["psnr_db"] == pytest.approx(card["held_out_scores"]["photos"]["unet"]["psnr"])
+    assert isinstance(doc["training"]["steps"], int) and doc["windows_s"] == [1.0]
+    assert doc["white_lux_range"][0] < doc["white_lux_range"][1]
 
 
 def test_a_recording_of_another_preset_warns_naming_both(tmp_path, capsys):

@@ -250,12 +250,9 @@ _METHOD_NAMES = {"unet": "U-Net", "counts-affine": "count image, affine fit (ora
                  "counts-minmax": "count image, min-max"}
 
 
-def _scores_line(vals: dict) -> str:
-    def f(key, digits, unit=""):
-        v = vals.get(key)
-        return "n/a" if v is None else f"{v:.{digits}f}{unit}"
-
-    return f"PSNR {f('psnr', 2, ' dB')}, SSIM {f('ssim', 3)}, LPIPS {f('lpips', 3)}"
+def _scores(vals: dict) -> dict:
+    """Held-out scores as numbers, units in the keys (None where not measured)."""
+    return {"psnr_db": vals.get("psnr"), "ssim": vals.get("ssim"), "lpips": vals.get("lpips")}
 
 
 def checkpoint_summary(path) -> dict:
@@ -273,7 +270,7 @@ def checkpoint_summary(path) -> dict:
     if card.get("sensor"):
         out["sensor"] = card["sensor"]
     windows = spec.get("windows_s") or ([spec.get("window_s")] if spec.get("window_s") else [])
-    out["windows_s"] = ", ".join(f"{w:g}" for w in windows) if windows else "not recorded"
+    out["windows_s"] = [float(w) for w in windows] if windows else "not recorded"
     out["default_window_s"] = spec.get("window_s")
     out["binning"] = f"{spec.get('binning')}x{spec.get('binning')}"
     out["input"] = (f"{spec.get('polarities')} polarities, {spec.get('transform', 'rate')} of the counts"
@@ -282,7 +279,7 @@ def checkpoint_summary(path) -> dict:
     out["white_lux"] = spec.get("max_lux")
     if card.get("white_lux_range"):
         lo, hi = card["white_lux_range"]
-        out["white_lux_range"] = f"{lo:g} .. {hi:g} lux (scene white, log-uniform)"
+        out["white_lux_range"] = [float(lo), float(hi)]  # scene white, drawn log-uniform
     out["model"] = (f"U-Net, {n_params:,} parameters, base_channels={model.get('base_channels')}, "
                     f"channel_mults={tuple(model.get('channel_mults', ()))}, stem={model.get('stem', 1)}")
     if card.get("training_data") or train.get("data"):
@@ -290,27 +287,28 @@ def checkpoint_summary(path) -> dict:
     if train:
         hist = train.get("history") or {}
         val = hist.get("val_loss") or []
-        out["training"] = (
-            f"{train.get('epoch', 0)} epochs, {train.get('step', 0)} steps of "
-            f"{train.get('config', {}).get('batch_size', '?')} "
-            f"crops, {float(train.get('elapsed_s', 0.0)) / 60:.1f} min, "
-            f"{'finished' if train.get('finished') else 'resumable (not finished)'}; "
-            f"best epoch {train.get('best_epoch')} (val loss {train.get('best_val', float('nan')):.4g})"
-            + (f", last val loss {val[-1]:.4g}" if val else "")
-        )
+        best_val = train.get("best_val")
+        out["training"] = {
+            "epochs": train.get("epoch", 0), "steps": train.get("step", 0),
+            "batch_size": train.get("config", {}).get("batch_size"),
+            "minutes": round(float(train.get("elapsed_s", 0.0)) / 60, 1), "finished": bool(train.get("finished")),
+            "best_epoch": train.get("best_epoch"),
+            "best_val_loss": None if best_val is None or not math.isfinite(best_val) else float(best_val),
+            "last_val_loss": float(val[-1]) if val else None,
+        }
     validation = card.get("validation") or {}
     if validation:
-        out["validation"] = (f"PSNR {validation.get('psnr_db', float('nan')):.2f} dB, "
-                             f"SSIM {validation.get('ssim', float('nan')):.3f}")
+        out["validation"] = {"psnr_db": validation.get("psnr_db"), "ssim": validation.get("ssim")}
     scores = card.get("held_out_scores") or {}
     if scores:
         block = {}
         for test, methods in scores.items():
+            block[test] = {"pairs": methods.get("pairs")}
             for m, vals in methods.items():
                 if isinstance(vals, dict):
                     name = _METHOD_NAMES.get(m, m.replace("ml-inversion@", "ML inversion, sigma ")
                                            .replace("ml-inversion", "ML inversion"))
-                    block[f"{test} ({methods.get('pairs', '?')} pairs): {name}"] = _scores_line(vals)
+                    block[test][name] = _scores(vals)
         out["held_out_scores"] = block
     if card.get("recipe"):
         out["recipe"] = card["recipe"]
@@ -320,10 +318,15 @@ def checkpoint_summary(path) -> dict:
 def describe_checkpoint(path) -> str:
     """Human-readable lines about a reconstructor checkpoint, its model card included."""
     lines = []
-    for key, value in checkpoint_summary(path).items():
-        if isinstance(value, dict):
-            lines.append(f"{key}:")
-            lines.extend(f"  {k}: {v}" for k, v in value.items())
-        else:
-            lines.append(f"{key}: {value}")
+
+    def add(block: dict, indent: str) -> None:
+        for key, value in block.items():
+            if isinstance(value, dict):
+                lines.append(f"{indent}{key}:")
+                add(value, indent + "  ")
+            else:
+                text = "-" if value is None else f"{value:.4g}" if isinstance(value, float) else value
+                lines.append(f"{indent}{key}: {text}")
+
+    add(checkpoint_summary(path), "")
     return "\n".join(lines)
