@@ -33,9 +33,9 @@ _LAZY = {
     "calibrate": ".fit",
     "CalibrationResult": ".result",
     "FIT_NAMES": ".fit",
-    "population_rate": ".model",
-    "nb_shape": ".model",
-    "threshold_distribution": ".model",
+    "population_rate": "evnoise.mismatch",  # properties of the noise model: they live in the core
+    "nb_shape": "evnoise.mismatch",
+    "threshold_distribution": "evnoise.mismatch",
     "plot_fit": ".plot",
 }
 

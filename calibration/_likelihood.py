@@ -12,7 +12,7 @@ import numpy as np
 from evnoise.params import NoiseParams
 
 from .measurements import Measurements
-from .model import LevelStats
+from evnoise.mismatch import LevelStats
 
 
 class _Problem:

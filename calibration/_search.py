@@ -78,7 +78,7 @@ class _MeanProxy:
         sigma = {e: np.maximum(vals["eps_sigma"], np.minimum(self.MIN_SIGMA, self.MIN_REL_SIGMA * vals[e]))[:, None]
                  for e in ("eps_pos", "eps_neg")}
         if x.shape[0] == 1:
-            from ._kernels import log_probability_serial
+            from evnoise._kernels.mismatch import log_probability_serial
 
             j = lam.shape[1]
             k = self.nodes.size

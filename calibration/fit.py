@@ -4,7 +4,7 @@ Model
     At illuminance ``lux`` a pixel with thresholds ``(eps_on, eps_off)`` fires per trial with the
     exact probabilities of :mod:`evnoise.model` at ``lam = photons_per_lux (lux + dark_lux)``;
     thresholds vary across pixels as ``N(eps_pos|eps_neg, eps_sigma)`` truncated to ``> 0``
-    (:mod:`evnoise.calibration.model` gives the exact distribution across pixels).
+    (:mod:`evnoise.mismatch` gives the exact distribution across pixels).
 
 Likelihoods
     *Flat fields* (per-pixel counts): the composite likelihood of every pixel's count at every
@@ -111,7 +111,7 @@ from ._uncertainty import _information  # noqa: F401
 from ._uncertainty import _rejected
 from ._uncertainty import _verdict  # noqa: F401
 from .measurements import Measurements
-from .model import METHODS
+from evnoise.mismatch import METHODS
 from .result import CalibrationResult
 
 __all__ = ["calibrate", "CalibrationResult", "FIT_NAMES"]

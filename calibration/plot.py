@@ -50,7 +50,7 @@ def plot_fit(result, path, *, title: str | None = None, overwrite: bool = False,
 
     from evnoise.io import open_output_path
 
-    from .model import nb_shape, population_rate
+    from evnoise.mismatch import nb_shape, population_rate
 
     path = open_output_path(path, overwrite=overwrite, what="plot")
     meas = result.measurements

@@ -115,7 +115,7 @@ SIGMA_GRID = tuple(np.round(np.geomspace(0.005, 0.3, 19), 5))
 
 def _r_misfit(meas, params) -> float:
     """rms of log(r_model / r_measured) over both polarities and all levels."""
-    from .model import nb_shape
+    from evnoise.mismatch import nb_shape
 
     r = nb_shape(meas.lux, params, 1.0)
     with np.errstate(divide="ignore"):
@@ -250,7 +250,7 @@ def write_outputs(meas, info, exact, gauss, profiles, preset_path: Path, plot_pa
             dict(label="authors' curve incl. constant OFF", lux=lux_all[1:],
                  rate=np.stack([total[0][1:] * np.nan, total[1][1:]]), style=":"),
         ]
-        from .model import nb_shape
+        from evnoise.mismatch import nb_shape
 
         best = profiles["best_mismatch"]
         r_curves = [dict(label=f"best threshold mismatch (eps_sigma {best.eps_sigma:.3g})", lux=lux_all[1:],

@@ -83,7 +83,7 @@ class CalibrationResult:
 
     def population_rate(self, lux) -> np.ndarray:
         """Fitted mean rate over pixels, events/s, ``(2, *lux.shape)``."""
-        from .model import population_rate
+        from evnoise.mismatch import population_rate
 
         return population_rate(lux, self.params, method=self.method)
 
@@ -103,7 +103,7 @@ class CalibrationResult:
             v = getattr(self.params, n)
             up = self.params.replace(**{n: v * math.exp(h)})
             dn = self.params.replace(**{n: v * math.exp(-h)})
-            from .model import population_rate
+            from evnoise.mismatch import population_rate
 
             with np.errstate(divide="ignore", invalid="ignore"):
                 jac[..., i] = (np.log(population_rate(lux, up, method=self.method))

@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._checks import as_generator, check_lux, check_params, check_thresholds
+from .errors import ParameterError
 from .model import event_probability
 
 __all__ = ["expected_rate", "draw_thresholds", "trial_probabilities"]
@@ -54,7 +55,7 @@ def trial_probabilities(lam, params, thresholds=None, *, skip_below=None):
     return p_on, p_off
 
 
-def expected_rate(lux, params, *, thresholds=None) -> np.ndarray:
+def expected_rate(lux, params, *, thresholds=None, mismatch: str = "nominal") -> np.ndarray:
     """Expected noise-event rate of a static pixel, events per second, ``[ON, OFF]``.
 
     Parameters
@@ -67,6 +68,11 @@ def expected_rate(lux, params, *, thresholds=None) -> np.ndarray:
         Per-pixel thresholds ``(2, *lux.shape)`` (e.g. from :func:`draw_thresholds`). Without it
         the nominal thresholds are used; with ``eps_sigma > 0`` the result is then the rate
         of a pixel whose thresholds equal the nominal values, not the population mean.
+    mismatch : {"nominal", "mean"}
+        ``"nominal"`` (default): the rate of a pixel at the nominal (or the given) thresholds.
+        ``"mean"``: the mean rate over the population of pixels whose thresholds are spread by
+        ``params.eps_sigma`` (exact, :func:`evnoise.mismatch.population_rate`): what a
+        measurement averaged over many pixels sees. The two agree when ``eps_sigma`` is 0.
 
     Returns
     -------
@@ -75,6 +81,14 @@ def expected_rate(lux, params, *, thresholds=None) -> np.ndarray:
     """
     params = check_params(params)
     lux = check_lux(lux, ndim=None)
+    if mismatch not in ("nominal", "mean"):
+        raise ParameterError(f"mismatch must be 'nominal' or 'mean', got {mismatch!r}")
+    if mismatch == "mean":
+        if thresholds is not None:
+            raise ParameterError("mismatch='mean' averages over the threshold spread; do not pass thresholds too")
+        from .mismatch import population_rate
+
+        return population_rate(lux, params)
     if thresholds is not None:
         thresholds = check_thresholds(thresholds, lux.shape)
     lam = params.photons_per_trial(lux)

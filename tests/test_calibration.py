@@ -51,7 +51,7 @@ CASES = [(0.2, 1.7, 0.9, 0.05), (0.2, 1.7, 0.9, 0.3), (2.0, 1.7, 1.0, 0.3), (18.
 
 @pytest.mark.parametrize("lam,b,mu,s", CASES)
 def test_mean_matches_plain_double_sum(lam, b, mu, s):
-    from evnoise.calibration._kernels import mean_probability_double_sum
+    from evnoise._kernels.mismatch import mean_probability_double_sum
 
     lp, mass, log_m1, _ = cal.threshold_distribution(lam, mu, s, b)
     ref = mean_probability_double_sum(lam, b, mu, s, lam + 15 * math.sqrt(lam) + 30)

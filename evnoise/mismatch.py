@@ -11,7 +11,7 @@ from it:
   ``duration_s`` seconds that has the same mean and variance (``var = mu + mu^2 / r``).
 
 With ``method="poisson"`` (default) the distribution is exact (see
-:mod:`evnoise.calibration._kernels`): ``p`` is a step function of the threshold, so the
+:mod:`evnoise._kernels.mismatch`): ``p`` is a step function of the threshold, so the
 average over a normal threshold is a finite sum over the steps, with no quadrature error.
 With ``method="gaussian"`` (the paper's eq. 3, smooth in ``eps``) it uses Gauss-Legendre
 quadrature on the normal's probability scale (``GAUSS_NODES`` nodes).
@@ -29,8 +29,8 @@ import math
 
 import numpy as np
 
-from evnoise._checks import check_lux, check_params, check_positive
-from evnoise.errors import ParameterError
+from ._checks import check_lux, check_params, check_positive
+from .errors import ParameterError
 
 __all__ = ["threshold_distribution", "population_rate", "nb_shape", "level_statistics"]
 
@@ -61,7 +61,7 @@ def _gauss_atoms(lam, b, mu, s):
 
 def _atoms(lam, b, mu, s, method):
     """``(log_p atoms, masses, log E[p], log E[p^2])`` at one photon count."""
-    from ._kernels import LOG_ZERO, threshold_atoms
+    from ._kernels.mismatch import LOG_ZERO, threshold_atoms
 
     if not lam > 0:
         return np.array([LOG_ZERO]), np.array([1.0]), -math.inf, -math.inf
@@ -116,7 +116,7 @@ class LevelStats:
 
     def _no_mismatch(self, lam, params):
         """Every pixel at the nominal thresholds: one atom per level, all levels in one kernel call."""
-        from ._kernels import LOG_ZERO, log_probability_serial
+        from ._kernels.mismatch import LOG_ZERO, log_probability_serial
 
         n = lam.size
         pos = lam > 0

@@ -20,7 +20,7 @@ like ``lam``: about 0.1 ms at ``lam ~ 1``, 1 ms at ``lam ~ 20``, a few ms at ``l
 
 Everything is in scaled arithmetic (values relative to ``exp(ref)``), so tiny probabilities
 do not underflow. Unit-free, no checking: the checked entry points are in
-:mod:`evnoise.calibration.model`.
+:mod:`evnoise.mismatch`.
 """
 
 from __future__ import annotations
@@ -29,8 +29,8 @@ import math
 
 import numpy as np
 
-from evnoise._kernels._jit import kernel
-from evnoise._kernels.poisson import log_event_probability_exact, log_pmf
+from ._jit import kernel
+from .poisson import log_event_probability_exact, log_pmf
 
 _SQRT1_2 = 1.0 / math.sqrt(2.0)
 _LUMP_X = 9.0  # breakpoints more than this many sigma above mu count as +inf
