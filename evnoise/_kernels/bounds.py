@@ -10,6 +10,30 @@ from ._jit import kernel
 
 
 @kernel
+def chernoff_bracket(lam, c, b, iterations):
+    """Bracket ``(lo, hi)`` of the tilt ``theta`` solving ``K'(theta) = T`` (see
+    :func:`log_chernoff_bound`) after ``iterations`` bisection steps; ``lam > 0``.
+
+    ``K'(0) = lam (1 - a) < 0 <= T`` and ``K'`` increases, so the root lies in ``[0, hi]``.
+    """
+    a = 1.0 + c
+    T = c * b
+    hi = 1.0
+    for _ in range(200):
+        if lam * (math.exp(hi) - a * math.exp(-a * hi)) >= T:
+            break
+        hi *= 2.0
+    lo = 0.0
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        if lam * (math.exp(mid) - a * math.exp(-a * mid)) < T:
+            lo = mid
+        else:
+            hi = mid
+    return lo, hi
+
+
+@kernel
 def log_chernoff_bound(lam, c, b):
     """Upper bound on ``log P(n - a n0 > (a - 1) b)`` for ``n, n0 ~ Poisson(lam)``, ``a = 1 + c``.
 
@@ -21,22 +45,8 @@ def log_chernoff_bound(lam, c, b):
     if not lam > 0.0:
         return -math.inf if lam == 0.0 else 0.0
     a = 1.0 + c
-    T = c * b
-    # K'(0) = lam (1 - a) < 0 <= T, K' increasing: bracket the root in [0, hi]
-    hi = 1.0
-    for _ in range(200):
-        if lam * (math.exp(hi) - a * math.exp(-a * hi)) >= T:
-            break
-        hi *= 2.0
-    lo = 0.0
-    for _ in range(80):
-        mid = 0.5 * (lo + hi)
-        if lam * (math.exp(mid) - a * math.exp(-a * mid)) < T:
-            lo = mid
-        else:
-            hi = mid
-    theta = lo
-    return lam * (math.expm1(theta) + math.expm1(-a * theta)) - theta * T
+    theta, _ = chernoff_bracket(lam, c, b, 80)
+    return lam * (math.expm1(theta) + math.expm1(-a * theta)) - theta * (c * b)
 
 
 @kernel(parallel=True)

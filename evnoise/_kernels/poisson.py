@@ -23,6 +23,7 @@ import numpy as np
 from numba import prange
 
 from ._jit import kernel
+from .bounds import chernoff_bracket
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -295,21 +296,8 @@ def _peak_m(lam, c, b):
     """Where ``pmf(m) P(N > k(m))`` peaks, roughly: the mean of ``n0`` under the exponential tilt
     that makes the event typical (the Chernoff point of :func:`evnoise._kernels.bounds.log_chernoff_bound`).
     Only a starting point and a table extent: every sum is stopped by a rigorous bound."""
-    a = 1.0 + c
-    T = c * b
-    hi = 1.0
-    for _ in range(200):
-        if lam * (math.exp(hi) - a * math.exp(-a * hi)) >= T:
-            break
-        hi *= 2.0
-    lo = 0.0
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        if lam * (math.exp(mid) - a * math.exp(-a * mid)) < T:
-            lo = mid
-        else:
-            hi = mid
-    return lam * math.exp(-a * 0.5 * (lo + hi))
+    lo, hi = chernoff_bracket(lam, c, b, 60)
+    return lam * math.exp(-(1.0 + c) * 0.5 * (lo + hi))
 
 
 @kernel
