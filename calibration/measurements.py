@@ -54,6 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
+from evnoise._checks import check_input_file
 from evnoise.errors import InputError
 
 __all__ = [
@@ -569,11 +570,7 @@ def read_measurements(path, *, monitor=None, monitor_model: str = "interp", prog
 
     ``monitor`` is a :class:`MonitorTable` or the path of a ``grey, lux`` CSV.
     """
-    path = Path(path)
-    if not path.exists():
-        raise InputError(f"measurements not found: {path}")
-    if path.is_dir():
-        raise InputError(f"expected a table or a listing file, got a folder: {path}")
+    path = check_input_file(path, missing="measurements", kind="a table or a listing file")
     if monitor is not None and not isinstance(monitor, MonitorTable):
         monitor = read_monitor_table(monitor)
     if path.suffix.lower() == ".toml":

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import numbers
+from pathlib import Path
 
 import numpy as np
 
@@ -44,6 +45,20 @@ def kernel_key_from_seed(seed: int) -> np.ndarray:
     the key :func:`kernel_key` gives for ``rng=seed``: both derivations are pinned by output digests.
     """
     return np.random.SeedSequence(int(seed)).generate_state(KEY_WORDS, np.uint64)
+
+
+def check_input_file(path, *, missing: str, kind: str):
+    """``Path(path)`` of an input that must be an existing file; :class:`InputError` naming it otherwise.
+
+    ``missing`` names it when absent (``"image"`` -> "image not found: ..."), ``kind`` when it is a
+    folder (``"an image file"`` -> "expected an image file, got a folder: ...").
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{missing} not found: {path}")
+    if path.is_dir():
+        raise InputError(f"expected {kind}, got a folder: {path}")
+    return path
 
 
 def check_params(params) -> NoiseParams:

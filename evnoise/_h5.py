@@ -7,10 +7,10 @@ Public names in an internal module (they were ``io._open_h5``, ``_event_datasets
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 
+from ._checks import check_input_file
 from .errors import InputError
 
 #: Events read at a time when scanning a file.
@@ -32,11 +32,7 @@ def open_h5(path):
     """Open an events.h5 file read-only (``InputError`` with one clean line if it is missing or not HDF5)."""
     import h5py
 
-    path = Path(path)
-    if not path.exists():
-        raise InputError(f"event file not found: {path}")
-    if path.is_dir():
-        raise InputError(f"expected an event file, got a folder: {path}")
+    path = check_input_file(path, missing="event file", kind="an event file")
     try:
         return h5py.File(path, "r")
     except OSError as exc:

@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._checks import check_input_file
 from .errors import InputError, ParameterError
 
 __all__ = [
@@ -160,10 +161,7 @@ def _describe(path) -> str:
 
 
 def _sniff(path: Path) -> bytes:
-    if not path.exists():
-        raise InputError(f"image not found: {_describe(path)}")
-    if path.is_dir():
-        raise InputError(f"expected an image file, got a folder: {_describe(path)}")
+    check_input_file(path, missing="image", kind="an image file")
     try:
         with open(path, "rb") as fh:
             head = fh.read(32)

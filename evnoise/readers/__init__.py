@@ -30,6 +30,7 @@ from typing import Iterator
 
 import numpy as np
 
+from .._checks import check_input_file
 from ..errors import InputError, ParameterError
 from ..events import EVENT_DTYPE
 from ._base import EventSource, parse_sensor, seconds_to_us
@@ -69,11 +70,7 @@ def _magic(head: bytes) -> str | None:
 
 def detect_format(path) -> str:
     """Format name of an event file (see the module table); :class:`~evnoise.InputError` if none fits."""
-    path = Path(path)
-    if not path.exists():
-        raise InputError(f"event file not found: {path}")
-    if path.is_dir():
-        raise InputError(f"expected an event file, got a folder: {path}")
+    path = check_input_file(path, missing="event file", kind="an event file")
     try:
         with open(path, "rb") as fh:
             head = fh.read(16)
