@@ -181,6 +181,23 @@ class EventSource:
         return False
 
 
+def packets_in_window(packets, t_start_us, t_end_us):
+    """The non-empty packets of a time-sorted decoder stream that may hold events of the window.
+
+    Skips packets that end before ``t_start_us`` and stops after the first one that reaches
+    ``t_end_us`` (either may be None); the exact trimming is :meth:`EventSource.chunks`'.
+    """
+    for packet in packets:
+        if len(packet) == 0:
+            continue
+        last = int(packet["t"][-1])
+        if t_start_us is not None and last < t_start_us:
+            continue
+        yield packet
+        if t_end_us is not None and last >= t_end_us:
+            return
+
+
 def to_events(t, x, y, p) -> np.ndarray:
     """Four columns -> :data:`EVENT_DTYPE` (``p`` nonzero -> 1)."""
     out = np.empty(len(t), dtype=EVENT_DTYPE)

@@ -10,7 +10,7 @@ its end).
 from __future__ import annotations
 
 from ..errors import InputError
-from ._base import EventSource, decoder_error, require, to_events
+from ._base import EventSource, decoder_error, packets_in_window, require, to_events
 
 
 class EsSource(EventSource):
@@ -38,20 +38,10 @@ class EsSource(EventSource):
 
         try:
             with es.Decoder(self.path, 0) as dec:
-                for packet in dec:
-                    if len(packet) == 0:
-                        continue
-                    if self._kind == "atis":
-                        packet = packet[~packet["exposure"]]
-                        if len(packet) == 0:
-                            continue
-                        on = packet["polarity"]
-                    else:
-                        on = packet["on"]
-                    if t_start_us is not None and int(packet["t"][-1]) < t_start_us:
-                        continue
+                atis = self._kind == "atis"
+                packets = (p[~p["exposure"]] if atis else p for p in dec)  # ATIS: polarity events only
+                for packet in packets_in_window(packets, t_start_us, t_end_us):
+                    on = packet["polarity"] if atis else packet["on"]
                     yield to_events(packet["t"], packet["x"], (self._height - 1) - packet["y"].astype("i4"), on)
-                    if t_end_us is not None and int(packet["t"][-1]) >= t_end_us:
-                        return
         except BaseException as exc:  # noqa: BLE001 - see decoder_error
             raise decoder_error(self.path, "Event Stream", exc) from None

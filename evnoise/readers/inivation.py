@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ._base import EventSource, decoder_error, from_faery, header_lines, require, to_events
+from ._base import EventSource, decoder_error, from_faery, header_lines, packets_in_window, require, to_events
 
 # --------------------------------------------------------------------------------------
 # AEDAT 4
@@ -82,14 +82,9 @@ class Aedat4Source(EventSource):
 
         try:
             with aedat.Decoder(self.path) as dec:
-                for track, packet in dec:
-                    if track.id != self._track or len(packet) == 0:
-                        continue
-                    if t_start_us is not None and int(packet["t"][-1]) < t_start_us:
-                        continue
+                packets = (packet for track, packet in dec if track.id == self._track)
+                for packet in packets_in_window(packets, t_start_us, t_end_us):
                     yield from_faery(packet)
-                    if t_end_us is not None and int(packet["t"][-1]) >= t_end_us:
-                        return
         except BaseException as exc:  # noqa: BLE001 - see decoder_error
             raise decoder_error(self.path, "AEDAT 4", exc) from None
 

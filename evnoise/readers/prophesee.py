@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError
-from ._base import EventSource, decoder_error, from_faery, header_lines, require, to_events
+from ._base import EventSource, decoder_error, from_faery, header_lines, packets_in_window, require, to_events
 
 #: Placeholder geometry handed to faery when a file has none (faery needs one; no event is
 #: checked against it). The events' extent is what evnoise reports then.
@@ -134,14 +134,8 @@ class DatSource(EventSource):
 
             try:
                 with dat.Decoder(self.path, self._fallback, None) as dec:
-                    for packet in dec:
-                        if len(packet) == 0:
-                            continue
-                        if t_start_us is not None and int(packet["t"][-1]) < t_start_us:
-                            continue
+                    for packet in packets_in_window(dec, t_start_us, t_end_us):
                         yield to_events(packet["t"], packet["x"], packet["y"], packet["payload"])
-                        if t_end_us is not None and int(packet["t"][-1]) >= t_end_us:
-                            return
             except BaseException as exc:  # noqa: BLE001 - see decoder_error
                 raise decoder_error(self.path, "Prophesee DAT", exc) from None
             return
@@ -149,15 +143,9 @@ class DatSource(EventSource):
 
         wiz = expelliarmus.Wizard(encoding="dat", fpath=str(self.path), chunk_size=1 << 20)
         try:
-            for packet in wiz.read_chunk():
-                if len(packet) == 0:
-                    continue
-                if t_start_us is not None and int(packet["t"][-1]) < t_start_us:
-                    continue
+            for packet in packets_in_window(wiz.read_chunk(), t_start_us, t_end_us):
                 if np.any(packet["x"] < 0) or np.any(packet["y"] < 0):
                     raise InputError(f"{self.path}: negative coordinates in a DAT file (corrupt?)")
                 yield to_events(packet["t"], packet["x"], packet["y"], packet["p"])
-                if t_end_us is not None and int(packet["t"][-1]) >= t_end_us:
-                    return
         except BaseException as exc:  # noqa: BLE001 - see decoder_error
             raise decoder_error(self.path, "Prophesee DAT (Event2d)", exc) from None

@@ -11,7 +11,7 @@ the events' extent is reported.
 from __future__ import annotations
 
 from ..errors import InputError, ParameterError
-from ._base import EventSource, decoder_error, from_faery, require
+from ._base import EventSource, decoder_error, from_faery, packets_in_window, require
 
 _ALIASES = {
     "t": "t", "ts": "t", "t_us": "t", "time": "t", "timestamp": "t", "timestamp_us": "t",
@@ -90,13 +90,7 @@ class CsvSource(EventSource):
         try:
             with csv.Decoder(self.path, self._dims, self._has_header, ord(","), c["t"], c["x"], c["y"], c["p"], 0.0,
                              0, b"1", b"0", False) as dec:
-                for packet in dec:
-                    if len(packet) == 0:
-                        continue
-                    if t_start_us is not None and int(packet["t"][-1]) < t_start_us:
-                        continue
+                for packet in packets_in_window(dec, t_start_us, t_end_us):
                     yield from_faery(packet)
-                    if t_end_us is not None and int(packet["t"][-1]) >= t_end_us:
-                        return
         except BaseException as exc:  # noqa: BLE001 - see decoder_error - faery raises plain exceptions
             raise decoder_error(self.path, "CSV events", exc) from None
