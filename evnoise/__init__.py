@@ -16,6 +16,8 @@ _LAZY = {
     "log_event_probability": "evnoise.model",
     "expected_rate": "evnoise.rates",
     "draw_thresholds": "evnoise.rates",
+    "draw_background": "evnoise.background",
+    "background_rate": "evnoise.background",
     "sample_counts": "evnoise.simulate",
     "simulate_events": "evnoise.simulate",
     "iter_events": "evnoise.simulate",

@@ -47,6 +47,32 @@ class NoiseParams:
         Standard deviation of the per-pixel threshold mismatch, ``>= 0``: each pixel's
         ``eps_pos`` and ``eps_neg`` are drawn once (independently, normal truncated to ``> 0``)
         and fixed for the whole run.
+    leak_on_hz, leak_off_hz : float, optional
+        Background activity (leak) of a pixel in the dark, events/s of each polarity, ``>= 0``:
+        events that are not photon-noise threshold crossings (see :mod:`evnoise.background`).
+    leak_on_hz_per_lux, leak_off_hz_per_lux : float, optional
+        Growth of the background rate with illuminance, events/s per lux, ``>= 0``: the rate of a
+        pixel at ``lux`` is ``leak_*_hz + leak_*_hz_per_lux * lux`` (times its spread factor).
+    leak_sigma : float, optional
+        Per-pixel spread of the background rates, ``>= 0``: each pixel's rates are multiplied by a
+        log-normal factor of mean 1 whose logarithm has standard deviation ``leak_sigma``, drawn
+        once per run.
+    hot_pixel_fraction : float, optional
+        Fraction of pixels that are hot, ``0 <= f <= 1``, chosen once per run.
+    hot_pixel_rate_hz : float, optional
+        Mean extra event rate of a hot pixel (both polarities together), events/s, ``>= 0``.
+    hot_pixel_sigma : float, optional
+        Log-normal spread of the hot pixels' rates (standard deviation of the log), ``>= 0``.
+    hot_pixel_on_fraction : float, optional
+        Share of a hot pixel's events that are ON, ``0 <= q <= 1`` (default 0.5).
+    pr_tau_s_at_1lux : float, optional
+        Photoreceptor time constant at 1 lux in seconds, ``>= 0``; it scales as
+        ``1 / (lux + dark_lux)`` (bandwidth grows with photocurrent). In changing scenes the level
+        a pixel compares follows the scene through this first-order low-pass filter; 0 (default)
+        means an infinitely fast photoreceptor. Static pixels are not affected.
+
+    All the terms after ``eps_sigma`` default to zero (no background, no hot pixels, no
+    photoreceptor lag); with all of them zero the simulators' output is what it was without them.
     """
 
     eps_pos: float
@@ -57,6 +83,16 @@ class NoiseParams:
     dark_lux: float = 0.0
     refractory_s: float = 0.0
     eps_sigma: float = 0.0
+    leak_on_hz: float = 0.0
+    leak_off_hz: float = 0.0
+    leak_on_hz_per_lux: float = 0.0
+    leak_off_hz_per_lux: float = 0.0
+    leak_sigma: float = 0.0
+    hot_pixel_fraction: float = 0.0
+    hot_pixel_rate_hz: float = 0.0
+    hot_pixel_sigma: float = 0.0
+    hot_pixel_on_fraction: float = 0.5
+    pr_tau_s_at_1lux: float = 0.0
 
     def __post_init__(self):
         rules = {
@@ -68,6 +104,16 @@ class NoiseParams:
             "dark_lux": (True, ">= 0"),
             "refractory_s": (True, ">= 0"),
             "eps_sigma": (True, ">= 0"),
+            "leak_on_hz": (True, ">= 0"),
+            "leak_off_hz": (True, ">= 0"),
+            "leak_on_hz_per_lux": (True, ">= 0"),
+            "leak_off_hz_per_lux": (True, ">= 0"),
+            "leak_sigma": (True, ">= 0"),
+            "hot_pixel_fraction": (True, ">= 0"),
+            "hot_pixel_rate_hz": (True, ">= 0"),
+            "hot_pixel_sigma": (True, ">= 0"),
+            "hot_pixel_on_fraction": (True, ">= 0"),
+            "pr_tau_s_at_1lux": (True, ">= 0"),
         }
         for name, (zero_ok, text) in rules.items():
             value = getattr(self, name)
@@ -80,6 +126,9 @@ class NoiseParams:
             if not math.isfinite(value) or value < 0 or (value == 0 and not zero_ok):
                 raise ParameterError(f"NoiseParams.{name} must be finite and {text}, got {value!r}")
             object.__setattr__(self, name, value)
+        for name in ("hot_pixel_fraction", "hot_pixel_on_fraction"):
+            if getattr(self, name) > 1:
+                raise ParameterError(f"NoiseParams.{name} must be <= 1, got {getattr(self, name)!r}")
         if self.trial_rate_hz > 1e6:
             raise ParameterError(
                 f"NoiseParams.trial_rate_hz must be <= 1e6 (one trial per microsecond at most), "
@@ -90,6 +139,12 @@ class NoiseParams:
     def photons_per_trial(self, lux):
         """Mean photon count per trial, ``lam = photons_per_lux * (lux + dark_lux)``."""
         return self.photons_per_lux * (lux + self.dark_lux)
+
+    @property
+    def has_background(self) -> bool:
+        """True when any background term (leak or hot pixels) is on."""
+        return (self.leak_on_hz > 0 or self.leak_off_hz > 0 or self.leak_on_hz_per_lux > 0
+                or self.leak_off_hz_per_lux > 0 or (self.hot_pixel_fraction > 0 and self.hot_pixel_rate_hz > 0))
 
     @property
     def trial_us(self) -> float:

@@ -46,16 +46,26 @@ def draw_thresholds(shape, params, rng=None) -> np.ndarray:
     return out
 
 
-def trial_probabilities(lam, params, thresholds=None, *, skip_below=None):
-    """Per-trial ``(p_on, p_off)`` at mean photon counts ``lam`` (nominal or per-pixel thresholds)."""
+def trial_probabilities(lam, params, thresholds=None, *, background=None, skip_below=None):
+    """Per-trial ``(P_on, P_off)`` at mean photon counts ``lam`` (nominal or per-pixel thresholds).
+
+    The photon-noise probabilities, with the background activity of :mod:`evnoise.background`
+    added when ``params`` has any (each pixel at the nominal spread factor and no hot pixel unless
+    ``background = (scale, hot)``, arrays matching ``lam``, is given).
+    """
     eps_on = params.eps_pos if thresholds is None else thresholds[0]
     eps_off = params.eps_neg if thresholds is None else thresholds[1]
     p_on = event_probability(lam, eps_on, params.bias_pr)
     p_off = event_probability(lam, eps_off, params.bias_pr)
+    if params.has_background:
+        from .background import lux_of_photons, with_background
+
+        scale, hot = (None, None) if background is None else background
+        p_on, p_off = with_background(p_on, p_off, lux_of_photons(lam, params), params, scale, hot)
     return p_on, p_off
 
 
-def expected_rate(lux, params, *, thresholds=None, mismatch: str = "nominal") -> np.ndarray:
+def expected_rate(lux, params, *, thresholds=None, background=None, mismatch: str = "nominal") -> np.ndarray:
     """Expected noise-event rate of a static pixel, events per second, ``[ON, OFF]``.
 
     Parameters
@@ -72,7 +82,13 @@ def expected_rate(lux, params, *, thresholds=None, mismatch: str = "nominal") ->
         ``"nominal"`` (default): the rate of a pixel at the nominal (or the given) thresholds.
         ``"mean"``: the mean rate over the population of pixels whose thresholds are spread by
         ``params.eps_sigma`` (exact, :func:`evnoise.mismatch.population_rate`): what a
-        measurement averaged over many pixels sees. The two agree when ``eps_sigma`` is 0.
+        measurement averaged over many pixels sees (threshold mismatch, background spread and
+        hot pixels). The two agree when ``eps_sigma``, ``leak_sigma`` and ``hot_pixel_fraction`` are 0.
+    background : array_like, optional
+        Per-pixel background maps ``(2, *lux.shape)`` (``[spread factor, hot rate]``, from
+        :func:`evnoise.draw_background`); without it each pixel has the nominal background
+        (spread factor 1, not hot). The background (leak) adds events as described in
+        :mod:`evnoise.background`.
 
     Returns
     -------
@@ -84,15 +100,20 @@ def expected_rate(lux, params, *, thresholds=None, mismatch: str = "nominal") ->
     if mismatch not in ("nominal", "mean"):
         raise ParameterError(f"mismatch must be 'nominal' or 'mean', got {mismatch!r}")
     if mismatch == "mean":
-        if thresholds is not None:
-            raise ParameterError("mismatch='mean' averages over the threshold spread; do not pass thresholds too")
+        if thresholds is not None or background is not None:
+            raise ParameterError("mismatch='mean' averages over the pixel population; do not pass thresholds "
+                                 "or background maps too")
         from .mismatch import population_rate
 
         return population_rate(lux, params)
     if thresholds is not None:
         thresholds = check_thresholds(thresholds, lux.shape)
+    if background is not None:
+        from .background import check_background
+
+        background = check_background(background, lux.shape)
     lam = params.photons_per_trial(lux)
-    p_on, p_off = trial_probabilities(lam, params, thresholds)
+    p_on, p_off = trial_probabilities(lam, params, thresholds, background=background)
     nu_on = params.trial_rate_hz * p_on
     nu_off = params.trial_rate_hz * p_off
     dead = 1.0 + (nu_on + nu_off) * (params.refractory_us * 1e-6)

@@ -92,6 +92,42 @@ def _resolve_thresholds(shape, params: NoiseParams, gen, thresholds):
     return np.ascontiguousarray(thr[0].ravel()), np.ascontiguousarray(thr[1].ravel())
 
 
+def _resolve_background(shape, params: NoiseParams, gen, background):
+    """Per-pixel ``(scale, hot)`` flat arrays of the background, or None when it needs none.
+
+    Drawn (after the thresholds) when ``leak_sigma`` or hot pixels are on and no maps are given;
+    None when every pixel has the nominal background (or there is none).
+    """
+    from .background import check_background, draw_background
+
+    if background is not None:
+        arr = check_background(background, shape)
+    elif params.has_background and (params.leak_sigma > 0 or params.hot_pixel_fraction > 0):
+        arr = draw_background(shape, params, gen)
+    else:
+        return None
+    return np.ascontiguousarray(arr[0].ravel()), np.ascontiguousarray(arr[1].ravel())
+
+
+def _background_coefficients(params: NoiseParams, bg, sel=None) -> np.ndarray:
+    """``(4, n)`` ``[l0_on, l1_on, l0_off, l1_off]`` of the trial kernel (``(4, 0)`` without background)."""
+    if not params.has_background:
+        return np.zeros((4, 0))
+    if bg is None:
+        n = 1 if sel is None else sel.size
+        scale, hot = np.ones(n), np.zeros(n)
+    else:
+        scale, hot = bg if sel is None else (bg[0][sel], bg[1][sel])
+    q = params.hot_pixel_on_fraction
+    out = np.stack([scale * params.leak_on_hz + hot * q, scale * params.leak_on_hz_per_lux,
+                    scale * params.leak_off_hz + hot * (1.0 - q), scale * params.leak_off_hz_per_lux])
+    return np.ascontiguousarray(out)
+
+
+def _select(bg, sel):
+    return None if bg is None else (bg[0][sel], bg[1][sel])
+
+
 class _PixelState:
     """Per-pixel simulation state of a set of pixels (flat indices ``pix``)."""
 
@@ -209,6 +245,7 @@ def iter_events(
     method: str = "auto",
     *,
     thresholds=None,
+    background=None,
     t_start_us: int = 0,
     threads: int | None = None,
     progress: bool = False,
@@ -219,10 +256,12 @@ def iter_events(
     the full, sorted event stream, and memory stays bounded by one window (a few million
     events). Validation happens at the call, before the first window.
     """
-    return _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, threads, progress)
+    return _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, threads, progress,
+                        background=background)
 
 
-def _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, threads, progress, sink=None):
+def _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, threads, progress, sink=None,
+                 background=None):
     """:func:`iter_events`; with ``sink`` (static scenes) each window is sorted straight into it."""
     params = check_params(params)
     lux = check_lux(lux)
@@ -233,12 +272,13 @@ def _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, t
     threads = default_threads() if threads is None else max(1, int(threads))
     gen = as_generator(rng)
     eps_on, eps_off = _resolve_thresholds(lux.shape, params, gen, thresholds)
+    bg = _resolve_background(lux.shape, params, gen, background)
     key = _key(gen)
     if method == "trials":
         frames = _FrameSource([lux], name="lux")
         return _iter_dynamic(frames, np.array([0.0, float(duration_us)]), params, key, eps_on, eps_off,
-                             np.zeros(lux.size, dtype=bool), t_start_us, duration_us, threads, progress)
-    return _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, threads, progress, sink)
+                             np.zeros(lux.size, dtype=bool), t_start_us, duration_us, threads, progress, bg=bg)
+    return _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, threads, progress, sink, bg)
 
 
 def _check_t_start(t_start_us) -> int:
@@ -257,10 +297,11 @@ def _key(gen):
     return kernel_key(gen)  # the one home of seed -> kernel key (issue 13)
 
 
-def _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, threads, progress, sink=None):
+def _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, threads, progress, sink=None,
+                 bg=None):
     height, width = lux.shape
     lam = params.photons_per_trial(lux).ravel()
-    p_on, p_off = trial_probabilities(lam, params, (eps_on, eps_off))
+    p_on, p_off = trial_probabilities(lam, params, (eps_on, eps_off), background=bg)
     log1m_p, q_on = _renewal_inputs(p_on, p_off)
     dt = params.trial_us
     refr = params.refractory_us
@@ -304,6 +345,7 @@ def simulate_events(
     method: str = "auto",
     *,
     thresholds=None,
+    background=None,
     t_start_us: int = 0,
     threads: int | None = None,
     progress: bool = False,
@@ -326,6 +368,10 @@ def simulate_events(
         ``"trials"`` runs the full per-trial model (statistically identical, slower).
     thresholds : array_like, optional
         Per-pixel thresholds ``(2, H, W)``; drawn from ``rng`` when ``params.eps_sigma > 0``.
+    background : array_like, optional
+        Per-pixel background maps ``(2, H, W)`` (``[spread factor, hot rate]``, see
+        :func:`evnoise.draw_background`); drawn from ``rng`` (after the thresholds) when
+        ``params.leak_sigma > 0`` or hot pixels are on.
     t_start_us : int
         Timestamp of the start of the recording in microseconds.
     threads : int, optional
@@ -341,7 +387,7 @@ def simulate_events(
     sink = _Collector(0)
     parts = []
     for window in _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, threads, progress,
-                               sink):
+                               sink, background):
         if method == "trials":
             parts.append(window)
     window = None  # the last window is a view of the sink's array: let it shrink in place
@@ -407,6 +453,7 @@ def iter_video(
     method: str = "auto",
     *,
     thresholds=None,
+    background=None,
     threads: int | None = None,
     progress: bool = False,
     return_labels: bool = False,
@@ -434,6 +481,7 @@ def iter_video(
         raise ParameterError("method='renewal' needs a static scene, but some pixels change between frames")
     gen = as_generator(rng)
     eps_on, eps_off = _resolve_thresholds(shape, params, gen, thresholds)
+    bg = _resolve_background(shape, params, gen, background)
     key = _key(gen)
     t0_us = int(round(ts[0] * 1e6))
     frame_us = (ts - ts[0]) * 1e6
@@ -441,7 +489,7 @@ def iter_video(
     if duration_us < 1:
         raise InputError("the video is shorter than one microsecond")
     return _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static.ravel(), t0_us,
-                         duration_us, threads, progress, labels=return_labels)
+                         duration_us, threads, progress, labels=return_labels, bg=bg)
 
 
 def simulate_video(
@@ -452,6 +500,7 @@ def simulate_video(
     method: str = "auto",
     *,
     thresholds=None,
+    background=None,
     threads: int | None = None,
     progress: bool = False,
     return_labels: bool = False,
@@ -465,7 +514,7 @@ def simulate_video(
     timestamps_s : array_like (F,)
         Time of each frame in seconds, strictly increasing. The recording spans
         ``[timestamps_s[0], timestamps_s[-1])``; event timestamps are absolute microseconds.
-    params, rng, thresholds, threads
+    params, rng, thresholds, background, threads
         As in :func:`simulate_events`.
     method : {"auto", "renewal", "trials"}
         ``"auto"``: renewal tier for pixels that never change, trial tier for the rest;
@@ -488,7 +537,7 @@ def simulate_video(
     step change); noise events everywhere, from the per-trial photon-count comparison.
     """
     parts = list(iter_video(frames_lux, timestamps_s, params, rng, method, thresholds=thresholds,
-                            threads=threads, progress=progress, return_labels=return_labels))
+                            background=background, threads=threads, progress=progress, return_labels=return_labels))
     if return_labels:
         if not parts:
             return empty_events(0), np.zeros(0, dtype=bool)
@@ -496,7 +545,7 @@ def simulate_video(
     return np.concatenate(parts) if parts else empty_events(0)
 
 
-def _fill_static_cache(state: _PixelState, lams: np.ndarray, params: NoiseParams, eps_on, eps_off):
+def _fill_static_cache(state: _PixelState, lams: np.ndarray, params: NoiseParams, eps_on, eps_off, bg=None):
     """Closed-form probabilities of the pixels the trial tier will jump through in this window.
 
     Those whose ``lam`` is the same in every frame ``lams`` (F, n) of the window and equals
@@ -511,7 +560,7 @@ def _fill_static_cache(state: _PixelState, lams: np.ndarray, params: NoiseParams
     sel = np.flatnonzero(need)
     if sel.size == 0:
         return
-    p_on, p_off = trial_probabilities(lam0[sel], params, (eps_on[sel], eps_off[sel]))
+    p_on, p_off = trial_probabilities(lam0[sel], params, (eps_on[sel], eps_off[sel]), background=_select(bg, sel))
     p_all = p_on + p_off
     with np.errstate(divide="ignore", invalid="ignore"):
         state.cache_log1m_p[sel] = np.where(p_all < 1.0, np.log1p(-np.minimum(p_all, 1.0)), -np.inf)
@@ -520,7 +569,7 @@ def _fill_static_cache(state: _PixelState, lams: np.ndarray, params: NoiseParams
 
 
 def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us, duration_us, threads,
-                  progress, labels=False):
+                  progress, labels=False, bg=None):
     """Generator over windows of a changing scene (renewal for ``static`` pixels, trials for the rest)."""
     from ._kernels.simulate import trial_window
 
@@ -540,10 +589,17 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
     # static pixels: closed-form probabilities once
     if stat_pix.size:
         lam0 = lam_of(0)[stat_pix]
-        p_on, p_off = trial_probabilities(lam0, params, (eps_on[stat_pix], eps_off[stat_pix]))
+        p_on, p_off = trial_probabilities(lam0, params, (eps_on[stat_pix], eps_off[stat_pix]),
+                                          background=_select(bg, stat_pix))
         log1m_p, q_on = _renewal_inputs(p_on, p_off)
         nu = params.trial_rate_hz * (p_on + p_off)
         nu = nu / (1.0 + nu * refr * 1e-6)
+    dyn_bg = _background_coefficients(params, bg, dyn_pix)
+    if dyn_bg.shape[1] == 1 and dyn_pix.size > 1:
+        dyn_bg = np.ascontiguousarray(np.repeat(dyn_bg, dyn_pix.size, axis=1))
+    from .background import pr_alpha_per_photon
+
+    pr_alpha = pr_alpha_per_photon(params)
     per_window = max(1, TARGET_PIXEL_TRIALS_PER_WINDOW // max(1, dyn_pix.size))
     per_window = min(per_window, max(1, int(MAX_WINDOW_US // dt)))
     if stat_pix.size:
@@ -597,7 +653,8 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
                 stack = np.stack([cache[int(i)] for i in idx])
                 f_us = np.ascontiguousarray(frame_us[idx]) if frames.n > 1 else np.zeros(1)
                 if TRIAL_FAST_STATIC:
-                    _fill_static_cache(dyn_state, stack[:, dyn_pix], params, dyn_e_on, dyn_e_off)
+                    _fill_static_cache(dyn_state, stack[:, dyn_pix], params, dyn_e_on, dyn_e_off,
+                                       None if bg is None else _select(bg, dyn_pix))
 
                 def run(lo, hi, stack=stack, f_us=f_us, j_a=j_a, j_b=j_b):
                     s = dyn_state
@@ -607,6 +664,7 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
                         s.last_tau[lo:hi], s.lam_ref[lo:hi], s.lam_prev[lo:hi], dt, float(refr),
                         float(duration_us), np.int64(t0_us), 256, TRIAL_FAST_STATIC,
                         s.cache_lam[lo:hi], s.cache_log1m_p[lo:hi], s.cache_q_on[lo:hi],
+                        dyn_bg[:, lo:hi], 1.0 / params.photons_per_lux, params.dark_lux, pr_alpha,
                     )
 
                 parts += _map_chunks(run, dyn_pix.size, threads)
@@ -634,13 +692,14 @@ def sample_counts(
     distribution: str = "exact",
     nb_shape=None,
     thresholds=None,
+    background=None,
     threads: int | None = None,
 ) -> np.ndarray:
     """Noise-event counts ``(2, H, W)`` ``[ON, OFF]`` of a static scene over ``duration_s``.
 
     Parameters
     ----------
-    lux, params, duration_s, rng, thresholds, threads
+    lux, params, duration_s, rng, thresholds, background, threads
         As in :func:`simulate_events`.
     distribution : {"exact", "poisson", "negative-binomial"}
         ``"exact"`` (default): the count distribution of the event process itself (trials
@@ -677,8 +736,9 @@ def sample_counts(
     threads = default_threads() if threads is None else max(1, int(threads))
     gen = as_generator(rng)
     eps_on, eps_off = _resolve_thresholds(lux.shape, params, gen, thresholds)
+    bg = _resolve_background(lux.shape, params, gen, background)
     lam = params.photons_per_trial(lux).ravel()
-    p_on, p_off = trial_probabilities(lam, params, (eps_on, eps_off))
+    p_on, p_off = trial_probabilities(lam, params, (eps_on, eps_off), background=bg)
     if distribution == "exact":
         key = _key(gen)
         log1m_p, q_on = _renewal_inputs(p_on, p_off)
@@ -722,10 +782,13 @@ class NoiseStream:
         Time of the start of the stream in microseconds.
     thresholds : array_like, optional
         Per-pixel thresholds ``(2, H, W)``; drawn when ``params.eps_sigma > 0``.
+    background : array_like, optional
+        Per-pixel background maps ``(2, H, W)``; drawn when ``params.leak_sigma > 0`` or hot
+        pixels are on (see :func:`simulate_events`).
     """
 
     def __init__(self, shape, params: NoiseParams, rng=None, *, t_start_us: int = 0, thresholds=None,
-                 threads: int | None = None):
+                 background=None, threads: int | None = None):
         from .events import _check_shape
 
         self.shape = _check_shape(shape)
@@ -733,6 +796,7 @@ class NoiseStream:
         self.threads = default_threads() if threads is None else max(1, int(threads))
         gen = as_generator(rng)
         self._eps_on, self._eps_off = _resolve_thresholds(self.shape, self.params, gen, thresholds)
+        self._bg = _resolve_background(self.shape, self.params, gen, background)
         self._state = _PixelState(np.arange(self.shape[0] * self.shape[1]), _key(gen), self.threads)
         self._t0 = _check_t_start(t_start_us)
         self._t_rel = 0  # µs since t_start_us
@@ -755,7 +819,7 @@ class NoiseStream:
         p = self.params
         dt = p.trial_us
         lam = p.photons_per_trial(lux).ravel()
-        p_on, p_off = trial_probabilities(lam, p, (self._eps_on, self._eps_off))
+        p_on, p_off = trial_probabilities(lam, p, (self._eps_on, self._eps_off), background=self._bg)
         log1m_p, q_on = _renewal_inputs(p_on, p_off)
         nu = p.trial_rate_hz * (p_on + p_off)
         j_min = _first_trial_at_or_after(self._t_rel, dt)

@@ -223,6 +223,17 @@ def sort_into_events(t, x, y, p, t_lo, t_hi, out, labels):
                 labels[j] = pp[i] >> 1
 
 
+@kernel
+def _add_background(p_on, p_off, l_on, l_off, dt_s):
+    """Per-trial probabilities with background intensities ``l_on``, ``l_off`` (events/s) added."""
+    l_all = l_on + l_off
+    if l_all <= 0.0:
+        return p_on, p_off
+    g = -math.expm1(-l_all * dt_s) / l_all
+    quiet = 1.0 - p_on - p_off
+    return p_on + quiet * g * l_on, p_off + quiet * g * l_off
+
+
 _LEVEL_FLOOR = 1e-6  # photons per trial; log-levels below log(1e-6) are clamped in signal crossings
 
 
@@ -235,7 +246,7 @@ def _level(lam, b):
 def trial_window(
     lo, hi, width, pix, frames_lam, frame_us, j_start, j_end, c_on, c_off, eps_on, eps_off, b,
     states, last_trial, last_tau, lam_ref, lam_prev, dt, refr_us, tau_limit, t0_us, capacity,
-    fast_static, cache_lam, cache_log1m_p, cache_q_on
+    fast_static, cache_lam, cache_log1m_p, cache_q_on, bg, lux_per_photon, dark_lux, pr_alpha
 ):
     """Trial-by-trial simulation of pixels ``pix[lo:hi]`` for trials ``j_start .. j_end - 1``.
 
@@ -269,6 +280,19 @@ def trial_window(
     ``cache_log1m_p = log1p(-(p_on + p_off))``, ``cache_q_on = p_on / (p_on + p_off)``). The
     random stream is consumed differently from the per-trial path, so the output differs in
     its bits, not in its law; ``fast_static=False`` keeps the per-trial path (the reference).
+
+    Background activity (:mod:`evnoise.background`): ``bg`` is ``(4, hi - lo)`` per pixel
+    ``[l0_on, l1_on, l0_off, l1_off]`` with intensities ``l = l0 + l1 * lux`` (events/s) at the
+    trial's input ``lux = max(lam * lux_per_photon - dark_lux, 0)``, or ``(4, 0)`` for none. An
+    eligible trial whose photon comparison fired nothing fires a background event with
+    probability ``1 - exp(-l dt)``, ON with probability ``l_on / l`` (one more uniform draw, only
+    when ``bg`` is given), and, like every event, resets ``lam_ref``.
+
+    Photoreceptor bandwidth: with ``pr_alpha > 0`` the mean photon count a pixel compares
+    (``lam_prev`` holds it between trials) follows the input through a first-order low-pass
+    filter on the level ``log(lam + b)`` with step ``1 - exp(-lam * pr_alpha)`` per trial (time
+    constant inversely proportional to the input photocurrent); once within ``1e-9`` of the input
+    level it is snapped to it, so a settled pixel is exactly static again.
     """
     t_out = np.empty(capacity, dtype=np.int64)
     x_out = np.empty(capacity, dtype=np.uint16)
@@ -277,6 +301,8 @@ def trial_window(
     n = 0
     n_frames = frames_lam.shape[0]
     max_signal = 1 << 20
+    has_bg = bg.shape[1] > 0
+    dt_s = dt * 1e-6
     for i in range(lo, hi):
         k = i - lo
         flat = pix[i]
@@ -296,6 +322,10 @@ def trial_window(
                 if cache_lam[k] != lam0:
                     p_on = math.exp(log_event_probability_exact(lam0, c_on[k], b))
                     p_off = math.exp(log_event_probability_exact(lam0, c_off[k], b))
+                    if has_bg:
+                        lux0 = max(lam0 * lux_per_photon - dark_lux, 0.0)
+                        p_on, p_off = _add_background(p_on, p_off, bg[0, k] + bg[1, k] * lux0,
+                                                      bg[2, k] + bg[3, k] * lux0, dt_s)
                     p_all = p_on + p_off
                     cache_lam[k] = lam0
                     cache_log1m_p[k] = math.log1p(-p_all) if p_all < 1.0 else -math.inf
@@ -345,6 +375,15 @@ def trial_window(
                 a = (centre - frame_us[seg]) / (frame_us[seg + 1] - frame_us[seg])
                 a = min(max(a, 0.0), 1.0)
                 lam = f0 + a * (f1 - f0)
+            lam_in = lam
+            if pr_alpha > 0.0 and lam != lam_prev[k]:
+                lev_in = _level(lam, b)
+                lev_f = _level(lam_prev[k], b)
+                lev_f += -math.expm1(-lam * pr_alpha) * (lev_in - lev_f)
+                if abs(lev_f - lev_in) <= 1e-9:
+                    lam = lam_in
+                else:
+                    lam = max(math.exp(lev_f) - b, 0.0)
             fired = False
             # signal crossings (rare): compare levels multiplicatively, take logs only if needed
             up = lam + b >= (ref + b) * e_on
@@ -395,6 +434,15 @@ def trial_window(
                     pol = 1
                 elif n_ref > n_sig + math.floor(c_off[k] * (n_sig + b)):
                     pol = 0
+                elif has_bg:
+                    lux_j = max(lam_in * lux_per_photon - dark_lux, 0.0)
+                    l_on = bg[0, k] + bg[1, k] * lux_j
+                    l_all = l_on + bg[2, k] + bg[3, k] * lux_j
+                    if l_all > 0.0:
+                        u_bg = uniform(s)
+                        a_bg = -math.expm1(-l_all * dt_s)
+                        if u_bg < a_bg:
+                            pol = 1 if u_bg < a_bg * (l_on / l_all) else 0
                 tau = (j + uniform(s)) * dt if pol >= 0 else math.inf
                 if tau < tau_limit:
                     t_out, x_out, y_out, p_out = _push(

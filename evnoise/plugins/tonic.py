@@ -97,6 +97,11 @@ class PhotonNoise:
             self._thresholds = np.stack([eps_on, eps_off]).reshape(2, height, width)
         else:
             self._thresholds = None
+        self._background = None
+        if self.params.has_background and (self.params.leak_sigma > 0 or self.params.hot_pixel_fraction > 0):
+            from ..background import draw_background
+
+            self._background = draw_background((height, width), self.params, thr_gen)  # once per sensor
 
     @staticmethod
     def _lux_map(lux, height, width):
@@ -153,6 +158,7 @@ class PhotonNoise:
         t_last = int(np.ceil(t.max()))
         span_us = t_last - t_first + 1
         noise = simulate_events(self.lux, self.params, span_us * 1e-6, rng=gen, thresholds=self._thresholds,
+                                background=self._background,
                                 t_start_us=t_first, threads=self.threads)
         out = np.zeros(noise.size, dtype=out_dtype)
         out["x"] = noise["x"]
