@@ -18,7 +18,8 @@ is ``srgb_encode(mean_2x2(lux) / white_lux)`` clipped to ``[0, 1]``: what a pers
 display whose white is ``white_lux``; ``lux = srgb_decode(image) * white_lux`` recovers the
 binned illuminance (where the image is below 1).
 
-Counts. ``mode="counts"`` with no refractory period and no threshold mismatch draws each
+Counts. ``mode="counts"`` with no refractory period and no per-pixel draws (threshold mismatch,
+background spread, hot pixels; a uniform background is fine) draws each
 pixel's counts exactly from its i.i.d. trials (:func:`._kernels.trial_counts_binned`, with the
 per-trial probabilities of each illuminance level from the exact closed form, evaluated once
 per level); otherwise it calls :func:`evnoise.sample_counts`. ``mode="events"`` simulates the
@@ -190,7 +191,9 @@ class CountSampler:
         self.threads = max(1, int(threads))
         self.step = config.lux_step
         p = self.params
-        self.direct = config.mode == "counts" and p.refractory_s == 0 and p.eps_sigma == 0
+        # per-pixel draws (threshold mismatch, background spread, hot pixels) go through sample_counts
+        per_pixel = p.eps_sigma > 0 or (p.has_background and (p.leak_sigma > 0 or p.hot_pixel_fraction > 0))
+        self.direct = config.mode == "counts" and p.refractory_s == 0 and not per_pixel
         self._levels = 0
         self._p_on = self._p_off = None
         self._n_tables: dict = {}
