@@ -83,12 +83,16 @@ def double_sum_event_probability(lam: float, eps: float, bias: float) -> float:
     return float(np.sum(pmf[:, None] * pmf[None, :] * fires))
 
 
-def naive_static_events(lux, params: NoiseParams, duration_s: float, rng=None) -> np.ndarray:
+def naive_static_events(lux, params: NoiseParams, duration_s: float, rng=None, *, background=None) -> np.ndarray:
     """Static-scene events by brute force: every trial, every eligible pixel draws ``n, n0``.
 
     Same conventions as the library (event time uniform within its trial, refractory period
     as non-paralyzable dead time on trial starts); per-pixel thresholds follow
-    ``params.eps_sigma`` with :func:`evnoise.rates.draw_thresholds`. Cost O(pixels x trials).
+    ``params.eps_sigma`` with :func:`evnoise.rates.draw_thresholds`. Background activity
+    (:mod:`evnoise.background`): a pixel whose comparison fired nothing draws the number of
+    background arrivals in the trial, ``Poisson(l dt)``, and fires if it is at least one, ON with
+    probability ``l_on / l`` (``background``: per-pixel ``[spread, hot rate]`` maps, default
+    the nominal pixel). Cost O(pixels x trials).
     """
     from .rates import draw_thresholds
 
@@ -98,6 +102,11 @@ def naive_static_events(lux, params: NoiseParams, duration_s: float, rng=None) -
     lam = params.photons_per_trial(lux).ravel()
     thr = draw_thresholds(lux.shape, params, rng)
     c_on, c_off = np.expm1(thr[0].ravel()), np.expm1(thr[1].ravel())
+    bg = np.stack([np.ones(lux.shape), np.zeros(lux.shape)]) if background is None else np.asarray(background)
+    q_hot = params.hot_pixel_on_fraction
+    l_on = bg[0].ravel() * (params.leak_on_hz + params.leak_on_hz_per_lux * lux.ravel()) + bg[1].ravel() * q_hot
+    l_off = bg[0].ravel() * (params.leak_off_hz + params.leak_off_hz_per_lux * lux.ravel()) + bg[1].ravel() * (1 - q_hot)
+    has_bg = bool(np.any(l_on + l_off > 0))
     b = params.bias_pr
     dt = params.trial_us
     refr = params.refractory_us
@@ -113,6 +122,15 @@ def naive_static_events(lux, params: NoiseParams, duration_s: float, rng=None) -
         n0 = rng.poisson(lam[idx])
         on = n > n0 + np.floor(c_on[idx] * (n0 + b))
         off = n0 > n + np.floor(c_off[idx] * (n + b))
+        if has_bg:
+            quiet = ~(on | off)
+            l_all = l_on[idx] + l_off[idx]
+            arrivals = rng.poisson(l_all * dt * 1e-6)
+            bg_fire = quiet & (arrivals > 0)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                bg_on = rng.random(idx.size) * l_all < l_on[idx]
+            on = on | (bg_fire & bg_on)
+            off = off | (bg_fire & ~bg_on)
         fired = idx[on | off]
         if fired.size == 0:
             continue
