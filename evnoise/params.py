@@ -215,3 +215,29 @@ def load_preset(name_or_path) -> NoiseParams:
     if "params" not in doc or not isinstance(doc["params"], dict):
         raise ParameterError(f"preset {name_or_path} has no [params] table")
     return NoiseParams.from_dict(doc["params"])
+
+
+def preset_info(name_or_path) -> dict:
+    """What a preset says about itself: ``{"name", "width", "height", "sensor", "summary", "path"}``.
+
+    ``width``/``height`` (pixels) and ``sensor`` (its name) come from the preset's ``[sensor]``
+    table, ``summary`` from ``provenance.summary`` (None where the file has none); ``path`` is the
+    file's location (a string). Raises :class:`~evnoise.ParameterError` for an unknown preset.
+    """
+    doc = load_preset_document(name_or_path)
+    text = str(name_or_path)
+    if text.endswith(".toml") or Path(text).exists():
+        path, name = str(Path(text)), Path(text).stem
+    else:
+        path, name = str(resources.files("evnoise") / "presets" / f"{text}.toml"), text
+    sensor = doc.get("sensor") if isinstance(doc.get("sensor"), dict) else {}
+    provenance = doc.get("provenance") if isinstance(doc.get("provenance"), dict) else {}
+    width, height = sensor.get("width"), sensor.get("height")
+    return {
+        "name": name,
+        "width": int(width) if isinstance(width, int) else None,
+        "height": int(height) if isinstance(height, int) else None,
+        "sensor": sensor.get("name"),
+        "summary": provenance.get("summary"),
+        "path": path,
+    }
