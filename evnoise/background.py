@@ -24,6 +24,20 @@ Model (one home of the concept; the simulators and the closed forms use these fu
   dead time ``nu = N P / (1 + N P R)``). For ``l << N`` the rates add (``nu ~ N p + l``, the
   additive floors of published fits); a pixel fires at most once per trial, so the background
   rate saturates at ``trial_rate_hz`` (hot pixels faster than that need a larger trial rate).
+- Regular background (``leak_regularity = r > 0``): leak events are close to periodic in real
+  sensors (the memorised level drifts at a steady rate until it crosses a threshold). Then each
+  event restarts a timer, and the next background arrival comes ``L`` eligible trials later,
+  ``L = D + G`` with ``D`` whole trials of mean ``r (M - 1)`` and ``G`` geometric of mean
+  ``1 + (1 - r)(M - 1)``, ``M = 1 / a`` (so ``r = 0`` is the Poisson case above and ``r = 1`` is
+  periodic up to one trial). With the photon noise ``G_p`` (geometric, ``p = p_on + p_off``) the
+  gap in trials after an event is ``R N + min(G_p, L)`` on average, and
+
+      E[min(G_p, L)] = sum_m (1 - p)^m P(L > m),    nu = N / (R N + E[min]),
+      nu_on = nu (p_on E[min] + (1 - p E[min]) l_on / l)
+
+  (``p E[min]`` is the share of photon events), exact in closed form (:func:`regular_rates`).
+  A pixel's first background arrival comes from the timer's stationary (length-biased)
+  distribution, so the record starts in the steady state (exact without photon noise).
 - The growing term follows the photocurrent of the scene (parasitic junction leakage grows
   with light, so ON background rises at high illuminance while OFF does not); ``dark_lux`` is not
   added to it: its share is part of the constant ``leak_*_hz``.
@@ -38,7 +52,7 @@ import numpy as np
 from ._checks import as_generator, check_lux, check_params
 from .errors import InputError
 
-__all__ = ["draw_background", "background_rate", "with_background"]
+__all__ = ["draw_background", "background_rate", "with_background", "regular_rates"]
 
 
 def _lognormal_mean_one(gen, sigma: float, size):
@@ -152,3 +166,43 @@ def pr_tau_s(lux, params) -> np.ndarray:
     total = lux + params.dark_lux
     with np.errstate(divide="ignore"):
         return np.where(total > 0, params.pr_tau_s_at_1lux / np.where(total > 0, total, 1.0), math.inf)
+
+
+def _timer_mean_min(log1m_p, p, d, a2):
+    """``E[min(G_p, D + G)]`` for a whole ``d`` (arrays): ``(1 - q^(d+1)) / p + q^(d+1) (1 - a2) / (1 - q (1 - a2))``."""
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        qd = np.exp((d + 1.0) * log1m_p)
+        head = np.where(p > 0, -np.expm1((d + 1.0) * log1m_p) / np.where(p > 0, p, 1.0), d + 1.0)
+        tail = qd * (1.0 - a2) / (1.0 - np.exp(log1m_p) * (1.0 - a2))
+    return head + tail
+
+
+def regular_rates(p_on, p_off, l_on, l_off, trial_rate_hz: float, refractory_s: float, regularity: float):
+    """Rates ``(nu_on, nu_off)`` events/s of a pixel with photon noise and a regular background timer.
+
+    ``p_on``, ``p_off``: the photon-noise per-trial probabilities; ``l_on``, ``l_off``: background
+    intensities (events/s); see the module doc for the formula. Arrays broadcast.
+    """
+    p_on, p_off, l_on, l_off = (np.asarray(x, dtype=np.float64) for x in (p_on, p_off, l_on, l_off))
+    n = float(trial_rate_hz)
+    p = np.minimum(p_on + p_off, 1.0)
+    log1m_p = np.log1p(-p)
+    l_all = l_on + l_off
+    has = l_all > 0
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        a = -np.expm1(-l_all / n)
+        m = np.where(has, 1.0 / np.where(has, a, 1.0), np.inf)
+        d = regularity * (m - 1.0)
+        a2 = np.where(has, 1.0 / (1.0 + (1.0 - regularity) * (m - 1.0)), 0.0)
+        d0 = np.floor(np.where(has, d, 0.0))
+        phi = np.where(has, d, 0.0) - d0
+        e_min = (1.0 - phi) * _timer_mean_min(log1m_p, p, d0, a2) + phi * _timer_mean_min(log1m_p, p, d0 + 1.0, a2)
+        e_min = np.where(has, e_min, np.where(p > 0, 1.0 / np.where(p > 0, p, 1.0), np.inf))
+        gap = refractory_s * n + e_min
+        nu = np.where(np.isfinite(gap), n / gap, 0.0)
+        photon = np.where(np.isfinite(e_min), p * e_min, 1.0)
+        share_on = np.where(has, l_on / np.where(has, l_all, 1.0), 0.0)
+        share_p = np.where(p > 0, p_on / np.where(p > 0, p, 1.0), 0.0)
+        nu_on = nu * (photon * share_p + (1.0 - photon) * share_on)
+        nu_off = nu * (photon * (1.0 - share_p) + (1.0 - photon) * (1.0 - share_on))
+    return nu_on, nu_off

@@ -65,6 +65,12 @@ class NoiseParams:
         Log-normal spread of the hot pixels' rates (standard deviation of the log), ``>= 0``.
     hot_pixel_on_fraction : float, optional
         Share of a hot pixel's events that are ON, ``0 <= q <= 1`` (default 0.5).
+    leak_regularity : float, optional
+        How regular a pixel's background arrivals are, ``0 <= r <= 1``: 0 (default) Poisson arrivals
+        (memoryless), 1 periodic (every ``1 / l`` seconds after the pixel's last event, up to one trial
+        of jitter), in between a fixed part ``r`` of the mean interval plus a geometric remainder. Real
+        leak events are close to periodic (a DVS128's quiet-scene counts are less dispersed than
+        Poisson); the mean rate is the same for every ``r`` when photon noise is absent.
     pr_tau_s_at_1lux : float, optional
         Photoreceptor time constant at 1 lux in seconds, ``>= 0``; it scales as
         ``1 / (lux + dark_lux)`` (bandwidth grows with photocurrent). In changing scenes the level
@@ -92,6 +98,7 @@ class NoiseParams:
     hot_pixel_rate_hz: float = 0.0
     hot_pixel_sigma: float = 0.0
     hot_pixel_on_fraction: float = 0.5
+    leak_regularity: float = 0.0
     pr_tau_s_at_1lux: float = 0.0
 
     def __post_init__(self):
@@ -113,6 +120,7 @@ class NoiseParams:
             "hot_pixel_rate_hz": (True, ">= 0"),
             "hot_pixel_sigma": (True, ">= 0"),
             "hot_pixel_on_fraction": (True, ">= 0"),
+            "leak_regularity": (True, ">= 0"),
             "pr_tau_s_at_1lux": (True, ">= 0"),
         }
         for name, (zero_ok, text) in rules.items():
@@ -126,7 +134,7 @@ class NoiseParams:
             if not math.isfinite(value) or value < 0 or (value == 0 and not zero_ok):
                 raise ParameterError(f"NoiseParams.{name} must be finite and {text}, got {value!r}")
             object.__setattr__(self, name, value)
-        for name in ("hot_pixel_fraction", "hot_pixel_on_fraction"):
+        for name in ("hot_pixel_fraction", "hot_pixel_on_fraction", "leak_regularity"):
             if getattr(self, name) > 1:
                 raise ParameterError(f"NoiseParams.{name} must be <= 1, got {getattr(self, name)!r}")
         if self.trial_rate_hz > 1e6:
@@ -145,6 +153,11 @@ class NoiseParams:
         """True when any background term (leak or hot pixels) is on."""
         return (self.leak_on_hz > 0 or self.leak_off_hz > 0 or self.leak_on_hz_per_lux > 0
                 or self.leak_off_hz_per_lux > 0 or (self.hot_pixel_fraction > 0 and self.hot_pixel_rate_hz > 0))
+
+    @property
+    def regular_background(self) -> bool:
+        """True when background arrivals follow the regular timer (background on, ``leak_regularity > 0``)."""
+        return self.leak_regularity > 0 and self.has_background
 
     @property
     def trial_us(self) -> float:

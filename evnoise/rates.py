@@ -46,18 +46,20 @@ def draw_thresholds(shape, params, rng=None) -> np.ndarray:
     return out
 
 
-def trial_probabilities(lam, params, thresholds=None, *, background=None, skip_below=None):
+def trial_probabilities(lam, params, thresholds=None, *, background=None, skip_below=None, photon_only=False):
     """Per-trial ``(P_on, P_off)`` at mean photon counts ``lam`` (nominal or per-pixel thresholds).
 
     The photon-noise probabilities, with the background activity of :mod:`evnoise.background`
     added when ``params`` has any (each pixel at the nominal spread factor and no hot pixel unless
-    ``background = (scale, hot)``, arrays matching ``lam``, is given).
+    ``background = (scale, hot)``, arrays matching ``lam``, is given). ``photon_only``: without it.
+    With a regular background (``leak_regularity > 0``) trials are no longer i.i.d.: use
+    :func:`pixel_rates` for rates.
     """
     eps_on = params.eps_pos if thresholds is None else thresholds[0]
     eps_off = params.eps_neg if thresholds is None else thresholds[1]
     p_on = event_probability(lam, eps_on, params.bias_pr)
     p_off = event_probability(lam, eps_off, params.bias_pr)
-    if params.has_background:
+    if params.has_background and not photon_only:
         from .background import lux_of_photons, with_background
 
         scale, hot = (None, None) if background is None else background
@@ -113,8 +115,26 @@ def expected_rate(lux, params, *, thresholds=None, background=None, mismatch: st
 
         background = check_background(background, lux.shape)
     lam = params.photons_per_trial(lux)
+    bg = None if background is None else (background[0], background[1])
+    return np.stack(pixel_rates(lam, params, thresholds, bg))
+
+
+def pixel_rates(lam, params, thresholds=None, background=None):
+    """``(nu_on, nu_off)`` events/s of static pixels at mean photon counts ``lam`` (any shape).
+
+    Dead time included; background as in :func:`trial_probabilities` (``background = (scale, hot)``
+    arrays matching ``lam``, or None for the nominal pixel), regular or not.
+    """
+    if params.regular_background:
+        from .background import _intensities, lux_of_photons, regular_rates
+
+        p_on, p_off = trial_probabilities(lam, params, thresholds, photon_only=True)
+        scale, hot = (None, None) if background is None else background
+        l_on, l_off = _intensities(lux_of_photons(lam, params), params, scale, hot)
+        return regular_rates(p_on, p_off, l_on, l_off, params.trial_rate_hz, params.refractory_us * 1e-6,
+                             params.leak_regularity)
     p_on, p_off = trial_probabilities(lam, params, thresholds, background=background)
     nu_on = params.trial_rate_hz * p_on
     nu_off = params.trial_rate_hz * p_off
     dead = 1.0 + (nu_on + nu_off) * (params.refractory_us * 1e-6)
-    return np.stack([nu_on / dead, nu_off / dead])
+    return nu_on / dead, nu_off / dead

@@ -149,6 +149,29 @@ class _PixelState:
         self.cache_lam = np.full(n, math.nan)
         self.cache_log1m_p = np.zeros(n)
         self.cache_q_on = np.zeros(n)
+        # regular background (leak_regularity > 0): trial of the next background arrival, pending polarity
+        self.bg_next = np.full(n, math.nan)
+        self.bg_l = np.zeros(n)  # the intensity the pending arrival belongs to (events/s)
+        self.pend_on = np.full(n, math.nan)
+
+    def rescale_timers(self, l_all: np.ndarray, j_now: float):
+        """Pending background arrivals at or after trial ``j_now`` move to a new intensity ``l_all``.
+
+        The remaining interval scales with ``old / new`` intensity (a leak drifting at a new speed covers
+        the rest of its way in proportionally more or less time): exact for a periodic timer, the natural
+        continuation otherwise. Pixels whose intensity is unchanged are left alone (bit for bit).
+        """
+        pend = np.isfinite(self.bg_next) & (self.bg_next >= j_now) & (l_all != self.bg_l) & (self.bg_l > 0)
+        if pend.any():
+            ratio = np.where(l_all[pend] > 0, self.bg_l[pend] / np.where(l_all[pend] > 0, l_all[pend], 1.0), np.inf)
+            with np.errstate(invalid="ignore"):
+                self.bg_next[pend] = j_now + np.floor((self.bg_next[pend] - j_now) * ratio)
+            # a pending event in a trial not yet begun is redrawn (the photon gap is memoryless; the
+            # background arrival comes from the moved timer); one in a trial already begun stays
+            idx = np.flatnonzero(pend)
+            redraw = idx[self.pend_trial[idx] >= j_now]
+            self.pend_tau[redraw] = math.nan
+        self.bg_l[:] = l_all
 
 
 class _Collector:
@@ -207,8 +230,44 @@ def _renewal_inputs(p_on: np.ndarray, p_off: np.ndarray):
     return np.log1p(-np.minimum(p, 1.0)), q_on
 
 
+def _timer_arrays(lam, params: NoiseParams, bg):
+    """``(3, n)`` ``[d, log1p(-a2), ON share]`` of the regular background timer (:mod:`evnoise._kernels.background`)."""
+    from .background import _intensities, lux_of_photons
+
+    scale, hot = (None, None) if bg is None else bg
+    l_on, l_off = _intensities(lux_of_photons(lam, params), params, scale, hot)
+    l_on = np.broadcast_to(l_on, np.shape(lam))
+    l_all = l_on + np.broadcast_to(l_off, np.shape(lam))
+    r = params.leak_regularity
+    has = l_all > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a = -np.expm1(-l_all * (params.trial_us * 1e-6))
+        m = 1.0 / np.where(has, a, 1.0)
+        d = np.where(has, r * (m - 1.0), np.inf)
+        a2 = 1.0 / (1.0 + (1.0 - r) * (m - 1.0))
+        log1m_a2 = np.where(a2 < 1.0, np.log1p(-np.minimum(a2, 1.0)), -np.inf)
+        share = np.where(has, l_on / np.where(has, l_all, 1.0), 0.0)
+    return np.ascontiguousarray(np.stack([d, np.where(has, log1m_a2, 0.0), share]))
+
+
+def _static_inputs(lam, params: NoiseParams, eps_on, eps_off, bg):
+    """Renewal-kernel inputs of static pixels at ``lam``: ``(log1m_p, q_on, timer or None, total rate)``."""
+    if params.regular_background:
+        from .rates import pixel_rates
+
+        p_on, p_off = trial_probabilities(lam, params, (eps_on, eps_off), photon_only=True)
+        log1m_p, q_on = _renewal_inputs(p_on, p_off)
+        nu_on, nu_off = pixel_rates(lam, params, (eps_on, eps_off), bg)
+        return log1m_p, q_on, _timer_arrays(lam, params, bg), nu_on + nu_off
+    p_on, p_off = trial_probabilities(lam, params, (eps_on, eps_off), background=bg)
+    log1m_p, q_on = _renewal_inputs(p_on, p_off)
+    nu = params.trial_rate_hz * (p_on + p_off)
+    nu = nu / (1.0 + nu * params.refractory_us * 1e-6)
+    return log1m_p, q_on, None, nu
+
+
 def _renewal_step(state: _PixelState, width, log1m_p, q_on, dt, refr_us, j_min, w_end, discard_from,
-                  t0_us, threads, store=True, expected=None):
+                  t0_us, threads, store=True, expected=None, timer=None):
     """Run the renewal kernel over all pixels of ``state`` up to ``w_end``; returns chunk parts."""
     from ._kernels.simulate import renewal_window
 
@@ -216,6 +275,15 @@ def _renewal_step(state: _PixelState, width, log1m_p, q_on, dt, refr_us, j_min, 
         cap = 0
         if store:
             cap = int(1.2 * expected[lo:hi].sum() + 64) if expected is not None else 1024
+        if timer is not None:
+            from ._kernels.simulate import renewal_window_timer
+
+            return renewal_window_timer(
+                0, hi - lo, width, state.pix[lo:hi], log1m_p[lo:hi], q_on[lo:hi], timer[:, lo:hi],
+                state.states[lo:hi], state.last_trial[lo:hi], state.last_tau[lo:hi], state.pend_trial[lo:hi],
+                state.pend_tau[lo:hi], state.pend_on[lo:hi], state.bg_next[lo:hi], dt, float(refr_us),
+                float(j_min), float(w_end), float(discard_from), np.int64(t0_us), cap, store,
+            )
         return renewal_window(
             0, hi - lo, width, state.pix[lo:hi], log1m_p[lo:hi], q_on[lo:hi], state.states[lo:hi],
             state.last_trial[lo:hi], state.last_tau[lo:hi], state.pend_trial[lo:hi], state.pend_tau[lo:hi],
@@ -301,13 +369,10 @@ def _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, thr
                  bg=None):
     height, width = lux.shape
     lam = params.photons_per_trial(lux).ravel()
-    p_on, p_off = trial_probabilities(lam, params, (eps_on, eps_off), background=bg)
-    log1m_p, q_on = _renewal_inputs(p_on, p_off)
+    log1m_p, q_on, timer, nu = _static_inputs(lam, params, eps_on, eps_off, bg)
     dt = params.trial_us
     refr = params.refractory_us
-    nu = params.trial_rate_hz * (p_on + p_off)
-    nu = nu / (1.0 + nu * refr * 1e-6)
-    del lam, p_on, p_off  # not needed while the windows run: keep the per-pixel memory small
+    del lam  # not needed while the windows run: keep the per-pixel memory small
     total = float(nu.sum()) * duration_us * 1e-6
     n_win = max(1, math.ceil(total / TARGET_EVENTS_PER_WINDOW), math.ceil(duration_us / MAX_WINDOW_US))
     ends = [duration_us * (k + 1) // n_win for k in range(n_win)]
@@ -322,7 +387,7 @@ def _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, thr
         for w_end in ends:
             expected = nu * (w_end - t_prev) * 1e-6
             parts = _renewal_step(state, width, log1m_p, q_on, dt, refr, 0, w_end, math.inf,
-                                  t_start_us, threads, expected=expected)
+                                  t_start_us, threads, expected=expected, timer=timer)
             del expected
             window = _sorted_window(parts, t_start_us + t_prev, t_start_us + w_end, sink=sink)
             del parts  # not held while the caller has the window
@@ -587,19 +652,19 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
         return params.photons_per_trial(frames.get(i)).ravel()
 
     # static pixels: closed-form probabilities once
+    stat_timer = None
     if stat_pix.size:
         lam0 = lam_of(0)[stat_pix]
-        p_on, p_off = trial_probabilities(lam0, params, (eps_on[stat_pix], eps_off[stat_pix]),
-                                          background=_select(bg, stat_pix))
-        log1m_p, q_on = _renewal_inputs(p_on, p_off)
-        nu = params.trial_rate_hz * (p_on + p_off)
-        nu = nu / (1.0 + nu * refr * 1e-6)
+        log1m_p, q_on, stat_timer, nu = _static_inputs(lam0, params, eps_on[stat_pix], eps_off[stat_pix],
+                                                       _select(bg, stat_pix))
     dyn_bg = _background_coefficients(params, bg, dyn_pix)
     if dyn_bg.shape[1] == 1 and dyn_pix.size > 1:
         dyn_bg = np.ascontiguousarray(np.repeat(dyn_bg, dyn_pix.size, axis=1))
     from .background import pr_alpha_per_photon
 
     pr_alpha = pr_alpha_per_photon(params)
+    regularity = params.leak_regularity if params.regular_background else 0.0
+    fast_static = TRIAL_FAST_STATIC and regularity == 0.0  # the regular timer is not memoryless
     per_window = max(1, TARGET_PIXEL_TRIALS_PER_WINDOW // max(1, dyn_pix.size))
     per_window = min(per_window, max(1, int(MAX_WINDOW_US // dt)))
     if stat_pix.size:
@@ -641,7 +706,7 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
                 expected = nu * (j_b - j_a) * dt * 1e-6
                 w_end = min(j_b * dt, float(duration_us))
                 parts += _renewal_step(stat_state, width, log1m_p, q_on, dt, refr, 0, w_end, math.inf,
-                                       t0_us, threads, expected=expected)
+                                       t0_us, threads, expected=expected, timer=stat_timer)
             if dyn_state is not None:
                 idx = frame_indices(j_a, j_b)
                 for i in list(cache):
@@ -652,7 +717,7 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
                         cache[int(i)] = lam_of(int(i))
                 stack = np.stack([cache[int(i)] for i in idx])
                 f_us = np.ascontiguousarray(frame_us[idx]) if frames.n > 1 else np.zeros(1)
-                if TRIAL_FAST_STATIC:
+                if fast_static:
                     _fill_static_cache(dyn_state, stack[:, dyn_pix], params, dyn_e_on, dyn_e_off,
                                        None if bg is None else _select(bg, dyn_pix))
 
@@ -662,9 +727,10 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
                         lo, hi, width, s.pix, stack, f_us, j_a, j_b, dyn_c_on[lo:hi], dyn_c_off[lo:hi],
                         dyn_e_on[lo:hi], dyn_e_off[lo:hi], b, s.states[lo:hi], s.last_trial[lo:hi],
                         s.last_tau[lo:hi], s.lam_ref[lo:hi], s.lam_prev[lo:hi], dt, float(refr),
-                        float(duration_us), np.int64(t0_us), 256, TRIAL_FAST_STATIC,
+                        float(duration_us), np.int64(t0_us), 256, fast_static,
                         s.cache_lam[lo:hi], s.cache_log1m_p[lo:hi], s.cache_q_on[lo:hi],
                         dyn_bg[:, lo:hi], 1.0 / params.photons_per_lux, params.dark_lux, pr_alpha,
+                        regularity, s.bg_next[lo:hi], s.bg_l[lo:hi],
                     )
 
                 parts += _map_chunks(run, dyn_pix.size, threads)
@@ -738,20 +804,25 @@ def sample_counts(
     eps_on, eps_off = _resolve_thresholds(lux.shape, params, gen, thresholds)
     bg = _resolve_background(lux.shape, params, gen, background)
     lam = params.photons_per_trial(lux).ravel()
-    p_on, p_off = trial_probabilities(lam, params, (eps_on, eps_off), background=bg)
     if distribution == "exact":
         key = _key(gen)
-        log1m_p, q_on = _renewal_inputs(p_on, p_off)
+        log1m_p, q_on, timer, _ = _static_inputs(lam, params, eps_on, eps_off, bg)
         state = _PixelState(np.arange(lux.size), key, threads)
         parts = _renewal_step(state, lux.shape[1], log1m_p, q_on, params.trial_us, params.refractory_us, 0,
-                              float(duration_us), math.inf, 0, threads, store=False)
+                              float(duration_us), math.inf, 0, threads, store=False, timer=timer)
         on = np.concatenate([p[4] for p in parts])
         off = np.concatenate([p[5] for p in parts])
         return np.stack([on, off]).reshape(2, *lux.shape)
-    nu_on = params.trial_rate_hz * p_on
-    nu_off = params.trial_rate_hz * p_off
-    dead = 1.0 + (nu_on + nu_off) * params.refractory_us * 1e-6
-    mean = np.stack([nu_on / dead, nu_off / dead]).reshape(2, *lux.shape) * (duration_us * 1e-6)
+    if params.regular_background:
+        from .rates import pixel_rates
+
+        mean = np.stack(pixel_rates(lam, params, (eps_on, eps_off), bg)).reshape(2, *lux.shape) * (duration_us * 1e-6)
+    else:
+        p_on, p_off = trial_probabilities(lam, params, (eps_on, eps_off), background=bg)
+        nu_on = params.trial_rate_hz * p_on
+        nu_off = params.trial_rate_hz * p_off
+        dead = 1.0 + (nu_on + nu_off) * params.refractory_us * 1e-6
+        mean = np.stack([nu_on / dead, nu_off / dead]).reshape(2, *lux.shape) * (duration_us * 1e-6)
     if distribution == "poisson":
         return gen.poisson(mean).astype(np.int64)
     rate = gen.gamma(r, mean / r)
@@ -819,14 +890,18 @@ class NoiseStream:
         p = self.params
         dt = p.trial_us
         lam = p.photons_per_trial(lux).ravel()
-        p_on, p_off = trial_probabilities(lam, p, (self._eps_on, self._eps_off), background=self._bg)
-        log1m_p, q_on = _renewal_inputs(p_on, p_off)
-        nu = p.trial_rate_hz * (p_on + p_off)
+        log1m_p, q_on, timer, nu = _static_inputs(lam, p, self._eps_on, self._eps_off, self._bg)
         j_min = _first_trial_at_or_after(self._t_rel, dt)
         discard = _first_trial_at_or_after(t_end, dt)
+        if timer is not None:
+            from .background import _intensities, lux_of_photons
+
+            scale, hot = (None, None) if self._bg is None else self._bg
+            l_on, l_off = _intensities(lux_of_photons(lam, p), p, scale, hot)
+            self._state.rescale_timers(np.broadcast_to(l_on + l_off, lam.shape), j_min)
         parts = _renewal_step(self._state, self.shape[1], log1m_p, q_on, dt, p.refractory_us, j_min,
                               float(t_end), discard, self._t0, self.threads,
-                              expected=nu * (t_end - self._t_rel) * 1e-6)
+                              expected=nu * (t_end - self._t_rel) * 1e-6, timer=timer)
         out = _sorted_window(parts, self._t0 + self._t_rel, self._t0 + t_end)
         self._t_rel = t_end
         return out

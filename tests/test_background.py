@@ -290,3 +290,114 @@ def test_bandwidth_leaves_static_pixels_alone():
     keep_a, keep_b = a[a["x"] >= 5], b[b["x"] >= 5]
     np.testing.assert_array_equal(keep_a, keep_b)
     assert not np.array_equal(a[a["x"] < 5], b[b["x"] < 5])
+
+
+# --------------------------------------------------------------------------------------
+# regular (near-periodic) background: leak_regularity
+# --------------------------------------------------------------------------------------
+def _slow_regular_rate(p_on, p_off, l_on, l_off, n_hz, refr_trials, r):
+    """E[gap] by direct summation of P(min(G_p, L) > m) over m (an independent route to the closed form)."""
+    p = p_on + p_off
+    a = 1 - math.exp(-(l_on + l_off) / n_hz)
+    m_mean = 1 / a
+    d = r * (m_mean - 1)
+    a2 = 1 / (1 + (1 - r) * (m_mean - 1))
+    d0 = math.floor(d)
+    phi = d - d0
+    total = 0.0
+    photon = 0.0
+    for m in range(0, 200000):
+        surv_l = 0.0
+        for dd, w in ((d0, 1 - phi), (d0 + 1, phi)):
+            surv_l += w * (1.0 if m <= dd else (1 - a2) ** (m - dd))
+        term = (1 - p) ** m * surv_l
+        total += term
+        if term < 1e-18:
+            break
+    photon = p * total
+    nu = n_hz / (refr_trials + total)
+    share_l = l_on / (l_on + l_off)
+    return nu * (photon * p_on / p + (1 - photon) * share_l), nu * (photon * p_off / p + (1 - photon) * (1 - share_l))
+
+
+@pytest.mark.parametrize("r", [0.3, 1.0])
+def test_regular_closed_form_against_direct_sum(r):
+    params = LEAKY.replace(leak_regularity=r, refractory_s=2e-3)
+    lux = np.array([0.0, 1.0, 20.0])
+    got = ev.expected_rate(lux, params)
+    lam = params.photons_per_trial(lux)
+    p_on = event_probability(lam, params.eps_pos, params.bias_pr)
+    p_off = event_probability(lam, params.eps_neg, params.bias_pr)
+    l_on, l_off = ev.background_rate(lux, params)
+    for i in range(lux.size):
+        want = _slow_regular_rate(p_on[i], p_off[i], l_on[i], l_off[i], params.trial_rate_hz,
+                                  params.refractory_us * 1e-6 * params.trial_rate_hz, r)
+        np.testing.assert_allclose(got[:, i], want, rtol=1e-10)
+
+
+def test_regularity_zero_is_the_poisson_background():
+    lux = np.array([0.0, 1.0, 20.0])
+    a = ev.expected_rate(lux, LEAKY)
+    b = ev.expected_rate(lux, LEAKY.replace(leak_regularity=1e-12))
+    np.testing.assert_allclose(a, b, rtol=1e-9)
+
+
+@pytest.mark.parametrize("r", [0.5, 1.0])
+def test_regular_tiers_match_closed_form(monkeypatch, r):
+    params = LEAKY.replace(leak_regularity=r, refractory_s=3e-3)
+    lux = np.tile(np.array([0.0, 3.0]).repeat(60), (15, 1))
+    rate = ev.expected_rate(lux, params)
+    duration = 10.0
+    tiers = {
+        "renewal": ev.count_events(ev.simulate_events(lux, params, duration, rng=1), lux.shape),
+        "sample_counts": ev.sample_counts(lux, params, duration, rng=2),
+        "trials": ev.count_events(ev.simulate_events(lux, params, duration, rng=3, method="trials"), lux.shape),
+    }
+    for name, counts in tiers.items():
+        for sel in (slice(0, 60), slice(60, 120)):
+            _mean_rate_check(counts[:, :, sel], rate[:, :, sel], duration, f"{name} r={r}")
+
+
+def test_periodic_background_counts_are_floor_or_ceil():
+    # no photon noise (huge thresholds), periodic leak: a window of T holds floor(T l) or floor(T l) + 1 events,
+    # and the stationary start makes the mean exactly T l (a binomial draw of the extra event per pixel)
+    params = ev.NoiseParams(eps_pos=5, eps_neg=5, bias_pr=2, trial_rate_hz=1000, photons_per_lux=4,
+                            leak_on_hz=0.3, leak_regularity=1.0)
+    counts = ev.sample_counts(np.zeros((100, 100)), params, 4.5, rng=3)[0].ravel()
+    assert set(np.unique(counts)) <= {1, 2}
+    frac = 0.3 * 4.5 - 1  # share of pixels with the extra event
+    assert abs(np.mean(counts == 2) - frac) < K * math.sqrt(frac * (1 - frac) / counts.size)
+    # the Poisson background with the same rate is far more dispersed
+    poisson_counts = ev.sample_counts(np.zeros((100, 100)), params.replace(leak_regularity=0.0), 4.5, rng=3)[0]
+    assert poisson_counts.var() > 4 * counts.var()
+
+
+def test_regular_noise_stream_and_changing_scene():
+    params = LEAKY.replace(leak_regularity=0.7)
+    shape = (40, 50)
+    stream = ev.NoiseStream(shape, params, rng=21)
+    parts, expected = [], np.zeros((2, *shape))
+    for k, lux in enumerate([0.0, 5.0, 50.0, 0.0]):
+        lux_map = np.full(shape, lux)
+        parts.append(stream.advance(lux_map, (k + 1) * 2_000_000))
+        expected += ev.expected_rate(lux_map, params) * 2.0
+    counts = ev.count_events(np.concatenate(parts), shape)
+    _mean_rate_check(counts, expected / 8.0, 8.0, "NoiseStream regular")
+
+
+def test_regular_changing_scene_follows_the_intensity():
+    # as test_trial_tier_changing_scene_background_follows_lux, with a periodic background: the pending
+    # interval is rescaled when the intensity changes, so the mean rate is still the time average
+    params = BASE.replace(eps_pos=3.0, eps_neg=3.0, photons_per_lux=1e6, leak_on_hz=1.0, leak_off_hz=0.5,
+                          leak_on_hz_per_lux=0.5, leak_regularity=1.0)
+    shape = (30, 40)
+    levels = [1.0, 9.0]
+    frames, times = [], []
+    for k in range(13):
+        frames += [np.full(shape, levels[k % 2])] * 2
+        times += [0.5 * k, 0.5 * k + 0.5 - 1e-6]
+    events, signal = ev.simulate_video(np.array(frames), np.array(times), params, rng=8, return_labels=True)
+    counts = ev.count_events(events[~signal], shape, 0, int(round(times[-1] * 1e6)))
+    rate = (7 * ev.expected_rate(np.full(shape, levels[0]), params)
+            + 6 * ev.expected_rate(np.full(shape, levels[1]), params)) / 13
+    _mean_rate_check(counts, rate, times[-1], "changing scene, periodic background")

@@ -22,6 +22,7 @@ from numba import prange
 
 from ._jit import kernel
 from .poisson import log_event_probability_exact
+from .background import draw_timer, draw_timer_stationary, timer_shape
 from .rng import geometric, poisson_emlam, seed_state, uniform
 
 NO_EVENT = math.nan
@@ -158,6 +159,105 @@ def renewal_window(
     return t_out[:n], x_out[:n], y_out[:n], p_out[:n], on_counts, off_counts
 
 
+@kernel
+def renewal_window_timer(
+    lo, hi, width, pix, log1m_p, q_on, timer, states, last_trial, last_tau, pend_trial, pend_tau, pend_on,
+    bg_next, dt, refr_us, j_min, w_end, discard_from_trial, t0_us, capacity, store
+):
+    """:func:`evnoise._kernels.simulate.renewal_window` with a regular background timer.
+
+    ``log1m_p``, ``q_on`` are the *photon-noise* ``log1p(-(p_on + p_off))`` and ON share; ``timer``
+    ``(3, hi - lo)`` per pixel ``[d, log1p(-a2), background ON share]`` (:func:`timer_shape`).
+    ``bg_next`` (state) is the trial of the pixel's next background arrival (NaN: to be drawn when
+    the pixel is next eligible; the stationary draw for a pixel that has had no event). ``pend_on``
+    holds a pending event's polarity. A pending event beyond the window is dropped at or after
+    ``discard_from_trial`` (the photon gap is memoryless and ``bg_next`` is kept, so this is exact).
+    """
+    cap = capacity if store else 0
+    t_out = np.empty(cap, dtype=np.int64)
+    x_out = np.empty(cap, dtype=np.uint16)
+    y_out = np.empty(cap, dtype=np.uint16)
+    p_out = np.empty(cap, dtype=np.uint8)
+    on_counts = np.zeros(hi - lo, dtype=np.int64)
+    off_counts = np.zeros(hi - lo, dtype=np.int64)
+    n = 0
+    for i in range(lo, hi):
+        k = i - lo
+        tau = pend_tau[k]
+        if tau >= w_end:
+            if pend_trial[k] >= discard_from_trial:
+                pend_tau[k] = NO_EVENT
+            continue
+        s = states[k]
+        jp = pend_trial[k]
+        on = pend_on[k] == 1.0
+        flat = pix[i]
+        xk = np.uint16(flat % width)
+        yk = np.uint16(flat // width)
+        lt = last_trial[k]
+        lta = last_tau[k]
+        nxt = bg_next[k]
+        n_on = 0
+        n_off = 0
+        while True:
+            if math.isnan(tau):
+                if lta == -math.inf:
+                    j_e = lt + 1.0
+                else:
+                    j_e = _first_eligible(lt, lta, refr_us, dt)
+                j_e = max(j_e, j_min)
+                if math.isnan(nxt):
+                    if lta == -math.inf:
+                        nxt = j_e + draw_timer_stationary(s, timer[0, k], timer[1, k]) - 1.0
+                    else:
+                        nxt = j_e + draw_timer(s, timer[0, k], timer[1, k]) - 1.0
+                nxt = max(nxt, j_e)
+                g = geometric(s, log1m_p[k])
+                j_ph = j_e + g - 1.0
+                if nxt < j_ph:
+                    jp = nxt
+                    on = uniform(s) < timer[2, k]
+                else:
+                    jp = j_ph
+                    on = uniform(s) < q_on[k]
+                if jp == math.inf:
+                    tau = math.inf
+                    break
+                tau = (jp + uniform(s)) * dt
+            if tau >= w_end:
+                break
+            if on:
+                n_on += 1
+            else:
+                n_off += 1
+            if store:
+                if n == t_out.shape[0]:
+                    t_out = _grow(t_out, n)
+                    x_out = _grow(x_out, n)
+                    y_out = _grow(y_out, n)
+                    p_out = _grow(p_out, n)
+                t_out[n] = t0_us + np.int64(math.floor(tau))
+                x_out[n] = xk
+                y_out[n] = yk
+                p_out[n] = 1 if on else 0
+                n += 1
+            lta = tau
+            lt = jp
+            tau = NO_EVENT
+            nxt = NO_EVENT  # every event restarts the timer
+        on_counts[k] = n_on
+        off_counts[k] = n_off
+        last_tau[k] = lta
+        last_trial[k] = lt
+        bg_next[k] = nxt
+        if jp >= discard_from_trial:
+            tau = NO_EVENT
+        pend_tau[k] = tau
+        pend_trial[k] = jp
+        pend_on[k] = 1.0 if on else 0.0
+    return t_out[:n], x_out[:n], y_out[:n], p_out[:n], on_counts, off_counts
+
+
 SIGNAL_FLAG = 2  # or-ed into a kernel's polarity output for signal (threshold-crossing) events
 
 
@@ -246,7 +346,8 @@ def _level(lam, b):
 def trial_window(
     lo, hi, width, pix, frames_lam, frame_us, j_start, j_end, c_on, c_off, eps_on, eps_off, b,
     states, last_trial, last_tau, lam_ref, lam_prev, dt, refr_us, tau_limit, t0_us, capacity,
-    fast_static, cache_lam, cache_log1m_p, cache_q_on, bg, lux_per_photon, dark_lux, pr_alpha
+    fast_static, cache_lam, cache_log1m_p, cache_q_on, bg, lux_per_photon, dark_lux, pr_alpha, regularity, bg_next,
+    bg_l
 ):
     """Trial-by-trial simulation of pixels ``pix[lo:hi]`` for trials ``j_start .. j_end - 1``.
 
@@ -286,7 +387,13 @@ def trial_window(
     trial's input ``lux = max(lam * lux_per_photon - dark_lux, 0)``, or ``(4, 0)`` for none. An
     eligible trial whose photon comparison fired nothing fires a background event with
     probability ``1 - exp(-l dt)``, ON with probability ``l_on / l`` (one more uniform draw, only
-    when ``bg`` is given), and, like every event, resets ``lam_ref``.
+    when ``bg`` is given), and, like every event, resets ``lam_ref``. With ``regularity > 0`` the
+    background follows the regular timer of :mod:`evnoise._kernels.background` instead: ``bg_next``
+    (state) is the trial of the next arrival, drawn in the first quiet eligible trial after an event
+    from the intensity of that trial (the stationary draw before a pixel's first event); every event
+    restarts it; when the intensity changes, the rest of a pending interval scales with old / new
+    intensity (``bg_l`` holds the intensity it belongs to). (Pass ``fast_static`` false then: the
+    timer is not memoryless.)
 
     Photoreceptor bandwidth: with ``pr_alpha > 0`` the mean photon count a pixel compares
     (``lam_prev`` holds it between trials) follows the input through a first-order low-pass
@@ -418,6 +525,8 @@ def trial_window(
                     lev_ref = target
                     last_tau[k] = tau
                     last_trial[k] = j
+                    if regularity > 0.0:
+                        bg_next[k] = math.nan
                 if fired:
                     ref = max(math.exp(lev_ref) - b, 0.0)
             if not fired and j > last_trial[k] and s_j >= last_tau[k] + refr_us:
@@ -438,7 +547,23 @@ def trial_window(
                     lux_j = max(lam_in * lux_per_photon - dark_lux, 0.0)
                     l_on = bg[0, k] + bg[1, k] * lux_j
                     l_all = l_on + bg[2, k] + bg[3, k] * lux_j
-                    if l_all > 0.0:
+                    if regularity > 0.0:
+                        if not bg_next[k] < math.inf and l_all > 0.0:  # none pending (NaN, or inf in the dark)
+                            d_t, l1m_t = timer_shape(l_all, dt_s, regularity)
+                            if last_tau[k] == -math.inf:
+                                bg_next[k] = j + draw_timer_stationary(s, d_t, l1m_t) - 1.0
+                            else:
+                                bg_next[k] = j + draw_timer(s, d_t, l1m_t) - 1.0
+                            bg_l[k] = l_all
+                        elif l_all != bg_l[k] and bg_l[k] > 0.0 and bg_next[k] > j:
+                            if l_all > 0.0:
+                                bg_next[k] = j + math.floor((bg_next[k] - j) * (bg_l[k] / l_all))
+                            else:
+                                bg_next[k] = math.inf
+                            bg_l[k] = l_all
+                        if j >= bg_next[k]:
+                            pol = 1 if uniform(s) * l_all < l_on else 0
+                    elif l_all > 0.0:
                         u_bg = uniform(s)
                         a_bg = -math.expm1(-l_all * dt_s)
                         if u_bg < a_bg:
@@ -452,6 +577,8 @@ def trial_window(
                     last_tau[k] = tau
                     last_trial[k] = j
                     ref = lam
+                    if regularity > 0.0:
+                        bg_next[k] = math.nan
             lam_prev[k] = lam
         lam_ref[k] = ref
     return t_out[:n], x_out[:n], y_out[:n], p_out[:n]
