@@ -17,7 +17,7 @@ from .._version import __version__
 from ..errors import EvnoiseError
 
 # subcommand modules, in the order they appear in --help
-COMMANDS = ["simulate", "make_dataset", "calibrate", "train", "evaluate", "reconstruct", "separate", "info"]
+COMMANDS = ["simulate", "make_dataset", "calibrate", "train", "evaluate", "reconstruct", "separate", "info", "presets"]
 
 log = logging.getLogger("evnoise")
 
