@@ -16,7 +16,7 @@ from pathlib import Path
 
 from .errors import ParameterError
 
-__all__ = ["NoiseParams", "load_preset", "list_presets"]
+__all__ = ["NoiseParams", "load_preset", "list_presets", "preset_info"]
 
 
 @dataclass(frozen=True)
