@@ -1,0 +1,167 @@
+"""Population statistics with background activity (leak floor, growth, log-normal spread) and hot pixels.
+
+``expected_rate(mismatch="mean")`` / :func:`evnoise.mismatch.population_rate` and
+:func:`evnoise.mismatch.nb_shape` are compared with independent computations:
+
+- the quadrature over the log-normal spread against SciPy's adaptive quadrature;
+- the population mean and the across-pixel variance of the per-trial probability against a Monte
+  Carlo over drawn pixels (``draw_thresholds``, ``draw_background`` and each pixel's own
+  ``expected_rate(..., thresholds=, background=)``), tolerance k standard errors;
+- the counts that ``sample_counts`` draws for many pixels (mean and NB shape ``r``, with a
+  bootstrap standard error of ``r``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+import evnoise as ev
+from evnoise import mismatch
+
+K = 4.5  # standard errors; several comparisons per test
+
+PARAMS = ev.NoiseParams(eps_pos=0.60, eps_neg=0.70, bias_pr=1.7, trial_rate_hz=40.0, photons_per_lux=10.0,
+                        dark_lux=0.05, eps_sigma=0.08, leak_on_hz=0.05, leak_off_hz=0.15, leak_on_hz_per_lux=0.03,
+                        leak_off_hz_per_lux=0.01, leak_sigma=0.8, hot_pixel_fraction=0.01, hot_pixel_rate_hz=4.0,
+                        hot_pixel_sigma=0.7, hot_pixel_on_fraction=0.3)
+LUX = np.array([0.0, 0.3, 2.0, 12.0])
+
+
+def _pixels(params, lux, n, seed):
+    """Per-pixel rates ``(2, n)`` of ``n`` drawn pixels at one illuminance (independent of the closed form)."""
+    rng = np.random.default_rng(seed)
+    thr = ev.draw_thresholds((1, n), params, rng)
+    bg = ev.draw_background((1, n), params, rng)
+    return ev.expected_rate(np.full((1, n), lux), params, thresholds=thr, background=bg)[:, 0, :]
+
+
+@pytest.mark.parametrize("sigma", [0.3, 1.0, 2.0])
+@pytest.mark.parametrize("c", [1e-5, 0.05, 1.0, 200.0])
+def test_lognormal_rule_is_accurate_to_1e_10(sigma, c):
+    from scipy.integrate import quad
+
+    def f(z):
+        return -math.expm1(-c * math.exp(-0.5 * sigma * sigma + sigma * z)) * math.exp(-0.5 * z * z)
+
+    edges = [-12.0, -6.0, 0.0, sigma, sigma + 6.0, sigma + 12.0]  # the normal beyond is below 1e-31
+    ref = sum(quad(f, a, b, epsabs=0.0, epsrel=1e-13, limit=400)[0] for a, b in zip(edges[:-1], edges[1:]))
+    ref /= math.sqrt(2.0 * math.pi)
+    s, w = mismatch._lognormal_rule(sigma)
+    assert abs(w.sum() - 1.0) < 1e-14 and abs(np.dot(w, s) - 1.0) < 1e-12
+    got = float(np.dot(w, -np.expm1(-c * s)))
+    assert abs(got / ref - 1.0) < 1e-10, (got, ref)
+
+
+def test_gauss_hermite_would_not_be_enough_at_sigma_2():
+    """Why the rule is a trapezoid: 100 Gauss-Hermite nodes miss 1e-10 (the integrand saturates)."""
+    sigma, c = 2.0, 1.0
+    x, w = np.polynomial.hermite.hermgauss(100)
+    gh = float(np.dot(w, -np.expm1(-c * np.exp(-0.5 * sigma**2 + math.sqrt(2.0) * sigma * x)))) / math.sqrt(math.pi)
+    s, ws = mismatch._lognormal_rule(sigma)
+    assert abs(gh / float(np.dot(ws, -np.expm1(-c * s))) - 1.0) > 1e-9
+
+
+def test_background_nodes_mixture_weights():
+    s, h, w = mismatch.background_nodes(PARAMS)
+    assert abs(w.sum() - 1.0) < 1e-14
+    assert abs(np.dot(w, s) - 1.0) < 1e-12
+    assert abs(np.dot(w, h) - PARAMS.hot_pixel_fraction * PARAMS.hot_pixel_rate_hz) < 1e-12
+    assert abs(w[h > 0].sum() - PARAMS.hot_pixel_fraction) < 1e-14
+    s0, h0, w0 = mismatch.background_nodes(dataclasses.replace(PARAMS, leak_sigma=0.0, hot_pixel_fraction=0.0))
+    assert s0.tolist() == [1.0] and h0.tolist() == [0.0] and w0.tolist() == [1.0]
+
+
+@pytest.mark.parametrize("j", range(len(LUX)))
+def test_population_mean_and_variance_match_monte_carlo_refractory_0(j):
+    """Exact with refractory 0: mean rate and across-pixel variance of P against drawn pixels."""
+    n = 200_000
+    rates = _pixels(PARAMS, LUX[j], n, seed=11 + j)
+    exact = ev.expected_rate(LUX[j:j + 1], PARAMS, mismatch="mean")[:, 0]
+    mc, se = rates.mean(axis=1), rates.std(axis=1, ddof=1) / math.sqrt(n)
+    assert np.all(np.abs(exact - mc) < K * se), (exact, mc, se)
+    # across-pixel variance of P = rate / N: E[P^2] - E[P]^2 from the exact moments (nb_shape's input)
+    stats = mismatch.level_statistics(LUX[j:j + 1], PARAMS)
+    var_formula = np.exp(stats.log_P2[:, 0]) - np.exp(2.0 * stats.log_P1[:, 0])
+    p = rates / PARAMS.trial_rate_hz
+    dev2 = (p - p.mean(axis=1, keepdims=True)) ** 2
+    var_mc, var_se = dev2.mean(axis=1), dev2.std(axis=1, ddof=1) / math.sqrt(n)
+    assert np.all(np.abs(var_formula - var_mc) < K * var_se), (var_formula, var_mc, var_se)
+
+
+def test_without_background_terms_nothing_changes():
+    off = dataclasses.replace(PARAMS, leak_on_hz=0.0, leak_off_hz=0.0, leak_on_hz_per_lux=0.0, leak_off_hz_per_lux=0.0,
+                              hot_pixel_rate_hz=0.0)
+    plain = dataclasses.replace(off, leak_sigma=0.0, hot_pixel_fraction=0.0, hot_pixel_sigma=0.0)
+    np.testing.assert_array_equal(mismatch.population_rate(LUX, off), mismatch.population_rate(LUX, plain))
+    np.testing.assert_array_equal(mismatch.nb_shape(LUX, off, 1.0), mismatch.nb_shape(LUX, plain, 1.0))
+
+
+def test_nominal_population_without_mismatch_is_expected_rate():
+    """No spread of any kind: the population is the nominal pixel (leak floor included)."""
+    params = dataclasses.replace(PARAMS, eps_sigma=0.0, leak_sigma=0.0, hot_pixel_fraction=0.0, refractory_s=0.002)
+    np.testing.assert_allclose(ev.expected_rate(LUX, params, mismatch="mean"), ev.expected_rate(LUX, params),
+                               rtol=1e-12, atol=0)
+
+
+@pytest.mark.parametrize("lux", [0.3, 2.0])
+def test_population_mean_with_dead_time(lux):
+    """Refractory > 0: the other polarity at its mean per background node.
+
+    The approximation error is second order in the other polarity's spread, relatively about
+    ``(N R)^2 Var(p_other) / (1 + N R P)^2`` < ``(40 * 0.005)^2 * 0.01 = 4e-4`` here; the tolerance is
+    ``K`` standard errors plus that bound.
+    """
+    params = dataclasses.replace(PARAMS, refractory_s=0.005)
+    n = 200_000
+    rates = _pixels(params, lux, n, seed=5)
+    approx = ev.expected_rate(np.array([lux]), params, mismatch="mean")[:, 0]
+    mc, se = rates.mean(axis=1), rates.std(axis=1, ddof=1) / math.sqrt(n)
+    assert np.all(np.abs(approx - mc) < K * se + 4e-4 * approx), (approx, mc, se)
+    # the dead time matters at this precision (the test can tell)
+    no_dead = ev.expected_rate(np.array([lux]), PARAMS, mismatch="mean")[:, 0]
+    assert np.all(np.abs(no_dead - mc) > 6 * se)
+
+
+def test_atom_q_nodes_reproduce_the_moments():
+    stats = mismatch.level_statistics(LUX, PARAMS)
+    for k in range(2):
+        for j in range(LUX.size):
+            lq, mass, weight = stats.atom_q_nodes(k, j)
+            q = np.exp(lq)
+            assert lq.shape == (weight.size, mass.size)
+            # E[P] = E[p] (1 - E[a]) + E[a] (1 - E[p_other]), with E[p] the atoms' own mean (the threshold
+            # atoms' mean can differ from the exact log_m1 by ~1e-5 relative where p is tiny: pairs dropped)
+            e_p = float(np.dot(mass, np.exp(stats.log_p[k][j])))
+            e_a = float(np.dot(stats.bg_weight, stats.bg_a[k, :, j]))
+            expect = e_p * (1.0 - e_a) + e_a * (1.0 - math.exp(stats.log_m1[1 - k, j]))
+            np.testing.assert_allclose(weight @ q @ mass, expect, rtol=1e-12)
+            np.testing.assert_allclose(expect, math.exp(stats.log_P1[k, j]), rtol=1e-4)
+            lq2, m2 = stats.atom_q(k, j)  # merged mixture: mass and mean kept
+            np.testing.assert_allclose(m2.sum(), 1.0, rtol=1e-14)
+            np.testing.assert_allclose(np.dot(m2, np.exp(lq2)), expect, rtol=1e-12)
+
+
+@pytest.mark.parametrize("lux", [0.0, 2.0])
+def test_sample_counts_give_the_predicted_mean_and_nb_shape(lux):
+    """Counts over 1 s of many simulated pixels (the simulator draws its own thresholds and background)."""
+    shape, duration_s = (250, 400), 1.0
+    counts = ev.sample_counts(np.full(shape, lux), PARAMS, duration_s, rng=2024).reshape(2, -1).astype(np.float64)
+    n = counts.shape[1]
+    mu = ev.expected_rate(np.array([lux]), PARAMS, mismatch="mean")[:, 0] * duration_s
+    r = mismatch.nb_shape(np.array([lux]), PARAMS, duration_s)[:, 0]
+    mean, sd = counts.mean(axis=1), counts.std(axis=1, ddof=1)
+    assert np.all(np.abs(mean - mu) < K * sd / math.sqrt(n)), (mean, mu)
+
+    def r_hat(c):
+        m, v = c.mean(axis=-1), c.var(axis=-1, ddof=1)
+        return m * m / (v - m)
+
+    rng = np.random.default_rng(3)
+    boot = np.array([r_hat(counts[:, rng.integers(0, n, n)]) for _ in range(60)])
+    r_se = boot.std(axis=0, ddof=1)
+    est = r_hat(counts)
+    assert np.all(np.abs(est - r) < K * r_se), (est, r, r_se)
