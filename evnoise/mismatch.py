@@ -219,6 +219,19 @@ class LevelStats:
         self.trial_rate_hz = params.trial_rate_hz
         self.refractory_s = params.refractory_us * 1e-6
 
+    def with_background(self, params) -> "LevelStats":
+        """These threshold statistics with the background activity of ``params`` (a shallow copy).
+
+        For fits that vary only the background terms: ``params`` must have the same thresholds,
+        mismatch, photon scale, trial rate and refractory period as the parameters these
+        statistics were made with (not checked); only its background terms are used.
+        """
+        import copy
+
+        out = copy.copy(self)
+        out._background(self.lam, params)
+        return out
+
     def _background(self, lam, params):
         """Background nodes and the exact moments of ``P`` (module doc); nothing when it is off."""
         self.log_P1, self.log_P2 = self.log_m1, self.log_m2

@@ -165,3 +165,16 @@ def test_sample_counts_give_the_predicted_mean_and_nb_shape(lux):
     r_se = boot.std(axis=0, ddof=1)
     est = r_hat(counts)
     assert np.all(np.abs(est - r) < K * r_se), (est, r, r_se)
+
+
+def test_with_background_reuses_threshold_statistics():
+    """``LevelStats.with_background`` (used by fits that vary only the background) equals a fresh computation."""
+    plain = dataclasses.replace(PARAMS, leak_on_hz=0.0, leak_off_hz=0.0, leak_on_hz_per_lux=0.0,
+                                leak_off_hz_per_lux=0.0, hot_pixel_rate_hz=0.0)
+    base = mismatch.level_statistics(LUX, plain)
+    swapped = base.with_background(PARAMS)
+    fresh = mismatch.level_statistics(LUX, PARAMS)
+    np.testing.assert_array_equal(swapped.mean_rate(), fresh.mean_rate())
+    np.testing.assert_array_equal(swapped.inverse_shape(1.0), fresh.inverse_shape(1.0))
+    assert base.bg_weight is None  # the original is untouched
+    np.testing.assert_array_equal(base.mean_rate(), mismatch.population_rate(LUX, plain))
