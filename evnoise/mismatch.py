@@ -44,9 +44,11 @@ with ``p_on``, ``p_off`` and ``(a_on, a_off)`` independent,
 
 (the same for OFF), which give :func:`population_rate` and :func:`nb_shape`. With dead time the
 mean rate is summed over threshold atoms and background nodes with the *other* polarity's
-photon-noise probability at its population mean (as without background): the error is second order,
-``O((N R)^2 Var(p_other))`` relative, i.e. below ``(nu R)^2 (eps_sigma-spread of p)`` — negligible
-when ``nu * refractory_s << 1``. :func:`nb_shape` ignores the dead time (as without background).
+photon-noise probability at its population mean (as without background). The error is second order
+in the other polarity's spread: per atom and node, relatively at most
+``N R (N R + 1 / (1 - p_other)) Var(p_other)`` (``N R = trial_rate_hz * refractory_s``; from the second
+derivative of ``q = P / (1 + N R (P + P_other))`` in ``p_other``), e.g. ``3e-4`` for ``N R = 0.2`` and
+``Var(p_other) = 1e-3``. :func:`nb_shape` ignores the dead time (as without background).
 """
 
 from __future__ import annotations

@@ -111,9 +111,10 @@ def test_nominal_population_without_mismatch_is_expected_rate():
 def test_population_mean_with_dead_time(lux):
     """Refractory > 0: the other polarity at its mean per background node.
 
-    The approximation error is second order in the other polarity's spread, relatively about
-    ``(N R)^2 Var(p_other) / (1 + N R P)^2`` < ``(40 * 0.005)^2 * 0.01 = 4e-4`` here; the tolerance is
-    ``K`` standard errors plus that bound.
+    The approximation error is second order in the other polarity's spread, relatively at most
+    ``N R (N R + 1 / (1 - p_other)) Var(p_other)`` (module doc of :mod:`evnoise.mismatch`); here
+    ``N R = 0.2``, ``Var(p_other) <= 1.1e-3`` and ``p_other < 0.15``, so below ``3.1e-4``: the tolerance is
+    ``K`` standard errors plus ``4e-4`` of the value.
     """
     params = dataclasses.replace(PARAMS, refractory_s=0.005)
     n = 200_000
