@@ -1,6 +1,14 @@
 """The likelihood of the measurements: rate tables (Poisson or negative binomial of level totals, or
 relative residuals without exposure, plus measured NB shapes) and flat fields (composite likelihood
 of per-pixel counts, exact mixtures over the threshold distribution). Internal.
+
+Background (leak floors, their growth with lux, per-pixel spread, hot pixels; see
+:mod:`evnoise.background`): every rate and count distribution uses the per-trial probability with
+the background added, ``P_k = p_k (1 - a_k) + a_k (1 - p_o)``, through
+:class:`evnoise.mismatch.LevelStats`: its means and ``E[P^2]`` are exact, and its atoms
+(:meth:`~evnoise.mismatch.LevelStats.atom_q`) mix the threshold atoms over the background nodes
+(spread factor, hot-pixel rate), with the other polarity's photon-noise probability at its
+population mean inside ``a_k (1 - p_o)`` (an error second order in small probabilities).
 """
 
 from __future__ import annotations

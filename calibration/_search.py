@@ -14,8 +14,8 @@ import numpy as np
 from evnoise.params import NoiseParams
 
 from ._likelihood import _Problem
-from ._spec import (FIT_NAMES, N_CONVERGED, PROFILE_MAX_STEP, PROFILE_ROUGH, PROFILE_STEP, PROFILE_STOP,
-                    SMOOTHING, _bounds)
+from ._spec import (FIT_NAMES, FLOORS, GROWTH, N_CONVERGED, PROFILE_MAX_STEP, PROFILE_ROUGH, PROFILE_STEP,
+                    PROFILE_STOP, SMOOTHING, SPREAD, _bounds)
 from ._uncertainty import _covariance, _information, _rejected, _step_like, _steps
 
 log = logging.getLogger("evnoise.calibration")
@@ -37,7 +37,8 @@ class _MeanProxy:
 
     def __init__(self, problem: _Problem):
         self.pr = problem
-        self.names = [n for n in problem.free if n not in ("refractory_s", "trial_rate_hz")]
+        # the spread and hot-pixel terms barely change the mean: held at their values in the stand-in
+        self.names = [n for n in problem.free if n not in ("refractory_s", "trial_rate_hz") + SPREAD]
         nodes, weights = np.polynomial.hermite.hermgauss(self.N_NODES)
         self.nodes, self.weights = math.sqrt(2.0) * nodes, weights / math.sqrt(math.pi)
         self.profile_n = "trial_rate_hz" in problem.free
@@ -50,6 +51,12 @@ class _MeanProxy:
         box["photons_per_lux"] = (0.3 / lux_max, min(0.5 * problem.bounds["photons_per_lux"][1],
                                                      self.SEED_LAM_MAX / lux_max))
         box["dark_lux"] = (min(1e-3 * lux_min, 1e-4 * lux_max), lux_max)
+        # floors: from a negligible 1e-4 of the highest rate up to the highest rate (log-uniform)
+        rate_max = float(max(problem.meas.rate_hz.max(), 1e-9))
+        for n in FLOORS:
+            box[n] = (1e-4 * rate_max, rate_max)
+        for n in GROWTH:
+            box[n] = (1e-4 * rate_max / lux_max, rate_max / lux_max)
         self.lo = np.array([math.log(max(box[n][0], problem.bounds[n][0])) for n in self.names])
         self.hi = np.array([math.log(min(box[n][1], problem.bounds[n][1])) for n in self.names])
         self.blo = np.array([math.log(problem.bounds[n][0]) for n in self.names])
@@ -97,14 +104,22 @@ class _MeanProxy:
                 for e in ("eps_pos", "eps_neg")], axis=1)  # (S, 2, J)
         base = p * pr.exposure[None, None, :]
         y = pr.y[None]
+        # background: additive in the stand-in (nu ~ N p + l for l << N), mean over the population
+        f_hot = vals["hot_pixel_fraction"] * (vals["hot_pixel_rate_hz"] > 0)
+        hot = f_hot * vals["hot_pixel_rate_hz"]
+        q_hot = vals["hot_pixel_on_fraction"]
+        bg = np.stack([vals["leak_on_hz"][:, None] + vals["leak_on_hz_per_lux"][:, None] * pr.lux[None, :]
+                       + (hot * q_hot)[:, None],
+                       vals["leak_off_hz"][:, None] + vals["leak_off_hz_per_lux"][:, None] * pr.lux[None, :]
+                       + (hot * (1.0 - q_hot))[:, None]], axis=1) * pr.exposure[None, None, :]  # (S, 2, J)
         if self.profile_n:
             lo, hi = pr.bounds["trial_rate_hz"]
             with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-                n = np.clip(y.sum(axis=(1, 2)) / base.sum(axis=(1, 2)), lo, hi)
+                n = np.clip((y.sum(axis=(1, 2)) - bg.sum(axis=(1, 2))) / base.sum(axis=(1, 2)), lo, hi)
             n = np.where(np.isfinite(n), n, hi)
         else:
             n = vals["trial_rate_hz"]
-        mu = base * n[:, None, None]
+        mu = base * n[:, None, None] + bg
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             dev = 2.0 * (np.where(y > 0, y * np.log(np.where(y > 0, y, 1.0) / mu), 0.0) - (y - mu))
         out = np.sum(dev, axis=(1, 2))

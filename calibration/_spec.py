@@ -31,7 +31,32 @@ BOUNDS = {
     "dark_lux": (None, None),
     "refractory_s": (1e-8, None),
     "eps_sigma": (1e-3, 1.5),
+    "leak_on_hz": (None, None),
+    "leak_off_hz": (None, None),
+    "leak_on_hz_per_lux": (None, None),
+    "leak_off_hz_per_lux": (None, None),
+    "leak_sigma": (1e-3, 3.0),
+    "hot_pixel_fraction": (1e-6, 0.5),
+    "hot_pixel_rate_hz": (None, None),
+    "hot_pixel_sigma": (1e-3, 3.0),
+    "hot_pixel_on_fraction": (1e-3, 0.999),
+    "pr_tau_s_at_1lux": (1e-9, 1e3),
 }
+#: Background floors: fitted by default (every data set; a floor the data do not need ends on its
+#: lower bound, which stands for 0, and is reported as 0). Bounds from the data: ``1e-7`` to 10
+#: times the highest measured rate (per lux of the brightest level for the growing terms).
+FLOORS = ("leak_on_hz", "leak_off_hz")
+#: Growth of the background with lux: fitted only when asked (``free=[...]``, ``--fit``).
+GROWTH = ("leak_on_hz_per_lux", "leak_off_hz_per_lux")
+#: Per-pixel spread of the background and hot pixels: only from flat fields (per-pixel counts),
+#: only when asked; the likelihood then mixes over them (``_likelihood``).
+SPREAD = ("leak_sigma", "hot_pixel_fraction", "hot_pixel_rate_hz", "hot_pixel_sigma", "hot_pixel_on_fraction")
+#: The photoreceptor time constant only acts on changing scenes: static measurements do not
+#: identify it, it is never fitted and always reported as not identified.
+NEVER = ("pr_tau_s_at_1lux",)
+#: Terms whose lower bound stands for 0 and that are reported as 0 there (no warning: a sensor
+#: without a floor is an ordinary result).
+ZERO_AT_BOUND = FLOORS + GROWTH + ("leak_sigma", "hot_pixel_fraction", "hot_pixel_sigma")
 #: Most photons per trial at the brightest level that the fit explores without threshold
 #: mismatch: the range over which :mod:`evnoise.model`'s exact probability is verified (its cost
 #: grows like ``sqrt(lam)``: about 10 ms for a 15-level table at 1e4 photons per trial). Real
@@ -43,8 +68,14 @@ LAM_MAX = 1e6
 #: polarity (about 0.1 s at 3000 photons per trial, 30 s at 3e5), so the search stops here; the
 #: mismatch-free alternative of a mean-rate table (see :data:`TABLE_SIGMA`) is not limited by it.
 LAM_MAX_MISMATCH = 3000.0
-_DEFAULTS = dict(eps_pos=0.5, eps_neg=0.5, bias_pr=1.0, trial_rate_hz=100.0, photons_per_lux=1.0, dark_lux=0.1,
-                 refractory_s=0.0, eps_sigma=0.0)
+_DEFAULTS = {f.name: f.default for f in dataclasses.fields(NoiseParams)}  # every field, then the starting values
+_DEFAULTS.update(eps_pos=0.5, eps_neg=0.5, bias_pr=1.0, trial_rate_hz=100.0, photons_per_lux=1.0, dark_lux=0.1,
+                 refractory_s=0.0, eps_sigma=0.0, leak_on_hz=0.0, leak_off_hz=0.0, leak_on_hz_per_lux=0.0,
+                 leak_off_hz_per_lux=0.0, leak_sigma=0.0, hot_pixel_fraction=0.0, hot_pixel_rate_hz=0.0,
+                 hot_pixel_sigma=0.0, hot_pixel_on_fraction=0.5, pr_tau_s_at_1lux=0.0)
+#: Terms the likelihood does not model: kept at their given values, never fitted (the count
+#: likelihood treats background arrivals as Poisson, ``leak_regularity = 0``).
+UNMODELLED = tuple(n for n in FIT_NAMES if n not in BOUNDS and n not in NEVER)
 #: Threshold mismatch assumed when the measurements carry no dispersion (mean rates only), unless
 #: it is fixed explicitly or given by ``initial``: it is not determined by mean rates, mismatch
 #: is always present in real sensors, and without it the exact likelihood is a step function of
@@ -72,7 +103,7 @@ PROFILE_STOP = 9.0
 #: point counts as inside the interval when twice its log-likelihood is within 1 + this of the
 #: maximum, so that such jitter is not mistaken for information (it errs towards "not identified").
 PROFILE_ROUGH = 10.0
-_AT_BOUND_OK = ("bias_pr", "dark_lux", "eps_sigma", "refractory_s")  # a lower bound standing for 0
+_AT_BOUND_OK = ("bias_pr", "dark_lux", "eps_sigma", "refractory_s") + ZERO_AT_BOUND  # a lower bound standing for 0
 
 
 def _resolve(meas: Measurements, free, fixed, initial, fit_dispersion: bool = True):
@@ -84,6 +115,7 @@ def _resolve(meas: Measurements, free, fixed, initial, fit_dispersion: bool = Tr
         free = list(CORE)
         if meas.has_dispersion and fit_dispersion:
             free.append("eps_sigma")
+        free += list(FLOORS)
     else:
         free = list(free)
         for n in free:
@@ -94,6 +126,18 @@ def _resolve(meas: Measurements, free, fixed, initial, fit_dispersion: bool = Tr
     free = [n for n in FIT_NAMES if n in free and n not in fixed]
     if not free:
         raise ParameterError("nothing to fit: every parameter is fixed")
+    for n in NEVER:
+        if n in free:
+            raise InputError(f"{n} cannot be fitted from static measurements (it only acts on changing scenes); "
+                             f"fix it (--fix {n}=...) or leave it out")
+    for n in UNMODELLED:
+        if n in free:
+            raise InputError(f"{n} cannot be fitted: the calibration likelihood does not model it (background "
+                             f"arrivals are taken as Poisson); fix it or leave it out")
+    spread = [n for n in free if n in SPREAD]
+    if spread and meas.kind != "flat-field":
+        raise InputError(f"{', '.join(spread)} describe(s) how the background differs between pixels: they can only "
+                         f"be fitted from flat fields with per-pixel counts, not from a rate table; fix them")
     if "eps_sigma" in free and not (meas.has_dispersion and fit_dispersion):
         raise InputError("eps_sigma cannot be fitted from mean rates alone: give per-pixel counts (flat fields) "
                          "or measured NB shapes (r_on, r_off columns), or fix it")
@@ -123,6 +167,13 @@ def _bounds(meas: Measurements, free, values, override=None):
     # the bias moves with photons_per_lux along the many-photon ridge: allow it as many photons
     b["bias_pr"] = (BOUNDS["bias_pr"][0], max(BOUNDS["bias_pr"][1], 10.0 * b["photons_per_lux"][1] * lux_ref))
     b["refractory_s"] = (1e-8, min(1.0, 0.5 / max(rate_max, 1e-9)))
+    rate_ref = max(rate_max, 1e-9)
+    for n in FLOORS:
+        b[n] = (1e-7 * rate_ref, 10.0 * rate_ref)
+    for n in GROWTH:
+        b[n] = (1e-7 * rate_ref / lux_ref, 10.0 * rate_ref / lux_ref)
+    # a hot pixel fires at most once per trial: its rate stays below the trial rate
+    b["hot_pixel_rate_hz"] = (1e-3 * rate_ref, b["trial_rate_hz"][1])
     for n, (lo, hi) in (override or {}).items():
         b[n] = (float(lo), float(hi))
     for n in free:

@@ -10,7 +10,8 @@ import math
 import numpy as np
 
 from ._likelihood import _Problem
-from ._spec import _AT_BOUND_OK, FIT_NAMES, PROFILE_ROUGH, REJECT_P, REJECT_RMS
+from ._spec import (_AT_BOUND_OK, FIT_NAMES, FLOORS, NEVER, PROFILE_ROUGH, REJECT_P, REJECT_RMS, UNMODELLED,
+                    ZERO_AT_BOUND)
 from .result import CalibrationResult
 
 
@@ -161,7 +162,7 @@ def _finish(problem: _Problem, theta, max_rel_se, *, profile=None, sigma_note=No
     params = problem.params(theta)
     free = list(problem.free)
     p = len(free)
-    status = {n: "fixed" for n in FIT_NAMES}
+    status = {n: ("not identified" if n in NEVER else "fixed") for n in FIT_NAMES}
     at_bound = []  # indices held at a bound
     bound_side = {}  # name -> "lower" | "upper"
     for i, n in enumerate(free):
@@ -242,7 +243,10 @@ def _finish(problem: _Problem, theta, max_rel_se, *, profile=None, sigma_note=No
     for i in at_bound:
         n = free[i]
         v = getattr(params, n)
-        if status[n] == "at lower bound":
+        if status[n] == "at lower bound" and n in ZERO_AT_BOUND:
+            ident.append(f"{n} is at its lower bound ({v:.3g}, which stands for 0): the data are consistent with "
+                         f"no such term; it is reported as 0")
+        elif status[n] == "at lower bound":
             ident.append(f"{n} is at its lower bound ({v:.3g}): the data are consistent with 0; it is held there "
                          f"for the other uncertainties")
         elif n == "photons_per_lux" and bound_side.get(n) == "upper":
@@ -265,8 +269,27 @@ def _finish(problem: _Problem, theta, max_rel_se, *, profile=None, sigma_note=No
     for n, side in bound_side.items():
         v = getattr(params, n)
         lo, hi = problem.bounds[n]
+        if n in ZERO_AT_BOUND and status[n] == "at lower bound":
+            continue  # no such term in the data: an ordinary result (a status and a finding, not a warning)
         extra = " (consistent with 0)" if status[n] == "at lower bound" else " (not identified)"
         warnings.append(f"{n} is on its {side} bound {v:.4g} (bounds {lo:.3g} .. {hi:.3g}){extra}")
+    for n in FLOORS:
+        if n in free and status[n] == "not identified" and n not in bound_side:
+            warnings.append(f"{n} (background floor) is not identified by these data (relative error "
+                            f"{rel[n]:.2g}): measure a level in the dark or where the photon noise is negligible, "
+                            f"or fix it (--fix {n}=...)")
+    for n in UNMODELLED:
+        if getattr(params, n) > 0:
+            ident.append(f"{n} = {getattr(params, n):g} is kept as given but not modelled by the likelihood (it takes "
+                         f"background arrivals as Poisson): the fitted background is the Poisson equivalent")
+    for n in NEVER:
+        if getattr(params, n) > 0:
+            ident.append(f"{n} = {getattr(params, n):g} is kept as given: static measurements do not identify it "
+                         f"(it only acts on changing scenes)")
+    # terms on the lower bound that stands for 0 are reported (and written) as 0
+    zero = {n: 0.0 for n in ZERO_AT_BOUND if status.get(n) == "at lower bound"}
+    if zero:
+        params = params.replace(**zero)
     return CalibrationResult(params=params, method=problem.method, distribution=problem.distribution,
                              free=tuple(free), status=status, std_error=se, rel_error=rel, cov_log=cov,
                              correlation=corr, identifiability=ident, gof=gof, dispersion=dispersion,

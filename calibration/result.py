@@ -82,7 +82,7 @@ class CalibrationResult:
     profile: dict = dataclasses.field(default_factory=dict)
 
     def population_rate(self, lux) -> np.ndarray:
-        """Fitted mean rate over pixels, events/s, ``(2, *lux.shape)``."""
+        """Fitted mean rate over pixels, events/s, ``(2, *lux.shape)`` (background included)."""
         from evnoise.mismatch import population_rate
 
         return population_rate(lux, self.params, method=self.method)
@@ -118,14 +118,22 @@ class CalibrationResult:
                  f"{self.measurements.n_levels} levels from {self.measurements.source})"]
         lines.append(f"fit status: {self.fit_status.upper()}")
         lines += [f"WARNING: {t}" for t in self.warnings]
-        lines.append(f"{'parameter':<16} {'value':>13} {'std error':>11} {'rel':>7}  status")
+        lines.append(f"{'parameter':<21} {'value':>13} {'std error':>11} {'rel':>7}  status")
         for n in FIT_NAMES:
             v = getattr(self.params, n)
             se = self.std_error.get(n, math.nan)
             rel = self.rel_error.get(n, math.nan)
             se_t = "" if not np.isfinite(se) else f"{se:11.4g}"
             rel_t = "" if not np.isfinite(rel) else f"{100 * rel:6.1f}%"
-            lines.append(f"{n:<16} {v:13.6g} {se_t:>11} {rel_t:>7}  {self.status.get(n, 'fixed')}")
+            lines.append(f"{n:<21} {v:13.6g} {se_t:>11} {rel_t:>7}  {self.status.get(n, 'fixed')}")
+        bg = [n for n in BACKGROUND if n in self.free or getattr(self.params, n) > 0]
+        if bg:
+            parts = []
+            for n in bg:
+                se = self.std_error.get(n, math.nan)
+                err = f" +- {se:.2g}" if np.isfinite(se) else ""
+                parts.append(f"{n} {getattr(self.params, n):.4g}{err} ({self.status.get(n, 'fixed')})")
+            lines.append("background (rates in events/s per pixel): " + "; ".join(parts))
         if self.identifiability:
             lines.append("identifiability:")
             lines += [f"  - {t}" for t in self.identifiability]
@@ -157,6 +165,11 @@ class CalibrationResult:
 
         return plot_fit(self, path, title=title, overwrite=overwrite, extra_curves=extra_curves,
                         extra_r_curves=extra_r_curves)
+
+
+#: Background terms named in the summary's background line (when fitted or non-zero).
+BACKGROUND = ("leak_on_hz", "leak_off_hz", "leak_on_hz_per_lux", "leak_off_hz_per_lux", "leak_sigma",
+              "hot_pixel_fraction", "hot_pixel_rate_hz")
 
 
 def _fmt(v):

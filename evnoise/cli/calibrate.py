@@ -18,7 +18,9 @@ log = logging.getLogger(__name__)
 EXAMPLE = "rates-example.csv"
 
 PARAMETERS = ("eps_pos", "eps_neg", "bias_pr", "trial_rate_hz", "photons_per_lux", "dark_lux", "refractory_s",
-              "eps_sigma")
+              "eps_sigma", "leak_on_hz", "leak_off_hz", "leak_on_hz_per_lux", "leak_off_hz_per_lux", "leak_sigma",
+              "hot_pixel_fraction", "hot_pixel_rate_hz", "hot_pixel_sigma", "hot_pixel_on_fraction",
+              "pr_tau_s_at_1lux")
 
 
 def register(subparsers) -> None:
@@ -50,7 +52,9 @@ def register(subparsers) -> None:
                    help="per-pixel count given its thresholds, for flat fields (default: %(default)s)")
     p.add_argument("--fit", nargs="+", metavar="NAME", choices=PARAMETERS,
                    help="parameters to fit (default: eps_pos eps_neg bias_pr trial_rate_hz photons_per_lux "
-                   "dark_lux, and eps_sigma when the data carry dispersion); add refractory_s to fit it")
+                   "dark_lux leak_on_hz leak_off_hz, and eps_sigma when the data carry dispersion); add refractory_s, "
+                   "the growth leak_on_hz_per_lux leak_off_hz_per_lux, or (flat fields) leak_sigma and the hot_pixel_* "
+                   "terms to fit them; pr_tau_s_at_1lux is never fitted (static data do not identify it)")
     p.add_argument("--fix", nargs="+", default=[], metavar="NAME=VALUE",
                    help="hold parameters at given values, e.g. --fix eps_sigma=0.05 refractory_s=1e-4")
     p.add_argument("--initial", metavar="PRESET",
