@@ -49,6 +49,12 @@ in the other polarity's spread: per atom and node, relatively at most
 ``N R (N R + 1 / (1 - p_other)) Var(p_other)`` (``N R = trial_rate_hz * refractory_s``; from the second
 derivative of ``q = P / (1 + N R (P + P_other))`` in ``p_other``), e.g. ``3e-4`` for ``N R = 0.2`` and
 ``Var(p_other) = 1e-3``. :func:`nb_shape` ignores the dead time (as without background).
+
+With a regular background timer (``leak_regularity > 0``) a pixel's trials are not i.i.d.: the mean
+rate is :func:`evnoise.background.regular_rates` averaged over the threshold atoms of each polarity and
+the background nodes, with the other polarity's ``p`` at its mean (an approximation also for
+``refractory_s = 0``, second order in the other polarity's spread because the timer couples the
+polarities; about 1 % at ``eps_sigma = 0.08``, ``eps ~ 0.65``, exact without threshold mismatch), and :func:`nb_shape` (a binomial count per pixel) raises :class:`ParameterError`.
 """
 
 from __future__ import annotations
@@ -239,6 +245,8 @@ class LevelStats:
         self.log_P1, self.log_P2 = self.log_m1, self.log_m2
         self.bg_weight = None
         self.bg_a = None
+        self.bg_l = None
+        self.regularity = 0.0
         if not params.has_background:
             return
         from .background import _intensities, arrival_shares, lux_of_photons
@@ -249,6 +257,8 @@ class LevelStats:
         a_on, a_off = arrival_shares(l_on, l_off, params.trial_rate_hz)
         self.bg_weight = weight
         self.bg_a = np.stack([a_on, a_off])  # (2, B, J)
+        self.bg_l = np.stack([l_on, l_off])  # (2, B, J), events/s
+        self.regularity = params.leak_regularity if params.regular_background else 0.0
         w = weight[:, None]
         m1, m2 = np.exp(self.log_m1), np.exp(self.log_m2)
         P1 = np.empty_like(m1)
@@ -306,6 +316,8 @@ class LevelStats:
         """Population mean rate, events/s, ``(2, J)``."""
         if self.bg_weight is None:
             return self.trial_rate_hz * np.exp(self.log_m1) * self.dead_factor_mean()
+        if self.regularity > 0:
+            return self._regular_mean_rate()
         if self.refractory_s <= 0:
             return self.trial_rate_hz * np.exp(self.log_P1)
         out = np.empty_like(self.log_m1)
@@ -314,6 +326,28 @@ class LevelStats:
                 lq, mass, weight = self.atom_q_nodes(k, j)
                 out[k, j] = self.trial_rate_hz * float(weight @ (np.exp(lq) @ mass))
         return out
+
+    def _regular_mean_rate(self):
+        """Mean rate with a regular background timer (other polarity's ``p`` at its mean; module doc)."""
+        from .background import regular_rates
+
+        out = np.empty_like(self.log_m1)
+        for k in range(2):
+            for j in range(out.shape[1]):
+                p = np.exp(self.log_p[k][j])[None, :]
+                po = np.full_like(p, math.exp(self.log_m1[1 - k, j]))
+                l_k = self.bg_l[k, :, j][:, None]
+                l_o = self.bg_l[1 - k, :, j][:, None]
+                p_on, p_off, l_on, l_off = (p, po, l_k, l_o) if k == 0 else (po, p, l_o, l_k)
+                nu = regular_rates(p_on, p_off, l_on, l_off, self.trial_rate_hz, self.refractory_s,
+                                   self.regularity)[k]
+                out[k, j] = float(self.bg_weight @ (nu @ self.mass[k][j]))
+        return out
+
+    def _check_not_regular(self, what):
+        if self.regularity > 0:
+            raise ParameterError(f"{what} needs i.i.d. trials: not available with a regular background "
+                                 f"(leak_regularity = {self.regularity:g} > 0); simulate the counts instead")
 
     def atom_q_nodes(self, k, j):
         """Per-trial event probabilities of each threshold atom at each background node.
@@ -330,6 +364,7 @@ class LevelStats:
         if self.bg_weight is None:
             lq, mass = self.atom_q(k, j)
             return np.asarray(lq)[None, :], mass, np.ones(1)
+        self._check_not_regular("a binomial count model")
         from ._kernels.mismatch import LOG_ZERO
 
         p = np.exp(self.log_p[k][j])[None, :]  # exp(LOG_ZERO) is exactly 0
@@ -368,6 +403,7 @@ class LevelStats:
         across-pixel variance of ``P`` minus the binomial deficit of a pixel's own count (``P``
         is the photon-noise ``p`` when there is no background activity).
         """
+        self._check_not_regular("the NB shape")
         duration_s = np.broadcast_to(np.asarray(duration_s, dtype=np.float64), self.log_m1.shape[1:])
         trials = self.trial_rate_hz * duration_s
         ratio = np.exp(self.log_P2 - 2.0 * self.log_P1)
