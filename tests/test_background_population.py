@@ -209,3 +209,21 @@ def test_regular_background_with_mismatch_is_approximate_to_about_1_percent():
     mean = ev.expected_rate(np.array([2.0]), params, mismatch="mean")[:, 0]
     mc, se = rates.mean(axis=1), rates.std(axis=1, ddof=1) / math.sqrt(n)
     assert np.all(np.abs(mean - mc) < K * se + 0.02 * mean), (mean, mc, se)
+
+
+def test_dispersion_evk3_script_runs_on_the_reference_tables():
+    """Smoke test of calibration/dispersion_evk3 (coarse grey step, one model); skipped without the tables."""
+    from pathlib import Path
+
+    from evnoise.calibration import dispersion_evk3
+    from evnoise.calibration.refit_evk3 import DEFAULT_REFERENCE
+
+    if not (Path(DEFAULT_REFERENCE) / "synthetic_param.npz").is_file():
+        pytest.skip(f"reference tables not found in {DEFAULT_REFERENCE}")
+    s = dispersion_evk3.run(DEFAULT_REFERENCE, None, step=32, models=("mismatch",))
+    assert [e["fitted_to"] for e in s["models"]] == ["log r only", "log r and log mean rate (equal weights)"]
+    for e in s["models"]:
+        assert 0 < e["r_rms_log_ratio"] < 5 and set(e["r_rms_log_ratio_by_region"]) == set(dispersion_evk3.REGIONS)
+    # the joint fit trades r for the mean curve
+    assert s["models"][1]["r_rms_log_ratio"] >= s["models"][0]["r_rms_log_ratio"] - 1e-9
+    assert "r(grey)" in s["verdict"]
