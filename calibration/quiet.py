@@ -1,0 +1,733 @@
+"""Calibrate the background of your own camera from a recording of a still scene.
+
+A window of a recording in which nothing moves holds only noise: per pixel, an ON and an OFF
+count. With the illuminance unknown the photon shot noise and the background (leak) cannot be
+told apart, so what the data identify is each polarity's *total* rate at the recording's light,
+its spread across pixels and the hot pixels:
+
+- pixel ``i`` has rates ``(s_i r_on + h_i q, s_i r_off + h_i (1 - q))`` events/s, where ``s_i`` is a
+  log-normal factor of mean 1 (``log`` sd ``sigma``, the preset's ``leak_sigma``) and ``h_i`` is 0
+  for ordinary pixels and, for a fraction ``f`` of them (hot pixels), log-normal with mean
+  ``r_hot`` and ``log`` sd ``sigma_hot`` (a hot pixel's own ``s`` is taken as 1: its ordinary
+  rate is negligible beside ``h``);
+- the counts of a pixel over windows of ``T_w`` seconds are independent Poisson variables (the
+  rates are far below the trial rate, so the binomial trial structure and the refractory
+  period change nothing measurable); the same pixel keeps its ``s_i``, ``h_i`` in every window of
+  one recording.
+
+The likelihood integrates each pixel's counts over ``s`` (and ``h``) on a fixed grid of the
+standard normal (``GRID`` points over +-7 sd) and is maximised over ``(log r_on, log r_off, log sigma, logit f,
+log r_hot, log sigma_hot, logit q)``. The spread and the hot pixels are kept only when a
+likelihood-ratio test says the data carry them (:data:`LR_P`); otherwise they are reported as
+*not identified* and set to 0. Standard errors come from the observed information (numerical
+Hessian in the fitted coordinates, delta method to natural units).
+
+Goodness of fit, per window and polarity: the histogram of per-pixel counts against the model's
+(the same mixture), bins merged from the top until every expected count is at least 5; Pearson's
+chi-square with ``bins - 1`` degrees of freedom minus the fitted parameters (at least 1).
+
+With ``lux`` given for the windows, the shot noise of a base preset at that illuminance is part
+of the model (fixed, not fitted) and the fitted rates are its background on top; with two or more
+illuminances the background's growth with lux joins the fit as ``leak_*_hz_per_lux`` would.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from evnoise.errors import InputError, ParameterError
+
+__all__ = ["QuietWindow", "quiet_window", "fit_quiet", "QuietFit", "GRID", "LR_P"]
+
+#: Grid points of the standard normal (over +-7 sd) for the integrals over the spread.
+GRID = 241
+#: Likelihood-ratio p-value below which the spread / the hot pixels count as identified.
+LR_P = 1e-3
+_Z = np.linspace(-7.0, 7.0, GRID)
+_WZ = np.exp(-0.5 * _Z * _Z)
+_WZ /= _WZ.sum()
+_LOG_WZ = np.log(_WZ)
+#: Hot pixels: at most this fraction of the pixels, at least this many times the ordinary mean rate.
+HOT_MAX_FRACTION = 0.05
+HOT_MIN_RATIO = 5.0
+NAMES = ("rate_on_hz", "rate_off_hz", "regularity", "sigma", "hot_fraction", "hot_rate_hz", "hot_sigma",
+         "hot_on_fraction")
+
+
+@dataclass
+class QuietWindow:
+    """Per-pixel counts ``(2, H, W)`` ``[ON, OFF]`` of a still scene over ``duration_s`` seconds."""
+
+    counts: np.ndarray
+    duration_s: float
+    source: str = ""
+    group: str = ""
+    t_start_s: float | None = None
+    t_end_s: float | None = None
+    lux: float | None = None
+
+    def __post_init__(self):
+        counts = np.asarray(self.counts)
+        if counts.ndim != 3 or counts.shape[0] != 2:
+            raise InputError(f"counts must have shape (2, H, W), got {counts.shape}")
+        if counts.size == 0 or np.any(counts < 0):
+            raise InputError("counts must be non-negative and not empty")
+        self.counts = counts.astype(np.int64)
+        if not (math.isfinite(self.duration_s) and self.duration_s > 0):
+            raise ParameterError(f"duration_s must be > 0, got {self.duration_s!r}")
+        if self.lux is not None and not (math.isfinite(self.lux) and self.lux >= 0):
+            raise ParameterError(f"lux must be finite and >= 0, got {self.lux!r}")
+        if not self.group:
+            self.group = self.source
+
+    @property
+    def shape(self):
+        return self.counts.shape[1:]
+
+    def describe(self) -> str:
+        when = "" if self.t_start_s is None else f" {self.t_start_s:g}-{self.t_end_s:g} s"
+        return f"{Path(self.source).name or 'counts'}{when}"
+
+
+def quiet_window(path, t_start_s: float, t_end_s: float, *, lux: float | None = None, sensor=None,
+                 csv_columns=None) -> QuietWindow:
+    """The counts of a recording's window ``[t_start_s, t_end_s)`` (seconds on the file's clock).
+
+    Any file :func:`evnoise.read_events` opens. The sensor size is the file's (or ``sensor``).
+    """
+    from evnoise.io import read_events
+    from evnoise.events import count_events
+
+    if not (t_end_s > t_start_s):
+        raise ParameterError(f"--t-end must be after --t-start, got {t_start_s:g} .. {t_end_s:g} s")
+    events, meta = read_events(path, t_start=t_start_s, t_end=t_end_s, sensor=sensor, csv_columns=csv_columns)
+    shape = meta.get("shape")
+    if shape is None:
+        raise InputError(f"{path}: the file does not give its sensor size; pass sensor='WxH'")
+    if events.size == 0:
+        raise InputError(f"{path}: no events in the window {t_start_s:g} .. {t_end_s:g} s (check the times: "
+                         "they are seconds on the file's clock)")
+    counts = count_events(events, tuple(shape))
+    return QuietWindow(counts, float(t_end_s - t_start_s), str(path), str(path), float(t_start_s), float(t_end_s),
+                       None if lux is None else float(lux))
+
+
+# --------------------------------------------------------------------------------------
+# likelihood
+# --------------------------------------------------------------------------------------
+@dataclass
+class _Group:
+    """The pixels of one recording: unique count vectors over its windows and their multiplicities."""
+
+    windows: list
+    vectors: np.ndarray  # (U, n_windows, 2) counts
+    weight: np.ndarray   # (U,) number of pixels with that vector
+    log_binom: np.ndarray  # (U,) sum over windows of log C(k_on + k_off, k_on)
+
+
+def _groups(windows) -> list:
+    from scipy.special import gammaln
+
+    by = {}
+    for w in windows:
+        by.setdefault(w.group, []).append(w)
+    out = []
+    for name, ws in by.items():
+        shapes = {w.shape for w in ws}
+        if len(shapes) > 1:
+            raise InputError(f"windows of {name} have different sensor sizes: {sorted(shapes)}")
+        stack = np.stack([w.counts.reshape(2, -1).T for w in ws], axis=1)  # (P, n_windows, 2)
+        flat = stack.reshape(stack.shape[0], -1)
+        uniq, mult = np.unique(flat, axis=0, return_counts=True)
+        vec = uniq.reshape(-1, len(ws), 2)
+        tot = vec.sum(axis=2)
+        log_binom = (gammaln(tot + 1.0) - gammaln(vec[..., 0] + 1.0) - gammaln(vec[..., 1] + 1.0)).sum(axis=1)
+        out.append(_Group(ws, vec, mult.astype(np.float64), log_binom))
+    return out
+
+
+@dataclass
+class _Model:
+    """What is free and the fixed shot-noise rates of each window (``shot``: (n_windows, 2) per group)."""
+
+    spread: bool
+    hot: bool
+    shot: list  # per group, (n_windows, 2) events/s added to every pixel (0 without lux)
+    growth: bool = False  # background grows with lux: rate = r + g * lux
+    lux: list = field(default_factory=list)
+    regular: bool = False  # fit the regularity of the arrivals (else Poisson, r = 0)
+
+
+def _exp(x):
+    return math.exp(min(x, 700.0))
+
+
+def _sigmoid(x):
+    return 1.0 / (1.0 + math.exp(-x)) if x >= 0 else math.exp(x) / (1.0 + math.exp(x))
+
+
+def _unpack(theta, model: _Model):
+    v = dict(zip(("log_on", "log_off"), theta[:2]))
+    i = 2
+    v["sigma"] = _exp(theta[i]) if model.spread else 0.0
+    i += model.spread
+    if model.hot:
+        # hot pixels are a minority (f < HOT_MAX_FRACTION) far above the ordinary rate (> HOT_MIN_RATIO times it):
+        # without these bounds the second component can take over the role of the spread
+        f = HOT_MAX_FRACTION * _sigmoid(theta[i])
+        ordinary = _exp(theta[0]) + _exp(theta[1])
+        v.update(hot_fraction=f, hot_rate_hz=ordinary * (HOT_MIN_RATIO + _exp(theta[i + 1])),
+                 hot_sigma=_exp(theta[i + 2]), hot_on_fraction=_sigmoid(theta[i + 3]))
+        i += 4
+    else:
+        v.update(hot_fraction=0.0, hot_rate_hz=0.0, hot_sigma=0.0, hot_on_fraction=0.5)
+    if model.growth:
+        v["growth_on"], v["growth_off"] = _exp(theta[i]), _exp(theta[i + 1])
+        i += 2
+    else:
+        v["growth_on"] = v["growth_off"] = 0.0
+    v["regularity"] = _sigmoid(theta[i]) if model.regular else 0.0
+    v["rate_on_hz"], v["rate_off_hz"] = _exp(v.pop("log_on")), _exp(v.pop("log_off"))
+    return v
+
+
+def count_survival(k, rate_hz, duration_s, regularity):
+    """``P(N >= k)`` of the count ``N`` in a window of a stationary renewal process (arrays broadcast).
+
+    Gaps are ``r mu + Exp((1 - r) mu)`` with ``mu = 1 / rate_hz`` (``r`` = ``regularity``: 0 Poisson, 1
+    periodic), the continuous-time form of evnoise's background timer. The first arrival is the
+    stationary forward recurrence time: with probability ``r`` uniform on ``[0, r mu)``, else
+    ``r mu + Exp((1 - r) mu)``, so ``P(N >= k) = r A + (1 - r) P(Gamma_k <= T - k r mu)`` with
+    ``A = mean over u of P(Gamma_{k-1} <= T - (k - 1 + u) r mu)`` (Gamma of scale ``(1 - r) mu``), in
+    closed form through ``int_0^Y P(Gamma_n <= y) dy = Y P(n, Y/theta) - n theta P(n + 1, Y/theta)``.
+    """
+    from scipy.special import gammainc
+
+    k = np.asarray(k, dtype=np.float64)
+    rate = np.asarray(rate_hz, dtype=np.float64)
+    r = float(regularity)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        mu = np.where(rate > 0, 1.0 / np.where(rate > 0, rate, 1.0), np.inf)
+        theta = (1.0 - r) * mu
+        T = float(duration_s)
+
+        def p_gamma(n, y):  # P(Gamma_n(theta) <= y), Gamma_0 = 0
+            y = np.maximum(y, 0.0)
+            if r >= 1.0:
+                return np.where(y > 0, 1.0, np.where(n == 0, 1.0, 0.0)) * 1.0
+            val = gammainc(np.maximum(n, 1e-300), y / theta)
+            return np.where(n == 0, 1.0, val)
+
+        def integral(n, y):  # int_0^y P(Gamma_n <= t) dt
+            y = np.maximum(y, 0.0)
+            if r >= 1.0:
+                return y
+            x = y / theta
+            val = y * gammainc(np.maximum(n, 1e-300), x) - n * theta * gammainc(n + 1.0, x)
+            return np.where(n == 0, y, val)
+
+        b = p_gamma(k, T - k * r * mu) if r < 1.0 else 0.0
+        if r > 0:
+            x0 = T - (k - 1.0) * r * mu
+            a = (integral(k - 1.0, x0) - integral(k - 1.0, x0 - r * mu)) / (r * mu)
+        else:
+            a = 0.0
+        out = r * a + (1.0 - r) * b
+        out = np.where(k <= 0, 1.0, out)
+        out = np.where(np.isfinite(mu), out, np.where(k <= 0, 1.0, 0.0))
+    return np.clip(out, 0.0, 1.0)
+
+
+def count_pmf(n_max: int, rate_hz, duration_s, regularity) -> np.ndarray:
+    """``P(N = n)`` for ``n = 0 .. n_max`` (last axis) at each rate (``rate_hz`` any shape)."""
+    rate = np.asarray(rate_hz, dtype=np.float64)[..., None]
+    k = np.arange(n_max + 2, dtype=np.float64)
+    surv = count_survival(k, rate, duration_s, regularity)
+    return np.maximum(surv[..., :-1] - surv[..., 1:], 0.0)
+
+
+def _component_rates(v, group_index, model: _Model, grp: _Group):
+    """Per component: total rates (M, W) events/s and ON shares (M, W) over its grid."""
+    T = np.array([w.duration_s for w in grp.windows])
+    shot = model.shot[group_index]
+    lux = model.lux[group_index] if model.growth else np.zeros(len(T))
+    base = np.stack([v["rate_on_hz"] + v["growth_on"] * lux, v["rate_off_hz"] + v["growth_off"] * lux], axis=1)
+    sigma = v["sigma"]
+    s = np.exp(-0.5 * sigma * sigma + sigma * _Z) if sigma > 0 else np.ones(1)
+    per_pol = s[:, None, None] * base[None] + shot[None]  # (M, W, 2)
+    comps = [(per_pol.sum(axis=2), per_pol[..., 0] / np.maximum(per_pol.sum(axis=2), 1e-300),
+              _WZ if sigma > 0 else np.ones(1))]
+    if v["hot_fraction"] > 0:
+        sh = v["hot_sigma"]
+        h = v["hot_rate_hz"] * np.exp(-0.5 * sh * sh + sh * _Z)
+        q = v["hot_on_fraction"]
+        hot = h[:, None, None] * np.array([q, 1.0 - q])[None, None, :] + base[None] + shot[None]
+        comps.append((hot.sum(axis=2), hot[..., 0] / np.maximum(hot.sum(axis=2), 1e-300), _WZ))
+    return comps
+
+
+def _log_component(vec, rates, share_on, weights, grp: _Group, regularity):
+    """log of sum over nodes of weight * prod over windows P(counts) for vectors (U, W, 2) -> (U,)."""
+    from scipy.special import logsumexp
+
+    n_tot = vec.sum(axis=2)  # (U, W)
+    acc = np.zeros((vec.shape[0], rates.shape[0]))
+    for wi, w in enumerate(grp.windows):
+        needed, where = np.unique(n_tot[:, wi], return_inverse=True)
+        k = np.concatenate([needed, needed + 1]).astype(np.float64)
+        surv = count_survival(k[None, :], rates[:, wi, None], w.duration_s, regularity)  # (M, 2 n)
+        pmf = np.maximum(surv[:, :needed.size] - surv[:, needed.size:], 0.0)
+        with np.errstate(divide="ignore"):
+            log_pmf = np.log(np.maximum(pmf, 1e-300))[:, where]  # (M, U)
+            lq = np.log(np.maximum(share_on[:, wi], 1e-300))
+            l1q = np.log(np.maximum(1.0 - share_on[:, wi], 1e-300))
+        k_on = vec[:, wi, 0].astype(np.float64)
+        k_off = vec[:, wi, 1].astype(np.float64)
+        acc += log_pmf.T + np.outer(k_on, lq) + np.outer(k_off, l1q)
+    return logsumexp(acc + np.log(weights)[None, :], axis=1)
+
+
+def _log_mix(vec, comps, v, grp, regularity):
+    """log-likelihood (U,) of each count vector under the mixture (binomial-split constants excluded)."""
+    lo = _log_component(vec, *comps[0], grp, regularity)
+    if len(comps) == 1:
+        return lo
+    lh = _log_component(vec, *comps[1], grp, regularity)
+    f = min(max(v["hot_fraction"], 1e-300), 0.5)
+    return np.logaddexp(math.log1p(-f) + lo, math.log(f) + lh)
+
+
+def _log_likelihood(theta, model: _Model, groups) -> float:
+    v = _unpack(theta, model)
+    total = 0.0
+    for gi, grp in enumerate(groups):
+        comps = _component_rates(v, gi, model, grp)
+        ll = _log_mix(grp.vectors, comps, v, grp, v["regularity"]) + grp.log_binom
+        total += float(np.dot(grp.weight, ll))
+    return total
+
+
+def _maximise(model, groups, start):
+    """BFGS from every start (numerical gradients of a smooth likelihood), a Nelder-Mead polish of the best."""
+    from scipy.optimize import minimize
+
+    def nll(theta):
+        val = -_log_likelihood(theta, model, groups)
+        return val if math.isfinite(val) else 1e300
+
+    best = None
+    for x0 in start:
+        res = minimize(nll, np.asarray(x0, dtype=np.float64), method="BFGS", options=dict(gtol=1e-3, maxiter=150))
+        if best is None or res.fun < best.fun:
+            best = res
+    polished = minimize(nll, best.x, method="Nelder-Mead", options=dict(xatol=1e-5, fatol=1e-6, maxfev=400,
+                                                                       adaptive=True))
+    return polished if polished.fun < best.fun else best
+
+
+def _hessian(fun, x, step=1e-3):
+    n = x.size
+    h = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i, n):
+            e_i = np.zeros(n)
+            e_j = np.zeros(n)
+            e_i[i] = step
+            e_j[j] = step
+            val = (fun(x + e_i + e_j) - fun(x + e_i - e_j) - fun(x - e_i + e_j) + fun(x - e_i - e_j)) / (4 * step * step)
+            h[i, j] = h[j, i] = val
+    return h
+
+
+# --------------------------------------------------------------------------------------
+# the fit
+# --------------------------------------------------------------------------------------
+@dataclass
+class QuietFit:
+    """Result of :func:`fit_quiet`: values, standard errors, status and goodness of fit."""
+
+    values: dict
+    std_error: dict
+    status: dict
+    log_likelihood: float
+    tests: dict
+    goodness: list
+    windows: list
+    base: object = None
+    notes: list = field(default_factory=list)
+
+    def to_params(self, base=None):
+        """NoiseParams whose nominal rates at 0 lux (or the windows' lux) reproduce the fitted ones.
+
+        ``base`` (NoiseParams or preset name) supplies the shot-noise part; the background floors are
+        set so that ``expected_rate(lux)`` of a pixel with ``s = 1`` equals the fitted rates exactly.
+        """
+        import evnoise as ev
+
+        base = ev.load_preset(base) if isinstance(base, str) else (base or self.base)
+        if base is None:
+            raise ParameterError("to_params needs a base preset for the shot-noise parameters")
+        v = self.values
+        lux0 = min((w.lux for w in self.windows if w.lux is not None), default=0.0)
+        floors = _floors_for(base, lux0, v["rate_on_hz"], v["rate_off_hz"], v.get("growth_on", 0.0),
+                             v.get("growth_off", 0.0), v["regularity"])
+        return base.replace(leak_on_hz=floors[0], leak_off_hz=floors[1],
+                            leak_on_hz_per_lux=v.get("growth_on", 0.0), leak_off_hz_per_lux=v.get("growth_off", 0.0),
+                            leak_sigma=v["sigma"], hot_pixel_fraction=v["hot_fraction"],
+                            hot_pixel_rate_hz=v["hot_rate_hz"], hot_pixel_sigma=v["hot_sigma"],
+                            hot_pixel_on_fraction=v["hot_on_fraction"], leak_regularity=v["regularity"])
+
+    def summary(self) -> str:
+        lines = [f"quiet-scene calibration from {len(self.windows)} window(s), "
+                 f"{sum(int(np.prod(w.shape)) for w in self.windows)} pixel-windows; log-likelihood "
+                 f"{self.log_likelihood:.2f}"]
+        for name in NAMES:
+            val, se, st = self.values[name], self.std_error.get(name), self.status[name]
+            err = "" if se is None or not math.isfinite(se) else f" +- {se:.3g}"
+            lines.append(f"  {name:16s} {val:.6g}{err}  ({st})")
+        for name, t in self.tests.items():
+            lines.append(f"  test {name}: twice the log-likelihood ratio {t['lr']:.3g}, p = {t['p_value']:.3g}")
+        for g in self.goodness:
+            lines.append(f"  fit {g['window']} {g['polarity']}: chi2 {g['chi2']:.2f} on {g['dof']} dof, "
+                         f"p = {g['p_value']:.3g} ({g['bins']} bins over counts 0..{g['max_count']})")
+        lines += [f"  note: {n}" for n in self.notes]
+        return "\n".join(lines)
+
+    def to_toml_tables(self) -> dict:
+        """``[fit]`` and ``[fit.goodness]`` content for a preset."""
+        return {
+            "method": "quiet-scene maximum likelihood (evnoise.calibration.quiet)",
+            "log_likelihood": round(self.log_likelihood, 3),
+            "status": dict(self.status),
+            "values": {k: float(v) for k, v in self.values.items() if k in NAMES},
+            "std_error": {k: float(v) for k, v in self.std_error.items() if v is not None and math.isfinite(v)},
+            "tests": {k: {kk: float(vv) for kk, vv in t.items()} for k, t in self.tests.items()},
+            "goodness": [{k: (float(v) if isinstance(v, (int, float, np.floating)) and not isinstance(v, bool)
+                              else v) for k, v in g.items()} for g in self.goodness],
+        }
+
+    def plot(self, path, *, seed: int = 0):
+        """Real vs fitted-model count histograms (ON, OFF) and count maps, side by side."""
+        from .quiet_plot import plot_quiet
+
+        plot_quiet(self, path, seed=seed)
+
+
+def _floors_for(base, lux, rate_on, rate_off, growth_on, growth_off, regularity=0.0):
+    """Background floors so that the nominal pixel's rates at ``lux`` equal the fitted ones (root finding)."""
+    from scipy.optimize import brentq
+
+    import evnoise as ev
+
+    lux_arr = np.array([float(lux)])
+    target = (rate_on, rate_off)
+    floors = [0.0, 0.0]
+    for k in range(2):
+        def excess(x, k=k):
+            fl = list(floors)
+            fl[k] = x
+            p = base.replace(leak_on_hz=fl[0], leak_off_hz=fl[1], leak_on_hz_per_lux=growth_on,
+                             leak_off_hz_per_lux=growth_off, leak_regularity=regularity)
+            return float(ev.expected_rate(lux_arr, p)[k, 0]) - target[k]
+
+        if excess(0.0) >= 0:
+            floors[k] = 0.0
+        else:
+            hi = max(2.0 * target[k], 1e-12)
+            while excess(hi) < 0 and hi < 1e9:
+                hi *= 2
+            floors[k] = brentq(excess, 0.0, hi, xtol=1e-15, rtol=1e-12)
+    # the OFF floor changes the ON rate a little (shared trials): one more pass for ON
+    for k in range(2):
+        def excess2(x, k=k):
+            fl = list(floors)
+            fl[k] = x
+            p = base.replace(leak_on_hz=fl[0], leak_off_hz=fl[1], leak_on_hz_per_lux=growth_on,
+                             leak_off_hz_per_lux=growth_off, leak_regularity=regularity)
+            return float(ev.expected_rate(lux_arr, p)[k, 0]) - target[k]
+
+        if excess2(0.0) < 0:
+            hi = max(2.0 * target[k], 1e-12)
+            while excess2(hi) < 0 and hi < 1e9:
+                hi *= 2
+            floors[k] = brentq(excess2, 0.0, hi, xtol=1e-15, rtol=1e-12)
+    return floors
+
+
+def _shot_rates(windows, base):
+    import evnoise as ev
+
+    out = []
+    for w in windows:
+        if w.lux is None or base is None:
+            out.append([0.0, 0.0])
+        else:
+            out.append(list(ev.expected_rate(np.array([w.lux]), base)[:, 0]))
+    return np.array(out)
+
+
+def _hot_guess(windows, rates):
+    """``(fraction, rate)`` of pixels whose total count is far above a Poisson count at the mean rates."""
+    from scipy.stats import poisson
+
+    n_pix, n_hot, hot_events, hot_time = 0, 0, 0.0, 0.0
+    for w in windows:
+        total = w.counts.sum(axis=0).ravel()
+        mu = float(np.sum(rates)) * w.duration_s
+        cut = poisson.isf(1e-4, mu) + 1
+        sel = total > cut
+        n_pix += total.size
+        n_hot += int(sel.sum())
+        hot_events += float(total[sel].sum())
+        hot_time += int(sel.sum()) * w.duration_s
+    if n_hot == 0:
+        return 1.0 / max(n_pix, 1), 10.0 * float(np.sum(rates)) + 1.0
+    return n_hot / n_pix, hot_events / hot_time
+
+
+def _logit(x):
+    x = min(max(x, 1e-9), 1 - 1e-9)
+    return math.log(x / (1 - x))
+
+
+def _theta(values: dict, model: _Model):
+    """Fitted coordinates of a values dict (the inverse of :func:`_unpack`)."""
+    x = [math.log(max(values["rate_on_hz"], 1e-12)), math.log(max(values["rate_off_hz"], 1e-12))]
+    if model.spread:
+        x.append(math.log(max(values.get("sigma", 0.5), 0.05)))
+    if model.hot:
+        ordinary = values["rate_on_hz"] + values["rate_off_hz"]
+        x += [_logit(values["hot_fraction"] / HOT_MAX_FRACTION),
+              math.log(max(values["hot_rate_hz"] / max(ordinary, 1e-12) - HOT_MIN_RATIO, 1e-3)),
+              math.log(max(values["hot_sigma"], 0.05)), _logit(values["hot_on_fraction"])]
+    if model.growth:
+        x += [math.log(max(values.get("growth_on", 1e-3), 1e-9)), math.log(max(values.get("growth_off", 1e-3), 1e-9))]
+    if model.regular:
+        x.append(_logit(values.get("regularity", 0.5)))
+    return x
+
+
+def _starts(model: _Model, previous: dict, hot_guess):
+    """Two starting points: moderate and strong spread/regularity, hot pixels from the data."""
+    starts = []
+    for sigma, reg in ((0.5, 0.5), (1.2, 0.9)):
+        v = dict(previous, sigma=sigma if model.spread else 0.0, regularity=reg if model.regular else 0.0)
+        if model.hot and not previous.get("hot_fraction"):
+            ordinary = v["rate_on_hz"] + v["rate_off_hz"]
+            v.update(hot_fraction=min(hot_guess[0], 0.9 * HOT_MAX_FRACTION),
+                     hot_rate_hz=max(hot_guess[1], (HOT_MIN_RATIO + 1.0) * ordinary), hot_sigma=0.5,
+                     hot_on_fraction=0.5)
+        starts.append(_theta(v, model))
+    return starts
+
+
+OPTIONS = ("auto", "on", "off")
+
+
+def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", regularity: str = "auto") -> QuietFit:
+    """Fit background rates, their regularity and spread, and hot pixels to quiet windows (module doc).
+
+    Parameters
+    ----------
+    windows : sequence of QuietWindow
+        Windows of still scenes; windows of one recording (same ``group``) share their pixels.
+    base : NoiseParams or str, optional
+        Preset for the shot noise of windows with a ``lux`` (and for :meth:`QuietFit.to_params`).
+    spread, hot, regularity : {"auto", "on", "off"}
+        Fit the per-pixel spread / the hot pixels / the regularity of the arrivals: ``"auto"`` adds
+        them one at a time (regularity, spread, hot pixels) and keeps each only where a likelihood-
+        ratio test at :data:`LR_P` says the data carry it.
+    """
+    from scipy.stats import chi2
+
+    import evnoise as ev
+
+    windows = list(windows)
+    if not windows:
+        raise InputError("no quiet windows to fit")
+    for opt, name in ((spread, "spread"), (hot, "hot"), (regularity, "regularity")):
+        if opt not in OPTIONS:
+            raise ParameterError(f"{name} must be 'auto', 'on' or 'off', got {opt!r}")
+    base = ev.load_preset(base) if isinstance(base, str) else base
+    if any(w.lux is not None for w in windows) and base is None:
+        raise ParameterError("windows with a lux need a base preset for the shot noise (base=...)")
+    groups = _groups(windows)
+    shot = [_shot_rates(g.windows, base) for g in groups]
+    lux_levels = {w.lux for w in windows if w.lux is not None}
+    growth = len(lux_levels) >= 2
+    lux = [np.array([w.lux or 0.0 for w in g.windows]) for g in groups]
+    exposure = sum(w.duration_s * np.prod(w.shape) for w in windows)
+    tot = np.sum([w.counts.reshape(2, -1).sum(axis=1) for w in windows], axis=0).astype(np.float64)
+    shot_total = np.zeros(2)
+    for g, sh in zip(groups, shot):
+        for i, w in enumerate(g.windows):
+            shot_total += sh[i] * w.duration_s * np.prod(w.shape)
+    rates0 = [max((tot[k] - shot_total[k]) / exposure, 1e-9) for k in range(2)]
+    hot_guess = _hot_guess(windows, np.array(rates0))
+
+    options = {"regular": regularity, "spread": spread, "hot": hot}
+    values0 = dict(rate_on_hz=rates0[0], rate_off_hz=rates0[1], sigma=0.0, hot_fraction=0.0, hot_rate_hz=0.0,
+                   hot_sigma=0.0, hot_on_fraction=0.5, growth_on=1e-3, growth_off=1e-3, regularity=0.0)
+
+    def model_of(flags):
+        return _Model(flags["spread"], flags["hot"], shot, growth, lux, flags["regular"])
+
+    # backward selection: the full model first, then each term dropped in turn (likelihood-ratio test)
+    full = {t: option != "off" for t, option in options.items()}
+    model = model_of(full)
+    res = _maximise(model, groups, _starts(model, values0, hot_guess))
+    values = dict(values0, **_unpack(res.x, model))
+    tests = {}
+    dofs = {"regular": 1, "spread": 1, "hot": 4}
+    names = {"regular": "regularity", "spread": "spread", "hot": "hot_pixels"}
+    keep = dict(full)
+    for term in ("regular", "spread", "hot"):
+        if not full[term]:
+            continue
+        reduced = model_of(dict(full, **{term: False}))
+        red_values = dict(values, **({"hot_fraction": 0.0} if term == "hot" else {}))
+        red_res = _maximise(reduced, groups, [_theta(red_values, reduced)])
+        stat = max(0.0, 2.0 * (red_res.fun - res.fun))
+        tests[names[term]] = {"lr": stat, "p_value": float(chi2.sf(stat, dofs[term])), "dof": dofs[term]}
+        if options[term] == "auto" and tests[names[term]]["p_value"] >= LR_P:
+            keep[term] = False
+    if keep != full:
+        model = model_of(keep)
+        kept_values = dict(values, **({} if keep["hot"] else {"hot_fraction": 0.0}))
+        res = _maximise(model, groups, [_theta(kept_values, model)] + _starts(model, values0, hot_guess)[:1])
+    v = _unpack(res.x, model)
+
+    # standard errors: observed information in the fitted coordinates, delta method
+    def nll(t):
+        return -_log_likelihood(t, model, groups)
+
+    se = {n: None for n in NAMES}
+    notes = []
+    try:
+        cov = np.linalg.inv(_hessian(nll, res.x))
+        ok = np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0)
+    except np.linalg.LinAlgError:
+        ok = False
+    if ok:
+        d = np.sqrt(np.diag(cov))
+        se["rate_on_hz"] = v["rate_on_hz"] * d[0]
+        se["rate_off_hz"] = v["rate_off_hz"] * d[1]
+        i = 2
+        if model.spread:
+            se["sigma"] = v["sigma"] * d[i]
+            i += 1
+        if model.hot:
+            f = v["hot_fraction"]
+            q = v["hot_on_fraction"]
+            ordinary = v["rate_on_hz"] + v["rate_off_hz"]
+            se["hot_fraction"] = f * (1 - f / HOT_MAX_FRACTION) * d[i]
+            se["hot_rate_hz"] = (v["hot_rate_hz"] - HOT_MIN_RATIO * ordinary) * d[i + 1]  # ordinary's part ignored
+            se["hot_sigma"] = v["hot_sigma"] * d[i + 2]
+            se["hot_on_fraction"] = q * (1 - q) * d[i + 3]
+            i += 4
+        if model.growth:
+            se["growth_on"] = v["growth_on"] * d[i]
+            se["growth_off"] = v["growth_off"] * d[i + 1]
+            i += 2
+        if model.regular:
+            se["regularity"] = v["regularity"] * (1 - v["regularity"]) * d[i]
+    else:
+        notes.append("the observed information is not positive definite: no standard errors")
+    status = {n: "fitted" for n in NAMES}
+    if not model.spread:
+        status["sigma"] = "not identified (likelihood-ratio test)" if spread == "auto" else "fixed"
+    if not model.hot:
+        for n in ("hot_fraction", "hot_rate_hz", "hot_sigma", "hot_on_fraction"):
+            status[n] = "not identified (likelihood-ratio test)" if hot == "auto" else "fixed"
+    if not model.regular:
+        status["regularity"] = "not identified (likelihood-ratio test)" if regularity == "auto" else "fixed"
+    for n in ("hot_sigma", "hot_on_fraction"):
+        if model.hot and v["hot_fraction"] * sum(np.prod(w.shape) for w in windows) < 5:
+            status[n] = "weakly identified (fewer than 5 hot pixels)"
+    if not lux_levels:
+        notes.append("illuminance unknown: the rates are the totals at the recording's light (shot noise and "
+                     "background together); the shot-noise parameters are not identified")
+    goodness = _goodness(v, model, groups, len(res.x))
+    return QuietFit(v, se, status, -float(res.fun), tests, goodness, windows, base, notes)
+
+
+#: Largest count evaluated one by one in the goodness-of-fit histograms (higher ones form the tail bin).
+GOF_MAX_COUNT = 200
+
+
+def _marginal_pmf(v, model, gi, grp, wi, pol, kmax):
+    """Model probability of a pixel's count 0..kmax of polarity ``pol`` in window ``wi`` (the mixture).
+
+    Each event is ON with the pixel's ON share, independently: the polarity's count is a binomial
+    thinning of the renewal count ``N`` (evaluated up to the window's largest total count).
+    """
+    from scipy.stats import binom
+
+    w = grp.windows[wi]
+    n_cap = min(int(w.counts.sum(axis=0).max()) + 5, 2 * GOF_MAX_COUNT)
+    n = np.arange(n_cap + 1)
+    k = np.arange(kmax + 1)
+    comps = _component_rates(v, gi, model, grp)
+    fractions = [1.0 - v["hot_fraction"], v["hot_fraction"]]
+    out = np.zeros(kmax + 1)
+    for (rates, share_on, weights), frac in zip(comps, fractions):
+        keep = weights > 1e-14 * weights.max()
+        pmf_n = count_pmf(n_cap, rates[keep, wi], w.duration_s, v["regularity"])  # (M, N)
+        q = share_on[keep, wi] if pol == 0 else 1.0 - share_on[keep, wi]
+        thin = binom.pmf(k[None, :, None], n[None, None, :], q[:, None, None])  # (M, K, N)
+        out += frac * np.einsum("mkn,mn,m->k", thin, pmf_n, weights[keep] / weights[keep].sum())
+    return out
+
+
+def _goodness(v, model, groups, n_fitted):
+    from scipy.stats import chi2
+
+    out = []
+    for gi, grp in enumerate(groups):
+        for wi, w in enumerate(grp.windows):
+            n_pix = int(np.prod(w.shape))
+            for pol, name in enumerate(("ON", "OFF")):
+                counts = np.minimum(w.counts[pol].ravel(), GOF_MAX_COUNT)
+                kmax = int(counts.max())
+                pmf = _marginal_pmf(v, model, gi, grp, wi, pol, kmax)
+                observed = np.bincount(counts, minlength=kmax + 1).astype(np.float64)
+                expected = pmf * n_pix
+                expected[-1] += max(n_pix - expected.sum(), 0.0)  # the tail beyond kmax
+                obs, exp = _pool(observed, expected)
+                dof = max(1, len(obs) - 1 - n_fitted)
+                stat = float(np.sum((obs - exp) ** 2 / exp)) if len(obs) > 1 else 0.0
+                out.append({"window": w.describe(), "polarity": name, "chi2": stat, "dof": dof,
+                            "p_value": float(chi2.sf(stat, dof)) if len(obs) > 1 else 1.0, "bins": len(obs),
+                            "pooled": len(obs) < kmax + 1, "max_count": kmax, "events": int(w.counts[pol].sum()),
+                            "expected_events": float(np.dot(np.arange(kmax + 1), pmf) * n_pix)})
+    return out
+
+
+def _pool(observed, expected, minimum=5.0):
+    """Adjacent bins merged (from 0 upwards) until each expected count is at least ``minimum``."""
+    obs, exp = [], []
+    acc_o = acc_e = 0.0
+    for o, e in zip(observed, expected):
+        acc_o += o
+        acc_e += e
+        if acc_e >= minimum:
+            obs.append(acc_o)
+            exp.append(acc_e)
+            acc_o = acc_e = 0.0
+    if acc_e > 0 or acc_o > 0:
+        if exp:
+            obs[-1] += acc_o
+            exp[-1] += acc_e
+        else:
+            obs.append(acc_o)
+            exp.append(acc_e)
+    return np.array(obs), np.array(exp)
+
+
+def replace(fit: QuietFit, **changes) -> QuietFit:
+    return dataclasses.replace(fit, **changes)
