@@ -411,11 +411,11 @@ class QuietFit:
                               else v) for k, v in g.items()} for g in self.goodness],
         }
 
-    def plot(self, path, *, seed: int = 0):
+    def plot(self, path, *, seed: int = 0, params=None):
         """Real vs fitted-model count histograms (ON, OFF) and count maps, side by side."""
         from .quiet_plot import plot_quiet
 
-        plot_quiet(self, path, seed=seed)
+        plot_quiet(self, path, seed=seed, params=params)
 
 
 def _floors_for(base, lux, rate_on, rate_off, growth_on, growth_off, regularity=0.0):
@@ -731,3 +731,82 @@ def _pool(observed, expected, minimum=5.0):
 
 def replace(fit: QuietFit, **changes) -> QuietFit:
     return dataclasses.replace(fit, **changes)
+
+
+# --------------------------------------------------------------------------------------
+# a fitted preset against a recording, and the preset document
+# --------------------------------------------------------------------------------------
+def simulate_window(params, window: QuietWindow, *, replicas: int = 1, seed: int = 0) -> np.ndarray:
+    """Counts ``(replicas, 2, H, W)`` of ``params`` simulated on the window's sensor for its duration.
+
+    At the window's lux (0 when unknown: a quiet-scene preset carries the recording's shot noise in its
+    background), each replica with its own draw of thresholds and background maps.
+    """
+    import evnoise as ev
+
+    lux = np.full(window.shape, float(window.lux or 0.0))
+    seq = np.random.SeedSequence(seed)
+    return np.stack([ev.sample_counts(lux, params, window.duration_s, rng=np.random.default_rng(s))
+                     for s in seq.spawn(int(replicas))])
+
+
+def compare_to_recording(params, window: QuietWindow, *, replicas: int = 20, seed: int = 0) -> list:
+    """Two-sample chi-square test of the per-pixel count histograms: recording against simulation.
+
+    The simulated histogram pools ``replicas`` independent sensors (so its own noise is small and
+    accounted for): a homogeneity test of the 2 x bins table, bins merged from 0 upwards until both
+    expected counts are at least 5, ``bins - 1`` degrees of freedom. One dict per polarity.
+    """
+    from scipy.stats import chi2
+
+    sim = simulate_window(params, window, replicas=replicas, seed=seed)
+    out = []
+    for pol, name in enumerate(("ON", "OFF")):
+        real = np.minimum(window.counts[pol].ravel(), GOF_MAX_COUNT)
+        fake = np.minimum(sim[:, pol].ravel(), GOF_MAX_COUNT)
+        top = int(max(real.max(), fake.max()))
+        h_real = np.bincount(real, minlength=top + 1).astype(np.float64)
+        h_fake = np.bincount(fake, minlength=top + 1).astype(np.float64)
+        n_r, n_f = h_real.sum(), h_fake.sum()
+        # merge bins until the expected count of the smaller (real) row is at least 5
+        share = (h_real + h_fake) / (n_r + n_f)
+        obs_r, exp_r = _pool(h_real, share * n_r)
+        obs_f, _ = _pool(h_fake, share * n_r)  # same merging (driven by the same expected)
+        table = np.stack([obs_r, obs_f])
+        if table.shape[1] < 2:
+            stat, dof, p = 0.0, 0, 1.0
+        else:
+            tot = table.sum(axis=0)
+            expected = np.outer(table.sum(axis=1), tot) / tot.sum()
+            stat = float(np.sum((table - expected) ** 2 / expected))
+            dof = table.shape[1] - 1
+            p = float(chi2.sf(stat, dof))
+        out.append({"window": window.describe(), "polarity": name, "chi2": stat, "dof": dof, "p_value": p,
+                    "events": int(window.counts[pol].sum()),
+                    "simulated_events_per_replica": float(sim[:, pol].sum() / replicas),
+                    "replicas": int(replicas)})
+    return out
+
+
+def preset_toml(params, *, sensor: tuple, header: str, provenance: dict, fit: QuietFit | None = None,
+                validation: list | None = None) -> str:
+    """A preset document: header comment, ``[sensor]``, ``[params]``, ``[provenance]``, ``[fit]``, validation."""
+    from .preset import _table, toml_value
+
+    width, height, name = sensor
+    lines = [f"# {line}".rstrip() for line in header.strip().splitlines()] + [""]
+    lines += _table("sensor", {"width": int(width), "height": int(height), "name": name}) + [""]
+    lines += _table("params", params.to_dict(), digits=None) + [""]
+    lines += _table("provenance", provenance) + [""]
+    if fit is not None:
+        tables = fit.to_toml_tables()
+        lines += _table("fit", {"method": tables["method"], "log_likelihood": tables["log_likelihood"]}) + [""]
+        lines += _table("fit.status", tables["status"]) + [""]
+        lines += _table("fit.values", tables["values"]) + [""]
+        lines += _table("fit.std_error", tables["std_error"]) + [""]
+        lines += _table("fit.tests", tables["tests"]) + [""]
+        for g in tables["goodness"]:
+            lines += ["[[fit.goodness]]"] + [f"{k} = {toml_value(v)}" for k, v in g.items()] + [""]
+    for g in validation or []:
+        lines += ["[[validation]]"] + [f"{k} = {toml_value(v)}" for k, v in g.items()] + [""]
+    return "\n".join(lines).rstrip() + "\n"
