@@ -1,0 +1,169 @@
+"""Calibration from a quiet recording (issue 21): the count model, recovery of known terms, real windows."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.stats import poisson
+
+import evnoise as ev
+from evnoise.calibration import quiet as q
+from evnoise.errors import InputError, ParameterError
+
+REALDATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "realdata"
+needs_realdata = pytest.mark.skipif(not (REALDATA / "quiet_segments.json").is_file(),
+                                    reason=f"real recordings not found at {REALDATA}")
+K = 4.0
+
+
+# --------------------------------------------------------------------------------------
+# the renewal count distribution
+# --------------------------------------------------------------------------------------
+def test_count_distribution_limits():
+    k = np.arange(12)
+    # r = 0: Poisson
+    np.testing.assert_allclose(q.count_survival(k, 0.7, 3.0, 0.0), poisson.sf(k - 1, 2.1), rtol=1e-12, atol=1e-15)
+    # r = 1: periodic with a uniform phase: floor(T l) or floor(T l) + 1 events
+    pmf = q.count_pmf(6, 0.7, 3.0, 1.0)
+    np.testing.assert_allclose(pmf, [0, 0, 0.9, 0.1, 0, 0, 0], atol=1e-12)
+    # every r: a probability distribution with mean exactly T l (a stationary process)
+    for r in (0.0, 0.3, 0.8, 1.0):
+        pmf = q.count_pmf(80, np.array([0.05, 0.7, 4.0]), 3.0, r)
+        np.testing.assert_allclose(pmf.sum(axis=1), 1.0, atol=1e-9)
+        np.testing.assert_allclose(pmf @ np.arange(81), [0.15, 2.1, 12.0], rtol=1e-8)
+
+
+def test_count_distribution_against_monte_carlo():
+    # continuous renewal process with gaps r mu + Exp((1 - r) mu), started long before the window
+    rng = np.random.default_rng(1)
+    rate, T, r, n = 0.8, 2.5, 0.6, 200_000
+    mu = 1.0 / rate
+    t = -rng.uniform(0, 50 * mu, n)  # random start far before the window: the phase is stationary
+    counts = np.zeros(n, dtype=np.int64)
+    while True:
+        active = t < T
+        if not active.any():
+            break
+        gap = r * mu + rng.exponential((1 - r) * mu, active.sum())
+        t[active] += gap
+        counts[active] += (t[active] >= 0) & (t[active] < T)
+    pmf = q.count_pmf(10, rate, T, r)
+    hist = np.bincount(counts, minlength=11)[:11] / n
+    se = np.sqrt(pmf * (1 - pmf) / n)
+    assert np.all(np.abs(hist - pmf) < K * se + 1e-6)
+
+
+def test_simulator_timer_matches_the_count_model():
+    # evnoise's discrete timer (many trials per interval) has the continuous model's count distribution
+    params = ev.NoiseParams(eps_pos=5, eps_neg=5, bias_pr=2, trial_rate_hz=2000, photons_per_lux=1,
+                            leak_on_hz=0.6, leak_regularity=0.7)
+    counts = ev.sample_counts(np.zeros((200, 200)), params, 2.5, rng=4)[0].ravel()
+    pmf = q.count_pmf(8, 0.6 * (1 - 0.6 / 4000), 2.5, 0.7)  # rate N (1 - exp(-l / N)) to first order
+    hist = np.bincount(counts, minlength=9)[:9] / counts.size
+    se = np.sqrt(pmf * (1 - pmf) / counts.size)
+    assert np.all(np.abs(hist - pmf) < K * se + 2e-4)
+
+
+# --------------------------------------------------------------------------------------
+# recovery of known terms
+# --------------------------------------------------------------------------------------
+def _window(params, shape, duration_s, seed):
+    counts = ev.sample_counts(np.zeros(shape), params, duration_s, rng=seed)
+    return q.QuietWindow(counts, duration_s, source=f"simulated seed {seed}")
+
+
+TRUTH = ev.NoiseParams(eps_pos=5, eps_neg=5, bias_pr=2, trial_rate_hz=1000, photons_per_lux=1, leak_on_hz=0.2,
+                       leak_off_hz=0.05, leak_sigma=0.6, leak_regularity=0.9, hot_pixel_fraction=0.003,
+                       hot_pixel_rate_hz=6.0, hot_pixel_sigma=0.3, hot_pixel_on_fraction=0.7)
+
+
+@pytest.mark.slow
+def test_fit_recovers_known_background_within_its_uncertainty():
+    fit = q.fit_quiet([_window(TRUTH, (96, 96), 8.0, 1)])
+    # the rates of an ordinary pixel at s = 1 (photon noise is off: huge thresholds)
+    truth = {"rate_on_hz": 0.2, "rate_off_hz": 0.05, "sigma": 0.6, "regularity": 0.9, "hot_fraction": 0.003,
+             "hot_on_fraction": (6.0 * 0.7 + 0.2) / 6.25}
+    for name, value in truth.items():
+        assert fit.status[name] == "fitted", (name, fit.status[name])
+        se = fit.std_error[name]
+        assert se is not None and se > 0
+        assert abs(fit.values[name] - value) < K * se, (name, fit.values[name], value, se)
+    assert all(g["p_value"] > 1e-3 for g in fit.goodness)
+
+
+def test_fit_reports_absent_terms_as_not_identified():
+    plain = ev.NoiseParams(eps_pos=5, eps_neg=5, bias_pr=2, trial_rate_hz=1000, photons_per_lux=1, leak_on_hz=0.3,
+                           leak_off_hz=0.1)
+    fit = q.fit_quiet([_window(plain, (64, 64), 5.0, 3)], hot="off")
+    assert fit.status["sigma"].startswith("not identified")
+    assert fit.status["regularity"].startswith("not identified")
+    assert fit.status["hot_fraction"] == "fixed"
+    for name, value in (("rate_on_hz", 0.3), ("rate_off_hz", 0.1)):
+        assert abs(fit.values[name] - value) < K * fit.std_error[name]
+    # the preset reproduces the rates at 0 lux (floors solved through the exact rate)
+    params = fit.to_params(plain.replace(leak_on_hz=0.0, leak_off_hz=0.0))
+    np.testing.assert_allclose(ev.expected_rate(np.zeros(1), params)[:, 0],
+                               [fit.values["rate_on_hz"], fit.values["rate_off_hz"]], rtol=1e-9)
+
+
+def test_bad_input():
+    with pytest.raises(InputError):
+        q.fit_quiet([])
+    with pytest.raises(InputError, match="shape"):
+        q.QuietWindow(np.zeros((3, 4, 4)), 1.0)
+    with pytest.raises(ParameterError):
+        q.QuietWindow(np.zeros((2, 4, 4)), 0.0)
+    with pytest.raises(ParameterError, match="spread"):
+        q.fit_quiet([q.QuietWindow(np.zeros((2, 4, 4)), 1.0)], spread="maybe")
+
+
+# --------------------------------------------------------------------------------------
+# real recordings
+# --------------------------------------------------------------------------------------
+def _quiet_windows():
+    segments = json.loads((REALDATA / "quiet_segments.json").read_text(encoding="utf-8"))["segments"]
+    return [(rel, seg) for rel, segs in segments.items() for seg in segs]
+
+
+@needs_realdata
+@pytest.mark.slow
+@pytest.mark.parametrize("index", range(9))
+def test_every_dvs128_quiet_window_is_described_by_its_own_fit(index):
+    rel, seg = _quiet_windows()[index]
+    window = q.quiet_window(REALDATA / rel, seg["t_from_us"] * 1e-6, seg["t_to_us"] * 1e-6)
+    assert int(window.counts.sum()) == seg["n"]
+    fit = q.fit_quiet([window])
+    for g in fit.goodness:
+        assert g["p_value"] > 1e-3, g
+    # the fitted model, simulated, is consistent with the recording (two-sample test, 10 simulated sensors)
+    params = fit.to_params(ev.NoiseParams(eps_pos=5, eps_neg=5, bias_pr=2, trial_rate_hz=1000, photons_per_lux=1))
+    for row in q.compare_to_recording(params, window, replicas=10, seed=index):
+        assert row["p_value"] > 1e-4, row
+
+
+@needs_realdata
+def test_cleanest_dvs128_window_needs_a_regular_leak():
+    rel, seg = _quiet_windows()[0]
+    assert rel.endswith("cam255_neal_standing_up2.aedat") and seg["from_s"] == 0.0
+    window = q.quiet_window(REALDATA / rel, seg["t_from_us"] * 1e-6, seg["t_to_us"] * 1e-6)
+    regular = q.fit_quiet([window], hot="off")
+    poisson_only = q.fit_quiet([window], hot="off", regularity="off")
+    assert regular.values["regularity"] > 0.9
+    assert regular.tests["regularity"]["p_value"] < 1e-10
+    on_regular = [g for g in regular.goodness if g["polarity"] == "ON"][0]
+    on_poisson = [g for g in poisson_only.goodness if g["polarity"] == "ON"][0]
+    assert on_regular["p_value"] > 1e-3 > on_poisson["p_value"]
+
+
+def test_dvs128_preset_records_its_validation():
+    doc = ev.params.load_preset_document("dvs128")
+    assert doc["sensor"] == {"width": 128, "height": 128, "name": "iniVation DVS128"}
+    assert len(doc["validation"]) == 18  # 9 quiet windows x 2 polarities
+    assert len(doc["provenance"]["per_window_fits"]) == 9
+    p = ev.load_preset("dvs128")
+    assert p.leak_regularity > 0.9 and p.leak_on_hz > 100 * p.leak_off_hz
+    assert math.isclose(float(ev.expected_rate(np.zeros(1), p)[0, 0]), doc["fit"]["values"]["rate_on_hz"], rel_tol=1e-6)
