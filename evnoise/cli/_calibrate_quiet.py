@@ -1,0 +1,117 @@
+"""``evnoise calibrate REC --t-start A --t-end B --out cam.toml``: calibrate from a quiet recording.
+
+The recording's window ``[A, B)`` (seconds on the file's clock; several files or ``--window A:B``
+entries combine) holds a still scene, so its per-pixel counts are pure noise. Fitted with
+:mod:`evnoise.calibration.quiet`: the ON/OFF background rates, their regularity, their spread and
+the hot pixels, each only where the data carry it. Without ``--lux`` the illuminance is unknown and
+the rates are the totals at the recording's light (the preset reproduces them at 0 lux).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+from ..errors import InputError, ParameterError
+
+log = logging.getLogger(__name__)
+
+
+def add_arguments(p) -> None:
+    g = p.add_argument_group("quiet recording (calibrate from a camera file of a still scene)")
+    g.add_argument("--t-start", type=float, metavar="S",
+                   help="start of the still window in seconds on the file's clock (switches to this mode)")
+    g.add_argument("--t-end", type=float, metavar="S", help="end of the still window in seconds")
+    g.add_argument("--window", action="append", default=[], metavar="A:B[@LUX]",
+                   help="another still window of the same file(s), seconds (repeatable; optional lux)")
+    g.add_argument("--lux", type=float, metavar="LUX",
+                   help="illuminance of the windows, if known (the base preset's shot noise is then part of the model)")
+    g.add_argument("--base", default="davis346", metavar="PRESET",
+                   help="preset for the photon-noise part of the written preset (default: %(default)s)")
+    g.add_argument("--sensor", metavar="WxH", help="sensor size, for files whose header has none")
+    g.add_argument("--csv-columns", metavar="COLS", help="column order of a CSV recording, e.g. x,y,p,t")
+    g.add_argument("--spread", choices=("auto", "on", "off"), default="auto",
+                   help="per-pixel spread of the rates (default: kept if a likelihood-ratio test says so)")
+    g.add_argument("--hot", choices=("auto", "on", "off"), default="auto", help="hot pixels (default: auto)")
+    g.add_argument("--regularity", choices=("auto", "on", "off"), default="auto",
+                   help="regular (near-periodic) arrivals (default: auto)")
+
+
+def wanted(args) -> bool:
+    return args.t_start is not None or args.t_end is not None or bool(args.window)
+
+
+def _windows(args):
+    spans = []
+    if args.t_start is not None or args.t_end is not None:
+        if args.t_start is None or args.t_end is None:
+            raise ParameterError("--t-start and --t-end go together")
+        spans.append((args.t_start, args.t_end, args.lux))
+    for text in args.window:
+        span, _, lux = text.partition("@")
+        a, sep, b = span.partition(":")
+        try:
+            spans.append((float(a), float(b), float(lux) if lux else args.lux))
+        except ValueError:
+            raise ParameterError(f"--window expects A:B or A:B@LUX in seconds, got {text!r}") from None
+        if not sep:
+            raise ParameterError(f"--window expects A:B or A:B@LUX in seconds, got {text!r}")
+    for a, b, lux in spans:
+        if not (math.isfinite(a) and math.isfinite(b) and b > a):
+            raise ParameterError(f"a window must have its end after its start, got {a:g}..{b:g} s")
+        if lux is not None and not (math.isfinite(lux) and lux >= 0):
+            raise ParameterError(f"--lux must be finite and >= 0, got {lux!r}")
+    return spans
+
+
+def run(args, recordings) -> int:
+    from pathlib import Path
+
+    from evnoise.calibration.preset import write_text_atomic
+    from evnoise.calibration.quiet import fit_quiet, preset_toml, quiet_window
+
+    from ..io import open_output_path
+    from ..params import load_preset
+    from ._paths import refuse_writing_inputs
+
+    if not recordings:
+        raise InputError("give the recording(s) to calibrate from (camera files or events.h5)")
+    spans = _windows(args)
+    refuse_writing_inputs([("--out", args.out), ("--plot", args.plot)],
+                          [(f"the recording {r}", r) for r in recordings])
+    out = open_output_path(args.out, overwrite=args.overwrite, what="preset")
+    if args.plot:
+        open_output_path(args.plot, overwrite=args.overwrite, what="plot")
+    base = load_preset(args.base)
+    windows = []
+    for rec in recordings:
+        for a, b, lux in spans:
+            w = quiet_window(rec, a, b, lux=lux, sensor=args.sensor, csv_columns=args.csv_columns)
+            windows.append(w)
+            log.info("%s: %d events in %d pixels over %.3g s", w.describe(), int(w.counts.sum()),
+                     int(w.counts[0].size), w.duration_s)
+    fit = fit_quiet(windows, base=base, spread=args.spread, hot=args.hot, regularity=args.regularity)
+    print(fit.summary())
+    params = fit.to_params(base)
+    height, width = windows[0].shape
+    provenance = {
+        "summary": f"background fitted to {len(windows)} quiet window(s) of {', '.join(Path(r).name for r in recordings)}",
+        "source": [w.describe() for w in windows],
+        "method": "evnoise.calibration.quiet (evnoise calibrate REC --t-start --t-end)",
+        "base": f"photon-noise parameters from preset {args.base} (not identified by quiet data)",
+        "lux": ("the windows' illuminance is unknown: the fitted rates are the totals at the recording's light; "
+                "simulate at lux 0 to reproduce them") if all(w.lux is None for w in windows) else
+               "windows at " + ", ".join(f"{w.lux:g}" for w in windows) + " lux",
+    }
+    text = preset_toml(params, sensor=(width, height, "calibrated camera"), header="Calibrated from a quiet "
+                       "recording by evnoise calibrate; see [provenance] and [fit].", provenance=provenance, fit=fit)
+    write_text_atomic(out, text, overwrite=True)
+    print(f"wrote {out}")
+    worst = min(g["p_value"] for g in fit.goodness)
+    if worst < 1e-3:
+        log.warning("the fitted model does not describe every window (lowest goodness-of-fit p = %.2g): the scene "
+                    "may not be still, or its noise not stationary", worst)
+    if args.plot:
+        fit.plot(args.plot, params=params)
+        print(f"wrote {args.plot}")
+    return 0
