@@ -37,8 +37,11 @@ class _MeanProxy:
 
     def __init__(self, problem: _Problem):
         self.pr = problem
-        # the spread and hot-pixel terms barely change the mean: held at their values in the stand-in
-        self.names = [n for n in problem.free if n not in ("refractory_s", "trial_rate_hz") + SPREAD]
+        # the spread and hot-pixel terms barely change the mean: held at their values in the stand-in;
+        # the floors are profiled out with trial_rate_hz (the mean is linear in them), so the seeds
+        # search the same shape parameters as without them
+        self.names = [n for n in problem.free if n not in ("refractory_s", "trial_rate_hz") + SPREAD + FLOORS]
+        self.floors = [k for k, n in enumerate(FLOORS) if n in problem.free]
         nodes, weights = np.polynomial.hermite.hermgauss(self.N_NODES)
         self.nodes, self.weights = math.sqrt(2.0) * nodes, weights / math.sqrt(math.pi)
         self.profile_n = "trial_rate_hz" in problem.free
@@ -51,10 +54,7 @@ class _MeanProxy:
         box["photons_per_lux"] = (0.3 / lux_max, min(0.5 * problem.bounds["photons_per_lux"][1],
                                                      self.SEED_LAM_MAX / lux_max))
         box["dark_lux"] = (min(1e-3 * lux_min, 1e-4 * lux_max), lux_max)
-        # floors: from a negligible 1e-4 of the highest rate up to the highest rate (log-uniform)
         rate_max = float(max(problem.meas.rate_hz.max(), 1e-9))
-        for n in FLOORS:
-            box[n] = (1e-4 * rate_max, rate_max)
         for n in GROWTH:
             box[n] = (1e-4 * rate_max / lux_max, rate_max / lux_max)
         self.lo = np.array([math.log(max(box[n][0], problem.bounds[n][0])) for n in self.names])
@@ -119,6 +119,8 @@ class _MeanProxy:
             n = np.where(np.isfinite(n), n, hi)
         else:
             n = vals["trial_rate_hz"]
+        if self.floors:
+            n, bg = self._profile_floors(base, bg, n, y)
         mu = base * n[:, None, None] + bg
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             dev = 2.0 * (np.where(y > 0, y * np.log(np.where(y > 0, y, 1.0) / mu), 0.0) - (y - mu))
@@ -126,14 +128,50 @@ class _MeanProxy:
         self.last_n = n
         return np.where(np.isfinite(out), out, np.inf)
 
+    FLOOR_ITERATIONS = 40
+
+    def _profile_floors(self, base, bg, n, y):
+        """Maximise the stand-in's Poisson likelihood over the free floors (and N if profiled).
+
+        The mean is ``N base + bg + f_k E`` (``E`` the exposure), linear in ``N`` and the floors
+        ``f_k``: EM (multiplicative) updates, which keep them >= 0 and raise the likelihood each step.
+        """
+        pr = self.pr
+        e = np.broadcast_to(pr.exposure[None, :], y.shape[1:])  # (2, J)
+        f = np.zeros((base.shape[0], 2))
+        lo_f = np.array([pr.bounds[m][0] for m in FLOORS])
+        hi_f = np.array([pr.bounds[m][1] for m in FLOORS])
+        mean_rate = np.sum(y[0], axis=1) / np.sum(e, axis=1)
+        for k in self.floors:
+            f[:, k] = 0.1 * mean_rate[k]
+        n = np.array(n, dtype=np.float64)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            for _ in range(self.FLOOR_ITERATIONS):
+                mu = base * n[:, None, None] + bg + f[:, :, None] * e[None]
+                ratio = np.where(mu > 0, y / np.where(mu > 0, mu, 1.0), 0.0)
+                if self.profile_n:
+                    n = n * np.sum(ratio * base, axis=(1, 2)) / np.sum(base, axis=(1, 2))
+                    n = np.where(np.isfinite(n), n, pr.bounds["trial_rate_hz"][1])
+                for k in self.floors:
+                    f[:, k] = f[:, k] * np.sum(ratio[:, k] * e[k], axis=1) / np.sum(e[k])
+            if self.profile_n:
+                n = np.clip(n, *pr.bounds["trial_rate_hz"])
+        f = np.where(np.isfinite(f), f, 0.0)
+        for k in self.floors:
+            f[:, k] = np.clip(f[:, k], lo_f[k], hi_f[k])
+        self.last_floors = f
+        return n, bg + f[:, :, None] * e[None]
+
     def full_theta(self, x) -> np.ndarray:
-        """The problem's log-parameter vector for proxy coordinates ``x`` (profiled N filled in)."""
+        """The problem's log-parameter vector for proxy coordinates ``x`` (profiled N and floors filled in)."""
         self.deviance(x[None, :])
         vals = dict(self.pr.values)
         for i, n in enumerate(self.names):
             vals[n] = float(math.exp(x[i]))
         if self.profile_n:
             vals["trial_rate_hz"] = float(self.last_n[0])
+        for k in self.floors:
+            vals[FLOORS[k]] = float(self.last_floors[0, k])
         t = np.array([math.log(vals[n]) for n in self.pr.free])
         return np.clip(t, self.pr.lo, self.pr.hi)
 

@@ -32,6 +32,16 @@ Fit
     log-parameter space; each step is checked against half of it, because without mismatch the
     likelihood is step-like.
 
+Background (issue 15)
+    The background floors ``leak_on_hz`` and ``leak_off_hz`` are fitted by default (:data:`FLOORS`):
+    a level in the dark, or one bright enough that the photon noise vanishes, determines them; a
+    floor the data cannot separate from the photon noise is reported as not identified (with a
+    warning), and one the data do not need ends on its lower bound, which stands for 0 and is
+    reported as 0. Their growth with lux (:data:`GROWTH`) is fitted only when listed in ``free``;
+    the per-pixel spread ``leak_sigma`` and the hot-pixel terms (:data:`SPREAD`) only from flat
+    fields and when listed (the likelihood mixes over them). ``pr_tau_s_at_1lux`` acts only on
+    changing scenes: static data do not identify it, it is never fitted (:data:`NEVER`).
+
 Rate tables: profile of ``photons_per_lux``
     Along the ridge (``photons_per_lux`` up, thresholds down like its inverse square root,
     ``bias_pr`` up in proportion) the rate curve approaches the many-photon limit, where it no
@@ -89,6 +99,12 @@ from ._spec import BOUNDS  # noqa: F401
 from ._spec import CORE  # noqa: F401
 from ._spec import DISTRIBUTIONS
 from ._spec import FIT_NAMES
+from ._spec import FLOORS  # noqa: F401
+from ._spec import GROWTH  # noqa: F401
+from ._spec import NEVER  # noqa: F401
+from ._spec import SPREAD  # noqa: F401
+from ._spec import UNMODELLED  # noqa: F401
+from ._spec import ZERO_AT_BOUND  # noqa: F401
 from ._spec import LAM_MAX  # noqa: F401
 from ._spec import LAM_MAX_MISMATCH  # noqa: F401
 from ._spec import N_CONVERGED  # noqa: F401
@@ -135,13 +151,16 @@ def calibrate(measurements: Measurements, *, method: str = "poisson", distributi
         Flat fields: count distribution of one pixel given its thresholds (binomial in
         ``trial_rate_hz * duration_s`` trials, as the model; or Poisson, as the paper).
     free : sequence of str, optional
-        Parameters to fit (default: the six core parameters, plus ``eps_sigma`` when the
-        measurements carry dispersion). ``refractory_s`` is only fitted when listed.
+        Parameters to fit (default: the six core parameters and the background floors
+        ``leak_on_hz``, ``leak_off_hz``, plus ``eps_sigma`` when the measurements carry
+        dispersion). ``refractory_s`` and the background's growth with lux are only fitted when
+        listed; ``leak_sigma`` and the hot-pixel terms only from flat fields and when listed;
+        ``pr_tau_s_at_1lux`` never (static data do not identify it).
     fixed : dict, optional
         Values of parameters held fixed (removed from ``free``).
     initial : NoiseParams, optional
         Starting point and values of parameters neither free nor fixed (default: zeros for
-        ``refractory_s`` and ``eps_sigma``).
+        ``refractory_s``, ``eps_sigma`` and the background terms).
     n_starts : int
         Strata of starting points along ``bias_pr`` (two starts each are screened, the best
         :data:`N_CONVERGED` fitted to convergence): the rate curve is not monotonic and the

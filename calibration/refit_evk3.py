@@ -11,9 +11,14 @@ over 1 s for every grey level. Their raw rate measurements are not published, so
 1. the lux of grey level ``g`` is their linear fit of ``lux_far`` against ``g^2.2``; its
    intercept (-0.075 lux) is dropped so that black is 0 lux (it shifts only ``dark_lux``);
 2. their fitted rate curve is regenerated from their parameters and formula at every
-   ``GREY_STEP``-th grey level: the ON curve, and the OFF curve *without* their constant
-   0.1398 events/s (not part of evnoise's model; recorded in the preset's provenance);
-3. evnoise's exact model is fitted to both curves. The curve has the shape of the model's
+   ``GREY_STEP``-th grey level: the ON curve, and the OFF curve *with* their constant extra
+   0.1398 events/s, which evnoise models as a background floor (``leak_off_hz``);
+3. evnoise's exact model is fitted to both curves, the floors ``leak_on_hz`` and ``leak_off_hz``
+   free (the calibration default). ``leak_off_hz`` is fitted rather than fixed at 0.1398: in
+   evnoise the background shares the pixel's trials with the photon noise (a trial fires at most
+   once), so the floor that reproduces the authors' strictly additive constant is not exactly
+   their number (it differs by the factor ``(1 - p_on - p_off)`` and ``1 - exp(-l/N)`` vs ``l/N``);
+   the curve determines it (in the dark and at the bright end the photon noise is negligible). The curve has the shape of the model's
    many-photon (Gaussian) limit, so ``photons_per_lux`` is not identified: the fit keeps
    improving as it grows (thresholds shrinking like ``1/sqrt(photons_per_lux)``), and the
    best value of the grid :data:`PHOTON_GRID` is used (both profiles are recorded in the preset);
@@ -54,6 +59,10 @@ GREY_STEP = 8
 AUTHORS = dict(photons_per_lux=1.0050, trial_rate_hz=21.9882, eps_pos=0.9040, eps_neg=1.0235, bias_pr=1.7023,
                lux_offset=0.1930, extra_off_hz=0.1398)
 GAMMA = 2.2
+#: The preset's [sensor] table and one-line summary (shown by ``evnoise presets``).
+SENSOR = {"width": 1280, "height": 720, "name": "Prophesee EVK3-HD (Sony IMX636)"}
+SUMMARY = ("Prophesee EVK3-HD (IMX636), default biases, refitted to the Noise2Image authors' calibration "
+           "(OFF background floor included)")
 
 
 def authors_rate(lux_authors, *, include_extra_off: bool = True) -> np.ndarray:
@@ -99,7 +108,7 @@ def build_measurements(folder: Path, step: int = GREY_STEP):
 
     grey, lux, lux_authors, r_on, r_off, lux_fit = load_reference(folder)
     idx = np.unique(np.concatenate([np.arange(0, 256, step), [255]]))
-    rate = authors_rate(lux_authors[idx], include_extra_off=False)
+    rate = authors_rate(lux_authors[idx], include_extra_off=True)
     meas = rate_table(lux[idx], rate[0], rate[1], duration_s=1.0, r_on=r_on[idx], r_off=r_off[idx],
                       source=f"Noise2Image authors' fitted rate curve (regenerated) and measured r tables, {folder}",
                       grey=grey[idx])
@@ -188,18 +197,21 @@ def _header(exact) -> str:
         "Refitted with evnoise's exact model by\n"
         "    python -m evnoise.calibration.refit_evk3\n"
         "to the Noise2Image authors' fitted rate curve (regenerated from their published parameters and\n"
-        "their code's formula); their measured negative-binomial shapes r(grey) are NOT explained by\n"
+        "their code's formula, with their constant extra OFF rate, which evnoise fits as the background\n"
+        "floor leak_off_hz); their measured negative-binomial shapes r(grey) are NOT explained by\n"
         "threshold mismatch (see provenance.eps_sigma_choice), so eps_sigma = 0.\n"
         "Lux: their monitor mapping lux = 9.02e-5 * grey^2.2 without its intercept (black = 0 lux).\n"
         "photons_per_lux is NOT determined by the data (see provenance.photons_per_lux_choice): any larger\n"
-        "value, with eps scaled by 1/sqrt of it, gives the same rates. Not modelled: the authors' constant\n"
-        "extra OFF rate of 0.1398 events/s. See [fit] for the fit quality and identifiability."
+        f"value, with eps scaled by 1/sqrt of it, gives the same rates. The authors' constant extra OFF rate\n"
+        f"(0.1398 events/s) is the OFF floor leak_off_hz = {exact.params.leak_off_hz:.4g} (fitted; ON floor "
+        f"{exact.params.leak_on_hz:.3g}).\n"
+        "See [fit] for the fit quality and identifiability."
     )
 
 
 def write_outputs(meas, info, exact, gauss, profiles, preset_path: Path, plot_path: Path | None, *,
                   overwrite=True):
-    from .preset import result_to_toml, write_text_atomic
+    from .preset import result_to_toml, toml_value, write_text_atomic
 
     slope, intercept = info["lux_fit"]
     a = AUTHORS
@@ -209,17 +221,22 @@ def write_outputs(meas, info, exact, gauss, profiles, preset_path: Path, plot_pa
         "source": "Noise2Image reference tables (noise2image-reference: lux_measurement.npz, synthetic_param.npz) "
                   "and the authors' published fitted parameters",
         "procedure": "authors' rate curve regenerated from their parameters and code formula at every "
-                     f"{GREY_STEP}th grey level (ON; OFF without the constant), fitted by evnoise.calibration "
-                     "(exact closed form, no threshold mismatch, relative residuals with quasi-likelihood "
-                     "scaling) with photons_per_lux profiled on a grid; the measured r tables (1 s windows) "
-                     "compared with the NB shapes that a threshold mismatch predicts",
+                     f"{GREY_STEP}th grey level (ON; OFF with their constant), fitted by evnoise.calibration "
+                     "(exact closed form, no threshold mismatch, background floors free, relative residuals with "
+                     "quasi-likelihood scaling) with photons_per_lux profiled on a grid; the measured r tables "
+                     "(1 s windows) compared with the NB shapes that a threshold mismatch predicts",
         "command": "python -m evnoise.calibration.refit_evk3",
         "lux_axis": f"lux = {slope:.6g} * grey^2.2 (authors' fit of lux_far; their intercept {intercept:.4g} lux "
                     f"dropped, so the authors' lux = this - {-intercept:.4g})",
         "authors_formula": "p = 1 - erf((e^eps - 1)(lam + b) / sqrt(2 lam (1 + e^eps))), lam = a (lux + offset)",
         "authors_parameters": {k: float(v) for k, v in a.items()},
-        "not_modelled": f"constant extra OFF rate {a['extra_off_hz']} events/s per pixel (authors' fit); "
-                        "evnoise's NoiseParams has no additive rate floor",
+        "background_floor": (
+            f"the authors' constant extra OFF rate {a['extra_off_hz']} events/s per pixel is modelled as evnoise's "
+            f"OFF background floor leak_off_hz, fitted (not fixed) to {exact.params.leak_off_hz:.5g} +- "
+            f"{exact.std_error['leak_off_hz']:.2g} events/s: evnoise's background shares the pixel's trials with the "
+            f"photon noise (at most one event per trial), so the equivalent of a strictly additive constant differs "
+            f"slightly from it; the ON floor leak_on_hz is free too ({exact.status['leak_on_hz']}, "
+            f"{exact.params.leak_on_hz:.3g}). No growth with lux, spread or hot pixels: the authors' fit has none"),
         "gaussian_form_refit": {n: float(getattr(gauss.params, n)) for n in
                                 ("eps_pos", "eps_neg", "bias_pr", "trial_rate_hz", "photons_per_lux", "dark_lux",
                                  "eps_sigma")},
@@ -239,16 +256,20 @@ def write_outputs(meas, info, exact, gauss, profiles, preset_path: Path, plot_pa
             f"well-posed fit of the mean curve"),
         "eps_sigma_profile": [{"eps_sigma": sg, "r_rms_log_ratio": m} for sg, m in profiles["eps_sigma"]],
     }
+    prov = {"summary": SUMMARY, **prov}
     text = result_to_toml(exact, extra_provenance=prov, header=_header(exact))
+    # the sensor table (read by evnoise.params.preset_info) right after the header comment
+    sensor = "[sensor]\n" + "".join(f"{k} = {toml_value(v)}\n" for k, v in SENSOR.items()) + "\n"
+    text = text.replace("[params]\n", sensor + "[params]\n", 1)
     write_text_atomic(preset_path, text, overwrite=overwrite)
     if plot_path is not None:
         lux_all, lux_authors = info["lux"], info["lux_authors"]
-        total = authors_rate(lux_authors, include_extra_off=True)
+        photon_part = authors_rate(lux_authors, include_extra_off=False)
         curves = [
             dict(label="Gaussian-form refit (eq. 3)", lux=lux_all[1:], rate=gauss.population_rate(lux_all[1:]),
                  style="-."),
-            dict(label="authors' curve incl. constant OFF", lux=lux_all[1:],
-                 rate=np.stack([total[0][1:] * np.nan, total[1][1:]]), style=":"),
+            dict(label="authors' curve without the constant OFF rate", lux=lux_all[1:],
+                 rate=np.stack([photon_part[0][1:] * np.nan, photon_part[1][1:]]), style=":"),
         ]
         from evnoise.mismatch import nb_shape
 

@@ -324,7 +324,7 @@ def test_bad_inputs_more(tmp_path):
         cal.flat_field([0.0, 1.0, 2.0], [np.zeros((2, 4, 4), int)] * 3, 1.0)
     # too few levels for the number of free parameters
     meas = cal.rate_table([0.0, 1.0, 2.0], [0.2, 0.5, 0.3], [0.1, 0.3, 0.2])
-    with pytest.raises(ev.InputError, match="too few to fit 6 parameters"):
+    with pytest.raises(ev.InputError, match="too few to fit 8 parameters"):  # the core six and the two floors
         cal.calibrate(meas)
     with pytest.raises(ev.InputError, match="eps_sigma cannot be fitted from mean rates alone"):
         cal.calibrate(meas, free=["eps_pos", "eps_sigma"])
@@ -368,6 +368,12 @@ def test_preset_round_trip(tmp_path):
     assert doc["fit"]["std_error"]["eps_pos"] == pytest.approx(result.std_error["eps_pos"], rel=1e-6)
 
 
+def refit_evk3_authors():
+    from evnoise.calibration import refit_evk3
+
+    return refit_evk3.AUTHORS
+
+
 def test_shipped_evk3_preset_is_the_refit():
     from evnoise.params import load_preset_document
 
@@ -375,9 +381,14 @@ def test_shipped_evk3_preset_is_the_refit():
     doc = load_preset_document("evk3-hd")
     prov = doc["provenance"]
     assert prov["status"] == "refitted"
-    assert "refit_evk3" in prov["command"] and "0.1398" in prov["not_modelled"]
+    assert "refit_evk3" in prov["command"] and "0.1398" in prov["background_floor"]
     assert "quality" in doc["fit"] and "identifiability" in doc["fit"]
     assert params.eps_sigma >= 0 and params.refractory_s == 0
+    # the authors' constant extra OFF rate is the fitted OFF floor (within its error and 2 % of their number)
+    assert doc["fit"]["status"]["leak_off_hz"] == "fitted"
+    assert abs(params.leak_off_hz / refit_evk3_authors()["extra_off_hz"] - 1) < 0.02
+    assert doc["sensor"] == {"width": 1280, "height": 720, "name": "Prophesee EVK3-HD (Sony IMX636)"}
+    assert prov["summary"]
 
 
 @needs_reference
@@ -388,10 +399,11 @@ def test_evk3_preset_reproduces_the_authors_curve():
 
     grey, lux, lux_authors, *_ = refit_evk3.load_reference(REFERENCE)
     # the regenerated curve is the authors' (README: ON peak ~0.83/s near 1-2 lux, < 0.1/s above 10 lux)
-    target = refit_evk3.authors_rate(lux_authors, include_extra_off=False)
+    target = refit_evk3.authors_rate(lux_authors, include_extra_off=True)
     i = int(np.argmax(target[0]))
     assert 0.75 < target[0, i] < 0.95 and 0.5 < lux[i] < 3.0
     assert np.all(target[0][lux > 10] < 0.1)
+    assert np.all(np.abs(target[1][lux > 15] - 0.1398) < 0.01)  # the OFF floor
     model = cal.population_rate(lux, ev.load_preset("evk3-hd"))
     rel = model / target - 1
     quality = load_preset_document("evk3-hd")["fit"]["quality"]
@@ -400,11 +412,6 @@ def test_evk3_preset_reproduces_the_authors_curve():
 
 @pytest.mark.slow
 @needs_reference
-@pytest.mark.xfail(strict=True, reason=(
-    "known, kept on purpose: since the fit's photons-per-trial cap was lifted (issue 17 item 2), "
-    "refit_evk3 finds a better optimum (0.99 % rms vs 2.5 %; trial_rate_hz 42.47 vs 39.98) than the "
-    "shipped evk3-hd preset, which the shipped reconstructor and the benchmark figures were made with; "
-    "the preset is refitted with its OFF floor in the sensor-noise issue (15) -- remove this mark then"))
 def test_evk3_refit_is_reproducible(tmp_path):
     from evnoise.calibration import refit_evk3
     from evnoise.params import load_preset_document
