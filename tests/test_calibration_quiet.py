@@ -167,3 +167,51 @@ def test_dvs128_preset_records_its_validation():
     p = ev.load_preset("dvs128")
     assert p.leak_regularity > 0.9 and p.leak_on_hz > 100 * p.leak_off_hz
     assert math.isclose(float(ev.expected_rate(np.zeros(1), p)[0, 0]), doc["fit"]["values"]["rate_on_hz"], rel_tol=1e-6)
+
+
+# --------------------------------------------------------------------------------------
+# the command line
+# --------------------------------------------------------------------------------------
+def _recording(tmp_path, params, shape=(40, 50), duration_s=6.0):
+    events = ev.simulate_events(np.zeros(shape), params, duration_s, rng=5, t_start_us=2_000_000)
+    path = tmp_path / "still.h5"
+    ev.write_events(path, events, shape)
+    return path
+
+
+def test_cli_calibrates_from_a_recording(tmp_path, capsys):
+    from evnoise.cli import main
+
+    truth = ev.NoiseParams(eps_pos=5, eps_neg=5, bias_pr=2, trial_rate_hz=1000, photons_per_lux=1, leak_on_hz=0.4,
+                           leak_off_hz=0.1)
+    rec = _recording(tmp_path, truth)
+    out = tmp_path / "cam.toml"
+    code = main(["calibrate", str(rec), "--t-start", "2", "--t-end", "8", "--out", str(out), "--hot", "off",
+                 "--base", "evk3-hd"])
+    assert code == 0
+    text = capsys.readouterr().out
+    assert "rate_on_hz" in text and "wrote" in text
+    params = ev.load_preset(out)
+    doc = ev.params.load_preset_document(out)
+    assert doc["sensor"]["width"] == 50 and doc["sensor"]["height"] == 40
+    assert doc["fit"]["status"]["rate_on_hz"] == "fitted"
+    se = doc["fit"]["std_error"]["rate_on_hz"]
+    assert abs(float(ev.expected_rate(np.zeros(1), params)[0, 0]) - 0.4) < K * se
+    # the same output again needs --overwrite; the recording is never written over
+    assert main(["calibrate", str(rec), "--t-start", "2", "--t-end", "8", "--out", str(out)]) != 0
+    assert main(["calibrate", str(rec), "--t-start", "2", "--t-end", "8", "--out", str(rec), "--overwrite"]) != 0
+    assert rec.stat().st_size > 0 and ev.read_events(rec)[0].size > 0
+
+
+def test_cli_quiet_errors(tmp_path, capsys):
+    from evnoise.cli import main
+
+    truth = ev.NoiseParams(eps_pos=5, eps_neg=5, bias_pr=2, trial_rate_hz=1000, photons_per_lux=1, leak_on_hz=0.4)
+    rec = _recording(tmp_path, truth, duration_s=1.0)
+    out = tmp_path / "cam.toml"
+    assert main(["calibrate", str(rec), "--t-start", "2", "--out", str(out)]) == 2
+    assert "--t-start and --t-end go together" in capsys.readouterr().err
+    assert main(["calibrate", str(rec), "--t-start", "5", "--t-end", "4", "--out", str(out)]) == 2
+    assert main(["calibrate", str(rec), "--window", "10:11", "--out", str(out)]) == 2  # no events there
+    assert "no events in the window" in capsys.readouterr().err
+    assert not out.exists()

@@ -20,7 +20,7 @@ EXAMPLE = "rates-example.csv"
 PARAMETERS = ("eps_pos", "eps_neg", "bias_pr", "trial_rate_hz", "photons_per_lux", "dark_lux", "refractory_s",
               "eps_sigma", "leak_on_hz", "leak_off_hz", "leak_on_hz_per_lux", "leak_off_hz_per_lux", "leak_sigma",
               "hot_pixel_fraction", "hot_pixel_rate_hz", "hot_pixel_sigma", "hot_pixel_on_fraction",
-              "pr_tau_s_at_1lux")
+              "leak_regularity", "pr_tau_s_at_1lux")
 
 
 def register(subparsers) -> None:
@@ -33,10 +33,12 @@ def register(subparsers) -> None:
         epilog="examples: evnoise calibrate --example --out cam.toml --plot cam.png ; "
         "evnoise calibrate rates.csv --out cam.toml --plot cam.png ; "
         "evnoise calibrate flats.toml --out cam.toml --fix refractory_s=0 ; "
-        "evnoise calibrate grey_rates.csv --monitor monitor.csv --out cam.toml",
+        "evnoise calibrate grey_rates.csv --monitor monitor.csv --out cam.toml ; "
+        "evnoise calibrate rec.aedat --t-start 0 --t-end 4.5 --out cam.toml --plot fit.png",
     )
-    p.add_argument("measurements", metavar="MEASUREMENTS", nargs="?",
-                   help="rate table (CSV) or flat-field listing (TOML, or CSV with a 'file' column)")
+    p.add_argument("measurements", metavar="MEASUREMENTS", nargs="*",
+                   help="rate table (CSV) or flat-field listing (TOML, or CSV with a 'file' column); with "
+                   "--t-start/--t-end or --window: recording(s) of a still scene (any camera file)")
     p.add_argument("--example", action="store_true",
                    help=f"use the bundled example rate table ({EXAMPLE}, simulated from the evk3-hd preset) "
                    "as MEASUREMENTS")
@@ -67,6 +69,9 @@ def register(subparsers) -> None:
                    help="parameters the data do not constrain: report them, or fix them and refit the rest "
                    "(default: %(default)s)")
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    from . import _calibrate_quiet
+
+    _calibrate_quiet.add_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -104,6 +109,16 @@ def _measurements_path(args):
 
 
 def run(args) -> int:
+    from . import _calibrate_quiet
+
+    if _calibrate_quiet.wanted(args):
+        if args.example:
+            raise ParameterError("--example is a rate table; it does not go with --t-start/--t-end/--window")
+        return _calibrate_quiet.run(args, list(args.measurements))
+    if len(args.measurements) > 1:
+        raise ParameterError(f"give one MEASUREMENTS file (got {len(args.measurements)}); several recordings need "
+                             "--t-start/--t-end (a quiet-scene calibration)")
+    args.measurements = args.measurements[0] if args.measurements else None
     from ..io import open_output_path
     from ..params import load_preset
 
