@@ -813,16 +813,9 @@ def sample_counts(
         on = np.concatenate([p[4] for p in parts])
         off = np.concatenate([p[5] for p in parts])
         return np.stack([on, off]).reshape(2, *lux.shape)
-    if params.regular_background:
-        from .rates import pixel_rates
+    from .rates import pixel_rates  # the one home of the rate formula (dead time, background)
 
-        mean = np.stack(pixel_rates(lam, params, (eps_on, eps_off), bg)).reshape(2, *lux.shape) * (duration_us * 1e-6)
-    else:
-        p_on, p_off = trial_probabilities(lam, params, (eps_on, eps_off), background=bg)
-        nu_on = params.trial_rate_hz * p_on
-        nu_off = params.trial_rate_hz * p_off
-        dead = 1.0 + (nu_on + nu_off) * params.refractory_us * 1e-6
-        mean = np.stack([nu_on / dead, nu_off / dead]).reshape(2, *lux.shape) * (duration_us * 1e-6)
+    mean = np.stack(pixel_rates(lam, params, (eps_on, eps_off), bg)).reshape(2, *lux.shape) * (duration_us * 1e-6)
     if distribution == "poisson":
         return gen.poisson(mean).astype(np.int64)
     rate = gen.gamma(r, mean / r)
