@@ -42,10 +42,13 @@ BOUNDS = {
     "hot_pixel_on_fraction": (1e-3, 0.999),
     "pr_tau_s_at_1lux": (1e-9, 1e3),
 }
-#: Background floors: fitted by default (every data set; a floor the data do not need ends on its
-#: lower bound, which stands for 0, and is reported as 0). Bounds from the data: ``1e-7`` to 10
-#: times the highest measured rate (per lux of the brightest level for the growing terms).
+#: Background floors: fitted by default when the data have a dark level (lux <= :data:`DARK_LUX`,
+#: which identifies them), else only when asked (a floor the data do not need ends on its lower
+#: bound, which stands for 0, and is reported as 0). Bounds from the data: ``1e-7`` to 10 times the
+#: highest measured rate (per lux of the brightest level for the growing terms).
 FLOORS = ("leak_on_hz", "leak_off_hz")
+#: Illuminance up to which a level counts as dark (the floors are then fitted by default).
+DARK_LUX = 1e-3
 #: Growth of the background with lux: fitted only when asked (``free=[...]``, ``--fit``).
 GROWTH = ("leak_on_hz_per_lux", "leak_off_hz_per_lux")
 #: Per-pixel spread of the background and hot pixels: only from flat fields (per-pixel counts),
@@ -115,7 +118,8 @@ def _resolve(meas: Measurements, free, fixed, initial, fit_dispersion: bool = Tr
         free = list(CORE)
         if meas.has_dispersion and fit_dispersion:
             free.append("eps_sigma")
-        free += list(FLOORS)
+        if float(meas.lux.min()) <= DARK_LUX:
+            free += list(FLOORS)  # a dark level identifies the floors; without one they cost time and rarely fit
     else:
         free = list(free)
         for n in free:

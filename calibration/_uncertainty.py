@@ -10,8 +10,8 @@ import math
 import numpy as np
 
 from ._likelihood import _Problem
-from ._spec import (_AT_BOUND_OK, FIT_NAMES, FLOORS, NEVER, PROFILE_ROUGH, REJECT_P, REJECT_RMS, UNMODELLED,
-                    ZERO_AT_BOUND)
+from ._spec import (_AT_BOUND_OK, DARK_LUX, FIT_NAMES, FLOORS, NEVER, PROFILE_ROUGH, REJECT_P, REJECT_RMS,
+                    UNMODELLED, ZERO_AT_BOUND)
 from .result import CalibrationResult
 
 
@@ -163,6 +163,10 @@ def _finish(problem: _Problem, theta, max_rel_se, *, profile=None, sigma_note=No
     free = list(problem.free)
     p = len(free)
     status = {n: ("not identified" if n in NEVER else "fixed") for n in FIT_NAMES}
+    if float(meas.lux.min()) > DARK_LUX:
+        for n in FLOORS:  # held, not fitted: nothing in the data separates them from the photon noise
+            if n not in problem.free and problem.values[n] == 0.0:
+                status[n] = "not identified (no dark level; fit with --fit)"
     at_bound = []  # indices held at a bound
     bound_side = {}  # name -> "lower" | "upper"
     for i, n in enumerate(free):

@@ -22,6 +22,10 @@ import evnoise as ev
 from evnoise import calibration as cal
 from evnoise.cli import main
 
+#: The sensors simulated here have no background floors, and the floors have their own tests
+#: (test_calibration_background.py): holding them at 0 keeps these core-recovery fits as fast as before.
+NO_FLOORS = {"leak_on_hz": 0.0, "leak_off_hz": 0.0}
+
 REFERENCE = Path(os.environ.get("EVNOISE_N2I_REFERENCE", "/work/shared/data/noise2image-reference"))
 needs_reference = pytest.mark.skipif(
     not (REFERENCE / "lux_measurement.npz").is_file() or not (REFERENCE / "synthetic_param.npz").is_file(),
@@ -165,7 +169,7 @@ def _check_recovery(results_truths):
 def test_flat_field_recovery_one_parameter_set():
     truth = _random_params(101)
     meas = _flat_fields(truth, 7)
-    result = cal.calibrate(meas, n_starts=3, rng=0)
+    result = cal.calibrate(meas, n_starts=3, rng=0, fixed=NO_FLOORS)
     assert result.gof["histogram_p_value"] > 1e-3, result.summary()
     _check_recovery([(result, truth)])
     # the fitted mismatch explains the measured dispersion
@@ -178,7 +182,7 @@ def test_flat_field_recovery_coverage_several_parameter_sets():
     for seed in (202, 303, 404, 505):
         truth = _random_params(seed)
         meas = _flat_fields(truth, seed + 1, shape=(40, 50))
-        pairs.append((cal.calibrate(meas, n_starts=6, rng=seed), truth))
+        pairs.append((cal.calibrate(meas, n_starts=6, rng=seed, fixed=NO_FLOORS), truth))
     _check_recovery(pairs)
 
 
@@ -243,7 +247,7 @@ def test_rate_table_counts_recovery(tmp_path):
                       [(lx, counts[0, i], counts[1, i], n_pix, dur) for i, lx in enumerate(lux)])
     meas = cal.read_measurements(path)
     assert meas.kind == "table" and not meas.has_dispersion
-    result = cal.calibrate(meas, n_starts=3, rng=1)
+    result = cal.calibrate(meas, n_starts=3, rng=1, fixed=NO_FLOORS)
     assert result.status["eps_sigma"] == "fixed (assumed)" and result.params.eps_sigma == TABLE_SIGMA
     assert any("not determined by mean rates" in t for t in result.identifiability)
     assert result.gof["p_value"] > 1e-3, result.summary()
@@ -265,7 +269,7 @@ def test_rates_without_exposure_use_residual_scatter(tmp_path):
     rate = cal.population_rate(lux, truth) * np.exp(np.random.default_rng(2).normal(0, 0.03, (2, lux.size)))
     path = _write_csv(tmp_path / "r.csv", ["lux", "rate_on_hz", "rate_off_hz"],
                       [(lx, rate[0, i], rate[1, i]) for i, lx in enumerate(lux)])
-    result = cal.calibrate(cal.read_measurements(path), n_starts=3, rng=0)
+    result = cal.calibrate(cal.read_measurements(path), n_starts=3, rng=0, fixed=NO_FLOORS)
     assert "unknown" in result.gof["counts"]
     assert result.gof["rate_rms_relative_residual"] < 0.05, result.summary()
 

@@ -83,7 +83,15 @@ def test_floors_are_recovered_from_dark_flat_fields():
 def test_without_a_dark_level_the_on_floor_is_reported_not_identified():
     """Lit levels only: the small ON floor hides under the photon noise; the OFF floor shows at the bright end."""
     meas = _flat_fields(TRUTH, LIT_ONLY)
-    r = cal.calibrate(meas, fixed=HELD, initial=TRUTH, n_starts=1, n_seeds=16, rng=0)
+    # by default, without a dark level the floors are not fitted and are reported as not identified
+    plain = cal.calibrate(meas, fixed=HELD, initial=TRUTH.replace(leak_on_hz=0.0, leak_off_hz=0.0), n_starts=1,
+                          n_seeds=16, rng=0)
+    assert plain.status["leak_on_hz"].startswith("not identified (no dark level"), plain.summary()
+    assert "leak_on_hz" not in plain.free
+    # asked to fit them anyway (--fit), the OFF floor still shows at the bright end
+    core = [n for n in cal.FIT_NAMES[:6] if n not in HELD]
+    r = cal.calibrate(meas, free=core + ["leak_on_hz", "leak_off_hz"], fixed=HELD, initial=TRUTH, n_starts=1,
+                      n_seeds=16, rng=0)
     assert r.fit_status == "accepted", r.summary()
     assert r.status["leak_on_hz"] in ("not identified", "at lower bound"), r.summary()
     if r.status["leak_on_hz"] == "not identified":
