@@ -47,8 +47,8 @@ BOUNDS = {
 #: bound, which stands for 0, and is reported as 0). Bounds from the data: ``1e-7`` to 10 times the
 #: highest measured rate (per lux of the brightest level for the growing terms).
 FLOORS = ("leak_on_hz", "leak_off_hz")
-#: Illuminance up to which a level counts as dark (the floors are then fitted by default).
-DARK_LUX = 1e-3
+#: Illuminance up to which a level counts as dark (the floors are then fitted by default): a level at 0 lux.
+DARK_LUX = 0.0
 #: Growth of the background with lux: fitted only when asked (``free=[...]``, ``--fit``).
 GROWTH = ("leak_on_hz_per_lux", "leak_off_hz_per_lux")
 #: Per-pixel spread of the background and hot pixels: only from flat fields (per-pixel counts),

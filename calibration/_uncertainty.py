@@ -194,6 +194,8 @@ def _finish(problem: _Problem, theta, max_rel_se, *, profile=None, sigma_note=No
     if inner:
         ix = np.ix_(inner, inner)
         c_in, null_dirs = _covariance(info[ix], meat[ix])
+        # over every free parameter (``inner`` changes below when a profile moves parameters)
+        null_dirs = [np.zeros(p) + np.bincount(inner, weights=d, minlength=p) for d in null_dirs]
         cov[ix] = c_in
         # checked step: redo with half the steps; disagreement means a step-like likelihood
         info2, meat2, _ = _information(problem, theta, h / 2)
@@ -446,7 +448,8 @@ def _identifiability_text(free, inner, cov, corr, flagged, null_dirs, max_rel_se
                        f"{' * '.join(terms)} can change together with little effect on the fit")
     for dvec in null_dirs:
         comp = dvec / np.max(np.abs(dvec))
-        terms = [f"{names[a]}^{comp[a]:+.2f}" for a in np.argsort(-np.abs(comp)) if abs(comp[a]) > 0.2]
+        labels = free if len(comp) == len(free) else names  # over every free parameter or the inner ones
+        terms = [f"{labels[a]}^{comp[a]:+.2f}" for a in np.argsort(-np.abs(comp)) if abs(comp[a]) > 0.2]
         out.append(f"unconstrained direction (no information): {' * '.join(terms)}")
     return out
 
