@@ -86,7 +86,11 @@ def recording_mismatch(meta: dict, doc: dict) -> list:
                 break
     elif rec_preset and model_preset and Path(str(rec_preset)).stem != model_preset:
         differs = True
-    if differs:
+    if differs and rec_preset and model_preset and Path(str(rec_preset)).stem == model_preset:
+        out.append(f"the model was trained with an earlier version of preset {model_preset} (its noise parameters "
+                   f"differ from the recording's): the image may be biased; retrain for the current preset "
+                   f"(evnoise train, or python -m evnoise.reconstruct.pretrain)")
+    elif differs:
         out.append(f"the recording was made with preset {rec_preset or 'custom'} but the model was trained for "
                    f"preset {model_preset or 'custom'} (different noise parameters): the image may be wrong")
     rec_sensor = meta.get("camera") or meta.get("sensor")
