@@ -255,6 +255,7 @@ def write_outputs(meas, info, exact, gauss, profiles, preset_path: Path, plot_pa
             f"measured r is largest (0.45-0.6, i.e. the least dispersion relative to the bright end), and leaves no "
             f"well-posed fit of the mean curve"),
         "eps_sigma_profile": [{"eps_sigma": sg, "r_rms_log_ratio": m} for sg, m in profiles["eps_sigma"]],
+        "dispersion_with_background": _dispersion_verdict(),
     }
     prov = {"summary": SUMMARY, **prov}
     text = result_to_toml(exact, extra_provenance=prov, header=_header(exact))
@@ -311,3 +312,16 @@ def main(argv=None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+def _dispersion_verdict() -> str:
+    """How far threshold mismatch + background spread + hot pixels explain r(grey): the verdict of
+    ``python -m evnoise.calibration.dispersion_evk3`` (its JSON summary), or a pointer to it."""
+    import json
+
+    path = Path(__file__).resolve().parent / "evk3-dispersion.json"
+    try:
+        verdict = json.loads(path.read_text(encoding="utf-8"))["verdict"]
+    except (OSError, KeyError, ValueError):
+        return "not evaluated: run python -m evnoise.calibration.dispersion_evk3"
+    return verdict + " (python -m evnoise.calibration.dispersion_evk3; calibration/evk3-dispersion.json)"
