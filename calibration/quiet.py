@@ -419,7 +419,11 @@ class QuietFit:
 
 
 def _floors_for(base, lux, rate_on, rate_off, growth_on, growth_off, regularity=0.0):
-    """Background floors so that the nominal pixel's rates at ``lux`` equal the fitted ones (root finding)."""
+    """Background floors so that the nominal pixel's rates at ``lux`` equal the fitted ones.
+
+    One root finding per polarity, repeated until neither floor moves (the two polarities share the
+    pixel's trials, so each floor changes the other polarity's rate a little).
+    """
     from scipy.optimize import brentq
 
     import evnoise as ev
@@ -427,35 +431,26 @@ def _floors_for(base, lux, rate_on, rate_off, growth_on, growth_off, regularity=
     lux_arr = np.array([float(lux)])
     target = (rate_on, rate_off)
     floors = [0.0, 0.0]
-    for k in range(2):
-        def excess(x, k=k):
-            fl = list(floors)
-            fl[k] = x
-            p = base.replace(leak_on_hz=fl[0], leak_off_hz=fl[1], leak_on_hz_per_lux=growth_on,
-                             leak_off_hz_per_lux=growth_off, leak_regularity=regularity)
-            return float(ev.expected_rate(lux_arr, p)[k, 0]) - target[k]
 
-        if excess(0.0) >= 0:
-            floors[k] = 0.0
-        else:
-            hi = max(2.0 * target[k], 1e-12)
-            while excess(hi) < 0 and hi < 1e9:
-                hi *= 2
-            floors[k] = brentq(excess, 0.0, hi, xtol=1e-15, rtol=1e-12)
-    # the OFF floor changes the ON rate a little (shared trials): one more pass for ON
-    for k in range(2):
-        def excess2(x, k=k):
-            fl = list(floors)
-            fl[k] = x
-            p = base.replace(leak_on_hz=fl[0], leak_off_hz=fl[1], leak_on_hz_per_lux=growth_on,
-                             leak_off_hz_per_lux=growth_off, leak_regularity=regularity)
-            return float(ev.expected_rate(lux_arr, p)[k, 0]) - target[k]
+    def excess(x, k):
+        fl = list(floors)
+        fl[k] = x
+        p = base.replace(leak_on_hz=fl[0], leak_off_hz=fl[1], leak_on_hz_per_lux=growth_on,
+                         leak_off_hz_per_lux=growth_off, leak_regularity=regularity)
+        return float(ev.expected_rate(lux_arr, p)[k, 0]) - target[k]
 
-        if excess2(0.0) < 0:
+    for _ in range(20):
+        before = list(floors)
+        for k in range(2):
+            if excess(0.0, k) >= 0:
+                floors[k] = 0.0  # the photon noise alone reaches the rate
+                continue
             hi = max(2.0 * target[k], 1e-12)
-            while excess2(hi) < 0 and hi < 1e9:
+            while excess(hi, k) < 0 and hi < 1e9:
                 hi *= 2
-            floors[k] = brentq(excess2, 0.0, hi, xtol=1e-15, rtol=1e-12)
+            floors[k] = brentq(excess, 0.0, hi, args=(k,), xtol=1e-15, rtol=1e-13)
+        if all(abs(a - b) <= 1e-13 * max(abs(a), 1e-300) for a, b in zip(floors, before)):
+            break
     return floors
 
 

@@ -192,8 +192,6 @@ def renewal_window_timer(
         jp = pend_trial[k]
         on = pend_on[k] == 1.0
         flat = pix[i]
-        xk = np.uint16(flat % width)
-        yk = np.uint16(flat // width)
         lt = last_trial[k]
         lta = last_tau[k]
         nxt = bg_next[k]
@@ -231,15 +229,8 @@ def renewal_window_timer(
             else:
                 n_off += 1
             if store:
-                if n == t_out.shape[0]:
-                    t_out = _grow(t_out, n)
-                    x_out = _grow(x_out, n)
-                    y_out = _grow(y_out, n)
-                    p_out = _grow(p_out, n)
-                t_out[n] = t0_us + np.int64(math.floor(tau))
-                x_out[n] = xk
-                y_out[n] = yk
-                p_out[n] = 1 if on else 0
+                t_out, x_out, y_out, p_out = _push(t_out, x_out, y_out, p_out, n, t0_us + np.int64(math.floor(tau)),
+                                                   flat, width, 1 if on else 0)
                 n += 1
             lta = tau
             lt = jp
