@@ -309,8 +309,9 @@ def test_v2e_noise_counts_match_expected_rate_with_v2e_grey_levels():
         in_band = (rows[:, 1] >= k * band) & (rows[:, 1] < (k + 1) * band)
         _check_within(np.count_nonzero(in_band & (rows[:, 3] == 1)), exp_on, f"ON noise at grey {g}")
         _check_within(np.count_nonzero(in_band & (rows[:, 3] == -1)), exp_off, f"OFF noise at grey {g}")
-    # sRGB decoding would put grey 128 at 4.3 lux instead of 10: a rate 4x higher, far outside the test
-    assert ev.expected_rate(np.full((1, 1), 0.2159 * white_lux), PARAMS).sum() > 4 * ev.expected_rate(
+    # sRGB decoding would put grey 128 at 4.3 lux instead of 10: a rate over 3x higher (the OFF floor of the
+    # refitted preset adds the same 0.14/s to both), far outside the test's tolerance
+    assert ev.expected_rate(np.full((1, 1), 0.2159 * white_lux), PARAMS).sum() > 3 * ev.expected_rate(
         np.full((1, 1), 10.0), PARAMS).sum()
     assert wrapper.signal_count == 0 and wrapper.noise_count == rows.shape[0]
 
