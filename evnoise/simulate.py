@@ -901,9 +901,8 @@ class NoiseStream:
 
 
 def _first_trial_at_or_after(t_us: float, dt: float) -> float:
-    j = math.ceil(t_us / dt)
-    while j * dt < t_us:
-        j += 1
-    while j > 0 and (j - 1) * dt >= t_us:
-        j -= 1
-    return float(j)
+    """Index of the first trial starting at or after ``t_us`` (``t_us >= 0``): the kernels' eligibility rule
+    with no previous event and no refractory period (one home for the rounding of trial starts)."""
+    from ._kernels.simulate import _first_eligible
+
+    return float(_first_eligible(-1.0, float(t_us), 0.0, float(dt)))
