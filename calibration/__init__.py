@@ -9,7 +9,12 @@ Typical use::
     result.write_preset("my-camera.toml")                 # evnoise.load_preset("my-camera.toml")
     result.plot("my-camera-fit.png")
 
-or ``evnoise calibrate MEASUREMENTS --out preset.toml``. The EVK3-HD preset shipped with
+or ``evnoise calibrate MEASUREMENTS --out preset.toml``. From a recording of a still scene::
+
+    fit = cal.fit_quiet([cal.quiet_window("rec.aedat", t_start_s, t_end_s)])
+    print(fit.summary()); params = fit.to_params("davis346")
+
+or ``evnoise calibrate rec.aedat --t-start A --t-end B --out cam.toml``. The EVK3-HD preset shipped with
 evnoise is refitted by ``python -m evnoise.calibration.refit_evk3``.
 
 Importing this package is cheap; SciPy, Numba kernels and matplotlib load on first use.
@@ -37,6 +42,10 @@ _LAZY = {
     "nb_shape": "evnoise.mismatch",
     "threshold_distribution": "evnoise.mismatch",
     "plot_fit": ".plot",
+    "QuietWindow": ".quiet",  # calibrate from a recording of a still scene
+    "quiet_window": ".quiet",
+    "fit_quiet": ".quiet",
+    "compare_to_recording": ".quiet",
 }
 
 __all__ = sorted(_LAZY)
