@@ -43,22 +43,51 @@ def draw_timer(s, d, log1m_a2):
 
 
 @kernel
-def draw_timer_stationary(s, d, log1m_a2):
-    """The first arrival of a timer that has been running forever: a uniform point of a length-biased ``L``.
+def draw_timer_stationary(s, d, log1m_a2, log1m_p):
+    """The first background arrival (trials ``>= 1`` from the first trial) of a pixel in its steady state.
 
-    Length-biased ``D + G`` is, with probability ``E[D] / E[L]``, length-biased ``D`` plus ``G``, else ``D``
-    plus length-biased ``G`` (``G1 + G2 - 1``); the arrival is uniform on ``1 .. L*``.
+    A pixel whose events (photon noise of per-trial probability ``p``, ``log1m_p = log1p(-p)``, and the
+    timer ``L = D + G``) have been running forever: its age ``A`` (trials since its last event) has
+    ``P(A = a) ~ (1 - p)^a P(L > a)`` (the steady-state age of a discrete renewal process whose gap is
+    ``min(G_p, L)``), drawn jointly with ``D``; given ``A = a`` the timer is ``L`` conditioned on
+    ``L > a`` (memoryless beyond ``D``), and the arrival comes ``L - a`` trials on. Exact without a
+    refractory period (with one, only the first event of a pixel is approximate).
     """
     if d == math.inf:
         return math.inf
     d0 = math.floor(d)
     phi = d - d0
-    a2 = -math.expm1(log1m_a2) if log1m_a2 > -math.inf else 1.0
-    e_g = 1.0 / a2
-    if uniform(s) * (d + e_g) < d:
-        dd = d0 + 1.0 if uniform(s) * d < (d0 + 1.0) * phi else d0
-        length = dd + geometric(s, log1m_a2)
-    else:
-        dd = d0 + 1.0 if uniform(s) < phi else d0
-        length = dd + geometric(s, log1m_a2) + geometric(s, log1m_a2) - 1.0
-    return 1.0 + math.floor(uniform(s) * length)
+    q = math.exp(log1m_p)  # 1 - p
+    p = -math.expm1(log1m_p)
+    one_m_a2 = math.exp(log1m_a2)
+    # masses of the ages a <= dd (geometric q^a) and a > dd (ratio q (1 - a2)) for dd = d0 and d0 + 1
+    best = 0.0
+    dd = d0
+    head = 0.0
+    w0 = 0.0
+    for k in range(2):
+        dk = d0 + k
+        qd = math.exp((dk + 1.0) * log1m_p)
+        h = -math.expm1((dk + 1.0) * log1m_p) / p if p > 0.0 else dk + 1.0
+        t = qd * one_m_a2 / (1.0 - q * one_m_a2) if one_m_a2 > 0.0 else 0.0
+        z = ((1.0 - phi) if k == 0 else phi) * (h + t)
+        if k == 0:
+            w0 = z
+            head = h
+        else:
+            best = z
+            if uniform(s) * (w0 + best) >= w0:
+                dd = dk
+                head = h
+    total = head + (math.exp((dd + 1.0) * log1m_p) * one_m_a2 / (1.0 - q * one_m_a2) if one_m_a2 > 0.0 else 0.0)
+    if uniform(s) * total < head:
+        # age a in 0..dd with weights q^a: inverse of the truncated geometric
+        if p > 0.0:
+            u = uniform(s)
+            a = math.floor(math.log1p(u * math.expm1((dd + 1.0) * log1m_p)) / log1m_p)
+            a = min(max(a, 0.0), dd)
+        else:
+            a = math.floor(uniform(s) * (dd + 1.0))
+        return (dd - a) + geometric(s, log1m_a2)
+    # age a > dd: a = dd + 1 + (failures of ratio q (1 - a2)); the rest of the timer is memoryless
+    return geometric(s, log1m_a2)

@@ -206,7 +206,7 @@ def renewal_window_timer(
                 j_e = max(j_e, j_min)
                 if math.isnan(nxt):
                     if lta == -math.inf:
-                        nxt = j_e + draw_timer_stationary(s, timer[0, k], timer[1, k]) - 1.0
+                        nxt = j_e + draw_timer_stationary(s, timer[0, k], timer[1, k], log1m_p[k]) - 1.0
                     else:
                         nxt = j_e + draw_timer(s, timer[0, k], timer[1, k]) - 1.0
                 nxt = max(nxt, j_e)
@@ -542,7 +542,9 @@ def trial_window(
                         if not bg_next[k] < math.inf and l_all > 0.0:  # none pending (NaN, or inf in the dark)
                             d_t, l1m_t = timer_shape(l_all, dt_s, regularity)
                             if last_tau[k] == -math.inf:
-                                bg_next[k] = j + draw_timer_stationary(s, d_t, l1m_t) - 1.0
+                                p_st = (math.exp(log_event_probability_exact(lam, c_on[k], b))
+                                        + math.exp(log_event_probability_exact(lam, c_off[k], b)))
+                                bg_next[k] = j + draw_timer_stationary(s, d_t, l1m_t, math.log1p(-min(p_st, 1.0))) - 1.0
                             else:
                                 bg_next[k] = j + draw_timer(s, d_t, l1m_t) - 1.0
                             bg_l[k] = l_all
