@@ -1,13 +1,14 @@
 """Make ``rates-example.csv``, the bundled example rate table of ``evnoise calibrate --example``.
 
 Run ``python -m evnoise.data.make_rates_example [OUT]`` (default: next to this file). The table
-is simulated from the shipped ``evk3-hd`` preset, nothing measured: 15 illuminance levels from
-0.05 to 50 lux (geometric), ON and OFF event counts summed over 10,000 pixels and 1 s, drawn
+is simulated from the shipped ``evk3-hd`` preset, nothing measured: a dark level (0 lux, which
+identifies the background floors) and 15 illuminance levels from 0.05 to 50 lux (geometric), ON
+and OFF event counts summed over 10,000 pixels and 1 s, drawn
 from the Poisson distribution of the preset's population rate with seed 0 (the total of many
 independent pixels' counts). Same NumPy, same bytes.
 
-A calibration of it shows what such a table determines: ``trial_rate_hz`` and ``dark_lux``,
-but not ``photons_per_lux`` (the preset has 3200 photons per trial at 50 lux, the many-photon
+A calibration of it shows what such a table determines: ``trial_rate_hz``, ``dark_lux`` and the
+OFF background floor, but not ``photons_per_lux`` (the preset has 3200 photons per trial at 50 lux, the many-photon
 regime, where the thresholds and the bias only enter through combinations with it).
 """
 
@@ -19,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 PRESET = "evk3-hd"
-LUX = np.geomspace(0.05, 50.0, 15)
+LUX = np.concatenate([[0.0], np.geomspace(0.05, 50.0, 15)])
 N_PIXELS = 10_000
 DURATION_S = 1.0
 SEED = 0
