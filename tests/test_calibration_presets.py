@@ -274,8 +274,10 @@ def test_example_table_is_the_script_output_and_reads():
     path = resources.files("evnoise.data") / "rates-example.csv"
     assert path.read_text() == make_rates_example.render()
     meas = cal.read_measurements(str(path))
-    assert meas.kind == "table" and meas.n_levels == 15 and meas.exposure_known
-    np.testing.assert_allclose(meas.lux, LUX, rtol=1e-5)  # written with 6 significant digits
+    assert meas.kind == "table" and meas.n_levels == 16 and meas.exposure_known
+    # a dark level (it identifies the background floors), then the recovery tables' levels
+    assert meas.lux[0] == 0.0
+    np.testing.assert_allclose(meas.lux[1:], LUX, rtol=1e-5)  # written with 6 significant digits
 
 
 def test_cli_example_and_its_errors(tmp_path, capsys):
