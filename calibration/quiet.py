@@ -33,7 +33,6 @@ illuminances the background's growth with lux joins the fit as ``leak_*_hz_per_l
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -722,10 +721,6 @@ def _pool(observed, expected, minimum=5.0):
             obs.append(acc_o)
             exp.append(acc_e)
     return np.array(obs), np.array(exp)
-
-
-def replace(fit: QuietFit, **changes) -> QuietFit:
-    return dataclasses.replace(fit, **changes)
 
 
 # --------------------------------------------------------------------------------------

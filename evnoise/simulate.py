@@ -109,15 +109,15 @@ def _resolve_background(shape, params: NoiseParams, gen, background):
     return np.ascontiguousarray(arr[0].ravel()), np.ascontiguousarray(arr[1].ravel())
 
 
-def _background_coefficients(params: NoiseParams, bg, sel=None) -> np.ndarray:
-    """``(4, n)`` ``[l0_on, l1_on, l0_off, l1_off]`` of the trial kernel (``(4, 0)`` without background)."""
+def _background_coefficients(params: NoiseParams, bg, sel) -> np.ndarray:
+    """``(4, n)`` ``[l0_on, l1_on, l0_off, l1_off]`` of the trial kernel for pixels ``sel`` (``(4, 0)`` without
+    background)."""
     if not params.has_background:
         return np.zeros((4, 0))
     if bg is None:
-        n = 1 if sel is None else sel.size
-        scale, hot = np.ones(n), np.zeros(n)
+        scale, hot = np.ones(sel.size), np.zeros(sel.size)
     else:
-        scale, hot = bg if sel is None else (bg[0][sel], bg[1][sel])
+        scale, hot = bg[0][sel], bg[1][sel]
     q = params.hot_pixel_on_fraction
     out = np.stack([scale * params.leak_on_hz + hot * q, scale * params.leak_on_hz_per_lux,
                     scale * params.leak_off_hz + hot * (1.0 - q), scale * params.leak_off_hz_per_lux])
@@ -658,8 +658,6 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
         log1m_p, q_on, stat_timer, nu = _static_inputs(lam0, params, eps_on[stat_pix], eps_off[stat_pix],
                                                        _select(bg, stat_pix))
     dyn_bg = _background_coefficients(params, bg, dyn_pix)
-    if dyn_bg.shape[1] == 1 and dyn_pix.size > 1:
-        dyn_bg = np.ascontiguousarray(np.repeat(dyn_bg, dyn_pix.size, axis=1))
     from .background import pr_alpha_per_photon
 
     pr_alpha = pr_alpha_per_photon(params)
