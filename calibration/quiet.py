@@ -41,6 +41,8 @@ import numpy as np
 
 from evnoise.errors import InputError, ParameterError
 
+from .quiet_checks import CHECK_P
+
 __all__ = ["QuietWindow", "quiet_window", "fit_quiet", "QuietFit", "GRID", "LR_P"]
 
 #: Grid points of the standard normal (over +-7 sd) for the integrals over the spread.
@@ -69,6 +71,8 @@ class QuietWindow:
     t_start_s: float | None = None
     t_end_s: float | None = None
     lux: float | None = None
+    #: model-free checks that the window is pure stationary noise (:mod:`.quiet_checks`), if computed
+    checks: list = field(default_factory=list)
 
     def __post_init__(self):
         counts = np.asarray(self.counts)
@@ -94,10 +98,13 @@ class QuietWindow:
 
 
 def quiet_window(path, t_start_s: float, t_end_s: float, *, lux: float | None = None, sensor=None,
-                 csv_columns=None) -> QuietWindow:
+                 csv_columns=None, checks: bool = False, seed: int = 0) -> QuietWindow:
     """The counts of a recording's window ``[t_start_s, t_end_s)`` (seconds on the file's clock).
 
-    Any file :func:`evnoise.read_events` opens. The sensor size is the file's (or ``sensor``).
+    Any file :func:`evnoise.read_events` opens. The sensor size is the file's (or ``sensor``). With
+    ``checks``, the window's events are also checked for what the fit assumes (polarity pairs,
+    stationarity, scene motion; :func:`evnoise.calibration.quiet_checks.window_checks`, resampled
+    with ``seed``), into ``QuietWindow.checks``.
     """
     from evnoise.io import read_events
     from evnoise.events import count_events
@@ -112,8 +119,13 @@ def quiet_window(path, t_start_s: float, t_end_s: float, *, lux: float | None = 
         raise InputError(f"{path}: no events in the window {t_start_s:g} .. {t_end_s:g} s (check the times: "
                          "they are seconds on the file's clock)")
     counts = count_events(events, tuple(shape))
+    found = []
+    if checks:
+        from .quiet_checks import window_checks
+
+        found = window_checks(events, counts, round(t_start_s * 1e6), round((t_end_s - t_start_s) * 1e6), seed=seed)
     return QuietWindow(counts, float(t_end_s - t_start_s), str(path), str(path), float(t_start_s), float(t_end_s),
-                       None if lux is None else float(lux))
+                       None if lux is None else float(lux), found)
 
 
 # --------------------------------------------------------------------------------------
@@ -394,6 +406,11 @@ class QuietFit:
         for g in self.goodness:
             lines.append(f"  fit {g['window']} {g['polarity']}: chi2 {g['chi2']:.2f} on {g['dof']} dof, "
                          f"p = {g['p_value']:.3g} ({g['bins']} bins over counts 0..{g['max_count']})")
+        for w in self.windows:
+            for c in w.checks:
+                verdict = ("information" if not c["assumption"] else
+                           "FAILED" if c["p_value"] < CHECK_P else "passed")
+                lines.append(f"  check {w.describe()} {c['check']}: p = {c['p_value']:.3g} ({verdict}); {c['detail']}")
         lines += [f"  note: {n}" for n in self.notes]
         return "\n".join(lines)
 
@@ -408,6 +425,7 @@ class QuietFit:
             "tests": {k: {kk: float(vv) for kk, vv in t.items()} for k, t in self.tests.items()},
             "goodness": [{k: (float(v) if isinstance(v, (int, float, np.floating)) and not isinstance(v, bool)
                               else v) for k, v in g.items()} for g in self.goodness],
+            "checks": [dict(window=w.describe(), **c) for w in self.windows for c in w.checks],
         }
 
     def plot(self, path, *, seed: int = 0, params=None):
@@ -797,6 +815,8 @@ def preset_toml(params, *, sensor: tuple, header: str, provenance: dict, fit: Qu
         lines += _table("fit.tests", tables["tests"]) + [""]
         for g in tables["goodness"]:
             lines += ["[[fit.goodness]]"] + [f"{k} = {toml_value(v)}" for k, v in g.items()] + [""]
+        for c in tables["checks"]:
+            lines += ["[[fit.checks]]"] + [f"{k} = {toml_value(v)}" for k, v in c.items()] + [""]
     for g in validation or []:
         lines += ["[[validation]]"] + [f"{k} = {toml_value(v)}" for k, v in g.items()] + [""]
     return "\n".join(lines).rstrip() + "\n"

@@ -17,6 +17,14 @@ from ..errors import InputError, ParameterError
 log = logging.getLogger(__name__)
 
 
+#: What to do when a window fails a check of :mod:`evnoise.calibration.quiet_checks`.
+_ADVICE = {
+    "polarity_pairs": "the model's ON and OFF events are independent, so no preset reproduces these pairs",
+    "stationarity": "the rate drifts; a shorter window, or several windows, describe it better",
+    "scene_motion": "something in the scene moves; choose a window where nothing does",
+}
+
+
 def add_arguments(p) -> None:
     g = p.add_argument_group("quiet recording (calibrate from a camera file of a still scene)")
     g.add_argument("--t-start", type=float, metavar="S",
@@ -69,6 +77,7 @@ def run(args, recordings) -> int:
 
     from evnoise.calibration.preset import write_text_atomic
     from evnoise.calibration.quiet import fit_quiet, preset_toml, quiet_window
+    from evnoise.calibration.quiet_checks import failed_checks
 
     from ..io import open_output_path
     from ..params import load_preset
@@ -86,7 +95,7 @@ def run(args, recordings) -> int:
     windows = []
     for rec in recordings:
         for a, b, lux in spans:
-            w = quiet_window(rec, a, b, lux=lux, sensor=args.sensor, csv_columns=args.csv_columns)
+            w = quiet_window(rec, a, b, lux=lux, sensor=args.sensor, csv_columns=args.csv_columns, checks=True)
             windows.append(w)
             log.info("%s: %d events in %d pixels over %.3g s", w.describe(), int(w.counts.sum()),
                      int(w.counts[0].size), w.duration_s)
@@ -107,6 +116,10 @@ def run(args, recordings) -> int:
                        "recording by evnoise calibrate; see [provenance] and [fit].", provenance=provenance, fit=fit)
     write_text_atomic(out, text, overwrite=True)
     print(f"wrote {out}")
+    for w in windows:
+        for c in failed_checks(w.checks):
+            log.warning("%s is not pure stationary noise (%s, p = %.2g): %s; %s", w.describe(), c["check"],
+                        c["p_value"], c["detail"], _ADVICE[c["check"]])
     worst = min(g["p_value"] for g in fit.goodness)
     if worst < 1e-3:
         log.warning("the fitted model does not describe every window (lowest goodness-of-fit p = %.2g): the scene "

@@ -1,0 +1,209 @@
+"""Is a recording's window pure stationary noise? Three model-free checks of the quiet-fit's assumptions.
+
+:mod:`evnoise.calibration.quiet` describes a still scene's events as, per pixel, an ON and an OFF
+stream that are stationary over the window, independent of each other, and whose pixels are
+exchangeable (the rate spread is a property of the pixel, not of where it sits). A recording that
+breaks one of these cannot be reproduced by any preset, whatever the fit; these checks say which
+assumption fails, each with a p-value from a null distribution that does not depend on the fit:
+
+- **polarity pairs**: the number of (OFF, ON) event pairs of one pixel closer than ``pair_gap_s``,
+  against the same number after each pixel's ON stream is shifted circularly in time by its own
+  random offset (``shifts`` times). The shift keeps each stream exactly (rate, regularity, spread,
+  hot pixels) and removes only the coupling of ON and OFF, so an excess means the pixel's ON and OFF
+  events come in pairs (a transient that crosses the threshold and comes back), which the model
+  cannot produce: its ON and OFF arrivals are independent but for the refractory period and the
+  regular timer they share, which make close pairs rarer, never commoner (the test is one-sided);
+- **stationarity**: the window's events in ``pieces`` equal time slices against equal shares
+  (Pearson chi-square on ``pieces - 1`` degrees of freedom; the pixels' streams are independent, so
+  the total over many pixels is close to Poisson: a rate that drifts shows up here);
+- **scene motion**: the counts of ``block`` x ``block`` pixel blocks in ``pieces`` time slices,
+  Pearson's chi-square of independence of block and slice, against the same statistic after each
+  pixel's whole stream is shifted circularly in time (``shifts`` times). A still scene's noise may
+  follow the scene (the rate depends on the illuminance: that is the spread's business) and may
+  drift as a whole (the slice margin), but its pattern does not move; a structure that sweeps the
+  sensor (a slow edge, a domain wall, a person shifting) shows up here.
+
+And one for information, not an assumption of the fit:
+
+- **spatial structure**: the variance of the mean count of ``block`` x ``block`` pixel blocks
+  against the same variance after the pixels' count pairs are permuted over the sensor
+  (``shifts`` permutations). A still scene's noise has the scene's structure (noise rate depends
+  on the illuminance) or the sensor's (vignetting); the fit's spread absorbs it, since the
+  per-pixel count histograms do not depend on where a pixel sits.
+
+Each check is a dict ``{check, statistic, null_mean, null_sd, p_value, assumption, detail}``; p-values from
+resampling are ``(1 + #(null >= observed)) / (1 + resamples)``; where the observed value lies beyond
+every resample, the normal tail of the null (its mean and sd) is given instead when it is smaller, so that
+p-values below ``1 / (1 + shifts)`` can be stated (approximately).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = ["window_checks", "failed_checks", "polarity_pairs", "stationarity", "scene_motion", "spatial_structure",
+           "PAIR_GAP_S", "CHECK_P"]
+
+#: Largest gap (seconds) between a pixel's OFF and ON events counted as a pair.
+PAIR_GAP_S = 0.05
+#: p-value below which a check is reported as failed.
+CHECK_P = 1e-3
+
+
+def _resampled(observed: float, null: np.ndarray) -> tuple:
+    """Mean, sd and p-value of ``observed`` against resamples ``null`` (module doc)."""
+    from scipy.stats import norm
+
+    null = np.asarray(null, dtype=np.float64)
+    mean = float(null.mean())
+    sd = float(null.std(ddof=1)) if null.size > 1 else 0.0
+    above = np.count_nonzero(null >= observed)
+    p = (1.0 + above) / (1.0 + null.size)
+    if above == 0:  # beyond every resample: the normal tail of the null, if smaller
+        z = (observed - mean) / sd if sd > 0 else (math.inf if observed > mean else 0.0)
+        p = min(p, float(norm.sf(z)))
+    return mean, sd, float(p)
+
+
+def _pairs_within(off_key: np.ndarray, on_key: np.ndarray, gap: int) -> int:
+    """Pairs (OFF, ON) of one pixel with ``|t_on - t_off| <= gap``; keys are ``pixel * stride + t`` sorted."""
+    hi = np.searchsorted(on_key, off_key + gap, side="right")
+    lo = np.searchsorted(on_key, off_key - gap, side="left")
+    return int(np.sum(hi - lo))
+
+
+def polarity_pairs(events: np.ndarray, shape: tuple, t_start_us: int, duration_us: int, *,
+                   pair_gap_s: float = PAIR_GAP_S, shifts: int = 200, seed: int = 0) -> dict:
+    """OFF/ON pairs of a pixel closer than ``pair_gap_s`` against circularly shifted ON streams (module doc)."""
+    width = int(shape[1])
+    gap = int(round(pair_gap_s * 1e6))
+    duration_us = int(duration_us)
+    stride = 2 * duration_us + 4 * gap + 1  # keys of different pixels never come within gap
+    pix = events["y"].astype(np.int64) * width + events["x"].astype(np.int64)
+    t = events["t"].astype(np.int64) - int(t_start_us)
+    on = events["p"] == 1
+    off_key = np.sort(pix[~on] * stride + t[~on])
+    on_pix, on_t = pix[on], t[on]
+    observed = _pairs_within(off_key, np.sort(on_pix * stride + on_t), gap)
+    rng = np.random.default_rng(seed)
+    n_pix = int(shape[0]) * width
+    null = np.empty(int(shifts))
+    for k in range(int(shifts)):
+        offset = rng.integers(0, duration_us, size=n_pix)
+        shifted = (on_t + offset[on_pix]) % duration_us
+        null[k] = _pairs_within(off_key, np.sort(on_pix * stride + shifted), gap)
+    mean, sd, p = _resampled(observed, null)
+    ratio = observed / mean if mean > 0 else (float("inf") if observed else 1.0)
+    return {"check": "polarity_pairs", "statistic": observed, "null_mean": mean, "null_sd": sd, "p_value": p,
+            "assumption": True,
+            "detail": f"{observed} OFF/ON pairs of one pixel within {pair_gap_s * 1e3:g} ms, {mean:.1f} +- {sd:.1f} "
+                      f"with ON and OFF independent (x{ratio:.2g}; {int(shifts)} circular shifts)"}
+
+
+def stationarity(events: np.ndarray, t_start_us: int, duration_us: int, *, pieces: int = 4) -> dict:
+    """Events in ``pieces`` equal time slices against equal shares (Pearson chi-square)."""
+    from scipy.stats import chi2
+
+    t = events["t"].astype(np.int64) - int(t_start_us)
+    idx = np.minimum(t * pieces // max(int(duration_us), 1), pieces - 1)
+    observed = np.bincount(idx, minlength=pieces).astype(np.float64)
+    expected = observed.sum() / pieces
+    stat = float(np.sum((observed - expected) ** 2 / expected)) if expected > 0 else 0.0
+    rate = observed / (duration_us * 1e-6 / pieces)
+    return {"check": "stationarity", "statistic": stat, "null_mean": float(pieces - 1),
+            "null_sd": float(np.sqrt(2.0 * (pieces - 1))), "p_value": float(chi2.sf(stat, pieces - 1)),
+            "assumption": True,
+            "detail": f"events/s in {pieces} slices: " + ", ".join(f"{r:.4g}" for r in rate)}
+
+
+def _block_index(shape: tuple, block: int) -> tuple:
+    """Block number of every pixel (``-1`` outside the whole blocks) and the number of blocks."""
+    h, w = int(shape[0]), int(shape[1])
+    nby, nbx = h // block, w // block
+    by = np.arange(h) // block
+    bx = np.arange(w) // block
+    idx = by[:, None] * nbx + bx[None, :]
+    idx[(by >= nby)[:, None] | (bx >= nbx)[None, :]] = -1
+    return idx.ravel(), nby * nbx
+
+
+def _block_size(shape: tuple, block: int) -> int:
+    return max(1, min(int(block), min(int(shape[0]), int(shape[1])) // 2 or 1))
+
+
+def _block_variance(total: np.ndarray, index: np.ndarray, n_blocks: int) -> float:
+    inside = index >= 0
+    sums = np.bincount(index[inside], weights=total[inside], minlength=n_blocks)
+    return float(sums.var())
+
+
+def spatial_structure(counts: np.ndarray, *, block: int = 16, shifts: int = 200, seed: int = 0) -> dict:
+    """Variance of ``block`` x ``block`` mean counts against permutations of the pixels (module doc)."""
+    total = np.asarray(counts).sum(axis=0).astype(np.float64)
+    block = _block_size(total.shape, block)
+    index, n_blocks = _block_index(total.shape, block)
+    flat = total.ravel()
+    observed = _block_variance(flat, index, n_blocks)
+    rng = np.random.default_rng(seed)
+    null = np.array([_block_variance(rng.permutation(flat), index, n_blocks) for _ in range(int(shifts))])
+    mean, sd, p = _resampled(observed, null)
+    ratio = observed / mean if mean > 0 else 1.0
+    return {"check": "spatial_structure", "statistic": observed, "null_mean": mean, "null_sd": sd, "p_value": p,
+            "assumption": False,
+            "detail": f"variance of {block}x{block}-block counts x{ratio:.3g} that of pixels placed at random "
+                      f"({int(shifts)} permutations; the noise follows the scene or the optics)"}
+
+
+def _independence_chi2(block_id: np.ndarray, slice_id: np.ndarray, n_blocks: int, pieces: int) -> float:
+    table = np.bincount(block_id * pieces + slice_id, minlength=n_blocks * pieces).reshape(n_blocks, pieces)
+    table = table[table.sum(axis=1) > 0].astype(np.float64)
+    col = table.sum(axis=0)
+    table = table[:, col > 0]
+    if table.size == 0 or table.shape[1] < 2:
+        return 0.0
+    expected = np.outer(table.sum(axis=1), table.sum(axis=0)) / table.sum()
+    return float(np.sum((table - expected) ** 2 / expected))
+
+
+def scene_motion(events: np.ndarray, shape: tuple, t_start_us: int, duration_us: int, *, block: int = 16,
+                 pieces: int = 4, shifts: int = 200, seed: int = 0) -> dict:
+    """Block x time-slice independence against per-pixel circular time shifts (module doc)."""
+    block = _block_size(shape, block)
+    index, n_blocks = _block_index(shape, block)
+    width = int(shape[1])
+    duration_us = max(int(duration_us), 1)
+    pix = events["y"].astype(np.int64) * width + events["x"].astype(np.int64)
+    blk = index[pix]
+    inside = blk >= 0
+    pix, blk = pix[inside], blk[inside]
+    t = events["t"][inside].astype(np.int64) - int(t_start_us)
+    observed = _independence_chi2(blk, np.minimum(t * pieces // duration_us, pieces - 1), n_blocks, pieces)
+    rng = np.random.default_rng(seed)
+    n_pix = int(shape[0]) * width
+    null = np.empty(int(shifts))
+    for k in range(int(shifts)):
+        shifted = (t + rng.integers(0, duration_us, size=n_pix)[pix]) % duration_us
+        null[k] = _independence_chi2(blk, shifted * pieces // duration_us, n_blocks, pieces)
+    mean, sd, p = _resampled(observed, null)
+    ratio = observed / mean if mean > 0 else 1.0
+    return {"check": "scene_motion", "statistic": observed, "null_mean": mean, "null_sd": sd, "p_value": p,
+            "assumption": True,
+            "detail": f"block x time chi-square of {block}x{block} blocks in {pieces} slices x{ratio:.3g} that of the "
+                      f"pixels' streams shifted in time ({int(shifts)} circular shifts)"}
+
+
+def window_checks(events: np.ndarray, counts: np.ndarray, t_start_us: int, duration_us: int, *,
+                  shifts: int = 200, seed: int = 0) -> list:
+    """The checks of one window (module doc): polarity pairs, stationarity, scene motion, spatial structure."""
+    shape = counts.shape[1:]
+    return [polarity_pairs(events, shape, t_start_us, duration_us, shifts=shifts, seed=seed),
+            stationarity(events, t_start_us, duration_us),
+            scene_motion(events, shape, t_start_us, duration_us, shifts=shifts, seed=seed),
+            spatial_structure(counts, shifts=shifts, seed=seed)]
+
+
+def failed_checks(checks: list, *, p: float = CHECK_P) -> list:
+    """The assumption checks (not the information ones) whose p-value is below ``p``."""
+    return [c for c in checks if c["assumption"] and c["p_value"] < p]
