@@ -16,7 +16,7 @@ from .errors import InputError
 #: Events read at a time when scanning a file.
 READ_BLOCK = 1 << 22
 
-__all__ = ["READ_BLOCK", "decode_attr", "open_h5", "event_datasets", "h5_metadata", "first_index"]
+__all__ = ["READ_BLOCK", "decode_attr", "open_h5", "event_datasets", "h5_metadata", "sensor_shape", "first_index"]
 
 
 def decode_attr(value):
@@ -36,7 +36,7 @@ def open_h5(path):
     try:
         return h5py.File(path, "r")
     except OSError as exc:
-        raise InputError(f"cannot open event file {path} as HDF5: {exc}") from None
+        raise InputError(f"cannot open {path}: not an HDF5 events file ({exc})") from None
 
 
 def event_datasets(f, path) -> dict:
@@ -68,6 +68,17 @@ def h5_metadata(f, ds) -> dict:
     meta["n_events"] = int(ds["t"].shape[0])
     meta["t_offset"] = int(f["t_offset"][()]) if "t_offset" in f else 0
     return meta
+
+
+def sensor_shape(f, path) -> tuple:
+    """``(height, width)`` from the root attributes of an open file (``InputError`` if absent or not positive)."""
+    try:
+        width, height = int(f.attrs["width"]), int(f.attrs["height"])
+    except (KeyError, TypeError, ValueError):
+        raise InputError(f"{path} has no width/height attributes") from None
+    if width <= 0 or height <= 0:
+        raise InputError(f"{path} has an invalid sensor size {width}x{height}")
+    return height, width
 
 
 def first_index(f, t_ds, t_us: int) -> int:

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._h5 import event_datasets, first_index, open_h5, sensor_shape
 from ..errors import InputError, ParameterError
 from .imaging import bin_counts
 
@@ -100,28 +101,16 @@ def recording_mismatch(meta: dict, doc: dict) -> list:
     return out
 
 
-def _open_h5(path):
-    import h5py
-
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"events file not found: {path}")
+def _open_events(path):
+    """``(file, datasets, (height, width))`` of an events.h5 file, opened read-only and checked."""
+    f = open_h5(path)
     try:
-        f = h5py.File(path, "r")
-    except OSError:
-        raise InputError(f"{path} is not an HDF5 events file") from None
-    if "events" not in f or not all(k in f["events"] for k in ("t", "x", "y", "p")):
+        ds = event_datasets(f, path)
+        shape = sensor_shape(f, path)
+    except BaseException:
         f.close()
-        raise InputError(f"{path} has no /events/{{t,x,y,p}}: not an events.h5 file")
-    try:
-        width, height = int(f.attrs["width"]), int(f.attrs["height"])
-    except (KeyError, TypeError, ValueError):
-        f.close()
-        raise InputError(f"{path} has no width/height attributes") from None
-    if width <= 0 or height <= 0:
-        f.close()
-        raise InputError(f"{path} has an invalid sensor size {width}x{height}")
-    return f, (height, width)
+        raise
+    return f, ds, shape
 
 
 def _end_us(f) -> int:
@@ -140,35 +129,9 @@ def h5_duration_s(path) -> float:
     """Length of the recording in seconds: its stored end time ``t_end_us`` when it has one
     (a 10 s simulation lasts 10 s even if its last event came earlier), else the time just
     after the last event (0 for an empty stream without ``t_end_us``)."""
-    f, _ = _open_h5(path)
+    f, _, _ = _open_events(path)
     with f:
         return _end_us(f) * 1e-6
-
-
-def _index_at(f, t_us: int) -> int:
-    """Index of the first event with ``t >= t_us`` (uses /ms_to_idx to read little of /events/t)."""
-    t = f["events/t"]
-    n = t.shape[0]
-    if "ms_to_idx" in f:
-        ms = f["ms_to_idx"]
-        k = t_us // 1000
-        if k >= ms.shape[0]:
-            lo = int(ms[-1]) if ms.shape[0] else 0
-            hi = n
-        else:
-            lo = int(ms[k])
-            hi = int(ms[k + 1]) if k + 1 < ms.shape[0] else n
-    else:
-        lo, hi = 0, n
-    # binary search inside [lo, hi) reading small slices
-    while hi - lo > 4096:
-        mid = (lo + hi) // 2
-        if int(t[mid]) < t_us:
-            lo = mid + 1
-        else:
-            hi = mid
-    block = t[lo:hi]
-    return lo + int(np.searchsorted(block, t_us, side="left"))
 
 
 def counts_from_h5(path, *, t_start_s: float = 0.0, window_s: float | None = None):
@@ -181,7 +144,7 @@ def counts_from_h5(path, *, t_start_s: float = 0.0, window_s: float | None = Non
         raise ParameterError(f"t_start_s must be >= 0 seconds, got {t_start_s!r}")
     if window_s is not None and not (math.isfinite(window_s) and window_s > 0):
         raise ParameterError(f"window must be > 0 seconds, got {window_s!r}")
-    f, (height, width) = _open_h5(path)
+    f, ds, (height, width) = _open_events(path)
     with f:
         t0 = int(round(t_start_s * 1e6))
         end = _end_us(f)
@@ -197,10 +160,10 @@ def counts_from_h5(path, *, t_start_s: float = 0.0, window_s: float | None = Non
                     f"the window {t_start_s:g} s + {window_s:g} s runs past the end of the recording "
                     f"({end * 1e-6:.6g} s)"
                 )
-        lo, hi = _index_at(f, t0), _index_at(f, t1)
-        x = f["events/x"][lo:hi].astype(np.int64)
-        y = f["events/y"][lo:hi].astype(np.int64)
-        p = f["events/p"][lo:hi].astype(np.int64)
+        lo, hi = first_index(f, ds["t"], t0), first_index(f, ds["t"], t1)
+        x = ds["x"][lo:hi].astype(np.int64)
+        y = ds["y"][lo:hi].astype(np.int64)
+        p = ds["p"][lo:hi].astype(np.int64)
     if x.size and (x.max() >= width or y.max() >= height):
         raise InputError(f"{path} has events outside its {width}x{height} sensor")
     flat = (1 - p) * (height * width) + y * width + x  # channel 0 = ON (p = 1)
