@@ -177,6 +177,23 @@ def _timer_mean_min(log1m_p, p, d, a2):
     return head + tail
 
 
+def timer_shape(l_all_hz, trial_s: float, regularity: float):
+    """``(d, log1p(-a2))`` of the regular timer for background intensities ``l_all_hz`` (events/s).
+
+    The one home of the timer's shape (module doc; :func:`evnoise._kernels.background.timer_shape`
+    element by element): ``d`` the mean fixed part in trials (``inf`` where there is no background),
+    ``a2`` the per-trial probability of the geometric rest (``log1p(-a2)`` is 0 where there is none).
+    """
+    from ._kernels.background import timer_shapes
+
+    l_all = np.asarray(l_all_hz, dtype=np.float64)
+    flat = np.ascontiguousarray(l_all.ravel())
+    d = np.empty_like(flat)
+    log1m_a2 = np.empty_like(flat)
+    timer_shapes(flat, float(trial_s), float(regularity), d, log1m_a2)
+    return d.reshape(l_all.shape), log1m_a2.reshape(l_all.shape)
+
+
 def regular_rates(p_on, p_off, l_on, l_off, trial_rate_hz: float, refractory_s: float, regularity: float):
     """Rates ``(nu_on, nu_off)`` events/s of a pixel with photon noise and a regular background timer.
 
@@ -189,11 +206,9 @@ def regular_rates(p_on, p_off, l_on, l_off, trial_rate_hz: float, refractory_s: 
     log1m_p = np.log1p(-p)
     l_all = l_on + l_off
     has = l_all > 0
+    d, log1m_a2 = timer_shape(l_all, 1.0 / n, regularity)
+    a2 = -np.expm1(log1m_a2)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        a = -np.expm1(-l_all / n)
-        m = np.where(has, 1.0 / np.where(has, a, 1.0), np.inf)
-        d = regularity * (m - 1.0)
-        a2 = np.where(has, 1.0 / (1.0 + (1.0 - regularity) * (m - 1.0)), 0.0)
         d0 = np.floor(np.where(has, d, 0.0))
         phi = np.where(has, d, 0.0) - d0
         e_min = (1.0 - phi) * _timer_mean_min(log1m_p, p, d0, a2) + phi * _timer_mean_min(log1m_p, p, d0 + 1.0, a2)

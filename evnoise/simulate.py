@@ -232,22 +232,17 @@ def _renewal_inputs(p_on: np.ndarray, p_off: np.ndarray):
 
 def _timer_arrays(lam, params: NoiseParams, bg):
     """``(3, n)`` ``[d, log1p(-a2), ON share]`` of the regular background timer (:mod:`evnoise._kernels.background`)."""
-    from .background import _intensities, lux_of_photons
+    from .background import _intensities, lux_of_photons, timer_shape
 
     scale, hot = (None, None) if bg is None else bg
     l_on, l_off = _intensities(lux_of_photons(lam, params), params, scale, hot)
     l_on = np.broadcast_to(l_on, np.shape(lam))
     l_all = l_on + np.broadcast_to(l_off, np.shape(lam))
-    r = params.leak_regularity
+    d, log1m_a2 = timer_shape(l_all, params.trial_us * 1e-6, params.leak_regularity)
     has = l_all > 0
     with np.errstate(divide="ignore", invalid="ignore"):
-        a = -np.expm1(-l_all * (params.trial_us * 1e-6))
-        m = 1.0 / np.where(has, a, 1.0)
-        d = np.where(has, r * (m - 1.0), np.inf)
-        a2 = 1.0 / (1.0 + (1.0 - r) * (m - 1.0))
-        log1m_a2 = np.where(a2 < 1.0, np.log1p(-np.minimum(a2, 1.0)), -np.inf)
         share = np.where(has, l_on / np.where(has, l_all, 1.0), 0.0)
-    return np.ascontiguousarray(np.stack([d, np.where(has, log1m_a2, 0.0), share]))
+    return np.ascontiguousarray(np.stack([d, log1m_a2, share]))
 
 
 def _static_inputs(lam, params: NoiseParams, eps_on, eps_off, bg):

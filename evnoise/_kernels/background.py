@@ -32,6 +32,13 @@ def timer_shape(l_all, dt_s, regularity):
 
 
 @kernel
+def timer_shapes(l_all, dt_s, regularity, d, log1m_a2):
+    """:func:`timer_shape` of every intensity of the 1-D array ``l_all``, into ``d`` and ``log1m_a2``."""
+    for i in range(l_all.size):
+        d[i], log1m_a2[i] = timer_shape(l_all[i], dt_s, regularity)
+
+
+@kernel
 def draw_timer(s, d, log1m_a2):
     """Trials ``L >= 1`` from the first eligible trial to the next background arrival."""
     if d == math.inf:
