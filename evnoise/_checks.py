@@ -100,6 +100,26 @@ def check_positive(value, name: str, unit: str = "") -> float:
     return v
 
 
+def check_float(value, name: str, unit: str, *, minimum: float = 0.0, strict: bool = True) -> float:
+    """``float(value)``, finite and above ``minimum`` (``strict``) or at least ``minimum``; ``ParameterError`` otherwise."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ParameterError(f"{name} must be a number ({unit}), got {value!r}") from None
+    if not math.isfinite(v) or (v <= minimum if strict else v < minimum):
+        raise ParameterError(f"{name} must be finite and {'>' if strict else '>='} {minimum:g} {unit}, got {value!r}")
+    return v
+
+
+def check_int(value, name: str, lo: int, hi: int, unit: str) -> int:
+    """``int(value)`` of an integer (not a bool, not a float) in ``lo .. hi``; ``ParameterError`` otherwise."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise ParameterError(f"{name} must be an integer ({unit}), got {value!r}")
+    if not lo <= int(value) <= hi:
+        raise ParameterError(f"{name} must be in {lo} .. {hi} {unit}, got {value}")
+    return int(value)
+
+
 def duration_to_us(duration_s) -> int:
     """Duration in whole microseconds (at least 1)."""
     d = check_positive(duration_s, "duration_s", "seconds")

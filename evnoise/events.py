@@ -43,6 +43,7 @@ __all__ = [
     "events_to_array",
     "events_from_array",
     "check_events",
+    "check_shape",
 ]
 
 
@@ -76,13 +77,14 @@ def check_events(events, shape=None, *, name: str = "events") -> np.ndarray:
     if events.size and np.any(events["p"] > 1):
         raise InputError(f"{name} polarity p must be 0 (OFF) or 1 (ON)")
     if shape is not None and events.size:
-        height, width = _check_shape(shape)
+        height, width = check_shape(shape)
         if events["x"].max() >= width or events["y"].max() >= height:
             raise InputError(f"{name} have coordinates outside the sensor of shape (H, W) = {shape}")
     return events
 
 
-def _check_shape(shape):
+def check_shape(shape) -> tuple:
+    """``(height, width)`` as ints from a sensor shape ``(H, W)``; ``InputError`` unless 1 <= H, W <= 65536."""
     try:
         height, width = (int(v) for v in shape)
     except (TypeError, ValueError):
@@ -92,9 +94,13 @@ def _check_shape(shape):
     return height, width
 
 
+#: Former name of :func:`check_shape` (``evnoise.simulate`` still imports it).
+_check_shape = check_shape
+
+
 def count_events(events, shape, t_start_us=None, t_end_us=None) -> np.ndarray:
     """Per-pixel event counts ``(2, H, W)`` int64, ``[ON, OFF]``, for ``t_start_us <= t < t_end_us``."""
-    height, width = _check_shape(shape)
+    height, width = check_shape(shape)
     events = check_events(events, shape)
     t = events["t"]
     lo = 0 if t_start_us is None else int(np.searchsorted(t, t_start_us, side="left"))

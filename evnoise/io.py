@@ -28,7 +28,7 @@ from ._atomic import AtomicFile
 from ._h5 import READ_BLOCK, event_datasets, first_index, h5_metadata, open_h5
 from ._version import __version__
 from .errors import EvnoiseError, InputError, OutputError, ParameterError
-from .events import ON, _check_shape, check_events, make_events
+from .events import ON, check_events, check_shape, make_events
 
 __all__ = ["EventWriter", "EventFileWriter", "open_event_writer", "output_format", "OUTPUT_FORMATS", "write_events",
            "read_events", "read_metadata", "write_aedat4", "open_output_path"]
@@ -154,7 +154,7 @@ class EventWriter(_AtomicWriter):
                  t_end_us: int | None = None, t_offset_us: int = 0):
         import h5py
 
-        self.shape = _check_shape(shape)
+        self.shape = check_shape(shape)
         if compression not in COMPRESSIONS:
             raise ParameterError(f"compression must be one of {COMPRESSIONS}, got {compression!r}")
         if t_end_us is not None:
@@ -468,7 +468,7 @@ class EventFileWriter(_AtomicWriter):
         what = {"aedat4": "AEDAT4 file", "evt3": "RAW file", "dat": "DAT file", "es": "Event Stream file",
                 "csv": "CSV file"}[self.format]
         self.what = what
-        self.shape = _check_shape(shape)
+        self.shape = check_shape(shape)
         self.t_end_us = t_end_us
         self.overwrite = overwrite
         self.n_events = 0

@@ -55,8 +55,9 @@ from typing import Iterator
 
 import numpy as np
 
+from ._checks import check_float, check_int
 from .errors import InputError, ParameterError
-from .events import _check_shape, check_events, empty_events, polarity_index
+from .events import check_events, check_shape, empty_events, polarity_index
 
 __all__ = [
     "MaskParams",
@@ -68,6 +69,7 @@ __all__ = [
     "box_sum",
     "disc",
     "bin_rates",
+    "bin_mask",
     "overlay_rgb",
     "COUNT_MODES",
     "ON_MOTION",
@@ -84,24 +86,6 @@ ON_MOTION = ("skip", "restart")
 
 #: Time span of the blocks read from a file (or cut from an array) at a time, in seconds.
 BLOCK_S = 0.25
-
-
-def _check_float(value, name: str, unit: str, *, minimum: float = 0.0, strict: bool = True) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ParameterError(f"{name} must be a number ({unit}), got {value!r}") from None
-    if not math.isfinite(v) or (v <= minimum if strict else v < minimum):
-        raise ParameterError(f"{name} must be finite and {'>' if strict else '>='} {minimum:g} {unit}, got {value!r}")
-    return v
-
-
-def _check_int(value, name: str, lo: int, hi: int, unit: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise ParameterError(f"{name} must be an integer ({unit}), got {value!r}")
-    if not lo <= int(value) <= hi:
-        raise ParameterError(f"{name} must be in {lo} .. {hi} {unit}, got {value}")
-    return int(value)
 
 
 @dataclass(frozen=True)
@@ -126,10 +110,10 @@ class MaskParams:
     dilation_px: int = 3
 
     def __post_init__(self):
-        object.__setattr__(self, "window_s", _check_float(self.window_s, "mask window_s", "seconds"))
-        object.__setattr__(self, "radius_px", _check_int(self.radius_px, "mask radius_px", 0, 255, "pixels"))
-        object.__setattr__(self, "threshold", _check_int(self.threshold, "mask threshold", 1, 2**31 - 1, "events"))
-        object.__setattr__(self, "dilation_px", _check_int(self.dilation_px, "dilation_px", 0, 255, "pixels"))
+        object.__setattr__(self, "window_s", check_float(self.window_s, "mask window_s", "seconds"))
+        object.__setattr__(self, "radius_px", check_int(self.radius_px, "mask radius_px", 0, 255, "pixels"))
+        object.__setattr__(self, "threshold", check_int(self.threshold, "mask threshold", 1, 2**31 - 1, "events"))
+        object.__setattr__(self, "dilation_px", check_int(self.dilation_px, "dilation_px", 0, 255, "pixels"))
 
 
 @dataclass
@@ -243,15 +227,15 @@ class MotionTracker:
 
     def __init__(self, shape, *, step_s: float, window_s: float, t_start_us: int = 0, mask: MaskParams | None = None,
                  count: str = "noise", on_motion: str = "skip"):
-        self.shape = _check_shape(shape)
+        self.shape = check_shape(shape)
         if count not in COUNT_MODES:
             raise ParameterError(f"count must be one of {COUNT_MODES}, got {count!r}")
         if on_motion not in ON_MOTION:
             raise ParameterError(f"on_motion must be one of {ON_MOTION}, got {on_motion!r}")
         self.count = count
         self.on_motion = on_motion
-        step_s = _check_float(step_s, "step_s", "seconds")
-        window_s = _check_float(window_s, "window_s", "seconds")
+        step_s = check_float(step_s, "step_s", "seconds")
+        window_s = check_float(window_s, "window_s", "seconds")
         self.step_us = int(round(step_s * 1e6))
         if self.step_us < 1:
             raise ParameterError(f"step_s must be at least 1 microsecond, got {step_s!r}")
@@ -385,10 +369,6 @@ def _array_blocks(events, t_start_us: int, t_end_us: int, block_us: int):
         lo, a = hi, b
 
 
-def _check_fps(fps) -> float:
-    return _check_float(fps, "fps", "frames per second")
-
-
 def iter_motion(source, shape=None, *, fps: float, window_s: float, separator="density", is_signal=None,
                 mask: MaskParams | None = None, count: str = "noise", on_motion: str = "skip",
                 t_start_s: float | None = None, t_end_s: float | None = None, stats: dict | None = None, csv_columns=None) -> Iterator[MotionFrame]:
@@ -431,17 +411,18 @@ def iter_motion(source, shape=None, *, fps: float, window_s: float, separator="d
     ------
     MotionFrame
     """
-    from .separation import Separator, _as_filter, _h5_blocks, _h5_info, _recording_start_us
+    from ._recordings import recording_blocks, recording_info, recording_start_us
+    from .separation import Separator, as_filter
 
-    fps = _check_fps(fps)
-    window_s = _check_float(window_s, "window_s", "seconds")
+    fps = check_float(fps, "fps", "frames per second")
+    window_s = check_float(window_s, "window_s", "seconds")
     if t_start_s is not None:
-        t_start_s = _check_float(t_start_s, "t_start_s", "seconds", strict=False)
+        t_start_s = check_float(t_start_s, "t_start_s", "seconds", strict=False)
     t_start_us = 0 if t_start_s is None else int(round(t_start_s * 1e6))
     if isinstance(source, np.ndarray):
         if shape is None:
             raise InputError("shape (H, W) is required with an event array")
-        shape = _check_shape(shape)
+        shape = check_shape(shape)
         events = check_events(source, shape)
         if events.size == 0:
             raise InputError("the recording has no events")
@@ -454,15 +435,15 @@ def iter_motion(source, shape=None, *, fps: float, window_s: float, separator="d
     else:
         if is_signal is not None:
             raise InputError("is_signal can only be given with an event array")
-        file_shape, n, t_first, t_last, t_file_end = _h5_info(source, shape, csv_columns=csv_columns)  # any event file
+        file_shape, n, t_first, t_last, t_file_end = recording_info(source, shape, csv_columns=csv_columns)  # any event file
         shape = file_shape
         if t_start_s is None:
-            t_start_us = _recording_start_us(source, t_first)
+            t_start_us = recording_start_us(source, t_first)
             t_start_s = t_start_us * 1e-6
         if n == 0:
             raise InputError(f"{source} has no events: nothing to reconstruct")
     if t_end_s is not None:
-        t_end_us = int(round(_check_float(t_end_s, "t_end_s", "seconds") * 1e6))
+        t_end_us = int(round(check_float(t_end_s, "t_end_s", "seconds") * 1e6))
     else:
         t_end_us = max(t_file_end or 0, t_last + 1)
     if t_end_us <= t_start_us:
@@ -478,10 +459,10 @@ def iter_motion(source, shape=None, *, fps: float, window_s: float, separator="d
         else:
             blocks = _array_blocks(events, t_start_us, t_end_us, block_us)
     else:
-        blocks = _h5_blocks(source, t_start_us, t_end_us, block_us, shape, csv_columns=csv_columns)
+        blocks = recording_blocks(source, t_start_us, t_end_us, block_us, shape, csv_columns=csv_columns)
     sep = None
     if is_signal is None and separator is not None:
-        sep = Separator(shape, _as_filter(separator))
+        sep = Separator(shape, as_filter(separator))
     if stats is not None:
         stats.update(n_events=0, n_signal=0)
 
@@ -534,8 +515,8 @@ class BackgroundHold:
     """
 
     def __init__(self, shape, *, min_exposure_s: float):
-        self.shape = _check_shape(shape)
-        self.min_exposure_s = _check_float(min_exposure_s, "min_exposure_s", "seconds")
+        self.shape = check_shape(shape)
+        self.min_exposure_s = check_float(min_exposure_s, "min_exposure_s", "seconds")
         self.rates = np.zeros((2, *self.shape), dtype=np.float64)
         self.seen = np.zeros(self.shape, dtype=bool)
 
@@ -567,7 +548,8 @@ def bin_rates(rates, binning: int) -> np.ndarray:
     return block_sum(np.asarray(rates, dtype=np.float64), int(binning), "sensor")
 
 
-def _bin_any(mask, binning: int) -> np.ndarray:
+def bin_mask(mask, binning: int) -> np.ndarray:
+    """A boolean mask ``(H, W)`` over ``binning x binning`` blocks: True where any pixel of the block is (partial edges dropped)."""
     b = int(binning)
     h, w = mask.shape[0] // b, mask.shape[1] // b
     return mask[:h * b, :w * b].reshape(h, b, w, b).any(axis=(1, 3))

@@ -484,11 +484,11 @@ def fit_to_sensor(image, shape, mode: str = "cover") -> np.ndarray:
     numpy.ndarray
         float64 ``(H, W)``.
     """
-    from .events import _check_shape
+    from .events import check_shape
 
     if mode not in FIT_MODES:
         raise ParameterError(f"fit mode must be one of {FIT_MODES}, got {mode!r}")
-    height, width = _check_shape(shape)
+    height, width = check_shape(shape)
     img = np.asarray(image, dtype=np.float64)
     if img.ndim != 2 or img.size == 0:
         raise InputError(f"fit_to_sensor needs a non-empty 2-D image, got shape {img.shape}")

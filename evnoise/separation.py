@@ -46,7 +46,8 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError, ParameterError
-from .events import _check_shape, check_events, empty_events
+from ._recordings import recording_blocks, recording_info, recording_start_us
+from .events import check_events, check_shape, empty_events
 
 __all__ = [
     "DensityFilter",
@@ -153,7 +154,7 @@ class ActivityFilter:
         return 0
 
 
-def _as_filter(method, **params):
+def as_filter(method, **params):
     """A filter object from a filter object or a name in :data:`FILTERS` plus keyword parameters."""
     if isinstance(method, (DensityFilter, ActivityFilter)):
         if params:
@@ -198,8 +199,8 @@ class Separator:
     """
 
     def __init__(self, shape, method="density", **params):
-        self.shape = _check_shape(shape)
-        self.filter = _as_filter(method, **params)
+        self.shape = check_shape(shape)
+        self.filter = as_filter(method, **params)
         height, width = self.shape
         self._last_t = None  # last time pushed
         self._t_complete = None
@@ -357,7 +358,7 @@ def activity_filter(events, shape, *, radius_px: int = 1, window_us: int = 5_000
 
 def separate_events(events, shape, method="density", **params):
     """Split events into ``(signal, noise)`` arrays with a filter (see :class:`Separator`)."""
-    flt = _as_filter(method, **params)
+    flt = as_filter(method, **params)
     events = check_events(events, shape)
     is_signal = _run_whole(events, shape, flt)
     return events[is_signal], events[~is_signal]
@@ -403,97 +404,6 @@ def separation_scores(predicted, truth) -> dict:
     }
 
 
-# --------------------------------------------------------------------------------------
-# events.h5 files, streamed
-# --------------------------------------------------------------------------------------
-def _h5_info(path, shape=None, *, csv_columns=None):
-    """``(shape, n_events, t_first, t_last, t_end_attr)`` of an event file (events.h5 or any camera file).
-
-    An events.h5 file is read little (its attributes and two timestamps); a camera file is
-    scanned once (streaming). ``shape`` (H, W) is the sensor size for files whose header has
-    none; a file that does give one must agree.
-    """
-    from .readers import open_events, scan_events
-
-    sensor = None if shape is None else (int(shape[1]), int(shape[0]))
-    src = open_events(path, csv_columns=csv_columns)
-    if shape is not None and src.shape is not None and tuple(src.shape) != tuple(_check_shape(shape)):
-        raise InputError(f"shape {tuple(shape)} does not match the file's sensor {src.shape}")
-    if src.shape is None:
-        if sensor is None:
-            raise InputError(f"{path}: the sensor size is unknown (no width/height in the file); "
-                             f"give it with --sensor WxH")
-        src = open_events(path, sensor=sensor, csv_columns=csv_columns)
-    if src.format == "h5":
-        n, t_first, t_last = src.n_events, src.t_first_us, src.t_last_us
-        t_end = src.meta.get("t_end_us")
-        t_end = None if t_end is None else int(t_end) + src.t_offset_us
-    else:
-        info = scan_events(src)
-        n, t_first, t_last, t_end = info["n_events"], info["t_first_us"], info["t_last_us"], None
-    return src.shape, n, t_first, t_last, t_end
-
-
-def _recording_start_us(path, t_first) -> int:
-    """Where a recording starts when no start is given: 0 for events.h5 (evnoise's clock starts
-    at 0), the first event for camera files (whose clocks start anywhere)."""
-    from .readers import detect_format
-
-    if detect_format(path) == "h5" or t_first is None:
-        return 0
-    return int(t_first)
-
-
-def _h5_blocks(path, t_start_us: int, t_end_us: int, block_us: int, shape=None, *, csv_columns=None):
-    """``(events, t_block_end)`` for consecutive blocks ``[a, b)`` of an event file (every block,
-    empty ones too); events.h5 seeks through ``/ms_to_idx``, other formats are decoded in order."""
-    from .readers import open_events
-
-    sensor = None if shape is None else (int(shape[1]), int(shape[0]))
-    src = open_events(path, sensor=sensor, csv_columns=csv_columns)
-    if src.format == "h5" and not src.t_offset_us:
-        from .events import make_events
-        from ._h5 import event_datasets, first_index, open_h5
-
-        with open_h5(path) as f:
-            ds = event_datasets(f, path)
-            a = t_start_us
-            lo = first_index(f, ds["t"], a)
-            while a < t_end_us:
-                b = min(a + block_us, t_end_us)
-                hi = first_index(f, ds["t"], b)
-                try:
-                    events = make_events(ds["t"][lo:hi], ds["x"][lo:hi], ds["y"][lo:hi], ds["p"][lo:hi])
-                except OSError as exc:
-                    raise InputError(f"cannot read events from {path}: {exc}") from None
-                yield events, b
-                lo, a = hi, b
-        return
-    yield from _reblock(src.chunks(t_start_us, t_end_us), t_start_us, t_end_us, block_us)
-
-
-def _reblock(chunks, t_start_us: int, t_end_us: int, block_us: int):
-    """Cut a stream of time-sorted chunks into consecutive blocks ``[a, a + block_us)``."""
-    pending = []
-    a = t_start_us
-    for chunk in chunks:
-        pending.append(chunk)
-        while a < t_end_us and int(chunk["t"][-1]) >= min(a + block_us, t_end_us):
-            b = min(a + block_us, t_end_us)
-            buf = np.concatenate(pending) if len(pending) > 1 else pending[0]
-            cut = int(np.searchsorted(buf["t"], b, side="left"))
-            yield buf[:cut], b
-            pending = [buf[cut:]]
-            a = b
-    while a < t_end_us:
-        b = min(a + block_us, t_end_us)
-        buf = np.concatenate(pending) if pending else empty_events(0)
-        cut = int(np.searchsorted(buf["t"], b, side="left"))
-        yield buf[:cut], b
-        pending = [buf[cut:]]
-        a = b
-
-
 #: Time span of the blocks read from a file at a time, in microseconds.
 FILE_BLOCK_US = 250_000
 
@@ -532,7 +442,7 @@ def separate_file(path, signal_out=None, noise_out=None, method="density", *, ov
     from .io import EventFileWriter, open_output_path, output_format
     from .readers import parse_sensor
 
-    flt = _as_filter(method, **params)
+    flt = as_filter(method, **params)
     if signal_out is None and noise_out is None:
         raise ParameterError("give at least one output: signal_out or noise_out")
     outs = [Path(p) for p in (signal_out, noise_out) if p is not None]
@@ -544,9 +454,9 @@ def separate_file(path, signal_out=None, noise_out=None, method="density", *, ov
         output_format(out)
         open_output_path(out, overwrite=overwrite, what="event file")
     user = parse_sensor(sensor)
-    shape, n, t_first, t_last, t_end_attr = _h5_info(path, user, csv_columns=csv_columns)
+    shape, n, t_first, t_last, t_end_attr = recording_info(path, user, csv_columns=csv_columns)
     t_end = max(t_end_attr or 0, (t_last + 1) if n else 0)
-    t_begin = _recording_start_us(path, t_first)
+    t_begin = recording_start_us(path, t_first)
     t_begin = min(t_begin, t_first) if n else t_begin
     t_offset = t_begin // 1_000_000 * 1_000_000  # whole seconds: a camera clock that reads 1.6e15 us
     sep = Separator(shape, flt)
@@ -575,7 +485,7 @@ def separate_file(path, signal_out=None, noise_out=None, method="density", *, ov
                 writers["noise"].write(done[~labels])
 
         if n:
-            for chunk, b in _h5_blocks(path, t_begin, t_end, FILE_BLOCK_US, shape, csv_columns=csv_columns):
+            for chunk, b in recording_blocks(path, t_begin, t_end, FILE_BLOCK_US, shape, csv_columns=csv_columns):
                 emit(*sep.push(chunk, t_complete_us=b))
                 if bar is not None:
                     bar.update((min(b, t_end) - t_begin) * 1e-6 - bar.n)

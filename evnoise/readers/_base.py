@@ -18,7 +18,7 @@ from typing import Iterator
 import numpy as np
 
 from ..errors import InputError, ParameterError
-from ..events import EVENT_DTYPE, _check_shape
+from ..events import EVENT_DTYPE, check_shape
 
 log = logging.getLogger("evnoise")
 
@@ -116,7 +116,7 @@ class EventSource:
         """Combine the header's size with the caller's ``sensor`` (the caller wins, with a warning)."""
         user = self._user_shape
         if header_shape is not None:
-            header_shape = _check_shape(header_shape)
+            header_shape = check_shape(header_shape)
         if user is not None:
             if header_shape is not None and header_shape != user:
                 log.warning("%s: the header says %dx%d; using --sensor %dx%d", self.path, header_shape[1],

@@ -13,18 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from .._atomic import atomic_output
+from .._checks import check_float, check_int
 from ..errors import InputError, OutputError, ParameterError
-from ..motion import (
-    BackgroundHold,
-    MaskParams,
-    _bin_any,
-    _check_float,
-    _check_fps,
-    _check_int,
-    bin_rates,
-    iter_motion,
-    overlay_rgb,
-)
+from ..motion import BackgroundHold, MaskParams, bin_mask, bin_rates, iter_motion, overlay_rgb
 
 __all__ = ["reconstruct_video"]
 
@@ -105,13 +96,13 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
     the module docstring for how masked pixels are shown (the last static estimate).
     """
     from ..readers import parse_sensor
-    from ..separation import _h5_info, _recording_start_us
+    from .._recordings import recording_info, recording_start_us
     from .imaging import write_png
     from .infer import Reconstructor
 
-    fps = _check_fps(fps)
+    fps = check_float(fps, "fps", "frames per second")
     if max_frames is not None:
-        max_frames = _check_int(max_frames, "max_frames", 1, 2**62, "frames")
+        max_frames = check_int(max_frames, "max_frames", 1, 2**62, "frames")
     out_dir = Path(out_dir)
     parent = out_dir.parent if str(out_dir.parent) else Path(".")
     if out_dir.exists() and not out_dir.is_dir():
@@ -120,8 +111,8 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
         raise OutputError(f"cannot create output folder {out_dir}: {parent} does not exist")
     if out_dir.is_dir() and not overwrite and (any(out_dir.glob("frame_*.png")) or any(out_dir.glob("overlay_*.png"))):
         raise OutputError(f"{out_dir} already holds frames; pass --overwrite (overwrite=True) to replace them")
-    shape, n, t_first, t_last, t_file_end = _h5_info(events_h5, parse_sensor(sensor),
-                                                     csv_columns=csv_columns)  # input errors before the model
+    shape, n, t_first, t_last, t_file_end = recording_info(events_h5, parse_sensor(sensor),
+                                                           csv_columns=csv_columns)  # input errors before the model
     if n == 0:
         raise InputError(f"{events_h5} has no events: nothing to reconstruct")
     rec = Reconstructor(model_path, threads=threads)
@@ -135,17 +126,17 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
         window_s = rec.spec.window_s
         if window_s is None:
             raise ParameterError("the model does not record its training window: give window_s (--window)")
-    window_s = _check_float(window_s, "window_s", "seconds")
+    window_s = check_float(window_s, "window_s", "seconds")
     step_us = int(round(1e6 / fps))
     window_steps = max(1, int(round(window_s * 1e6 / step_us)))
     if t_start_s is None:
-        t_start_us = _recording_start_us(events_h5, t_first)
+        t_start_us = recording_start_us(events_h5, t_first)
     else:
-        t_start_us = int(round(_check_float(t_start_s, "t_start_s", "seconds", strict=False) * 1e6))
+        t_start_us = int(round(check_float(t_start_s, "t_start_s", "seconds", strict=False) * 1e6))
     if t_end_s is None:
         t_end_us = max(t_file_end or 0, t_last + 1)
     else:
-        t_end_us = int(round(_check_float(t_end_s, "t_end_s", "seconds") * 1e6))
+        t_end_us = int(round(check_float(t_end_s, "t_end_s", "seconds") * 1e6))
     n_steps = (t_end_us - t_start_us) // step_us
     n_out = n_steps - window_steps + 1
     if n_out < 1:
@@ -158,7 +149,7 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
         for old in [*out_dir.glob("frame_*.png"), *out_dir.glob("overlay_*.png"), out_dir / "frames.csv"]:
             old.unlink(missing_ok=True)
     hold = BackgroundHold(shape, min_exposure_s=window_steps * step_us * 1e-6 if min_exposure_s is None
-                          else _check_float(min_exposure_s, "min_exposure_s", "seconds"))
+                          else check_float(min_exposure_s, "min_exposure_s", "seconds"))
     stats: dict = {}
     bar = None
     if progress:
@@ -180,7 +171,7 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
             name = f"{written:05d}.png"
             write_png(out_dir / f"frame_{name}", image)
             if overlay:
-                rgb = overlay_rgb(image, _bin_any(frame.mask, rec.binning)[:image.shape[0], :image.shape[1]],
+                rgb = overlay_rgb(image, bin_mask(frame.mask, rec.binning)[:image.shape[0], :image.shape[1]],
                                   bin_rates(frame.signal, rec.binning)[:, :image.shape[0], :image.shape[1]])
                 _write_rgb_png(out_dir / f"overlay_{name}", rgb)
             masked.append(float(frame.mask.mean()))
