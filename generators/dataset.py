@@ -7,6 +7,8 @@ Output folder::
     DIR/.evnoise-progress/         while running: plan.json, one record per finished shard,
                                    a lock file; removed when the manifest is written
 
+(:mod:`.folder` holds these names and prepares, locks and reads back the folder.)
+
 Determinism. The plan (which source goes to which split and shard) depends only on the
 options and the list of item ids; every pair depends only on the seed and its identity
 (:mod:`.pairs`); a shard's bytes depend only on its pairs. So any number of workers, a Dask
@@ -33,11 +35,24 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from evnoise._atomic import write_text_atomic
 from evnoise._version import __version__
 from evnoise.errors import InputError, OutputError, ParameterError
 
 from .config import COUNT_MAX, LEVELS, PairConfig
+from .folder import (
+    MANIFEST,
+    PREVIEW,  # noqa: F401 - importable from here as before the split
+    PROGRESS_DIR,
+    SHARDS_DIR,
+    FolderLock,
+    discard_empty,
+    existing_records,
+    prepare_folder,
+    read_json,
+    shard_verified,
+    stored_seed,
+    write_json,
+)
 from .shards import FORMAT, FORMAT_VERSION, file_sha256
 
 __all__ = ["make_dataset", "plan_dataset", "DatasetResult", "Plan", "ShardTask", "SPLITS", "MANIFEST",
@@ -46,11 +61,6 @@ __all__ = ["make_dataset", "plan_dataset", "DatasetResult", "Plan", "ShardTask",
 log = logging.getLogger(__name__)
 
 SPLITS = ("train", "val", "test")
-MANIFEST = "manifest.json"
-#: a picture of a few pairs, written by ``evnoise make-dataset`` (not part of the data, not verified)
-PREVIEW = "preview.png"
-SHARDS_DIR = "shards"
-PROGRESS_DIR = ".evnoise-progress"
 _SPLIT_SALT = "evnoise-split-v1:"
 
 
@@ -290,156 +300,6 @@ def _run_job(job: _Job) -> dict:
 
 
 # --------------------------------------------------------------------------------------
-# the output folder
-# --------------------------------------------------------------------------------------
-def _write_json(path: Path, data) -> None:
-    write_text_atomic(path, json.dumps(data, indent=1, sort_keys=True) + "\n", what="manifest")
-
-
-def _read_json(path: Path):
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-
-
-class _Lock:
-    """An exclusive lock on the output folder (one run at a time)."""
-
-    def __init__(self, path: Path):
-        self.path = path
-        self.fh = None
-
-    def __enter__(self):
-        try:
-            import fcntl
-        except ImportError:  # pragma: no cover - not POSIX
-            return self
-        try:
-            self.fh = open(self.path, "a+")
-            fcntl.flock(self.fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            self.fh.close()
-            raise OutputError(f"another evnoise make-dataset run is writing to {self.path.parent.parent}") from None
-        except OSError as exc:
-            raise OutputError(f"cannot lock {self.path}: {exc}") from None
-        return self
-
-    def __exit__(self, *exc):
-        if self.fh is not None:
-            self.fh.close()
-        return False
-
-
-def _prepare_folder(root: Path, overwrite: bool) -> None:
-    if root.exists() and not root.is_dir():
-        raise OutputError(f"output {root} exists and is not a folder")
-    if not root.exists():
-        parent = root.parent if str(root.parent) else Path(".")
-        if not parent.is_dir():
-            raise OutputError(f"cannot create output folder {root}: {parent} does not exist")
-        try:
-            root.mkdir()
-        except OSError as exc:
-            raise OutputError(f"cannot create output folder {root}: {exc.strerror or exc}") from None
-    if not os.access(root, os.W_OK | os.X_OK):
-        raise OutputError(f"output folder {root} is not writable")
-    ours = {MANIFEST, SHARDS_DIR, PROGRESS_DIR, PREVIEW}
-    others = [p.name for p in root.iterdir() if p.name not in ours]
-    has_dataset = (root / MANIFEST).exists() or (root / PROGRESS_DIR).exists()
-    if others and not has_dataset:
-        raise OutputError(f"output folder {root} is not empty and holds no evnoise dataset "
-                          f"({', '.join(sorted(others)[:3])}{', ...' if len(others) > 3 else ''}); "
-                          "choose a new or empty folder")
-    if overwrite and has_dataset:
-        _clear(root)
-
-
-def _discard_empty(root: Path, created: bool) -> None:
-    """Remove the files of a run that made no pair (every source unreadable), so that no empty
-    folder looks like a dataset; the folder itself goes too when this run created it."""
-    shutil.rmtree(root / SHARDS_DIR, ignore_errors=True)
-    (root / PREVIEW).unlink(missing_ok=True)
-    if created:
-        for p in root.iterdir():
-            if p.name != PROGRESS_DIR:
-                return  # something else appeared: leave the folder
-        shutil.rmtree(root, ignore_errors=True)
-
-
-def _clear(root: Path) -> None:
-    """Remove an existing dataset's files (only evnoise's own)."""
-    (root / MANIFEST).unlink(missing_ok=True)
-    (root / PREVIEW).unlink(missing_ok=True)
-    shards = root / SHARDS_DIR
-    if shards.is_dir():
-        for p in shards.iterdir():
-            if p.suffix == ".h5" or p.name.endswith(".tmp"):
-                p.unlink()
-    progress = root / PROGRESS_DIR
-    if progress.is_dir():
-        shutil.rmtree(progress)
-
-
-def _stored_seed(root: Path):
-    for path in (root / MANIFEST, root / PROGRESS_DIR / "plan.json"):
-        data = _read_json(path) if path.exists() else None
-        if isinstance(data, dict) and isinstance(data.get("config"), dict) and "seed" in data["config"]:
-            return data["config"]["seed"]
-    return None
-
-
-def _existing_records(root: Path, plan: Plan) -> dict:
-    """Records of shards finished earlier (from the manifest or the progress folder), unverified."""
-    records = {}
-    manifest = _read_json(root / MANIFEST) if (root / MANIFEST).exists() else None
-    progress = root / PROGRESS_DIR
-    plan_file = _read_json(progress / "plan.json") if (progress / "plan.json").exists() else None
-    for state in (manifest, plan_file):
-        if state is None:
-            continue
-        if not isinstance(state, dict) or state.get("fingerprint") != plan.fingerprint:
-            raise OutputError(_mismatch(root, state, plan))
-    if manifest is not None:
-        for entry in manifest.get("shards", []):
-            records[entry["name"]] = {**entry, "skipped": [s for s in manifest.get("skipped", [])
-                                                          if s.get("shard") == entry["name"]]}
-    if progress.is_dir():
-        for p in sorted(progress.glob("*.done.json")):
-            rec = _read_json(p)
-            if isinstance(rec, dict) and "name" in rec:
-                records[rec["name"]] = rec
-    return records
-
-
-def _mismatch(root: Path, state, plan: Plan) -> str:
-    what = "a different dataset"
-    if isinstance(state, dict) and isinstance(state.get("config"), dict):
-        new = plan.config.to_dict()
-        diff = sorted(k for k in set(new) | set(state["config"]) if new.get(k) != state["config"].get(k))
-        if state.get("evnoise_version") != __version__:
-            diff.append(f"evnoise version {state.get('evnoise_version')} -> {__version__}")
-        if state.get("sources") != [s.spec() for s in plan.sources]:
-            diff.append("sources")
-        if diff:
-            what = f"a dataset made with different options (differs in: {', '.join(diff)})"
-        else:
-            what = "a dataset of a different list of source images"
-    return (f"output folder {root} already holds {what}; pass --overwrite (overwrite=True) to replace it, "
-            "or choose another folder")
-
-
-def _verified(root: Path, rec: dict) -> bool:
-    path = root / rec["file"]
-    try:
-        if not path.is_file() or path.stat().st_size != rec["bytes"]:
-            return False
-        return file_sha256(path) == rec["sha256"]
-    except OSError:
-        return False
-
-
-# --------------------------------------------------------------------------------------
 # the job
 # --------------------------------------------------------------------------------------
 @dataclass
@@ -523,23 +383,23 @@ def make_dataset(sources, out_dir, config: PairConfig | None = None, *, workers:
     if config.params is None:  # resolve the preset once: every worker uses these exact parameters
         config = config.replace(params=config.noise_params)
     if config.seed is None:
-        stored = None if overwrite or not root.is_dir() else _stored_seed(root)
+        stored = None if overwrite or not root.is_dir() else stored_seed(root)
         seed = stored if stored is not None else secrets.randbelow(1 << 32)
         if stored is None:
             log.info("no seed given; using seed %d (stored in the manifest)", seed)
         config = config.replace(seed=seed)
     plan = plan_dataset(sources, config)  # lists the sources: fails before anything is written
     created = not root.exists()
-    _prepare_folder(root, overwrite)
+    prepare_folder(root, overwrite)
     progress_dir = root / PROGRESS_DIR
     progress_dir.mkdir(exist_ok=True)
-    with _Lock(progress_dir / "lock"):
-        records = _existing_records(root, plan)
+    with FolderLock(progress_dir / "lock"):
+        records = existing_records(root, plan)
         (root / SHARDS_DIR).mkdir(exist_ok=True)
         valid, reused = {}, []
         for task in plan.shards:
             rec = records.get(task.name)
-            if rec is not None and _verified(root, rec):
+            if rec is not None and shard_verified(root, rec):
                 valid[task.name] = rec
                 reused.append(task.name)
             elif rec is not None:
@@ -547,14 +407,14 @@ def make_dataset(sources, out_dir, config: PairConfig | None = None, *, workers:
         todo = [t for t in plan.shards if t.name not in valid]
         if not todo and (root / MANIFEST).exists():
             shutil.rmtree(progress_dir, ignore_errors=True)
-            manifest = _read_json(root / MANIFEST)
+            manifest = read_json(root / MANIFEST)
             return DatasetResult(root, manifest, [], reused, list(manifest.get("skipped", [])),
                                  time.perf_counter() - started, {}, 0, manifest.get("sampler", ""))
         (root / MANIFEST).unlink(missing_ok=True)  # from here on the dataset is incomplete
-        _write_json(progress_dir / "plan.json", plan.record())
+        write_json(progress_dir / "plan.json", plan.record())
         for name, rec in valid.items():  # a manifest's records become progress records
             if not (progress_dir / f"{name}.done.json").exists():
-                _write_json(progress_dir / f"{name}.done.json", rec)
+                write_json(progress_dir / f"{name}.done.json", rec)
         for p in (root / SHARDS_DIR).iterdir():
             if p.name.startswith(".") and p.name.endswith(".tmp"):
                 p.unlink(missing_ok=True)  # left by an interrupted run (we hold the lock)
@@ -575,7 +435,7 @@ def make_dataset(sources, out_dir, config: PairConfig | None = None, *, workers:
                 log.warning("skipped %s: %s", s["source"], s["reason"])
             for key, value in rec.pop("timings", {}).items():
                 timings[key] = timings.get(key, 0.0) + value
-            _write_json(progress_dir / f"{rec['name']}.done.json", rec)
+            write_json(progress_dir / f"{rec['name']}.done.json", rec)
             valid[rec["name"]] = rec
             if bar is not None and not in_process:
                 bar.update(len(plan_items[rec["name"]]) * config.samples_per_source)
@@ -599,11 +459,11 @@ def make_dataset(sources, out_dir, config: PairConfig | None = None, *, workers:
                 bar.close()
         manifest = _manifest(plan, valid)
         if manifest["totals"]["samples"] == 0 and manifest["skipped"]:
-            _discard_empty(root, created)
+            discard_empty(root, created)
             first = manifest["skipped"][0]
             raise InputError(f"no pair could be made: all {len(manifest['skipped'])} source image(s) were "
                              f"skipped (first: {first['source']}: {first['reason']})")
-        _write_json(root / MANIFEST, manifest)
+        write_json(root / MANIFEST, manifest)
         shutil.rmtree(progress_dir, ignore_errors=True)
     from .pairs import CountSampler
 
@@ -732,7 +592,7 @@ def load_manifest(path) -> tuple:
             raise InputError(f"dataset {root} is incomplete (an interrupted make-dataset run); run the same "
                              "command again to resume it")
         raise InputError(f"{root} is not an evnoise dataset (no {MANIFEST})")
-    data = _read_json(manifest_path)
+    data = read_json(manifest_path)
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise InputError(f"{manifest_path} is not an evnoise pairs manifest")
     if int(data.get("format_version", 0)) > FORMAT_VERSION:

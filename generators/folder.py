@@ -1,0 +1,185 @@
+"""The output folder of ``make_dataset``: its layout, the lock, and what earlier runs left there.
+
+Layout (see :mod:`.dataset`): ``manifest.json`` (written last), ``shards/``, the progress folder
+``.evnoise-progress/`` while a run is under way, and an optional ``preview.png``. The helpers
+here prepare the folder, lock it for one run at a time, and read back the records of shards
+finished earlier so that a run resumes (each checked against its size and SHA-256).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from evnoise._atomic import write_text_atomic
+from evnoise._version import __version__
+from evnoise.errors import OutputError
+
+from .shards import file_sha256
+
+if TYPE_CHECKING:
+    from .dataset import Plan
+
+__all__ = ["MANIFEST", "PREVIEW", "SHARDS_DIR", "PROGRESS_DIR", "write_json", "read_json", "FolderLock",
+           "prepare_folder", "discard_empty", "stored_seed", "existing_records", "shard_verified"]
+
+MANIFEST = "manifest.json"
+#: a picture of a few pairs, written by ``evnoise make-dataset`` (not part of the data, not verified)
+PREVIEW = "preview.png"
+SHARDS_DIR = "shards"
+PROGRESS_DIR = ".evnoise-progress"
+
+
+def write_json(path: Path, data) -> None:
+    """Write ``data`` as indented, key-sorted JSON, atomically."""
+    write_text_atomic(path, json.dumps(data, indent=1, sort_keys=True) + "\n", what="manifest")
+
+
+def read_json(path: Path):
+    """The JSON content of ``path``, or None if it cannot be read or parsed."""
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+
+
+class FolderLock:
+    """An exclusive lock on the output folder (one run at a time)."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.fh = None
+
+    def __enter__(self):
+        try:
+            import fcntl
+        except ImportError:  # pragma: no cover - not POSIX
+            return self
+        try:
+            self.fh = open(self.path, "a+")
+            fcntl.flock(self.fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            self.fh.close()
+            raise OutputError(f"another evnoise make-dataset run is writing to {self.path.parent.parent}") from None
+        except OSError as exc:
+            raise OutputError(f"cannot lock {self.path}: {exc}") from None
+        return self
+
+    def __exit__(self, *exc):
+        if self.fh is not None:
+            self.fh.close()
+        return False
+
+
+def prepare_folder(root: Path, overwrite: bool) -> None:
+    """Create ``root`` or check it (writable, empty or an evnoise dataset); ``overwrite`` clears a dataset there."""
+    if root.exists() and not root.is_dir():
+        raise OutputError(f"output {root} exists and is not a folder")
+    if not root.exists():
+        parent = root.parent if str(root.parent) else Path(".")
+        if not parent.is_dir():
+            raise OutputError(f"cannot create output folder {root}: {parent} does not exist")
+        try:
+            root.mkdir()
+        except OSError as exc:
+            raise OutputError(f"cannot create output folder {root}: {exc.strerror or exc}") from None
+    if not os.access(root, os.W_OK | os.X_OK):
+        raise OutputError(f"output folder {root} is not writable")
+    ours = {MANIFEST, SHARDS_DIR, PROGRESS_DIR, PREVIEW}
+    others = [p.name for p in root.iterdir() if p.name not in ours]
+    has_dataset = (root / MANIFEST).exists() or (root / PROGRESS_DIR).exists()
+    if others and not has_dataset:
+        raise OutputError(f"output folder {root} is not empty and holds no evnoise dataset "
+                          f"({', '.join(sorted(others)[:3])}{', ...' if len(others) > 3 else ''}); "
+                          "choose a new or empty folder")
+    if overwrite and has_dataset:
+        _clear(root)
+
+
+def discard_empty(root: Path, created: bool) -> None:
+    """Remove the files of a run that made no pair (every source unreadable), so that no empty
+    folder looks like a dataset; the folder itself goes too when this run created it."""
+    shutil.rmtree(root / SHARDS_DIR, ignore_errors=True)
+    (root / PREVIEW).unlink(missing_ok=True)
+    if created:
+        for p in root.iterdir():
+            if p.name != PROGRESS_DIR:
+                return  # something else appeared: leave the folder
+        shutil.rmtree(root, ignore_errors=True)
+
+
+def _clear(root: Path) -> None:
+    """Remove an existing dataset's files (only evnoise's own)."""
+    (root / MANIFEST).unlink(missing_ok=True)
+    (root / PREVIEW).unlink(missing_ok=True)
+    shards = root / SHARDS_DIR
+    if shards.is_dir():
+        for p in shards.iterdir():
+            if p.suffix == ".h5" or p.name.endswith(".tmp"):
+                p.unlink()
+    progress = root / PROGRESS_DIR
+    if progress.is_dir():
+        shutil.rmtree(progress)
+
+
+def stored_seed(root: Path):
+    """The seed of the dataset (finished or under way) in ``root``, or None."""
+    for path in (root / MANIFEST, root / PROGRESS_DIR / "plan.json"):
+        data = read_json(path) if path.exists() else None
+        if isinstance(data, dict) and isinstance(data.get("config"), dict) and "seed" in data["config"]:
+            return data["config"]["seed"]
+    return None
+
+
+def existing_records(root: Path, plan: Plan) -> dict:
+    """Records of shards finished earlier (from the manifest or the progress folder), unverified."""
+    records = {}
+    manifest = read_json(root / MANIFEST) if (root / MANIFEST).exists() else None
+    progress = root / PROGRESS_DIR
+    plan_file = read_json(progress / "plan.json") if (progress / "plan.json").exists() else None
+    for state in (manifest, plan_file):
+        if state is None:
+            continue
+        if not isinstance(state, dict) or state.get("fingerprint") != plan.fingerprint:
+            raise OutputError(_mismatch(root, state, plan))
+    if manifest is not None:
+        for entry in manifest.get("shards", []):
+            records[entry["name"]] = {**entry, "skipped": [s for s in manifest.get("skipped", [])
+                                                          if s.get("shard") == entry["name"]]}
+    if progress.is_dir():
+        for p in sorted(progress.glob("*.done.json")):
+            rec = read_json(p)
+            if isinstance(rec, dict) and "name" in rec:
+                records[rec["name"]] = rec
+    return records
+
+
+def _mismatch(root: Path, state, plan: Plan) -> str:
+    what = "a different dataset"
+    if isinstance(state, dict) and isinstance(state.get("config"), dict):
+        new = plan.config.to_dict()
+        diff = sorted(k for k in set(new) | set(state["config"]) if new.get(k) != state["config"].get(k))
+        if state.get("evnoise_version") != __version__:
+            diff.append(f"evnoise version {state.get('evnoise_version')} -> {__version__}")
+        if state.get("sources") != [s.spec() for s in plan.sources]:
+            diff.append("sources")
+        if diff:
+            what = f"a dataset made with different options (differs in: {', '.join(diff)})"
+        else:
+            what = "a dataset of a different list of source images"
+    return (f"output folder {root} already holds {what}; pass --overwrite (overwrite=True) to replace it, "
+            "or choose another folder")
+
+
+def shard_verified(root: Path, rec: dict) -> bool:
+    """Whether the shard file of record ``rec`` exists with the recorded size and SHA-256."""
+    path = root / rec["file"]
+    try:
+        if not path.is_file() or path.stat().st_size != rec["bytes"]:
+            return False
+        return file_sha256(path) == rec["sha256"]
+    except OSError:
+        return False
