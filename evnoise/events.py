@@ -94,9 +94,6 @@ def check_shape(shape) -> tuple:
     return height, width
 
 
-#: Former name of :func:`check_shape` (``evnoise.simulate`` still imports it).
-_check_shape = check_shape
-
 
 def count_events(events, shape, t_start_us=None, t_end_us=None) -> np.ndarray:
     """Per-pixel event counts ``(2, H, W)`` int64, ``[ON, OFF]``, for ``t_start_us <= t < t_end_us``."""

@@ -129,30 +129,40 @@ def _select(bg, sel):
 
 
 class _PixelState:
-    """Per-pixel simulation state of a set of pixels (flat indices ``pix``)."""
+    """Per-pixel simulation state of a set of pixels (flat indices ``pix``).
+
+    The float state is one array ``fstate`` ``(n, N_STATE)``, a row per pixel (the columns of
+    :mod:`evnoise._kernels.simulate`); the attributes ``last_trial``, ``lam_ref``, ... are views of
+    its columns, for the vectorised code here.
+    """
 
     def __init__(self, pix: np.ndarray, key: np.ndarray, threads: int):
-        from ._kernels.simulate import seed_streams
+        from ._kernels import simulate as k
 
         self.pix = np.ascontiguousarray(pix, dtype=np.int64)
         n = self.pix.size
         self.states = np.empty((n, 4), dtype=np.uint64)
         # each pixel's stream is keyed by its flat index, not by its position in this set
-        _map_chunks(lambda lo, hi: seed_streams(key, self.pix[lo:hi], self.states[lo:hi]), n, threads)
-        self.last_trial = np.full(n, -1.0)
-        self.last_tau = np.full(n, -math.inf)
-        self.pend_trial = np.full(n, math.nan)
-        self.pend_tau = np.full(n, math.nan)
-        self.lam_ref = np.zeros(n)
-        self.lam_prev = np.zeros(n)
+        _map_chunks(lambda lo, hi: k.seed_streams(key, self.pix[lo:hi], self.states[lo:hi]), n, threads)
+        self.fstate = np.zeros((n, k.N_STATE))
+        initial = {k.LAST_TRIAL: -1.0, k.LAST_TAU: -math.inf, k.PEND_TRIAL: math.nan, k.PEND_TAU: math.nan,
+                   k.PEND_ON: math.nan, k.CACHE_LAM: math.nan, k.BG_NEXT: math.nan}
+        for col, value in initial.items():
+            self.fstate[:, col] = value
+        self.last_trial = self.fstate[:, k.LAST_TRIAL]
+        self.last_tau = self.fstate[:, k.LAST_TAU]
+        self.pend_trial = self.fstate[:, k.PEND_TRIAL]
+        self.pend_tau = self.fstate[:, k.PEND_TAU]
+        self.pend_on = self.fstate[:, k.PEND_ON]
+        self.lam_ref = self.fstate[:, k.LAM_REF]
+        self.lam_prev = self.fstate[:, k.LAM_PREV]
         # trial tier: closed-form probabilities of pixels that are static within a window
-        self.cache_lam = np.full(n, math.nan)
-        self.cache_log1m_p = np.zeros(n)
-        self.cache_q_on = np.zeros(n)
-        # regular background (leak_regularity > 0): trial of the next background arrival, pending polarity
-        self.bg_next = np.full(n, math.nan)
-        self.bg_l = np.zeros(n)  # the intensity the pending arrival belongs to (events/s)
-        self.pend_on = np.full(n, math.nan)
+        self.cache_lam = self.fstate[:, k.CACHE_LAM]
+        self.cache_log1m_p = self.fstate[:, k.CACHE_LOG1M_P]
+        self.cache_q_on = self.fstate[:, k.CACHE_Q_ON]
+        # regular background (leak_regularity > 0): trial of the next background arrival, its intensity (events/s)
+        self.bg_next = self.fstate[:, k.BG_NEXT]
+        self.bg_l = self.fstate[:, k.BG_L]
 
     def rescale_timers(self, l_all: np.ndarray, j_now: float):
         """Pending background arrivals at or after trial ``j_now`` move to a new intensity ``l_all``.
@@ -266,23 +276,16 @@ def _renewal_step(state: _PixelState, width, log1m_p, q_on, dt, refr_us, j_min, 
     """Run the renewal kernel over all pixels of ``state`` up to ``w_end``; returns chunk parts."""
     from ._kernels.simulate import renewal_window
 
+    no_timer = np.zeros((3, 0))
+
     def run(lo, hi):
         cap = 0
         if store:
             cap = int(1.2 * expected[lo:hi].sum() + 64) if expected is not None else 1024
-        if timer is not None:
-            from ._kernels.simulate import renewal_window_timer
-
-            return renewal_window_timer(
-                0, hi - lo, width, state.pix[lo:hi], log1m_p[lo:hi], q_on[lo:hi], timer[:, lo:hi],
-                state.states[lo:hi], state.last_trial[lo:hi], state.last_tau[lo:hi], state.pend_trial[lo:hi],
-                state.pend_tau[lo:hi], state.pend_on[lo:hi], state.bg_next[lo:hi], dt, float(refr_us),
-                float(j_min), float(w_end), float(discard_from), np.int64(t0_us), cap, store,
-            )
         return renewal_window(
-            0, hi - lo, width, state.pix[lo:hi], log1m_p[lo:hi], q_on[lo:hi], state.states[lo:hi],
-            state.last_trial[lo:hi], state.last_tau[lo:hi], state.pend_trial[lo:hi], state.pend_tau[lo:hi],
-            dt, float(refr_us), float(j_min), float(w_end), float(discard_from), np.int64(t0_us), cap, store,
+            width, state.pix[lo:hi], log1m_p[lo:hi], q_on[lo:hi], no_timer if timer is None else timer[:, lo:hi],
+            state.states[lo:hi], state.fstate[lo:hi], dt, float(refr_us), float(j_min), float(w_end),
+            float(discard_from), np.int64(t0_us), cap, store,
         )
 
     return _map_chunks(run, state.pix.size, threads)
@@ -658,6 +661,8 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
     pr_alpha = pr_alpha_per_photon(params)
     regularity = params.leak_regularity if params.regular_background else 0.0
     fast_static = TRIAL_FAST_STATIC and regularity == 0.0  # the regular timer is not memoryless
+    model = (float(b), float(dt), float(refr), 1.0 / params.photons_per_lux, float(params.dark_lux), float(pr_alpha),
+             float(regularity))
     per_window = max(1, TARGET_PIXEL_TRIALS_PER_WINDOW // max(1, dyn_pix.size))
     per_window = min(per_window, max(1, int(MAX_WINDOW_US // dt)))
     if stat_pix.size:
@@ -688,8 +693,8 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
                 lam_first = lams[0] + a * (lams[1] - lams[0])
             dyn_state.lam_ref[:] = lam_first
             dyn_state.lam_prev[:] = lam_first
-        dyn_c_on, dyn_c_off = c_on[dyn_pix], c_off[dyn_pix]
         dyn_e_on, dyn_e_off = eps_on[dyn_pix], eps_off[dyn_pix]
+        dyn_thr = np.stack([c_on[dyn_pix], c_off[dyn_pix], dyn_e_on, dyn_e_off])
         bar = _progress(duration_us * 1e-6, progress, "simulate")
         for j_a, j_b in zip(trial_edges[:-1], trial_edges[1:]):
             w_lo = 0 if j_a == 0 else int(math.floor(j_a * dt))
@@ -717,13 +722,9 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
                 def run(lo, hi, stack=stack, f_us=f_us, j_a=j_a, j_b=j_b):
                     s = dyn_state
                     return trial_window(
-                        lo, hi, width, s.pix, stack, f_us, j_a, j_b, dyn_c_on[lo:hi], dyn_c_off[lo:hi],
-                        dyn_e_on[lo:hi], dyn_e_off[lo:hi], b, s.states[lo:hi], s.last_trial[lo:hi],
-                        s.last_tau[lo:hi], s.lam_ref[lo:hi], s.lam_prev[lo:hi], dt, float(refr),
-                        float(duration_us), np.int64(t0_us), 256, fast_static,
-                        s.cache_lam[lo:hi], s.cache_log1m_p[lo:hi], s.cache_q_on[lo:hi],
-                        dyn_bg[:, lo:hi], 1.0 / params.photons_per_lux, params.dark_lux, pr_alpha,
-                        regularity, s.bg_next[lo:hi], s.bg_l[lo:hi],
+                        width, s.pix[lo:hi], stack, f_us, j_a, j_b, dyn_thr[:, lo:hi], dyn_bg[:, lo:hi],
+                        s.states[lo:hi], s.fstate[lo:hi], model, float(duration_us), np.int64(t0_us), 256,
+                        fast_static,
                     )
 
                 parts += _map_chunks(run, dyn_pix.size, threads)
@@ -846,9 +847,9 @@ class NoiseStream:
 
     def __init__(self, shape, params: NoiseParams, rng=None, *, t_start_us: int = 0, thresholds=None,
                  background=None, threads: int | None = None):
-        from .events import _check_shape
+        from .events import check_shape
 
-        self.shape = _check_shape(shape)
+        self.shape = check_shape(shape)
         self.params = check_params(params)
         self.threads = default_threads() if threads is None else max(1, int(threads))
         gen = as_generator(rng)

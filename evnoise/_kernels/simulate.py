@@ -9,8 +9,9 @@ one pixel are therefore at least ``R`` apart, and since ``u`` is uniform the mea
 skipped trials is exactly ``R / dt``, giving the non-paralyzable dead-time rate
 ``nu = nu0 / (1 + nu0 R)``.
 
-All kernels work on a contiguous range of pixels ``[lo, hi)`` and on that range's slice of
-the per-pixel state only, so chunks can run in parallel threads.
+The window kernels take a chunk of pixels as slices (flat indices ``pix``, random streams
+``states``, the float state ``fstate`` with one row per pixel and the columns named below, and
+per-pixel parameters) and touch nothing else, so chunks can run in parallel threads.
 """
 
 from __future__ import annotations
@@ -68,47 +69,63 @@ def _push(t_out, x_out, y_out, p_out, n, t, flat, width, pol):
     return t_out, x_out, y_out, p_out
 
 
+#: Columns of the per-pixel float state ``fstate`` ``(n, N_STATE)`` that the window kernels advance
+#: (one row per pixel, so a pixel's state is one cache line): the last event's trial and time (µs),
+#: a pending event's trial, time (NaN: none) and polarity (1.0 ON), the reference and previous mean
+#: photon counts of the trial tier, its cached static probabilities (``CACHE_LAM`` the ``lam`` they
+#: belong to, NaN for none), and the regular timer's next arrival (trial) and its intensity (events/s).
+(LAST_TRIAL, LAST_TAU, PEND_TRIAL, PEND_TAU, PEND_ON, LAM_REF, LAM_PREV, CACHE_LAM, CACHE_LOG1M_P, CACHE_Q_ON,
+ BG_NEXT, BG_L) = range(12)
+N_STATE = 12
+
+
 @kernel
-def renewal_window(
-    lo, hi, width, pix, log1m_p, q_on, states, last_trial, last_tau, pend_trial, pend_tau,
-    dt, refr_us, j_min, w_end, discard_from_trial, t0_us, capacity, store
-):
-    """Advance pixels ``pix[lo:hi]`` whose probabilities are constant up to time ``w_end`` (µs).
+def renewal_window(width, pix, log1m_p, q_on, timer, states, fstate, dt, refr_us, j_min, w_end, discard_from_trial,
+                   t0_us, capacity, store):
+    """Advance pixels ``pix`` whose probabilities are constant up to time ``w_end`` (µs).
 
-    Per pixel (chunk slices, index ``k = i - lo``): ``log1m_p = log1p(-(p_on + p_off))`` and
-    ``q_on = p_on / (p_on + p_off)``. The gap to the next event is geometric in eligible
-    trials; no trial before ``j_min`` is drawn. A drawn event beyond ``w_end`` stays pending
-    (``pend_trial``, ``pend_tau``; ``pend_tau`` NaN when none) so that the random stream does
-    not depend on how time is cut into windows - unless its trial starts at or after
-    ``discard_from_trial``: then it is dropped and redrawn next time, which is exact because
-    the geometric gap is memoryless (used when the probabilities change between windows).
+    Per pixel ``k`` (all arrays are the chunk's slices): ``log1m_p = log1p(-(p_on + p_off))`` and
+    ``q_on = p_on / (p_on + p_off)``; ``states[k]`` its random stream, ``fstate[k]`` its state
+    (columns :data:`LAST_TRIAL` ...). The gap to the next event is geometric in eligible trials; no
+    trial before ``j_min`` is drawn. A drawn event beyond ``w_end`` stays pending (``PEND_TRIAL``,
+    ``PEND_TAU``; NaN when none) so that the random stream does not depend on how time is cut into
+    windows - unless its trial starts at or after ``discard_from_trial``: then it is dropped and
+    redrawn next time, which is exact because the geometric gap is memoryless (used when the
+    probabilities change between windows).
 
-    Returns ``(t, x, y, p, on_counts, off_counts)``; with ``store`` false only the counts
-    (length ``hi - lo``) are filled.
+    With a regular background timer, ``timer`` is ``(3, n)`` per pixel ``[d, log1p(-a2), background
+    ON share]`` (:func:`timer_shape`; ``(3, 0)`` for none) and ``log1m_p``, ``q_on`` are the
+    *photon-noise* ones: the next event is the earlier of the photon gap and the timer's arrival
+    ``BG_NEXT`` (NaN: drawn when the pixel is next eligible, the stationary draw for a pixel that
+    has had no event), every event restarts the timer, and a pending event keeps its polarity in
+    ``PEND_ON`` (dropping it at ``discard_from_trial`` stays exact: the timer is kept).
+
+    Returns ``(t, x, y, p, on_counts, off_counts)``; with ``store`` false only the counts are filled.
     """
+    has_timer = timer.shape[1] > 0
     cap = capacity if store else 0
     t_out = np.empty(cap, dtype=np.int64)
     x_out = np.empty(cap, dtype=np.uint16)
     y_out = np.empty(cap, dtype=np.uint16)
     p_out = np.empty(cap, dtype=np.uint8)
-    on_counts = np.zeros(hi - lo, dtype=np.int64)
-    off_counts = np.zeros(hi - lo, dtype=np.int64)
+    n_pix = pix.shape[0]
+    on_counts = np.zeros(n_pix, dtype=np.int64)
+    off_counts = np.zeros(n_pix, dtype=np.int64)
     n = 0
-    for i in range(lo, hi):
-        k = i - lo
-        tau = pend_tau[k]
+    for k in range(n_pix):
+        tau = fstate[k, PEND_TAU]
         if tau >= w_end:  # (NaN compares false) an event pending beyond the window: nothing to draw
-            if pend_trial[k] >= discard_from_trial:
-                pend_tau[k] = NO_EVENT
+            if fstate[k, PEND_TRIAL] >= discard_from_trial:
+                fstate[k, PEND_TAU] = NO_EVENT
             continue
         s = states[k]
-        jp = pend_trial[k]
-        flat = pix[i]
-        xk = np.uint16(flat % width)
-        yk = np.uint16(flat // width)
-        # the pixel's state in locals and x, y once per pixel (not per event): same draws, same bits
-        lt = last_trial[k]
-        lta = last_tau[k]
+        jp = fstate[k, PEND_TRIAL]
+        on = fstate[k, PEND_ON] == 1.0
+        flat = pix[k]
+        # the pixel's state in locals (not per event): same draws, same bits
+        lt = fstate[k, LAST_TRIAL]
+        lta = fstate[k, LAST_TAU]
+        nxt = fstate[k, BG_NEXT]
         l1p = log1m_p[k]
         qk = q_on[k]
         n_on = 0
@@ -120,110 +137,35 @@ def renewal_window(
                 else:
                     j_e = _first_eligible(lt, lta, refr_us, dt)
                 j_e = max(j_e, j_min)
-                g = geometric(s, l1p)
-                if g == math.inf:
-                    tau = math.inf
-                    jp = math.inf
-                    break
-                jp = j_e + g - 1.0
-                tau = (jp + uniform(s)) * dt
-            if tau >= w_end:
-                break
-            on = uniform(s) < qk
-            if on:
-                n_on += 1
-            else:
-                n_off += 1
-            if store:
-                if n == t_out.shape[0]:
-                    t_out = _grow(t_out, n)
-                    x_out = _grow(x_out, n)
-                    y_out = _grow(y_out, n)
-                    p_out = _grow(p_out, n)
-                t_out[n] = t0_us + np.int64(math.floor(tau))
-                x_out[n] = xk
-                y_out[n] = yk
-                p_out[n] = 1 if on else 0
-                n += 1
-            lta = tau
-            lt = jp
-            tau = NO_EVENT
-        on_counts[k] = n_on
-        off_counts[k] = n_off
-        last_tau[k] = lta
-        last_trial[k] = lt
-        if jp >= discard_from_trial:
-            tau = NO_EVENT
-        pend_tau[k] = tau
-        pend_trial[k] = jp
-    return t_out[:n], x_out[:n], y_out[:n], p_out[:n], on_counts, off_counts
-
-
-@kernel
-def renewal_window_timer(
-    lo, hi, width, pix, log1m_p, q_on, timer, states, last_trial, last_tau, pend_trial, pend_tau, pend_on,
-    bg_next, dt, refr_us, j_min, w_end, discard_from_trial, t0_us, capacity, store
-):
-    """:func:`evnoise._kernels.simulate.renewal_window` with a regular background timer.
-
-    ``log1m_p``, ``q_on`` are the *photon-noise* ``log1p(-(p_on + p_off))`` and ON share; ``timer``
-    ``(3, hi - lo)`` per pixel ``[d, log1p(-a2), background ON share]`` (:func:`timer_shape`).
-    ``bg_next`` (state) is the trial of the pixel's next background arrival (NaN: to be drawn when
-    the pixel is next eligible; the stationary draw for a pixel that has had no event). ``pend_on``
-    holds a pending event's polarity. A pending event beyond the window is dropped at or after
-    ``discard_from_trial`` (the photon gap is memoryless and ``bg_next`` is kept, so this is exact).
-    """
-    cap = capacity if store else 0
-    t_out = np.empty(cap, dtype=np.int64)
-    x_out = np.empty(cap, dtype=np.uint16)
-    y_out = np.empty(cap, dtype=np.uint16)
-    p_out = np.empty(cap, dtype=np.uint8)
-    on_counts = np.zeros(hi - lo, dtype=np.int64)
-    off_counts = np.zeros(hi - lo, dtype=np.int64)
-    n = 0
-    for i in range(lo, hi):
-        k = i - lo
-        tau = pend_tau[k]
-        if tau >= w_end:
-            if pend_trial[k] >= discard_from_trial:
-                pend_tau[k] = NO_EVENT
-            continue
-        s = states[k]
-        jp = pend_trial[k]
-        on = pend_on[k] == 1.0
-        flat = pix[i]
-        lt = last_trial[k]
-        lta = last_tau[k]
-        nxt = bg_next[k]
-        n_on = 0
-        n_off = 0
-        while True:
-            if math.isnan(tau):
-                if lta == -math.inf:
-                    j_e = lt + 1.0
-                else:
-                    j_e = _first_eligible(lt, lta, refr_us, dt)
-                j_e = max(j_e, j_min)
-                if math.isnan(nxt):
-                    if lta == -math.inf:
-                        nxt = j_e + draw_timer_stationary(s, timer[0, k], timer[1, k], log1m_p[k]) - 1.0
+                if has_timer:
+                    if math.isnan(nxt):
+                        if lta == -math.inf:
+                            nxt = j_e + draw_timer_stationary(s, timer[0, k], timer[1, k], l1p) - 1.0
+                        else:
+                            nxt = j_e + draw_timer(s, timer[0, k], timer[1, k]) - 1.0
+                    nxt = max(nxt, j_e)
+                    j_ph = j_e + geometric(s, l1p) - 1.0
+                    if nxt < j_ph:
+                        jp = nxt
+                        on = uniform(s) < timer[2, k]
                     else:
-                        nxt = j_e + draw_timer(s, timer[0, k], timer[1, k]) - 1.0
-                nxt = max(nxt, j_e)
-                g = geometric(s, log1m_p[k])
-                j_ph = j_e + g - 1.0
-                if nxt < j_ph:
-                    jp = nxt
-                    on = uniform(s) < timer[2, k]
+                        jp = j_ph
+                        on = uniform(s) < qk
+                    if jp == math.inf:
+                        tau = math.inf
+                        break
                 else:
-                    jp = j_ph
-                    on = uniform(s) < q_on[k]
-                if jp == math.inf:
-                    tau = math.inf
-                    break
+                    g = geometric(s, l1p)
+                    if g == math.inf:
+                        tau = math.inf
+                        jp = math.inf
+                        break
+                    jp = j_e + g - 1.0
                 tau = (jp + uniform(s)) * dt
             if tau >= w_end:
                 break
+            if not has_timer:  # the Poisson path draws the polarity of an event inside the window only
+                on = uniform(s) < qk
             if on:
                 n_on += 1
             else:
@@ -238,14 +180,15 @@ def renewal_window_timer(
             nxt = NO_EVENT  # every event restarts the timer
         on_counts[k] = n_on
         off_counts[k] = n_off
-        last_tau[k] = lta
-        last_trial[k] = lt
-        bg_next[k] = nxt
+        fstate[k, LAST_TAU] = lta
+        fstate[k, LAST_TRIAL] = lt
         if jp >= discard_from_trial:
             tau = NO_EVENT
-        pend_tau[k] = tau
-        pend_trial[k] = jp
-        pend_on[k] = 1.0 if on else 0.0
+        fstate[k, PEND_TAU] = tau
+        fstate[k, PEND_TRIAL] = jp
+        if has_timer:
+            fstate[k, BG_NEXT] = nxt
+            fstate[k, PEND_ON] = 1.0 if on else 0.0
     return t_out[:n], x_out[:n], y_out[:n], p_out[:n], on_counts, off_counts
 
 
@@ -334,13 +277,9 @@ def _level(lam, b):
 
 
 @kernel
-def trial_window(
-    lo, hi, width, pix, frames_lam, frame_us, j_start, j_end, c_on, c_off, eps_on, eps_off, b,
-    states, last_trial, last_tau, lam_ref, lam_prev, dt, refr_us, tau_limit, t0_us, capacity,
-    fast_static, cache_lam, cache_log1m_p, cache_q_on, bg, lux_per_photon, dark_lux, pr_alpha, regularity, bg_next,
-    bg_l
-):
-    """Trial-by-trial simulation of pixels ``pix[lo:hi]`` for trials ``j_start .. j_end - 1``.
+def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, states, fstate, model, tau_limit, t0_us,
+                 capacity, fast_static):
+    """Trial-by-trial simulation of pixels ``pix`` for trials ``j_start .. j_end - 1``.
 
     ``frames_lam`` (F, P) holds the mean photon counts per trial of the frames at times
     ``frame_us`` (µs, increasing; trials whose centre lies outside are clamped to the end
@@ -356,9 +295,12 @@ def trial_window(
     OFF if ``n0 > n + floor(c_off (n + b))``; a noise event resets ``lam_ref`` to ``lam``. For a
     static pixel (``lam_ref = lam``) this is exactly the static model.
 
-    Per-pixel arrays (``states``, ``last_*``, ``lam_ref``, ``lam_prev``, ``c_*``, ``eps_*``) are
-    indexed by ``k = i - lo`` (pass the chunk's slices); ``pix`` maps to flat pixel indices.
-    Events at or after ``tau_limit`` (µs) are not emitted (the end of the recording).
+    Per-pixel arrays are the chunk's slices, indexed by ``k``: ``pix`` the flat pixel indices,
+    ``thr`` ``(4, n)`` ``[c_on, c_off, eps_on, eps_off]``, ``states`` the random streams and
+    ``fstate`` the state (columns :data:`LAST_TRIAL` ...; the reference ``LAM_REF``, the previous
+    trial's mean ``LAM_PREV``). ``model`` is ``(b, dt, refr_us, lux_per_photon, dark_lux, pr_alpha,
+    regularity)``: the bias in photons per trial, the trial length and refractory period (µs) and the
+    terms below. Events at or after ``tau_limit`` (µs) are not emitted (the end of the recording).
 
     With ``fast_static`` a pixel whose ``lam`` is the same in every frame of the window and
     equals both ``lam_ref`` and ``lam_prev`` skips the trial-by-trial loop: no signal
@@ -368,26 +310,26 @@ def trial_window(
     eligible trials (as in :func:`renewal_window`): O(events) instead of O(trials). A gap
     that ends beyond the window is dropped and redrawn in the next window (exact: the
     geometric gap is memoryless). ``p_on``, ``p_off`` come from the exact closed form and are
-    cached per pixel (``cache_lam`` is the ``lam`` they belong to, NaN for none;
-    ``cache_log1m_p = log1p(-(p_on + p_off))``, ``cache_q_on = p_on / (p_on + p_off)``). The
+    cached per pixel (``CACHE_LAM`` is the ``lam`` they belong to, NaN for none;
+    ``CACHE_LOG1M_P = log1p(-(p_on + p_off))``, ``CACHE_Q_ON = p_on / (p_on + p_off)``). The
     random stream is consumed differently from the per-trial path, so the output differs in
     its bits, not in its law; ``fast_static=False`` keeps the per-trial path (the reference).
 
-    Background activity (:mod:`evnoise.background`): ``bg`` is ``(4, hi - lo)`` per pixel
+    Background activity (:mod:`evnoise.background`): ``bg`` is ``(4, n)`` per pixel
     ``[l0_on, l1_on, l0_off, l1_off]`` with intensities ``l = l0 + l1 * lux`` (events/s) at the
     trial's input ``lux = max(lam * lux_per_photon - dark_lux, 0)``, or ``(4, 0)`` for none. An
     eligible trial whose photon comparison fired nothing fires a background event with
     probability ``1 - exp(-l dt)``, ON with probability ``l_on / l`` (one more uniform draw, only
     when ``bg`` is given), and, like every event, resets ``lam_ref``. With ``regularity > 0`` the
-    background follows the regular timer of :mod:`evnoise._kernels.background` instead: ``bg_next``
+    background follows the regular timer of :mod:`evnoise._kernels.background` instead: ``BG_NEXT``
     (state) is the trial of the next arrival, drawn in the first quiet eligible trial after an event
     from the intensity of that trial (the stationary draw before a pixel's first event); every event
     restarts it; when the intensity changes, the rest of a pending interval scales with old / new
-    intensity (``bg_l`` holds the intensity it belongs to). (Pass ``fast_static`` false then: the
+    intensity (``BG_L`` holds the intensity it belongs to). (Pass ``fast_static`` false then: the
     timer is not memoryless.)
 
     Photoreceptor bandwidth: with ``pr_alpha > 0`` the mean photon count a pixel compares
-    (``lam_prev`` holds it between trials) follows the input through a first-order low-pass
+    (``LAM_PREV`` holds it between trials) follows the input through a first-order low-pass
     filter on the level ``log(lam + b)`` with step ``1 - exp(-lam * pr_alpha)`` per trial (time
     constant inversely proportional to the input photocurrent); once within ``1e-9`` of the input
     level it is snapped to it, so a settled pixel is exactly static again.
@@ -399,42 +341,42 @@ def trial_window(
     n = 0
     n_frames = frames_lam.shape[0]
     max_signal = 1 << 20
+    b, dt, refr_us, lux_per_photon, dark_lux, pr_alpha, regularity = model
     has_bg = bg.shape[1] > 0
     dt_s = dt * 1e-6
-    for i in range(lo, hi):
-        k = i - lo
-        flat = pix[i]
+    for k in range(pix.shape[0]):
+        flat = pix[k]
         s = states[k]
         seg = 0
-        e_on = math.exp(eps_on[k])
-        e_off = math.exp(eps_off[k])
-        ref = lam_ref[k]
+        e_on = math.exp(thr[2, k])
+        e_off = math.exp(thr[3, k])
+        ref = fstate[k, LAM_REF]
         if fast_static:
             lam0 = frames_lam[0, flat]
-            const = lam0 == ref and lam_prev[k] == ref
+            const = lam0 == ref and fstate[k, LAM_PREV] == ref
             for f in range(1, n_frames):
                 if frames_lam[f, flat] != lam0:
                     const = False
                     break
             if const:
-                if cache_lam[k] != lam0:
-                    p_on = math.exp(log_event_probability_exact(lam0, c_on[k], b))
-                    p_off = math.exp(log_event_probability_exact(lam0, c_off[k], b))
+                if fstate[k, CACHE_LAM] != lam0:
+                    p_on = math.exp(log_event_probability_exact(lam0, thr[0, k], b))
+                    p_off = math.exp(log_event_probability_exact(lam0, thr[1, k], b))
                     if has_bg:
                         lux0 = max(lam0 * lux_per_photon - dark_lux, 0.0)
                         p_on, p_off = _add_background(p_on, p_off, bg[0, k] + bg[1, k] * lux0,
                                                       bg[2, k] + bg[3, k] * lux0, dt_s)
                     p_all = p_on + p_off
-                    cache_lam[k] = lam0
-                    cache_log1m_p[k] = math.log1p(-p_all) if p_all < 1.0 else -math.inf
-                    cache_q_on[k] = p_on / p_all if p_all > 0.0 else 0.0
-                log1m_p = cache_log1m_p[k]
-                q_on = cache_q_on[k]
+                    fstate[k, CACHE_LAM] = lam0
+                    fstate[k, CACHE_LOG1M_P] = math.log1p(-p_all) if p_all < 1.0 else -math.inf
+                    fstate[k, CACHE_Q_ON] = p_on / p_all if p_all > 0.0 else 0.0
+                log1m_p = fstate[k, CACHE_LOG1M_P]
+                q_on = fstate[k, CACHE_Q_ON]
                 while True:
-                    if last_tau[k] == -math.inf:
-                        j_e = last_trial[k] + 1.0
+                    if fstate[k, LAST_TAU] == -math.inf:
+                        j_e = fstate[k, LAST_TRIAL] + 1.0
                     else:
-                        j_e = _first_eligible(last_trial[k], last_tau[k], refr_us, dt)
+                        j_e = _first_eligible(fstate[k, LAST_TRIAL], fstate[k, LAST_TAU], refr_us, dt)
                     j_e = max(j_e, float(j_start))
                     if j_e >= j_end:
                         break
@@ -452,8 +394,8 @@ def trial_window(
                         1 if on else 0,
                     )
                     n += 1
-                    last_tau[k] = tau
-                    last_trial[k] = jp
+                    fstate[k, LAST_TAU] = tau
+                    fstate[k, LAST_TRIAL] = jp
                 continue
         # cached exp(-lam) of the last Poisson means (most trials repeat them)
         lam_c = -1.0
@@ -474,9 +416,9 @@ def trial_window(
                 a = min(max(a, 0.0), 1.0)
                 lam = f0 + a * (f1 - f0)
             lam_in = lam
-            if pr_alpha > 0.0 and lam != lam_prev[k]:
+            if pr_alpha > 0.0 and lam != fstate[k, LAM_PREV]:
                 lev_in = _level(lam, b)
-                lev_f = _level(lam_prev[k], b)
+                lev_f = _level(fstate[k, LAM_PREV], b)
                 lev_f += -math.expm1(-lam * pr_alpha) * (lev_in - lev_f)
                 if abs(lev_f - lev_in) <= 1e-9:
                     lam = lam_in
@@ -489,9 +431,9 @@ def trial_window(
             if up or down:
                 lev = _level(lam, b)
                 lev_ref = _level(ref, b)
-                lev_prev = _level(lam_prev[k], b)
+                lev_prev = _level(fstate[k, LAM_PREV], b)
                 sign = 0 if up else 1
-                eps = eps_on[k] if up else eps_off[k]
+                eps = thr[2, k] if up else thr[3, k]
                 emitted = 0
                 while emitted < max_signal:
                     gap = (lev - lev_ref) if sign == 0 else (lev_ref - lev)
@@ -502,8 +444,8 @@ def trial_window(
                     phi = (target - lev_prev) / span if span != 0.0 else 0.0
                     phi = min(max(phi, 0.0), 1.0)
                     tau = s_j + phi * dt
-                    if last_tau[k] + refr_us > tau:
-                        tau = last_tau[k] + refr_us
+                    if fstate[k, LAST_TAU] + refr_us > tau:
+                        tau = fstate[k, LAST_TAU] + refr_us
                     if tau >= s_j + dt or tau >= tau_limit:
                         break  # does not fit in this trial: left for the next one
                     t_out, x_out, y_out, p_out = _push(
@@ -514,13 +456,13 @@ def trial_window(
                     emitted += 1
                     fired = True
                     lev_ref = target
-                    last_tau[k] = tau
-                    last_trial[k] = j
+                    fstate[k, LAST_TAU] = tau
+                    fstate[k, LAST_TRIAL] = j
                     if regularity > 0.0:
-                        bg_next[k] = math.nan
+                        fstate[k, BG_NEXT] = math.nan
                 if fired:
                     ref = max(math.exp(lev_ref) - b, 0.0)
-            if not fired and j > last_trial[k] and s_j >= last_tau[k] + refr_us:
+            if not fired and j > fstate[k, LAST_TRIAL] and s_j >= fstate[k, LAST_TAU] + refr_us:
                 if lam != lam_c:
                     lam_c = lam
                     em_c = math.exp(-lam)
@@ -530,31 +472,31 @@ def trial_window(
                 n_sig = poisson_emlam(s, lam, em_c)
                 n_ref = poisson_emlam(s, ref, emr_c)
                 pol = -1
-                if n_sig > n_ref + math.floor(c_on[k] * (n_ref + b)):
+                if n_sig > n_ref + math.floor(thr[0, k] * (n_ref + b)):
                     pol = 1
-                elif n_ref > n_sig + math.floor(c_off[k] * (n_sig + b)):
+                elif n_ref > n_sig + math.floor(thr[1, k] * (n_sig + b)):
                     pol = 0
                 elif has_bg:
                     lux_j = max(lam_in * lux_per_photon - dark_lux, 0.0)
                     l_on = bg[0, k] + bg[1, k] * lux_j
                     l_all = l_on + bg[2, k] + bg[3, k] * lux_j
                     if regularity > 0.0:
-                        if not bg_next[k] < math.inf and l_all > 0.0:  # none pending (NaN, or inf in the dark)
+                        if not fstate[k, BG_NEXT] < math.inf and l_all > 0.0:  # none pending (NaN, or inf in the dark)
                             d_t, l1m_t = timer_shape(l_all, dt_s, regularity)
-                            if last_tau[k] == -math.inf:
-                                p_st = (math.exp(log_event_probability_exact(lam, c_on[k], b))
-                                        + math.exp(log_event_probability_exact(lam, c_off[k], b)))
-                                bg_next[k] = j + draw_timer_stationary(s, d_t, l1m_t, math.log1p(-min(p_st, 1.0))) - 1.0
+                            if fstate[k, LAST_TAU] == -math.inf:
+                                p_st = (math.exp(log_event_probability_exact(lam, thr[0, k], b))
+                                        + math.exp(log_event_probability_exact(lam, thr[1, k], b)))
+                                fstate[k, BG_NEXT] = j + draw_timer_stationary(s, d_t, l1m_t, math.log1p(-min(p_st, 1.0))) - 1.0
                             else:
-                                bg_next[k] = j + draw_timer(s, d_t, l1m_t) - 1.0
-                            bg_l[k] = l_all
-                        elif l_all != bg_l[k] and bg_l[k] > 0.0 and bg_next[k] > j:
+                                fstate[k, BG_NEXT] = j + draw_timer(s, d_t, l1m_t) - 1.0
+                            fstate[k, BG_L] = l_all
+                        elif l_all != fstate[k, BG_L] and fstate[k, BG_L] > 0.0 and fstate[k, BG_NEXT] > j:
                             if l_all > 0.0:
-                                bg_next[k] = j + math.floor((bg_next[k] - j) * (bg_l[k] / l_all))
+                                fstate[k, BG_NEXT] = j + math.floor((fstate[k, BG_NEXT] - j) * (fstate[k, BG_L] / l_all))
                             else:
-                                bg_next[k] = math.inf
-                            bg_l[k] = l_all
-                        if j >= bg_next[k]:
+                                fstate[k, BG_NEXT] = math.inf
+                            fstate[k, BG_L] = l_all
+                        if j >= fstate[k, BG_NEXT]:
                             pol = 1 if uniform(s) * l_all < l_on else 0
                     elif l_all > 0.0:
                         u_bg = uniform(s)
@@ -567,11 +509,11 @@ def trial_window(
                         t_out, x_out, y_out, p_out, n, t0_us + np.int64(math.floor(tau)), flat, width, pol
                     )
                     n += 1
-                    last_tau[k] = tau
-                    last_trial[k] = j
+                    fstate[k, LAST_TAU] = tau
+                    fstate[k, LAST_TRIAL] = j
                     ref = lam
                     if regularity > 0.0:
-                        bg_next[k] = math.nan
-            lam_prev[k] = lam
-        lam_ref[k] = ref
+                        fstate[k, BG_NEXT] = math.nan
+            fstate[k, LAM_PREV] = lam
+        fstate[k, LAM_REF] = ref
     return t_out[:n], x_out[:n], y_out[:n], p_out[:n]
