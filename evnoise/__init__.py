@@ -23,7 +23,7 @@ _LAZY = {
     "iter_events": "evnoise.simulate",
     "simulate_video": "evnoise.simulate",
     "iter_video": "evnoise.simulate",
-    "NoiseStream": "evnoise.simulate",
+    "NoiseStream": "evnoise.stream",
     "write_events": "evnoise.io",
     "read_events": "evnoise.io",
     "iter_event_chunks": "evnoise.readers",

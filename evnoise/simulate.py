@@ -19,23 +19,30 @@ of threads, the chunking of pixels, or the windows in which time is generated.
 from __future__ import annotations
 
 import math
-import os
-from concurrent.futures import ThreadPoolExecutor
 from typing import Iterator
 
 import numpy as np
 
-from ._checks import (
-    as_generator,
-    check_lux,
-    check_params,
-    check_thresholds,
-    duration_to_us,
+from ._checks import as_generator, check_lux, check_params, duration_to_us, kernel_key
+from ._engine import (
+    Collector,
+    PixelState,
+    background_coefficients,
+    check_t_start,
+    default_threads,
+    map_chunks,
+    progress_bar,
+    renewal_step,
+    resolve_background,
+    resolve_thresholds,
+    select_background,
+    sorted_window,
+    static_inputs,
 )
 from .errors import InputError, ParameterError
-from .events import EVENT_DTYPE, empty_events
+from .events import empty_events
 from .params import NoiseParams
-from .rates import draw_thresholds, trial_probabilities
+from .rates import trial_probabilities
 
 __all__ = [
     "simulate_events",
@@ -54,250 +61,6 @@ MAX_WINDOW_US = 1 << 22  # bounds the counting sort's histogram
 # gaps (O(events)); False keeps the per-trial reference algorithm (tests compare the two).
 TRIAL_FAST_STATIC = True
 METHODS = ("auto", "renewal", "trials")
-
-
-def default_threads() -> int:
-    """Threads used by the simulators: ``NUMBA_NUM_THREADS`` if set, else the CPU count."""
-    env = os.environ.get("NUMBA_NUM_THREADS")
-    if env:
-        try:
-            return max(1, int(env))
-        except ValueError:
-            pass
-    return max(1, os.cpu_count() or 1)
-
-
-def _chunks(n: int):
-    return [(lo, min(lo + CHUNK_PIXELS, n)) for lo in range(0, n, CHUNK_PIXELS)]
-
-
-def _map_chunks(fn, n: int, threads: int):
-    """``fn(lo, hi)`` for every fixed-size chunk, in chunk order (threads only change speed)."""
-    chunks = _chunks(n)
-    if threads <= 1 or len(chunks) <= 1:
-        return [fn(lo, hi) for lo, hi in chunks]
-    with ThreadPoolExecutor(max_workers=threads) as pool:
-        return list(pool.map(lambda c: fn(*c), chunks))
-
-
-def _resolve_thresholds(shape, params: NoiseParams, gen, thresholds):
-    """Per-pixel ``(eps_on, eps_off)`` flat arrays (drawn when ``eps_sigma > 0``)."""
-    n = int(np.prod(shape))
-    if thresholds is not None:
-        thr = check_thresholds(thresholds, shape)
-    elif params.eps_sigma > 0:
-        thr = draw_thresholds(shape, params, gen)
-    else:
-        return np.full(n, params.eps_pos), np.full(n, params.eps_neg)
-    return np.ascontiguousarray(thr[0].ravel()), np.ascontiguousarray(thr[1].ravel())
-
-
-def _resolve_background(shape, params: NoiseParams, gen, background):
-    """Per-pixel ``(scale, hot)`` flat arrays of the background, or None when it needs none.
-
-    Drawn (after the thresholds) when ``leak_sigma`` or hot pixels are on and no maps are given;
-    None when every pixel has the nominal background (or there is none).
-    """
-    from .background import check_background, draw_background
-
-    if background is not None:
-        arr = check_background(background, shape)
-    elif params.has_background and (params.leak_sigma > 0 or params.hot_pixel_fraction > 0):
-        arr = draw_background(shape, params, gen)
-    else:
-        return None
-    return np.ascontiguousarray(arr[0].ravel()), np.ascontiguousarray(arr[1].ravel())
-
-
-def _background_coefficients(params: NoiseParams, bg, sel) -> np.ndarray:
-    """``(4, n)`` ``[l0_on, l1_on, l0_off, l1_off]`` of the trial kernel for pixels ``sel`` (``(4, 0)`` without
-    background)."""
-    if not params.has_background:
-        return np.zeros((4, 0))
-    if bg is None:
-        scale, hot = np.ones(sel.size), np.zeros(sel.size)
-    else:
-        scale, hot = bg[0][sel], bg[1][sel]
-    q = params.hot_pixel_on_fraction
-    out = np.stack([scale * params.leak_on_hz + hot * q, scale * params.leak_on_hz_per_lux,
-                    scale * params.leak_off_hz + hot * (1.0 - q), scale * params.leak_off_hz_per_lux])
-    return np.ascontiguousarray(out)
-
-
-def _select(bg, sel):
-    return None if bg is None else (bg[0][sel], bg[1][sel])
-
-
-class _PixelState:
-    """Per-pixel simulation state of a set of pixels (flat indices ``pix``).
-
-    The float state is one array ``fstate`` ``(n, N_STATE)``, a row per pixel (the columns of
-    :mod:`evnoise._kernels.simulate`); the attributes ``last_trial``, ``lam_ref``, ... are views of
-    its columns, for the vectorised code here.
-    """
-
-    def __init__(self, pix: np.ndarray, key: np.ndarray, threads: int):
-        from ._kernels import simulate as k
-
-        self.pix = np.ascontiguousarray(pix, dtype=np.int64)
-        n = self.pix.size
-        self.states = np.empty((n, 4), dtype=np.uint64)
-        # each pixel's stream is keyed by its flat index, not by its position in this set
-        _map_chunks(lambda lo, hi: k.seed_streams(key, self.pix[lo:hi], self.states[lo:hi]), n, threads)
-        self.fstate = np.zeros((n, k.N_STATE))
-        initial = {k.LAST_TRIAL: -1.0, k.LAST_TAU: -math.inf, k.PEND_TRIAL: math.nan, k.PEND_TAU: math.nan,
-                   k.PEND_ON: math.nan, k.CACHE_LAM: math.nan, k.BG_NEXT: math.nan}
-        for col, value in initial.items():
-            self.fstate[:, col] = value
-        self.last_trial = self.fstate[:, k.LAST_TRIAL]
-        self.last_tau = self.fstate[:, k.LAST_TAU]
-        self.pend_trial = self.fstate[:, k.PEND_TRIAL]
-        self.pend_tau = self.fstate[:, k.PEND_TAU]
-        self.pend_on = self.fstate[:, k.PEND_ON]
-        self.lam_ref = self.fstate[:, k.LAM_REF]
-        self.lam_prev = self.fstate[:, k.LAM_PREV]
-        # trial tier: closed-form probabilities of pixels that are static within a window
-        self.cache_lam = self.fstate[:, k.CACHE_LAM]
-        self.cache_log1m_p = self.fstate[:, k.CACHE_LOG1M_P]
-        self.cache_q_on = self.fstate[:, k.CACHE_Q_ON]
-        # regular background (leak_regularity > 0): trial of the next background arrival, its intensity (events/s)
-        self.bg_next = self.fstate[:, k.BG_NEXT]
-        self.bg_l = self.fstate[:, k.BG_L]
-
-    def rescale_timers(self, l_all: np.ndarray, j_now: float):
-        """Pending background arrivals at or after trial ``j_now`` move to a new intensity ``l_all``.
-
-        The remaining interval scales with ``old / new`` intensity (a leak drifting at a new speed covers
-        the rest of its way in proportionally more or less time): exact for a periodic timer, the natural
-        continuation otherwise. Pixels whose intensity is unchanged are left alone (bit for bit).
-        """
-        pend = np.isfinite(self.bg_next) & (self.bg_next >= j_now) & (l_all != self.bg_l) & (self.bg_l > 0)
-        if pend.any():
-            ratio = np.where(l_all[pend] > 0, self.bg_l[pend] / np.where(l_all[pend] > 0, l_all[pend], 1.0), np.inf)
-            with np.errstate(invalid="ignore"):
-                self.bg_next[pend] = j_now + np.floor((self.bg_next[pend] - j_now) * ratio)
-            # a pending event in a trial not yet begun is redrawn (the photon gap is memoryless; the
-            # background arrival comes from the moved timer); one in a trial already begun stays
-            idx = np.flatnonzero(pend)
-            redraw = idx[self.pend_trial[idx] >= j_now]
-            self.pend_tau[redraw] = math.nan
-        self.bg_l[:] = l_all
-
-
-class _Collector:
-    """One output array that windows are sorted straight into (no final concatenation).
-
-    ``capacity`` is the expected number of events plus a margin of many standard deviations;
-    should a run still produce more, the array grows (a copy, correct but no longer in place).
-    """
-
-    def __init__(self, capacity: int):
-        self.buf = np.empty(max(0, int(capacity)), dtype=EVENT_DTYPE)
-        self.n = 0
-
-    def reserve(self, n: int) -> np.ndarray:
-        """The next ``n`` slots of the output (a contiguous view)."""
-        if self.n + n > self.buf.size:
-            grown = np.empty(max(self.n + n, int(1.25 * self.buf.size) + 1024), dtype=EVENT_DTYPE)
-            grown[:self.n] = self.buf[:self.n]
-            self.buf = grown
-        view = self.buf[self.n:self.n + n]
-        self.n += n
-        return view
-
-    def result(self) -> np.ndarray:
-        buf, self.buf = self.buf, None
-        try:
-            buf.resize((self.n,), refcheck=True)  # gives back the unused margin, in place
-        except ValueError:  # a view of it is still referenced somewhere: return a view instead
-            return buf[:self.n]
-        return buf
-
-
-def _sorted_window(parts, t_lo: int, t_hi: int, labels: bool = False, sink: _Collector | None = None):
-    """Concatenate ``(t, x, y, p)`` parts (in a fixed order) into one event array sorted stably by time.
-
-    With ``labels`` also returns a bool array, True for signal events. With ``sink`` the window
-    is sorted straight into the sink's next slots (and that view is returned).
-    """
-    from ._kernels.simulate import sort_into_events
-
-    parts = [p for p in parts if p[0].size]
-    if not parts:
-        return (empty_events(0), np.zeros(0, dtype=bool)) if labels else empty_events(0)
-    cols = [np.concatenate([p[i] for p in parts]) if len(parts) > 1 else parts[0][i] for i in range(4)]
-    del parts
-    out = np.empty(cols[0].size, dtype=EVENT_DTYPE) if sink is None else sink.reserve(cols[0].size)
-    lab = np.empty(cols[0].size if labels else 0, dtype=np.uint8)
-    sort_into_events(*cols, np.int64(t_lo), np.int64(t_hi), out, lab)
-    return (out, lab.astype(bool)) if labels else out
-
-
-def _renewal_inputs(p_on: np.ndarray, p_off: np.ndarray):
-    p = p_on + p_off
-    with np.errstate(divide="ignore", invalid="ignore"):
-        q_on = np.where(p > 0, p_on / np.where(p > 0, p, 1.0), 0.5)
-    return np.log1p(-np.minimum(p, 1.0)), q_on
-
-
-def _timer_arrays(lam, params: NoiseParams, bg):
-    """``(3, n)`` ``[d, log1p(-a2), ON share]`` of the regular background timer (:mod:`evnoise._kernels.background`)."""
-    from .background import _intensities, lux_of_photons, timer_shape
-
-    scale, hot = (None, None) if bg is None else bg
-    l_on, l_off = _intensities(lux_of_photons(lam, params), params, scale, hot)
-    l_on = np.broadcast_to(l_on, np.shape(lam))
-    l_all = l_on + np.broadcast_to(l_off, np.shape(lam))
-    d, log1m_a2 = timer_shape(l_all, params.trial_us * 1e-6, params.leak_regularity)
-    has = l_all > 0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        share = np.where(has, l_on / np.where(has, l_all, 1.0), 0.0)
-    return np.ascontiguousarray(np.stack([d, log1m_a2, share]))
-
-
-def _static_inputs(lam, params: NoiseParams, eps_on, eps_off, bg):
-    """Renewal-kernel inputs of static pixels at ``lam``: ``(log1m_p, q_on, timer or None, total rate)``."""
-    if params.regular_background:
-        from .rates import pixel_rates
-
-        p_on, p_off = trial_probabilities(lam, params, (eps_on, eps_off), photon_only=True)
-        log1m_p, q_on = _renewal_inputs(p_on, p_off)
-        nu_on, nu_off = pixel_rates(lam, params, (eps_on, eps_off), bg)
-        return log1m_p, q_on, _timer_arrays(lam, params, bg), nu_on + nu_off
-    p_on, p_off = trial_probabilities(lam, params, (eps_on, eps_off), background=bg)
-    log1m_p, q_on = _renewal_inputs(p_on, p_off)
-    nu = params.trial_rate_hz * (p_on + p_off)
-    nu = nu / (1.0 + nu * params.refractory_us * 1e-6)
-    return log1m_p, q_on, None, nu
-
-
-def _renewal_step(state: _PixelState, width, log1m_p, q_on, dt, refr_us, j_min, w_end, discard_from,
-                  t0_us, threads, store=True, expected=None, timer=None):
-    """Run the renewal kernel over all pixels of ``state`` up to ``w_end``; returns chunk parts."""
-    from ._kernels.simulate import renewal_window
-
-    no_timer = np.zeros((3, 0))
-
-    def run(lo, hi):
-        cap = 0
-        if store:
-            cap = int(1.2 * expected[lo:hi].sum() + 64) if expected is not None else 1024
-        return renewal_window(
-            width, state.pix[lo:hi], log1m_p[lo:hi], q_on[lo:hi], no_timer if timer is None else timer[:, lo:hi],
-            state.states[lo:hi], state.fstate[lo:hi], dt, float(refr_us), float(j_min), float(w_end),
-            float(discard_from), np.int64(t0_us), cap, store,
-        )
-
-    return _map_chunks(run, state.pix.size, threads)
-
-
-def _progress(total, enabled, desc, unit="s"):
-    if not enabled:
-        return None
-    from tqdm.auto import tqdm
-
-    return tqdm(total=total, desc=desc, unit=unit, leave=False,
-                bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.1f}/{total:.1f} " + unit + " [{elapsed}<{remaining}]")
 
 
 # --------------------------------------------------------------------------------------
@@ -334,12 +97,12 @@ def _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, t
     duration_us = duration_to_us(duration_s)
     if method not in METHODS:
         raise ParameterError(f"method must be one of {METHODS}, got {method!r}")
-    t_start_us = _check_t_start(t_start_us)
+    t_start_us = check_t_start(t_start_us)
     threads = default_threads() if threads is None else max(1, int(threads))
     gen = as_generator(rng)
-    eps_on, eps_off = _resolve_thresholds(lux.shape, params, gen, thresholds)
-    bg = _resolve_background(lux.shape, params, gen, background)
-    key = _key(gen)
+    eps_on, eps_off = resolve_thresholds(lux.shape, params, gen, thresholds)
+    bg = resolve_background(lux.shape, params, gen, background)
+    key = kernel_key(gen)
     if method == "trials":
         frames = _FrameSource([lux], name="lux")
         return _iter_dynamic(frames, np.array([0.0, float(duration_us)]), params, key, eps_on, eps_off,
@@ -347,27 +110,11 @@ def _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, t
     return _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, threads, progress, sink, bg)
 
 
-def _check_t_start(t_start_us) -> int:
-    try:
-        t = int(t_start_us)
-    except (TypeError, ValueError):
-        raise ParameterError(f"t_start_us must be an integer number of microseconds, got {t_start_us!r}") from None
-    if t != t_start_us:
-        raise ParameterError(f"t_start_us must be an integer number of microseconds, got {t_start_us!r}")
-    return t
-
-
-def _key(gen):
-    from ._checks import kernel_key
-
-    return kernel_key(gen)  # the one home of seed -> kernel key (issue 13)
-
-
 def _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, threads, progress, sink=None,
                  bg=None):
     height, width = lux.shape
     lam = params.photons_per_trial(lux).ravel()
-    log1m_p, q_on, timer, nu = _static_inputs(lam, params, eps_on, eps_off, bg)
+    log1m_p, q_on, timer, nu = static_inputs(lam, params, eps_on, eps_off, bg)
     dt = params.trial_us
     refr = params.refractory_us
     del lam  # not needed while the windows run: keep the per-pixel memory small
@@ -379,15 +126,15 @@ def _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, thr
         sink.__init__(int(math.ceil(total + 8.0 * math.sqrt(total) + 4096)))
 
     def gen():
-        state = _PixelState(np.arange(lux.size), key, threads)
-        bar = _progress(duration_us * 1e-6, progress, "simulate")
+        state = PixelState(np.arange(lux.size), key, threads)
+        bar = progress_bar(duration_us * 1e-6, progress, "simulate")
         t_prev = 0
         for w_end in ends:
             expected = nu * (w_end - t_prev) * 1e-6
-            parts = _renewal_step(state, width, log1m_p, q_on, dt, refr, 0, w_end, math.inf,
+            parts = renewal_step(state, width, log1m_p, q_on, dt, refr, 0, w_end, math.inf,
                                   t_start_us, threads, expected=expected, timer=timer)
             del expected
-            window = _sorted_window(parts, t_start_us + t_prev, t_start_us + w_end, sink=sink)
+            window = sorted_window(parts, t_start_us + t_prev, t_start_us + w_end, sink=sink)
             del parts  # not held while the caller has the window
             yield window
             del window
@@ -447,7 +194,7 @@ def simulate_events(
     """
     # static scenes: one output array, each window sorted straight into it (peak memory about the
     # output plus one window, instead of twice the output for a final concatenation)
-    sink = _Collector(0)
+    sink = Collector(0)
     parts = []
     for window in _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, threads, progress,
                                sink, background):
@@ -543,9 +290,9 @@ def iter_video(
     elif method == "renewal" and not static.all():
         raise ParameterError("method='renewal' needs a static scene, but some pixels change between frames")
     gen = as_generator(rng)
-    eps_on, eps_off = _resolve_thresholds(shape, params, gen, thresholds)
-    bg = _resolve_background(shape, params, gen, background)
-    key = _key(gen)
+    eps_on, eps_off = resolve_thresholds(shape, params, gen, thresholds)
+    bg = resolve_background(shape, params, gen, background)
+    key = kernel_key(gen)
     t0_us = int(round(ts[0] * 1e6))
     frame_us = (ts - ts[0]) * 1e6
     duration_us = int(round(frame_us[-1]))
@@ -608,7 +355,7 @@ def simulate_video(
     return np.concatenate(parts) if parts else empty_events(0)
 
 
-def _fill_static_cache(state: _PixelState, lams: np.ndarray, params: NoiseParams, eps_on, eps_off, bg=None):
+def _fill_static_cache(state: PixelState, lams: np.ndarray, params: NoiseParams, eps_on, eps_off, bg=None):
     """Closed-form probabilities of the pixels the trial tier will jump through in this window.
 
     Those whose ``lam`` is the same in every frame ``lams`` (F, n) of the window and equals
@@ -623,7 +370,7 @@ def _fill_static_cache(state: _PixelState, lams: np.ndarray, params: NoiseParams
     sel = np.flatnonzero(need)
     if sel.size == 0:
         return
-    p_on, p_off = trial_probabilities(lam0[sel], params, (eps_on[sel], eps_off[sel]), background=_select(bg, sel))
+    p_on, p_off = trial_probabilities(lam0[sel], params, (eps_on[sel], eps_off[sel]), background=select_background(bg, sel))
     p_all = p_on + p_off
     with np.errstate(divide="ignore", invalid="ignore"):
         state.cache_log1m_p[sel] = np.where(p_all < 1.0, np.log1p(-np.minimum(p_all, 1.0)), -np.inf)
@@ -653,9 +400,9 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
     stat_timer = None
     if stat_pix.size:
         lam0 = lam_of(0)[stat_pix]
-        log1m_p, q_on, stat_timer, nu = _static_inputs(lam0, params, eps_on[stat_pix], eps_off[stat_pix],
-                                                       _select(bg, stat_pix))
-    dyn_bg = _background_coefficients(params, bg, dyn_pix)
+        log1m_p, q_on, stat_timer, nu = static_inputs(lam0, params, eps_on[stat_pix], eps_off[stat_pix],
+                                                       select_background(bg, stat_pix))
+    dyn_bg = background_coefficients(params, bg, dyn_pix)
     from .background import pr_alpha_per_photon
 
     pr_alpha = pr_alpha_per_photon(params)
@@ -680,8 +427,8 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
         return np.unique(np.concatenate([seg, seg + 1]))
 
     def gen():
-        stat_state = _PixelState(stat_pix, key, threads) if stat_pix.size else None
-        dyn_state = _PixelState(dyn_pix, key, threads) if dyn_pix.size else None
+        stat_state = PixelState(stat_pix, key, threads) if stat_pix.size else None
+        dyn_state = PixelState(dyn_pix, key, threads) if dyn_pix.size else None
         cache: dict[int, np.ndarray] = {}
         if dyn_state is not None:
             idx = frame_indices(0, 1)
@@ -695,7 +442,7 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
             dyn_state.lam_prev[:] = lam_first
         dyn_e_on, dyn_e_off = eps_on[dyn_pix], eps_off[dyn_pix]
         dyn_thr = np.stack([c_on[dyn_pix], c_off[dyn_pix], dyn_e_on, dyn_e_off])
-        bar = _progress(duration_us * 1e-6, progress, "simulate")
+        bar = progress_bar(duration_us * 1e-6, progress, "simulate")
         for j_a, j_b in zip(trial_edges[:-1], trial_edges[1:]):
             w_lo = 0 if j_a == 0 else int(math.floor(j_a * dt))
             w_hi = duration_us if j_b == n_trials else int(math.floor(j_b * dt))
@@ -703,7 +450,7 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
             if stat_state is not None:
                 expected = nu * (j_b - j_a) * dt * 1e-6
                 w_end = min(j_b * dt, float(duration_us))
-                parts += _renewal_step(stat_state, width, log1m_p, q_on, dt, refr, 0, w_end, math.inf,
+                parts += renewal_step(stat_state, width, log1m_p, q_on, dt, refr, 0, w_end, math.inf,
                                        t0_us, threads, expected=expected, timer=stat_timer)
             if dyn_state is not None:
                 idx = frame_indices(j_a, j_b)
@@ -717,7 +464,7 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
                 f_us = np.ascontiguousarray(frame_us[idx]) if frames.n > 1 else np.zeros(1)
                 if fast_static:
                     _fill_static_cache(dyn_state, stack[:, dyn_pix], params, dyn_e_on, dyn_e_off,
-                                       None if bg is None else _select(bg, dyn_pix))
+                                       None if bg is None else select_background(bg, dyn_pix))
 
                 def run(lo, hi, stack=stack, f_us=f_us, j_a=j_a, j_b=j_b):
                     s = dyn_state
@@ -727,8 +474,8 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
                         fast_static,
                     )
 
-                parts += _map_chunks(run, dyn_pix.size, threads)
-            yield _sorted_window([p[:4] for p in parts], t0_us + w_lo, t0_us + w_hi, labels=labels)
+                parts += map_chunks(run, dyn_pix.size, threads)
+            yield sorted_window([p[:4] for p in parts], t0_us + w_lo, t0_us + w_hi, labels=labels)
             if bar is not None:
                 bar.update((w_hi - w_lo) * 1e-6)
         if bar is not None:
@@ -795,14 +542,14 @@ def sample_counts(
         raise ParameterError("nb_shape is only used with distribution='negative-binomial'")
     threads = default_threads() if threads is None else max(1, int(threads))
     gen = as_generator(rng)
-    eps_on, eps_off = _resolve_thresholds(lux.shape, params, gen, thresholds)
-    bg = _resolve_background(lux.shape, params, gen, background)
+    eps_on, eps_off = resolve_thresholds(lux.shape, params, gen, thresholds)
+    bg = resolve_background(lux.shape, params, gen, background)
     lam = params.photons_per_trial(lux).ravel()
     if distribution == "exact":
-        key = _key(gen)
-        log1m_p, q_on, timer, _ = _static_inputs(lam, params, eps_on, eps_off, bg)
-        state = _PixelState(np.arange(lux.size), key, threads)
-        parts = _renewal_step(state, lux.shape[1], log1m_p, q_on, params.trial_us, params.refractory_us, 0,
+        key = kernel_key(gen)
+        log1m_p, q_on, timer, _ = static_inputs(lam, params, eps_on, eps_off, bg)
+        state = PixelState(np.arange(lux.size), key, threads)
+        parts = renewal_step(state, lux.shape[1], log1m_p, q_on, params.trial_us, params.refractory_us, 0,
                               float(duration_us), math.inf, 0, threads, store=False, timer=timer)
         on = np.concatenate([p[4] for p in parts])
         off = np.concatenate([p[5] for p in parts])
@@ -819,84 +566,6 @@ def sample_counts(
 # --------------------------------------------------------------------------------------
 # streaming interface for other simulators
 # --------------------------------------------------------------------------------------
-class NoiseStream:
-    """Photon-noise events for another simulator's loop, interval by interval.
-
-    Keeps per-pixel state (random streams, refractory, pending events) between calls. Each
-    call :meth:`advance` gives the noise events of ``[t_now, t_end_us)`` for an illuminance
-    held constant over the trials that *start* in that interval (sample-and-hold per trial),
-    which is exact for piecewise-constant illuminance. Signal events are the host
-    simulator's business: merge them with :func:`evnoise.merge_events`.
-
-    Parameters
-    ----------
-    shape : (H, W)
-        Sensor size.
-    params : NoiseParams
-        Model parameters.
-    rng : numpy.random.Generator, int or None
-        Randomness (per-pixel streams; results do not depend on the number of threads).
-    t_start_us : int
-        Time of the start of the stream in microseconds.
-    thresholds : array_like, optional
-        Per-pixel thresholds ``(2, H, W)``; drawn when ``params.eps_sigma > 0``.
-    background : array_like, optional
-        Per-pixel background maps ``(2, H, W)``; drawn when ``params.leak_sigma > 0`` or hot
-        pixels are on (see :func:`simulate_events`).
-    """
-
-    def __init__(self, shape, params: NoiseParams, rng=None, *, t_start_us: int = 0, thresholds=None,
-                 background=None, threads: int | None = None):
-        from .events import check_shape
-
-        self.shape = check_shape(shape)
-        self.params = check_params(params)
-        self.threads = default_threads() if threads is None else max(1, int(threads))
-        gen = as_generator(rng)
-        self._eps_on, self._eps_off = _resolve_thresholds(self.shape, self.params, gen, thresholds)
-        self._bg = _resolve_background(self.shape, self.params, gen, background)
-        self._state = _PixelState(np.arange(self.shape[0] * self.shape[1]), _key(gen), self.threads)
-        self._t0 = _check_t_start(t_start_us)
-        self._t_rel = 0  # µs since t_start_us
-
-    @property
-    def t_us(self) -> int:
-        """Current time of the stream (end of the last interval), microseconds."""
-        return self._t0 + self._t_rel
-
-    def advance(self, lux, t_end_us: int) -> np.ndarray:
-        """Noise events with ``t_us <= t < t_end_us`` under illuminance ``lux`` (H, W), sorted by time."""
-        lux = check_lux(lux)
-        if lux.shape != self.shape:
-            raise InputError(f"lux has shape {lux.shape}, but the stream was made for {self.shape}")
-        t_end = _check_t_start(t_end_us) - self._t0
-        if t_end < self._t_rel:
-            raise ParameterError(f"t_end_us={t_end_us} is before the stream's current time {self.t_us}")
-        if t_end == self._t_rel:
-            return empty_events(0)
-        p = self.params
-        dt = p.trial_us
-        lam = p.photons_per_trial(lux).ravel()
-        log1m_p, q_on, timer, nu = _static_inputs(lam, p, self._eps_on, self._eps_off, self._bg)
-        j_min = _first_trial_at_or_after(self._t_rel, dt)
-        discard = _first_trial_at_or_after(t_end, dt)
-        if timer is not None:
-            from .background import _intensities, lux_of_photons
-
-            scale, hot = (None, None) if self._bg is None else self._bg
-            l_on, l_off = _intensities(lux_of_photons(lam, p), p, scale, hot)
-            self._state.rescale_timers(np.broadcast_to(l_on + l_off, lam.shape), j_min)
-        parts = _renewal_step(self._state, self.shape[1], log1m_p, q_on, dt, p.refractory_us, j_min,
-                              float(t_end), discard, self._t0, self.threads,
-                              expected=nu * (t_end - self._t_rel) * 1e-6, timer=timer)
-        out = _sorted_window(parts, self._t0 + self._t_rel, self._t0 + t_end)
-        self._t_rel = t_end
-        return out
 
 
-def _first_trial_at_or_after(t_us: float, dt: float) -> float:
-    """Index of the first trial starting at or after ``t_us`` (``t_us >= 0``): the kernels' eligibility rule
-    with no previous event and no refractory period (one home for the rounding of trial starts)."""
-    from ._kernels.simulate import _first_eligible
-
-    return float(_first_eligible(-1.0, float(t_us), 0.0, float(dt)))
+from .stream import NoiseStream  # noqa: E402  (public here too; it uses the engine, not this module)

@@ -177,6 +177,8 @@ def test_simulate_events_collects_windows_in_place_identically(monkeypatch):
     assert got.flags.owndata and got.size == want.size > 1000
     assert np.array_equal(got, want)
 
-    init = sim._Collector.__init__
-    monkeypatch.setattr(sim._Collector, "__init__", lambda self, capacity: init(self, capacity // 10))
+    from evnoise._engine import Collector
+
+    init = Collector.__init__
+    monkeypatch.setattr(Collector, "__init__", lambda self, capacity: init(self, capacity // 10))
     assert np.array_equal(ev.simulate_events(lux, PRESET, 3.0, rng=4), want)

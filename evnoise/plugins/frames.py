@@ -147,7 +147,7 @@ class EmulatorNoise:
             rows unchanged and in their order, with the noise rows of ``[t_previous, t_frame)``
             inserted by time; ``None`` when there are no events (e.g. on the first frame).
         """
-        from ..simulate import NoiseStream
+        from ..stream import NoiseStream
 
         lux = self.frame_lux(new_frame)
         t_us = _seconds_to_us(t_frame)

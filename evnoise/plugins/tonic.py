@@ -74,7 +74,7 @@ class PhotonNoise:
     """
 
     def __init__(self, sensor_size, params, lux, rng=None, *, threads: int | None = None):
-        from ..simulate import _resolve_thresholds
+        from .._engine import resolve_thresholds
 
         self.sensor_size = tuple(_check_sensor_size(sensor_size))
         width, height, _ = self.sensor_size
@@ -93,7 +93,7 @@ class PhotonNoise:
         else:
             raise ParameterError(f"rng must be None, an integer seed or a numpy Generator, got {type(rng).__name__}")
         if self.params.eps_sigma > 0:
-            eps_on, eps_off = _resolve_thresholds((height, width), self.params, thr_gen, None)
+            eps_on, eps_off = resolve_thresholds((height, width), self.params, thr_gen, None)
             self._thresholds = np.stack([eps_on, eps_off]).reshape(2, height, width)
         else:
             self._thresholds = None

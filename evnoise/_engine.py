@@ -1,0 +1,278 @@
+"""The simulators' engine: per-pixel state, chunked threads, window collection (internal).
+
+Shared by :mod:`evnoise.simulate` (static and changing scenes, counts) and :mod:`evnoise.stream`
+(:class:`~evnoise.stream.NoiseStream`): the per-pixel state the kernels of
+:mod:`evnoise._kernels.simulate` advance, the fixed-size pixel chunks that threads share (chunking
+never changes the output), per-pixel thresholds and background maps, the renewal tier's inputs
+and step, and the collection of each window's events in time order.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from ._checks import check_thresholds
+from .errors import ParameterError
+from .events import EVENT_DTYPE, empty_events
+from .params import NoiseParams
+from .rates import draw_thresholds, trial_probabilities
+
+CHUNK_PIXELS = 1 << 14
+
+
+def default_threads() -> int:
+    """Threads used by the simulators: ``NUMBA_NUM_THREADS`` if set, else the CPU count."""
+    env = os.environ.get("NUMBA_NUM_THREADS")
+    if env:
+        try:
+            return max(1, int(env))
+        except ValueError:
+            pass
+    return max(1, os.cpu_count() or 1)
+
+
+def pixel_chunks(n: int):
+    return [(lo, min(lo + CHUNK_PIXELS, n)) for lo in range(0, n, CHUNK_PIXELS)]
+
+
+def map_chunks(fn, n: int, threads: int):
+    """``fn(lo, hi)`` for every fixed-size chunk, in chunk order (threads only change speed)."""
+    chunks = pixel_chunks(n)
+    if threads <= 1 or len(chunks) <= 1:
+        return [fn(lo, hi) for lo, hi in chunks]
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        return list(pool.map(lambda c: fn(*c), chunks))
+
+
+def resolve_thresholds(shape, params: NoiseParams, gen, thresholds):
+    """Per-pixel ``(eps_on, eps_off)`` flat arrays (drawn when ``eps_sigma > 0``)."""
+    n = int(np.prod(shape))
+    if thresholds is not None:
+        thr = check_thresholds(thresholds, shape)
+    elif params.eps_sigma > 0:
+        thr = draw_thresholds(shape, params, gen)
+    else:
+        return np.full(n, params.eps_pos), np.full(n, params.eps_neg)
+    return np.ascontiguousarray(thr[0].ravel()), np.ascontiguousarray(thr[1].ravel())
+
+
+def resolve_background(shape, params: NoiseParams, gen, background):
+    """Per-pixel ``(scale, hot)`` flat arrays of the background, or None when it needs none.
+
+    Drawn (after the thresholds) when ``leak_sigma`` or hot pixels are on and no maps are given;
+    None when every pixel has the nominal background (or there is none).
+    """
+    from .background import check_background, draw_background
+
+    if background is not None:
+        arr = check_background(background, shape)
+    elif params.has_background and (params.leak_sigma > 0 or params.hot_pixel_fraction > 0):
+        arr = draw_background(shape, params, gen)
+    else:
+        return None
+    return np.ascontiguousarray(arr[0].ravel()), np.ascontiguousarray(arr[1].ravel())
+
+
+def background_coefficients(params: NoiseParams, bg, sel) -> np.ndarray:
+    """``(4, n)`` ``[l0_on, l1_on, l0_off, l1_off]`` of the trial kernel for pixels ``sel`` (``(4, 0)`` without
+    background)."""
+    if not params.has_background:
+        return np.zeros((4, 0))
+    if bg is None:
+        scale, hot = np.ones(sel.size), np.zeros(sel.size)
+    else:
+        scale, hot = bg[0][sel], bg[1][sel]
+    q = params.hot_pixel_on_fraction
+    out = np.stack([scale * params.leak_on_hz + hot * q, scale * params.leak_on_hz_per_lux,
+                    scale * params.leak_off_hz + hot * (1.0 - q), scale * params.leak_off_hz_per_lux])
+    return np.ascontiguousarray(out)
+
+
+def select_background(bg, sel):
+    return None if bg is None else (bg[0][sel], bg[1][sel])
+
+
+class PixelState:
+    """Per-pixel simulation state of a set of pixels (flat indices ``pix``).
+
+    The float state is one array ``fstate`` ``(n, N_STATE)``, a row per pixel (the columns of
+    :mod:`evnoise._kernels.simulate`); the attributes ``last_trial``, ``lam_ref``, ... are views of
+    its columns, for the vectorised code here.
+    """
+
+    def __init__(self, pix: np.ndarray, key: np.ndarray, threads: int):
+        from ._kernels import simulate as k
+
+        self.pix = np.ascontiguousarray(pix, dtype=np.int64)
+        n = self.pix.size
+        self.states = np.empty((n, 4), dtype=np.uint64)
+        # each pixel's stream is keyed by its flat index, not by its position in this set
+        map_chunks(lambda lo, hi: k.seed_streams(key, self.pix[lo:hi], self.states[lo:hi]), n, threads)
+        self.fstate = np.zeros((n, k.N_STATE))
+        initial = {k.LAST_TRIAL: -1.0, k.LAST_TAU: -math.inf, k.PEND_TRIAL: math.nan, k.PEND_TAU: math.nan,
+                   k.PEND_ON: math.nan, k.CACHE_LAM: math.nan, k.BG_NEXT: math.nan}
+        for col, value in initial.items():
+            self.fstate[:, col] = value
+        self.last_trial = self.fstate[:, k.LAST_TRIAL]
+        self.last_tau = self.fstate[:, k.LAST_TAU]
+        self.pend_trial = self.fstate[:, k.PEND_TRIAL]
+        self.pend_tau = self.fstate[:, k.PEND_TAU]
+        self.pend_on = self.fstate[:, k.PEND_ON]
+        self.lam_ref = self.fstate[:, k.LAM_REF]
+        self.lam_prev = self.fstate[:, k.LAM_PREV]
+        # trial tier: closed-form probabilities of pixels that are static within a window
+        self.cache_lam = self.fstate[:, k.CACHE_LAM]
+        self.cache_log1m_p = self.fstate[:, k.CACHE_LOG1M_P]
+        self.cache_q_on = self.fstate[:, k.CACHE_Q_ON]
+        # regular background (leak_regularity > 0): trial of the next background arrival, its intensity (events/s)
+        self.bg_next = self.fstate[:, k.BG_NEXT]
+        self.bg_l = self.fstate[:, k.BG_L]
+
+    def rescale_timers(self, l_all: np.ndarray, j_now: float):
+        """Pending background arrivals at or after trial ``j_now`` move to a new intensity ``l_all``.
+
+        The remaining interval scales with ``old / new`` intensity (a leak drifting at a new speed covers
+        the rest of its way in proportionally more or less time): exact for a periodic timer, the natural
+        continuation otherwise. Pixels whose intensity is unchanged are left alone (bit for bit).
+        """
+        pend = np.isfinite(self.bg_next) & (self.bg_next >= j_now) & (l_all != self.bg_l) & (self.bg_l > 0)
+        if pend.any():
+            ratio = np.where(l_all[pend] > 0, self.bg_l[pend] / np.where(l_all[pend] > 0, l_all[pend], 1.0), np.inf)
+            with np.errstate(invalid="ignore"):
+                self.bg_next[pend] = j_now + np.floor((self.bg_next[pend] - j_now) * ratio)
+            # a pending event in a trial not yet begun is redrawn (the photon gap is memoryless; the
+            # background arrival comes from the moved timer); one in a trial already begun stays
+            idx = np.flatnonzero(pend)
+            redraw = idx[self.pend_trial[idx] >= j_now]
+            self.pend_tau[redraw] = math.nan
+        self.bg_l[:] = l_all
+
+
+class Collector:
+    """One output array that windows are sorted straight into (no final concatenation).
+
+    ``capacity`` is the expected number of events plus a margin of many standard deviations;
+    should a run still produce more, the array grows (a copy, correct but no longer in place).
+    """
+
+    def __init__(self, capacity: int):
+        self.buf = np.empty(max(0, int(capacity)), dtype=EVENT_DTYPE)
+        self.n = 0
+
+    def reserve(self, n: int) -> np.ndarray:
+        """The next ``n`` slots of the output (a contiguous view)."""
+        if self.n + n > self.buf.size:
+            grown = np.empty(max(self.n + n, int(1.25 * self.buf.size) + 1024), dtype=EVENT_DTYPE)
+            grown[:self.n] = self.buf[:self.n]
+            self.buf = grown
+        view = self.buf[self.n:self.n + n]
+        self.n += n
+        return view
+
+    def result(self) -> np.ndarray:
+        buf, self.buf = self.buf, None
+        try:
+            buf.resize((self.n,), refcheck=True)  # gives back the unused margin, in place
+        except ValueError:  # a view of it is still referenced somewhere: return a view instead
+            return buf[:self.n]
+        return buf
+
+
+def sorted_window(parts, t_lo: int, t_hi: int, labels: bool = False, sink: Collector | None = None):
+    """Concatenate ``(t, x, y, p)`` parts (in a fixed order) into one event array sorted stably by time.
+
+    With ``labels`` also returns a bool array, True for signal events. With ``sink`` the window
+    is sorted straight into the sink's next slots (and that view is returned).
+    """
+    from ._kernels.simulate import sort_into_events
+
+    parts = [p for p in parts if p[0].size]
+    if not parts:
+        return (empty_events(0), np.zeros(0, dtype=bool)) if labels else empty_events(0)
+    cols = [np.concatenate([p[i] for p in parts]) if len(parts) > 1 else parts[0][i] for i in range(4)]
+    del parts
+    out = np.empty(cols[0].size, dtype=EVENT_DTYPE) if sink is None else sink.reserve(cols[0].size)
+    lab = np.empty(cols[0].size if labels else 0, dtype=np.uint8)
+    sort_into_events(*cols, np.int64(t_lo), np.int64(t_hi), out, lab)
+    return (out, lab.astype(bool)) if labels else out
+
+
+def renewal_inputs(p_on: np.ndarray, p_off: np.ndarray):
+    p = p_on + p_off
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q_on = np.where(p > 0, p_on / np.where(p > 0, p, 1.0), 0.5)
+    return np.log1p(-np.minimum(p, 1.0)), q_on
+
+
+def timer_arrays(lam, params: NoiseParams, bg):
+    """``(3, n)`` ``[d, log1p(-a2), ON share]`` of the regular background timer (:mod:`evnoise._kernels.background`)."""
+    from .background import _intensities, lux_of_photons, timer_shape
+
+    scale, hot = (None, None) if bg is None else bg
+    l_on, l_off = _intensities(lux_of_photons(lam, params), params, scale, hot)
+    l_on = np.broadcast_to(l_on, np.shape(lam))
+    l_all = l_on + np.broadcast_to(l_off, np.shape(lam))
+    d, log1m_a2 = timer_shape(l_all, params.trial_us * 1e-6, params.leak_regularity)
+    has = l_all > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        share = np.where(has, l_on / np.where(has, l_all, 1.0), 0.0)
+    return np.ascontiguousarray(np.stack([d, log1m_a2, share]))
+
+
+def static_inputs(lam, params: NoiseParams, eps_on, eps_off, bg):
+    """Renewal-kernel inputs of static pixels at ``lam``: ``(log1m_p, q_on, timer or None, total rate)``."""
+    if params.regular_background:
+        from .rates import pixel_rates
+
+        p_on, p_off = trial_probabilities(lam, params, (eps_on, eps_off), photon_only=True)
+        log1m_p, q_on = renewal_inputs(p_on, p_off)
+        nu_on, nu_off = pixel_rates(lam, params, (eps_on, eps_off), bg)
+        return log1m_p, q_on, timer_arrays(lam, params, bg), nu_on + nu_off
+    p_on, p_off = trial_probabilities(lam, params, (eps_on, eps_off), background=bg)
+    log1m_p, q_on = renewal_inputs(p_on, p_off)
+    nu = params.trial_rate_hz * (p_on + p_off)
+    nu = nu / (1.0 + nu * params.refractory_us * 1e-6)
+    return log1m_p, q_on, None, nu
+
+
+def renewal_step(state: PixelState, width, log1m_p, q_on, dt, refr_us, j_min, w_end, discard_from,
+                  t0_us, threads, store=True, expected=None, timer=None):
+    """Run the renewal kernel over all pixels of ``state`` up to ``w_end``; returns chunk parts."""
+    from ._kernels.simulate import renewal_window
+
+    no_timer = np.zeros((3, 0))
+
+    def run(lo, hi):
+        cap = 0
+        if store:
+            cap = int(1.2 * expected[lo:hi].sum() + 64) if expected is not None else 1024
+        return renewal_window(
+            width, state.pix[lo:hi], log1m_p[lo:hi], q_on[lo:hi], no_timer if timer is None else timer[:, lo:hi],
+            state.states[lo:hi], state.fstate[lo:hi], dt, float(refr_us), float(j_min), float(w_end),
+            float(discard_from), np.int64(t0_us), cap, store,
+        )
+
+    return map_chunks(run, state.pix.size, threads)
+
+
+def progress_bar(total, enabled, desc, unit="s"):
+    if not enabled:
+        return None
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, unit=unit, leave=False,
+                bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.1f}/{total:.1f} " + unit + " [{elapsed}<{remaining}]")
+
+
+def check_t_start(t_start_us) -> int:
+    try:
+        t = int(t_start_us)
+    except (TypeError, ValueError):
+        raise ParameterError(f"t_start_us must be an integer number of microseconds, got {t_start_us!r}") from None
+    if t != t_start_us:
+        raise ParameterError(f"t_start_us must be an integer number of microseconds, got {t_start_us!r}")
+    return t
