@@ -51,7 +51,7 @@ def _cpu_seconds() -> float:
 
 
 def _job(sources, config, workers, tmp: Path):
-    """Run one complete job into a fresh folder; returns (wall seconds, CPU seconds, result)."""
+    """Run one complete job into a fresh folder; returns (wall seconds, CPU seconds, result, bytes of its shards)."""
     from evnoise.generators import make_dataset
 
     out = tmp / "ds"
@@ -61,8 +61,9 @@ def _job(sources, config, workers, tmp: Path):
     result = make_dataset(sources, out, config, workers=workers)
     wall = time.perf_counter() - t0
     cpu = _cpu_seconds() - cpu
+    size = sum(p.stat().st_size for p in out.rglob("*.h5"))
     shutil.rmtree(out, ignore_errors=True)
-    return wall, cpu, result
+    return wall, cpu, result, size
 
 
 def _stats(values):
@@ -116,13 +117,14 @@ def bench_dataset(size: dict, out_dir: Path, report: list) -> None:
         walls = {c: [] for c in configs}
         cpus = {c: [] for c in configs}
         timings = {c: {} for c in configs}
+        sizes = {}
         # configurations interleaved within each repeat, so that changes of the machine's load
         # during the benchmark affect all of them alike
         for _ in range(repeats):
             for workers in (1, 2):
                 startup[workers].append(_job(few[workers], base.replace(shard_size=1), workers, tmp)[0])
             for workers, comp in configs:
-                wall, cpu, result = _job(src, base.replace(compression=comp), workers, tmp)
+                wall, cpu, result, sizes[comp] = _job(src, base.replace(compression=comp), workers, tmp)
                 walls[(workers, comp)].append(wall)
                 cpus[(workers, comp)].append(cpu)
                 for k, v in result.timings.items():
@@ -136,30 +138,31 @@ def bench_dataset(size: dict, out_dir: Path, report: list) -> None:
             marginal = ((n - workers) / (med - startup[workers])
                         if med > startup[workers] and n - workers >= 8 else None)
             cpu_rate = n / float(np.median(cpus[(workers, comp)]))
-            rows.append(f"| {workers} | {comp or 'none'} | {_rate(n, walls[(workers, comp)])} | "
+            default = " (default)" if comp == base.compression else ""
+            rows.append(f"| {workers} | {comp or 'none'}{default} | {_rate(n, walls[(workers, comp)])} | "
                         f"{'–' if marginal is None else f'{marginal:.1f}'} | {med:.2f} s | {cpu_rate:.1f} | "
-                        f"{1000 * sum(phase.values()) / n:.0f} ms |")
+                        f"{1000 * sum(phase.values()) / n:.0f} ms | {sizes[comp] / n / 1e6:.2f} MB |")
         # other paths, one job each (for orientation, not repeated)
         extra = []
-        wall, _, result = _job(DeadLeaves(n), base, 1, tmp)
-        extra.append(f"| procedural dead leaves (made at 1280×720 in the worker), 1 worker, gzip | "
+        wall, _, result, _ = _job(DeadLeaves(n), base, 1, tmp)
+        extra.append(f"| procedural dead leaves (made at 1280×720 in the worker), 1 worker, {base.compression} | "
                      f"{n / wall:.1f} | {result.sampler} |")
         k_small = max(2, n // 8)
         one = tmp / "one"
         one.mkdir()
         for p in sorted(src.iterdir())[:k_small]:
             shutil.copy(p, one / p.name)
-        wall, _, result = _job(one, base.replace(mode="events"), 1, tmp)
+        wall, _, result, _ = _job(one, base.replace(mode="events"), 1, tmp)
         extra.append(f"| `--mode events` (simulate_events + count_events), 1 worker | {k_small / wall:.2f} | "
                      f"{result.sampler} |")
-        wall, _, result = _job(one, base.replace(params=params.replace(refractory_s=1e-3)), 1, tmp)
+        wall, _, result, _ = _job(one, base.replace(params=params.replace(refractory_s=1e-3)), 1, tmp)
         extra.append(f"| refractory period 1 ms (general sampler), 1 worker | {k_small / wall:.2f} | "
                      f"{result.sampler} |")
         if size["scale"] >= 0.25:
             single = tmp / "single"
             single.mkdir()
             shutil.copy(sorted(src.iterdir())[0], single)
-            wall, _, result = _job(single, base.replace(params=params.replace(eps_sigma=0.03)), 1, tmp)
+            wall, _, result, _ = _job(single, base.replace(params=params.replace(eps_sigma=0.03)), 1, tmp)
             extra.append(f"| threshold mismatch eps_sigma = 0.03 (general sampler), 1 worker | {1 / wall:.3f} | "
                          f"{result.sampler} |")
     load_after = os.getloadavg() if hasattr(os, "getloadavg") else None
@@ -185,8 +188,8 @@ def bench_dataset(size: dict, out_dir: Path, report: list) -> None:
         "other processes compete for the cores, so 2 workers cannot double the rate here).",
         "",
         "| workers | compression | pairs/s (job) | pairs/s (marginal) | job wall time | "
-        "pairs per CPU-second | generator time per pair (summed over workers) |",
-        "|---|---|---|---|---|---|---|",
+        "pairs per CPU-second | generator time per pair (summed over workers) | shard size per pair |",
+        "|---|---|---|---|---|---|---|---|",
         *rows,
         "",
         f"*pairs/s (job)*: pairs / wall time of the whole job, start-up included. *Marginal*: the pairs beyond "
@@ -195,7 +198,10 @@ def bench_dataset(size: dict, out_dir: Path, report: list) -> None:
         "NumPy, h5py and Numba and load the compiled kernels); this is the rate of a large job. "
         "*Pairs per CPU-second*: the job's pairs over the CPU time it used (this process and its worker "
         "processes, start-up included), which the other load on the machine does not inflate: with the "
-        "machine to itself, a job cannot run faster than this times the number of busy cores.",
+        "machine to itself, a job cannot run faster than this times the number of busy cores. The default "
+        "compression is LZF: the shards' reader is h5py (evnoise's training and evaluation), which always "
+        "includes the LZF filter, so the files' readers do not care, and it is the fastest of the compressed "
+        "choices; gzip remains for shards that tools without that filter must read.",
         "",
         "Where the time goes (1 worker, gzip; share of the generator's own clocks, "
         f"{1000 * total / n:.0f} ms per pair):",

@@ -164,8 +164,12 @@ class PairConfig:
         Fractions of the *source images* in each split (normalised to sum 1).
     shard_size : int
         Target number of pairs per HDF5 shard (all pairs of a source stay in one shard).
-    compression : {"gzip", "lzf", None}
-        HDF5 filter of ``counts`` and ``image`` (with the shuffle filter); gzip at level 1.
+    compression : {"lzf", "gzip", None}
+        HDF5 filter of ``counts`` and ``image`` (with the shuffle filter; gzip at level 1). The
+        default is ``"lzf"``: the shards' reader is h5py (evnoise's training and evaluation), which
+        always includes LZF, and LZF makes a one-worker job about 1.35x faster than gzip (the
+        compression was 39 % of a pair's time; benchmarks/REPORT.md) for files about 1.3x larger.
+        Choose ``"gzip"`` for shards that tools without h5py's LZF filter must read.
     seed : int, optional
         The seed everything derives from; ``None`` lets :func:`~evnoise.generators.make_dataset`
         pick one (reusing the seed of an interrupted run in the same folder).
@@ -192,7 +196,7 @@ class PairConfig:
     clip_invalid: bool = False
     splits: tuple = (0.8, 0.1, 0.1)
     shard_size: int = 64
-    compression: str | None = "gzip"
+    compression: str | None = "lzf"
     seed: int | None = None
     preset: str | None = None
     params: NoiseParams | None = None
