@@ -19,56 +19,22 @@ import numpy as np
 
 from evnoise.params import NoiseParams
 
+from ._spec import FitSpec
 from .measurements import Measurements
 from evnoise.mismatch import LevelStats
 
 
-class _Problem:
-    def __init__(self, meas: Measurements, method, distribution, free, values, bounds):
+class _Prepared:
+    """What the likelihood needs from the measurements, computed once and shared by every problem
+    built on them (read-only after construction)."""
+
+    def __init__(self, meas: Measurements):
         self.meas = meas
-        self.method = method
-        self.distribution = distribution
-        self.free = list(free)
-        self.values = dict(values)  # every field of NoiseParams: current value
-        self.bounds = bounds  # name -> (lo, hi), natural units
-        self.lo = np.log([bounds[n][0] for n in self.free])
-        self.hi = np.log([bounds[n][1] for n in self.free])
         self.lux = meas.lux
-        self.weights = {"counts": 1.0, "shape": 1.0}
-        self.fit_shape = False
-        self.assumed_sigma = False
-        self._cache_key = None
-        self._cache_val = None
-        self.n_eval = 0
         if meas.kind == "flat-field":
             self._prepare_histograms()
         self._prepare_table()
 
-    # -- parameters --------------------------------------------------------------------
-    def params(self, theta) -> NoiseParams:
-        vals = dict(self.values)
-        for name, t in zip(self.free, theta, strict=True):
-            vals[name] = float(math.exp(t))
-        return NoiseParams(**vals)
-
-    def theta(self, params: NoiseParams) -> np.ndarray:
-        return np.array([math.log(getattr(params, n)) for n in self.free])
-
-    def set_value(self, name, value):
-        """Change a fixed parameter (invalidates the cached model statistics)."""
-        self.values[name] = float(value)
-        self._cache_key = None
-
-    def stats(self, theta) -> LevelStats:
-        key = tuple(np.asarray(theta, dtype=np.float64).tolist())
-        if key != self._cache_key:
-            p = self.params(theta)
-            self._cache_val = LevelStats(p.photons_per_trial(self.lux), p, self.method)
-            self._cache_key = key
-            self.n_eval += 1
-        return self._cache_val
-
-    # -- data preparation ----------------------------------------------------------------
     def _prepare_histograms(self):
         """Unique counts and multiplicities of every (polarity, level)."""
         m = self.meas
@@ -100,6 +66,78 @@ class _Problem:
             else:
                 self.k_sd = np.maximum(k_obs, 1e-3)
                 self.quasi_shape = True
+
+
+class _Problem:
+    """The likelihood of measurements under a frozen :class:`~._spec.FitSpec`.
+
+    ``_Problem(meas, method, distribution, free, values, bounds, **options)`` builds the spec;
+    :meth:`from_spec` takes one, and :meth:`derive` makes the problem of a changed spec on the same
+    (already prepared) measurements. Only the cache of the last model statistics changes after
+    construction.
+    """
+
+    def __init__(self, meas: Measurements, method, distribution, free, values, bounds, **options):
+        self._build(FitSpec(method, distribution, free, values, bounds, **options), _Prepared(meas))
+
+    @classmethod
+    def from_spec(cls, meas: Measurements, spec: FitSpec, prepared: _Prepared | None = None) -> "_Problem":
+        """The problem of ``spec`` on ``meas`` (``prepared``: the measurements' prepared data, if at hand)."""
+        problem = cls.__new__(cls)
+        problem._build(spec, prepared if prepared is not None else _Prepared(meas))
+        return problem
+
+    def derive(self, spec: FitSpec) -> "_Problem":
+        """The problem of another spec on the same measurements."""
+        return _Problem.from_spec(self.meas, spec, self._prepared)
+
+    def with_value(self, name, value) -> "_Problem":
+        """The same problem with the fixed parameter ``name`` at ``value``."""
+        return self.derive(self.spec.with_value(name, value))
+
+    def _build(self, spec: FitSpec, prepared: _Prepared):
+        self.spec = spec
+        self._prepared = prepared
+        d = prepared
+        self.meas, self.lux = d.meas, d.lux
+        if self.meas.kind == "flat-field":
+            self.hist, self.max_count = d.hist, d.max_count
+        self.exposure, self.y, self.quasi_counts, self.use_shape = d.exposure, d.y, d.quasi_counts, d.use_shape
+        self.nb_total_shape = d.nb_total_shape
+        if self.use_shape:
+            self.k_obs, self.k_sd, self.quasi_shape = d.k_obs, d.k_sd, d.quasi_shape
+        self.lo = np.log([spec.bounds[n][0] for n in spec.free])
+        self.hi = np.log([spec.bounds[n][1] for n in spec.free])
+        self._cache_key = None
+        self._cache_val = None
+
+    # -- the spec --------------------------------------------------------------------
+    method = property(lambda self: self.spec.method)
+    distribution = property(lambda self: self.spec.distribution)
+    free = property(lambda self: self.spec.free)
+    values = property(lambda self: self.spec.values)  # every field of NoiseParams: current value
+    bounds = property(lambda self: self.spec.bounds)  # name -> (lo, hi), natural units
+    weights = property(lambda self: self.spec.weights)
+    fit_shape = property(lambda self: self.spec.fit_shape)
+    assumed_sigma = property(lambda self: self.spec.assumed_sigma)
+
+    # -- parameters --------------------------------------------------------------------
+    def params(self, theta) -> NoiseParams:
+        vals = dict(self.values)
+        for name, t in zip(self.free, theta, strict=True):
+            vals[name] = float(math.exp(t))
+        return NoiseParams(**vals)
+
+    def theta(self, params: NoiseParams) -> np.ndarray:
+        return np.array([math.log(getattr(params, n)) for n in self.free])
+
+    def stats(self, theta) -> LevelStats:
+        key = tuple(np.asarray(theta, dtype=np.float64).tolist())
+        if key != self._cache_key:
+            p = self.params(theta)
+            self._cache_val = LevelStats(p.photons_per_trial(self.lux), p, self.method)
+            self._cache_key = key
+        return self._cache_val
 
     # -- objective -------------------------------------------------------------------------
     def model_counts(self, stats: LevelStats) -> np.ndarray:

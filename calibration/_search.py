@@ -5,7 +5,7 @@ photons_per_lux. Internal.
 
 from __future__ import annotations
 
-import copy
+import dataclasses
 import logging
 import math
 
@@ -13,9 +13,9 @@ import numpy as np
 
 from evnoise.params import NoiseParams
 
-from ._likelihood import _Problem
+from ._likelihood import _Prepared, _Problem
 from ._spec import (FIT_NAMES, FLOORS, GROWTH, N_CONVERGED, PROFILE_MAX_STEP, PROFILE_ROUGH, PROFILE_STEP,
-                    PROFILE_STOP, SMOOTHING, SPREAD, _bounds)
+                    PROFILE_STOP, SMOOTHING, SPREAD, FitSpec, _bounds)
 from ._uncertainty import _covariance, _information, _rejected, _step_like, _steps
 
 log = logging.getLogger("evnoise.calibration")
@@ -259,16 +259,18 @@ def _simplex(t, lo, hi, size=0.05):
 
 def _fit(meas, method, distribution, free, values, *, assumed, gen, n_starts, n_seeds, progress, have_initial,
          dispersion, bounds):
-    """Build the problem and find its best optimum; ``(problem, theta)``."""
+    """Build the problem and find its best optimum; ``(problem, theta)`` (the problem of the last
+    stage: with rescaled block weights where the noise scale is unknown)."""
     values = dict(values)
-    problem = _Problem(meas, method, distribution, free, values, _bounds(meas, free, values, bounds))
-    problem.assumed_sigma = assumed
-    problem.fit_shape = problem.use_shape and dispersion == "fit"
-    if problem.use_shape and not problem.fit_shape:
-        problem.weights["shape"] = 0.0
-    quasi = problem.quasi_counts or (problem.fit_shape and problem.quasi_shape)
-    if quasi and problem.fit_shape:
-        problem.weights["shape"] = 0.0  # unknown scales: fit the mean curve first
+    fit_bounds = _bounds(meas, free, values, bounds)  # moves starting values inside the bounds
+    prepared = _Prepared(meas)
+    fit_shape = prepared.use_shape and dispersion == "fit"
+    quasi = prepared.quasi_counts or (fit_shape and prepared.quasi_shape)
+    # measured shapes only reported, or unknown scales (then the mean curve is fitted first): no shape term
+    shape_weight = 0.0 if prepared.use_shape and (not fit_shape or quasi) else 1.0
+    spec = FitSpec(method, distribution, free, values, fit_bounds, weights={"counts": 1.0, "shape": shape_weight},
+                   fit_shape=fit_shape, assumed_sigma=assumed)
+    problem = _Problem.from_spec(meas, spec, prepared)
     step_like = problem.values["eps_sigma"] == 0.0 and "eps_sigma" not in free and method == "poisson"
     if step_like and meas.kind == "flat-field":
         theta = _continuation(problem, gen, n_starts, n_seeds, progress, have_initial)
@@ -280,9 +282,8 @@ def _fit(meas, method, distribution, free, values, *, assumed, gen, n_starts, n_
         theta = _optimise(problem, problem.values, gen, n_starts, n_seeds, progress, have_initial)
         if _rejected(problem, theta):
             log.info("direct fit rejected; fitting the mismatch-free model by continuation")
-            smooth = _Problem(meas, method, distribution, free, problem.values,
-                              _bounds(meas, free, dict(problem.values, eps_sigma=SMOOTHING[0]), bounds))
-            smooth.assumed_sigma, smooth.fit_shape, smooth.weights = assumed, problem.fit_shape, problem.weights
+            smooth = problem.derive(dataclasses.replace(
+                problem.spec, bounds=_bounds(meas, free, dict(problem.values, eps_sigma=SMOOTHING[0]), bounds)))
             theta2 = np.clip(_continuation(smooth, gen, n_starts, n_seeds, progress, have_initial),
                              problem.lo, problem.hi)
             theta2, _ = _local_fit(problem, theta2)
@@ -299,19 +300,20 @@ def _fit(meas, method, distribution, free, values, *, assumed, gen, n_starts, n_
     if quasi:
         # blocks with unknown noise scale: weight each by its residual dispersion, refit
         for _ in range(3):
-            _update_weights(problem, theta)
+            problem = _reweighted(problem, theta)
             theta, _ = _local_fit(problem, theta)
     return problem, theta
 
 
 def _continuation(problem: _Problem, gen, n_starts, n_seeds, progress, have_initial):
     """Fit the mismatch-free (step-like) model by continuation: optimise with a little mismatch
-    (:data:`SMOOTHING`) and follow the optimum as the mismatch goes to 0."""
-    problem.set_value("eps_sigma", SMOOTHING[0])
-    theta = _optimise(problem, problem.values, gen, n_starts, n_seeds, progress, have_initial)
+    (:data:`SMOOTHING`) and follow the optimum as the mismatch goes to 0 (each stage a problem of its
+    own; ``problem`` itself is left as it is). Returns the optimum of the last stage (``eps_sigma = 0``)."""
+    stage = problem.with_value("eps_sigma", SMOOTHING[0])
+    theta = _optimise(stage, stage.values, gen, n_starts, n_seeds, progress, have_initial)
     for s_c in SMOOTHING[1:] + (0.0,):
-        problem.set_value("eps_sigma", s_c)
-        theta, _ = _local_fit(problem, theta)
+        stage = problem.with_value("eps_sigma", s_c)
+        theta, _ = _local_fit(stage, theta)
     return theta
 
 
@@ -329,13 +331,7 @@ def _comparable_loglik(problem: _Problem, theta) -> float:
 def _with_fixed(problem: _Problem, name: str, value: float):
     """A copy of ``problem`` with ``name`` held at ``value``; returns it and the indices of the others."""
     keep = [i for i, n in enumerate(problem.free) if n != name]
-    sub = copy.copy(problem)
-    sub.free = [problem.free[i] for i in keep]
-    sub.lo, sub.hi = problem.lo[keep], problem.hi[keep]
-    sub.values = dict(problem.values)
-    sub.values[name] = float(value)
-    sub._cache_key = sub._cache_val = None
-    return sub, keep
+    return problem.derive(problem.spec.with_fixed(name, value)), keep
 
 
 def _profile(problem: _Problem, theta, name: str, *, max_steps: int = 30):
@@ -547,16 +543,19 @@ def _looks_bad(problem: _Problem, theta) -> bool:
     return not pearson <= 5.0 * max(problem.y.size - len(problem.free), 1)
 
 
-def _update_weights(problem: _Problem, theta):
+def _reweighted(problem: _Problem, theta) -> _Problem:
+    """The problem with each block of unknown noise scale weighted by its residual dispersion at ``theta``."""
     stats = problem.stats(theta)
     n_free = len(problem.free)
     n_c = problem.y.size
     n_s = problem.k_obs.size if problem.fit_shape else 0
     dof_share = lambda n: max(n - n_free * n / (n_c + n_s), 1.0)  # noqa: E731
+    weights = {}
     if problem.quasi_counts:
         r = problem.log_residuals(problem.model_counts(stats))
         n_c = int(np.count_nonzero(problem.y > 0))
-        problem.weights["counts"] = 1.0 / max(float(np.sum(r**2)) / dof_share(n_c), 1e-300)
+        weights["counts"] = 1.0 / max(float(np.sum(r**2)) / dof_share(n_c), 1e-300)
     if problem.fit_shape and problem.quasi_shape:
         e = problem.shape_residuals(stats)
-        problem.weights["shape"] = 1.0 / max(float(np.sum(e**2)) / dof_share(n_s), 1e-300)
+        weights["shape"] = 1.0 / max(float(np.sum(e**2)) / dof_share(n_s), 1e-300)
+    return problem.derive(problem.spec.with_weights(**weights))

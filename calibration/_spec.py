@@ -1,4 +1,5 @@
-"""Specification of a fit: the parameters, their defaults and bounds, and the constants of the method.
+"""Specification of a fit: the parameters, their defaults and bounds, the constants of the method, and
+:class:`FitSpec`, the frozen description of one fit.
 
 Internal to :mod:`evnoise.calibration.fit`, which re-exports these names.
 """
@@ -7,6 +8,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from types import MappingProxyType
+from typing import Mapping
 
 from evnoise.errors import InputError, ParameterError
 from evnoise.params import NoiseParams
@@ -107,6 +110,66 @@ PROFILE_STOP = 9.0
 #: maximum, so that such jitter is not mistaken for information (it errs towards "not identified").
 PROFILE_ROUGH = 10.0
 _AT_BOUND_OK = ("bias_pr", "dark_lux", "eps_sigma", "refractory_s") + ZERO_AT_BOUND  # a lower bound standing for 0
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class FitSpec:
+    """What one fit is: the frozen specification a likelihood (``_likelihood._Problem``) is built on.
+
+    A stage of the fit that changes any of it (a continuation step, a parameter held on a
+    profile, reweighted blocks) builds a new spec (:func:`dataclasses.replace` or the ``with_``
+    helpers below) and a new problem from it; nothing is assigned on a live one.
+
+    Attributes
+    ----------
+    method : str
+        Closed form of the per-trial probability (:data:`evnoise.mismatch.METHODS`).
+    distribution : str
+        Count distribution of one pixel given its thresholds (:data:`DISTRIBUTIONS`).
+    free : tuple of str
+        Fitted parameters, in :data:`FIT_NAMES` order as given.
+    values : mapping
+        Every field of :class:`NoiseParams`: the value of each parameter that is not free (and
+        the starting value of the free ones); read-only.
+    bounds : mapping
+        ``name -> (low, high)`` in natural units (at least every free parameter); read-only.
+    weights : mapping
+        Weight of each block of a rate table's likelihood: ``"counts"`` (the level totals) and
+        ``"shape"`` (the measured NB shapes); read-only.
+    fit_shape : bool
+        Whether the measured NB shapes are fitted (otherwise only compared with the model).
+    assumed_sigma : bool
+        Whether ``eps_sigma`` is the assumed :data:`TABLE_SIGMA` (reported as such).
+    """
+
+    method: str
+    distribution: str
+    free: tuple
+    values: Mapping[str, float]
+    bounds: Mapping[str, tuple]
+    weights: Mapping[str, float] = dataclasses.field(default_factory=lambda: {"counts": 1.0, "shape": 1.0})
+    fit_shape: bool = False
+    assumed_sigma: bool = False
+
+    def __post_init__(self):
+        # frozen all the way down: tuples and read-only copies of the mappings
+        object.__setattr__(self, "free", tuple(self.free))
+        object.__setattr__(self, "values", MappingProxyType(dict(self.values)))
+        object.__setattr__(self, "bounds", MappingProxyType({n: tuple(b) for n, b in self.bounds.items()}))
+        object.__setattr__(self, "weights", MappingProxyType(dict(self.weights)))
+
+    def with_value(self, name: str, value: float) -> "FitSpec":
+        """The same fit with parameter ``name`` at ``value``."""
+        return dataclasses.replace(self, values={**self.values, name: float(value)})
+
+    def with_fixed(self, name: str, value: float) -> "FitSpec":
+        """The same fit with ``name`` held at ``value`` (no longer free)."""
+        return dataclasses.replace(self, free=tuple(n for n in self.free if n != name),
+                                   values={**self.values, name: float(value)})
+
+    def with_weights(self, **weights: float) -> "FitSpec":
+        """The same fit with the given block weights changed."""
+        return dataclasses.replace(self, weights={**self.weights, **weights})
 
 
 def _resolve(meas: Measurements, free, fixed, initial, fit_dispersion: bool = True):

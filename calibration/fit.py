@@ -69,7 +69,8 @@ Identifiability
 
 Layout
     This module holds :func:`calibrate`; the method is split by job into ``_spec`` (parameters,
-    defaults, bounds, constants), ``_likelihood`` (the likelihood of each kind of data),
+    defaults, bounds, constants, and the frozen ``FitSpec`` of a fit: each stage that changes it
+    builds a new one), ``_likelihood`` (the likelihood of each kind of data),
     ``_search`` (stand-in pre-fits, local fits, ridge walk, continuation, profile),
     ``_uncertainty`` (information, sandwich, profile intervals, identifiability, goodness of
     fit, verdict) and ``result`` (:class:`CalibrationResult`).

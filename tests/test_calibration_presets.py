@@ -173,6 +173,34 @@ def _tiny_problem(nb=False):
     return F._Problem(meas, "poisson", "binomial", ["eps_pos"], values, F._bounds(meas, ["eps_pos"], values))
 
 
+def test_a_fit_problem_is_never_changed_after_construction():
+    """Sub-problems (a parameter held on a profile, a continuation stage, reweighted blocks) are new
+    problems of new frozen specs; the problem they come from keeps its own (issue 13)."""
+    import dataclasses
+
+    from evnoise.calibration import _search
+
+    meas = cal.count_table([0.0, 1.0, 2.0, 4.0], [1, 5, 3, 2], [1, 2, 1, 4], 100, 1.0)
+    free = ["eps_pos", "eps_neg", "bias_pr"]
+    values = dict(F._DEFAULTS)
+    problem = F._Problem(meas, "poisson", "binomial", free, values, F._bounds(meas, free, values))
+    spec, lo = problem.spec, problem.lo.copy()
+    sub, keep = F._with_fixed(problem, "eps_neg", 0.7)
+    assert sub.free == ("eps_pos", "bias_pr") and keep == [0, 2] and sub.values["eps_neg"] == 0.7
+    np.testing.assert_array_equal(sub.lo, lo[keep])
+    stage = problem.with_value("eps_sigma", 0.02)
+    reweighted = _search._reweighted(problem, problem.theta(problem.params(lo)))
+    assert stage.values["eps_sigma"] == 0.02 and reweighted is not problem
+    assert problem.spec is spec and problem.free == tuple(free) and problem.values["eps_neg"] == values["eps_neg"]
+    np.testing.assert_array_equal(problem.lo, lo)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        spec.free = ("eps_pos",)
+    with pytest.raises(TypeError):
+        spec.values["eps_pos"] = 1.0
+    with pytest.raises(TypeError):
+        spec.weights["counts"] = 2.0
+
+
 @pytest.mark.parametrize("nb", [False, True])
 def test_count_terms_with_zero_model_and_zero_count_raise_no_warning(nb):
     """0 * log(0) where both the count and the model are 0 (RuntimeWarning is an error in the tests)."""
