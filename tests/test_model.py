@@ -206,3 +206,28 @@ def test_per_pixel_thresholds_on_shared_levels_match_the_windowed_sum():
         finite = np.isfinite(ref)
         assert np.array_equal(finite, np.isfinite(got))
         assert np.all(np.abs(got[finite] - ref[finite]) <= 1e-12 + 1e-14 * np.abs(ref[finite]))
+
+
+def test_underflowing_panels_skip_exactly_what_underflows():
+    """Panels too rippled to tabulate skip, with one bound per panel, only values whose p is 0 in double."""
+    from evnoise._kernels.poisson import log_event_probability_exact
+
+    for eps, b in ((0.904, 1.7), (0.3, 0.0), (0.05, 20.0)):
+        lam = np.geomspace(2e3, 1e6, 1500)
+        p = ev.event_probability(lam, eps, b)
+        ref = np.exp([log_event_probability_exact(x, math.expm1(eps), b) for x in lam])
+        assert np.array_equal(p == 0, ref == 0), eps
+        np.testing.assert_allclose(p, ref, rtol=1e-10, atol=0)
+
+
+def test_panel_bound_bounds_log_p_over_the_panel():
+    from evnoise._kernels.chebyshev import panel_log_bound
+    from evnoise._kernels.poisson import log_event_probability_exact
+
+    for c in (0.05, 0.5, 1.47, 4.0):
+        for b in (0.0, 1.7, 50.0):
+            for lo in (5.0, 300.0, 2e4):
+                hi = lo * math.e
+                bound = panel_log_bound(lo, hi, c, b)
+                exact = max(log_event_probability_exact(x, c, b) for x in np.geomspace(lo, hi, 60))
+                assert bound >= exact, (c, b, lo, bound, exact)

@@ -18,7 +18,7 @@ import numpy as np
 from numba import prange
 
 from ._jit import kernel
-from .bounds import log_chernoff_bound
+from .bounds import chernoff_bracket, log_chernoff_bound
 from .poisson import log_event_probability_exact
 
 DEGREE = 16
@@ -134,7 +134,12 @@ class LogPTable:
         bounds = np.array(lo, dtype=np.float64).reshape(-1, 2)
         coef_arr = np.array(coefs, dtype=np.float64).reshape(-1, DEGREE + 1)
         direct = np.array([np.isnan(cf[0]) for cf in coefs], dtype=np.bool_)
-        return unit_start, bounds, coef_arr, direct
+        # a panel evaluated exactly gets a bound on log p over its whole range, so that values whose
+        # probability underflows are skipped without a per-value bound (-inf: no bound computed)
+        panel_bound = np.full(direct.size, math.inf)
+        for i in np.flatnonzero(direct):
+            panel_bound[i] = panel_log_bound(math.exp(bounds[i, 0]), math.exp(bounds[i, 1]), self.c, self.b)
+        return unit_start, bounds, coef_arr, direct, panel_bound
 
     def evaluate(self, lam: np.ndarray, skip_below: float = -math.inf, skip_min_lam: float = math.inf) -> np.ndarray:
         """``log p`` at the 1-D float64 array ``lam`` (units outside the table use the exact kernel).
@@ -154,10 +159,25 @@ class LogPTable:
         if self._arrays is None:
             self._arrays = self._pack()
         out = np.empty_like(lam)
-        unit_start, bounds, coef, direct = self._arrays
-        _evaluate(lam, unit_start, bounds, coef, direct, self.first_unit, self.c, self.b,
+        unit_start, bounds, coef, direct, panel_bound = self._arrays
+        _evaluate(lam, unit_start, bounds, coef, direct, panel_bound, self.first_unit, self.c, self.b,
                   float(skip_below), float(skip_min_lam), out)
         return out
+
+
+@kernel
+def panel_log_bound(lam_lo, lam_hi, c, b):
+    """An upper bound on ``log p(lam)`` for every ``lam`` in ``[lam_lo, lam_hi]`` (``0 < lam_lo <= lam_hi``).
+
+    The Chernoff bound ``lam g(theta) - theta c b`` with ``g(theta) = (e^theta - 1) + (e^{-a theta} - 1)``
+    (see :func:`evnoise._kernels.bounds.log_chernoff_bound`) holds for every ``theta >= 0``; with one
+    ``theta`` (the optimal one at ``lam_lo``) it is linear in ``lam``, so its larger end value bounds
+    the whole interval.
+    """
+    a = 1.0 + c
+    theta, _ = chernoff_bracket(lam_lo, c, b, 80)
+    g = math.expm1(theta) + math.expm1(-a * theta)
+    return max(lam_lo * g, lam_hi * g) - theta * (c * b)
 
 
 @kernel
@@ -168,7 +188,7 @@ def _exact_or_skip(x, c, b, skip_below, skip_min_lam):
 
 
 @kernel(parallel=True)
-def _evaluate(lam, unit_start, bounds, coef, direct, first_unit, c, b, skip_below, skip_min_lam, out):
+def _evaluate(lam, unit_start, bounds, coef, direct, panel_bound, first_unit, c, b, skip_below, skip_min_lam, out):
     n_units = unit_start.shape[0] - 1
     for i in prange(lam.shape[0]):
         x = lam[i]
@@ -189,7 +209,10 @@ def _evaluate(lam, unit_start, bounds, coef, direct, first_unit, c, b, skip_belo
             else:
                 hi = mid - 1
         if direct[lo]:
-            out[i] = _exact_or_skip(x, c, b, skip_below, skip_min_lam)
+            if panel_bound[lo] < skip_below:
+                out[i] = -math.inf
+            else:
+                out[i] = _exact_or_skip(x, c, b, skip_below, skip_min_lam)
             continue
         u_lo = bounds[lo, 0]
         u_hi = bounds[lo, 1]
