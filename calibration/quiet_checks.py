@@ -67,6 +67,14 @@ def _resampled(observed: float, null: np.ndarray) -> tuple:
     return mean, sd, float(p)
 
 
+def _result(name: str, observed: float, null: np.ndarray, describe, *, assumption: bool = True) -> dict:
+    """A check's dict; ``describe(mean, sd, ratio)`` writes its detail (``ratio`` = observed / null mean)."""
+    mean, sd, p = _resampled(observed, null)
+    ratio = observed / mean if mean > 0 else (math.inf if observed > 0 else 1.0)
+    return {"check": name, "statistic": observed, "null_mean": mean, "null_sd": sd, "p_value": p,
+            "assumption": assumption, "detail": describe(mean, sd, ratio)}
+
+
 def _pairs_within(off_key: np.ndarray, on_key: np.ndarray, gap: int) -> int:
     """Pairs (OFF, ON) of one pixel with ``|t_on - t_off| <= gap``; keys are ``pixel * stride + t`` sorted."""
     hi = np.searchsorted(on_key, off_key + gap, side="right")
@@ -94,12 +102,9 @@ def polarity_pairs(events: np.ndarray, shape: tuple, t_start_us: int, duration_u
         offset = rng.integers(0, duration_us, size=n_pix)
         shifted = (on_t + offset[on_pix]) % duration_us
         null[k] = _pairs_within(off_key, np.sort(on_pix * stride + shifted), gap)
-    mean, sd, p = _resampled(observed, null)
-    ratio = observed / mean if mean > 0 else (float("inf") if observed else 1.0)
-    return {"check": "polarity_pairs", "statistic": observed, "null_mean": mean, "null_sd": sd, "p_value": p,
-            "assumption": True,
-            "detail": f"{observed} OFF/ON pairs of one pixel within {pair_gap_s * 1e3:g} ms, {mean:.1f} +- {sd:.1f} "
-                      f"with ON and OFF independent (x{ratio:.2g}; {int(shifts)} circular shifts)"}
+    return _result("polarity_pairs", observed, null, lambda mean, sd, ratio: (
+        f"{observed} OFF/ON pairs of one pixel within {pair_gap_s * 1e3:g} ms, {mean:.1f} +- {sd:.1f} with ON and "
+        f"OFF independent (x{ratio:.2g}; {int(shifts)} circular shifts)"))
 
 
 def stationarity(events: np.ndarray, t_start_us: int, duration_us: int, *, pieces: int = 4) -> dict:
@@ -148,12 +153,9 @@ def spatial_structure(counts: np.ndarray, *, block: int = 16, shifts: int = 200,
     observed = _block_variance(flat, index, n_blocks)
     rng = np.random.default_rng(seed)
     null = np.array([_block_variance(rng.permutation(flat), index, n_blocks) for _ in range(int(shifts))])
-    mean, sd, p = _resampled(observed, null)
-    ratio = observed / mean if mean > 0 else 1.0
-    return {"check": "spatial_structure", "statistic": observed, "null_mean": mean, "null_sd": sd, "p_value": p,
-            "assumption": False,
-            "detail": f"variance of {block}x{block}-block counts x{ratio:.3g} that of pixels placed at random "
-                      f"({int(shifts)} permutations; the noise follows the scene or the optics)"}
+    return _result("spatial_structure", observed, null, lambda mean, sd, ratio: (
+        f"variance of {block}x{block}-block counts x{ratio:.3g} that of pixels placed at random ({int(shifts)} "
+        "permutations; the noise follows the scene or the optics)"), assumption=False)
 
 
 def _independence_chi2(block_id: np.ndarray, slice_id: np.ndarray, n_blocks: int, pieces: int) -> float:
@@ -186,12 +188,9 @@ def scene_motion(events: np.ndarray, shape: tuple, t_start_us: int, duration_us:
     for k in range(int(shifts)):
         shifted = (t + rng.integers(0, duration_us, size=n_pix)[pix]) % duration_us
         null[k] = _independence_chi2(blk, shifted * pieces // duration_us, n_blocks, pieces)
-    mean, sd, p = _resampled(observed, null)
-    ratio = observed / mean if mean > 0 else 1.0
-    return {"check": "scene_motion", "statistic": observed, "null_mean": mean, "null_sd": sd, "p_value": p,
-            "assumption": True,
-            "detail": f"block x time chi-square of {block}x{block} blocks in {pieces} slices x{ratio:.3g} that of the "
-                      f"pixels' streams shifted in time ({int(shifts)} circular shifts)"}
+    return _result("scene_motion", observed, null, lambda mean, sd, ratio: (
+        f"block x time chi-square of {block}x{block} blocks in {pieces} slices x{ratio:.3g} that of the pixels' "
+        f"streams shifted in time ({int(shifts)} circular shifts)"))
 
 
 def window_checks(events: np.ndarray, counts: np.ndarray, t_start_us: int, duration_us: int, *,

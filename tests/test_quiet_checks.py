@@ -44,6 +44,16 @@ def _checks(events):
                                                      seed=3)}
 
 
+def _events(t, x, y, p):
+    out = np.zeros(len(t), dtype=EVENT_DTYPE)
+    out["t"], out["x"], out["y"], out["p"] = t, x, y, p
+    return out
+
+
+def _uniform_times(rng, n):
+    return T0_US + rng.integers(0, int(DURATION_S * 1e6), n)
+
+
 def _with(events, extra):
     out = np.concatenate([events, extra]).astype(EVENT_DTYPE)
     return np.sort(out, order="t", kind="stable")
@@ -52,11 +62,7 @@ def _with(events, extra):
 def test_pair_count_matches_brute_force():
     rng = np.random.default_rng(0)
     n = 400
-    ev_ = np.zeros(n, dtype=EVENT_DTYPE)
-    ev_["x"] = rng.integers(0, 3, n)
-    ev_["y"] = rng.integers(0, 2, n)
-    ev_["p"] = rng.integers(0, 2, n)
-    ev_["t"] = rng.integers(0, 2_000_000, n)
+    ev_ = _events(rng.integers(0, 2_000_000, n), rng.integers(0, 3, n), rng.integers(0, 2, n), rng.integers(0, 2, n))
     gap = 50_000
     brute = 0
     for i in np.flatnonzero(ev_["p"] == 0):
@@ -95,12 +101,10 @@ def test_moving_structure_fails_the_motion_check_only(noise):
     # extra events in a 16-pixel-wide band that sweeps the sensor from left to right
     rng = np.random.default_rng(2)
     n = 3000
-    extra = np.zeros(n, dtype=EVENT_DTYPE)
-    extra["t"] = T0_US + rng.integers(0, int(DURATION_S * 1e6), n)
-    frac = (extra["t"] - T0_US) / (DURATION_S * 1e6)
-    extra["x"] = np.clip((frac * (SHAPE[1] - 16)).astype(int) + rng.integers(0, 16, n), 0, SHAPE[1] - 1)
-    extra["y"] = rng.integers(0, SHAPE[0], n)
-    extra["p"] = rng.integers(0, 2, n)
+    t = _uniform_times(rng, n)
+    x = np.clip(((t - T0_US) / (DURATION_S * 1e6) * (SHAPE[1] - 16)).astype(int) + rng.integers(0, 16, n), 0,
+                SHAPE[1] - 1)
+    extra = _events(t, x, rng.integers(0, SHAPE[0], n), rng.integers(0, 2, n))
     checks = _checks(_with(noise, extra))
     assert checks["scene_motion"]["p_value"] < P_FAIL
     assert checks["polarity_pairs"]["p_value"] > P_PASS
@@ -121,11 +125,7 @@ def test_static_structure_is_information_not_a_failure(noise):
     # a bright square makes more noise (the rate follows the illuminance): structure, not motion
     rng = np.random.default_rng(4)
     n = 6000
-    extra = np.zeros(n, dtype=EVENT_DTYPE)
-    extra["t"] = T0_US + rng.integers(0, int(DURATION_S * 1e6), n)
-    extra["x"] = rng.integers(10, 40, n)
-    extra["y"] = rng.integers(10, 40, n)
-    extra["p"] = ON
+    extra = _events(_uniform_times(rng, n), rng.integers(10, 40, n), rng.integers(10, 40, n), ON)
     checks = _checks(_with(noise, extra))
     assert checks["spatial_structure"]["p_value"] < P_FAIL
     assert qc.failed_checks(list(checks.values())) == []
