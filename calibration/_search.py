@@ -85,7 +85,7 @@ class _MeanProxy:
         sigma = {e: np.maximum(vals["eps_sigma"], np.minimum(self.MIN_SIGMA, self.MIN_REL_SIGMA * vals[e]))[:, None]
                  for e in ("eps_pos", "eps_neg")}
         if x.shape[0] == 1:
-            from evnoise._kernels.mismatch import log_probability_serial
+            from evnoise._kernels.poisson import log_event_probability_exact_serial
 
             j = lam.shape[1]
             k = self.nodes.size
@@ -94,7 +94,7 @@ class _MeanProxy:
             lam2 = np.ascontiguousarray(np.tile(lam[0], 2 * k))
             c2 = np.repeat(np.expm1(eps), j)
             out = np.empty(lam2.size)
-            log_probability_serial(lam2, c2, np.full(lam2.size, vals["bias_pr"][0]), out)
+            log_event_probability_exact_serial(lam2, c2, np.full(lam2.size, vals["bias_pr"][0]), out)
             p = (np.exp(out).reshape(2, k, j) * self.weights[None, :, None]).sum(axis=1)[None]
         else:
             p = np.stack([

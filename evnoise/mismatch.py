@@ -278,14 +278,15 @@ class LevelStats:
 
     def _no_mismatch(self, lam, params):
         """Every pixel at the nominal thresholds: one atom per level, all levels in one kernel call."""
-        from ._kernels.mismatch import LOG_ZERO, log_probability_serial
+        from ._kernels.mismatch import LOG_ZERO
+        from ._kernels.poisson import log_event_probability_exact_serial
 
         n = lam.size
         pos = lam > 0
         lam2 = np.ascontiguousarray(np.tile(np.where(pos, lam, 1.0), 2))
         c2 = np.repeat([math.expm1(params.eps_pos), math.expm1(params.eps_neg)], n)
         out = np.empty(2 * n)
-        log_probability_serial(lam2, c2, np.full(2 * n, float(params.bias_pr)), out)
+        log_event_probability_exact_serial(lam2, c2, np.full(2 * n, float(params.bias_pr)), out)
         lp = np.where(np.tile(pos, 2), out, -math.inf).reshape(2, n)
         self.log_m1[...] = lp
         self.log_m2[...] = 2.0 * lp

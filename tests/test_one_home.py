@@ -86,3 +86,22 @@ def test_recording_helpers_have_one_home():
     mask = np.zeros((5, 7), dtype=bool)
     mask[3, 4] = True
     np.testing.assert_array_equal(motion.bin_mask(mask, 2), [[False, False, False], [False, False, True]])
+
+
+def test_exact_log_probability_over_arrays_is_one_kernel():
+    """The serial kernel (calibration's small arrays) is the parallel one's body: same bits, extremes included."""
+    from evnoise._kernels import mismatch as mismatch_kernels
+    from evnoise._kernels.poisson import log_event_probability_exact_array, log_event_probability_exact_serial
+
+    assert not hasattr(mismatch_kernels, "log_probability_serial")
+    g = np.random.default_rng(13)
+    n = 3000
+    extremes = np.array([[0.0, 1e-300, 1e-12, 1.0, 1e6, 3e6], [0.0, 1e-12, 1e-300, 5.0, 100.0, 1e-4]])
+    lam = np.concatenate([10.0 ** g.uniform(-8, 6.5, n), np.repeat(extremes[0], 6)])
+    c = np.concatenate([np.expm1(10.0 ** g.uniform(-5, 1.0, n)), np.tile(extremes[1], 6)])
+    b = np.concatenate([10.0 ** g.uniform(-6, 4, n), np.tile([0.0, 1e-6, 1e4], 12)])
+    serial, parallel = np.empty(lam.size), np.empty(lam.size)
+    log_event_probability_exact_serial(lam, c, b, serial)
+    log_event_probability_exact_array(lam, c, b, parallel)
+    np.testing.assert_array_equal(serial.view(np.int64), parallel.view(np.int64))
+    assert np.count_nonzero(np.isfinite(serial)) > n - 10

@@ -269,14 +269,3 @@ def mean_probability_double_sum(lam, b, mu, s, n_max):
                 xb = math.inf
             total += w * phi_interval(x0, xb)
     return total / q_norm
-
-
-@kernel
-def log_probability_serial(lam, c, b, out):
-    """``log p`` (exact, no mismatch) over equal-length 1-D arrays, in one thread.
-
-    For the small arrays of the calibration's inner loops, where starting threads costs more
-    than the work (``evnoise.model`` uses a parallel kernel meant for images).
-    """
-    for i in range(lam.shape[0]):
-        out[i] = log_event_probability_exact(lam[i], c[i], b[i])

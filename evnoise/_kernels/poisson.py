@@ -279,11 +279,31 @@ def log_event_probability_exact(lam, c, b):
     return total
 
 
+@kernel
+def log_event_probability_exact_serial(lam, c, b, out):
+    """Elementwise :func:`log_event_probability_exact` over equal-length 1-D arrays, in one thread.
+
+    For small arrays (the calibration's inner loops), where starting threads costs more than the
+    work; :func:`log_event_probability_exact_array` runs it on blocks in parallel.
+    """
+    for i in range(lam.shape[0]):
+        out[i] = log_event_probability_exact(lam[i], c[i], b[i])
+
+
+_PARALLEL_BLOCKS = 256  # fine enough to share the work evenly, few enough to cost nothing
+
+
 @kernel(parallel=True)
 def log_event_probability_exact_array(lam, c, b, out):
-    """Elementwise :func:`log_event_probability_exact` over equal-length 1-D arrays."""
-    for i in prange(lam.shape[0]):
-        out[i] = log_event_probability_exact(lam[i], c[i], b[i])
+    """Elementwise :func:`log_event_probability_exact` over equal-length 1-D arrays, in parallel:
+    :func:`log_event_probability_exact_serial` on at most :data:`_PARALLEL_BLOCKS` contiguous blocks
+    (the threads share them out as they did the elements)."""
+    n = lam.shape[0]
+    size = max(1, -(-n // _PARALLEL_BLOCKS))
+    for k in prange((n + size - 1) // size):
+        lo = k * size
+        hi = min(lo + size, n)
+        log_event_probability_exact_serial(lam[lo:hi], c[lo:hi], b[lo:hi], out[lo:hi])
 
 
 GROUPED_MAX_LAM = 1e6  # above this a level's table (~ (c_max - c_min) lam entries) grows too large
