@@ -29,6 +29,11 @@ chi-square with ``bins - 1`` degrees of freedom minus the fitted parameters (at 
 With ``lux`` given for the windows, the shot noise of a base preset at that illuminance is part
 of the model (fixed, not fitted) and the fitted rates are its background on top; with two or more
 illuminances the background's growth with lux joins the fit as ``leak_*_hz_per_lux`` would.
+
+Layout: this module holds the windows, :func:`fit_quiet` (starts, model selection, standard errors),
+:class:`QuietFit` and the preset document; the count distribution is in :mod:`.quiet_counts`, the
+likelihood in :mod:`.quiet_likelihood`, the goodness of fit and the comparison of a preset with a
+recording in :mod:`.quiet_goodness` (all their names are reachable from here).
 """
 
 from __future__ import annotations
@@ -42,20 +47,21 @@ import numpy as np
 from evnoise.errors import InputError, ParameterError
 
 from .quiet_checks import CHECK_P
+# The model's parts live in one module per job; their names are re-exported here, where the tests, the
+# command line and the scripts look for them: the renewal count distribution, ...
+from .quiet_counts import count_pmf, count_survival  # noqa: F401
+# ... the likelihood of the windows and its maximisation, ...
+from .quiet_likelihood import (GRID, HOT_MAX_FRACTION, HOT_MIN_RATIO, _LOG_WZ, _WZ, _Z, _component_rates,  # noqa: F401
+                               _exp, _Group, _groups, _hessian, _log_component, _log_likelihood, _log_mix,
+                               _maximise, _Model, _sigmoid, _unpack)
+# ... and the goodness of fit (the model's histograms, a preset simulated against a recording)
+from .quiet_goodness import (GOF_MAX_COUNT, _goodness, _marginal_pmf, _pool, compare_to_recording,  # noqa: F401
+                             simulate_window)
 
 __all__ = ["QuietWindow", "quiet_window", "fit_quiet", "QuietFit", "GRID", "LR_P"]
 
-#: Grid points of the standard normal (over +-7 sd) for the integrals over the spread.
-GRID = 241
 #: Likelihood-ratio p-value below which the spread / the hot pixels count as identified.
 LR_P = 1e-3
-_Z = np.linspace(-7.0, 7.0, GRID)
-_WZ = np.exp(-0.5 * _Z * _Z)
-_WZ /= _WZ.sum()
-_LOG_WZ = np.log(_WZ)
-#: Hot pixels: at most this fraction of the pixels, at least this many times the ordinary mean rate.
-HOT_MAX_FRACTION = 0.05
-HOT_MIN_RATIO = 5.0
 NAMES = ("rate_on_hz", "rate_off_hz", "regularity", "sigma", "hot_fraction", "hot_rate_hz", "hot_sigma",
          "hot_on_fraction")
 
@@ -126,233 +132,6 @@ def quiet_window(path, t_start_s: float, t_end_s: float, *, lux: float | None = 
         found = window_checks(events, counts, round(t_start_s * 1e6), round((t_end_s - t_start_s) * 1e6), seed=seed)
     return QuietWindow(counts, float(t_end_s - t_start_s), str(path), str(path), float(t_start_s), float(t_end_s),
                        None if lux is None else float(lux), found)
-
-
-# --------------------------------------------------------------------------------------
-# likelihood
-# --------------------------------------------------------------------------------------
-@dataclass
-class _Group:
-    """The pixels of one recording: unique count vectors over its windows and their multiplicities."""
-
-    windows: list
-    vectors: np.ndarray  # (U, n_windows, 2) counts
-    weight: np.ndarray   # (U,) number of pixels with that vector
-    log_binom: np.ndarray  # (U,) sum over windows of log C(k_on + k_off, k_on)
-
-
-def _groups(windows) -> list:
-    from scipy.special import gammaln
-
-    by = {}
-    for w in windows:
-        by.setdefault(w.group, []).append(w)
-    out = []
-    for name, ws in by.items():
-        shapes = {w.shape for w in ws}
-        if len(shapes) > 1:
-            raise InputError(f"windows of {name} have different sensor sizes: {sorted(shapes)}")
-        stack = np.stack([w.counts.reshape(2, -1).T for w in ws], axis=1)  # (P, n_windows, 2)
-        flat = stack.reshape(stack.shape[0], -1)
-        uniq, mult = np.unique(flat, axis=0, return_counts=True)
-        vec = uniq.reshape(-1, len(ws), 2)
-        tot = vec.sum(axis=2)
-        log_binom = (gammaln(tot + 1.0) - gammaln(vec[..., 0] + 1.0) - gammaln(vec[..., 1] + 1.0)).sum(axis=1)
-        out.append(_Group(ws, vec, mult.astype(np.float64), log_binom))
-    return out
-
-
-@dataclass
-class _Model:
-    """What is free and the fixed shot-noise rates of each window (``shot``: (n_windows, 2) per group)."""
-
-    spread: bool
-    hot: bool
-    shot: list  # per group, (n_windows, 2) events/s added to every pixel (0 without lux)
-    growth: bool = False  # background grows with lux: rate = r + g * lux
-    lux: list = field(default_factory=list)
-    regular: bool = False  # fit the regularity of the arrivals (else Poisson, r = 0)
-
-
-def _exp(x):
-    return math.exp(min(x, 700.0))
-
-
-def _sigmoid(x):
-    return 1.0 / (1.0 + math.exp(-x)) if x >= 0 else math.exp(x) / (1.0 + math.exp(x))
-
-
-def _unpack(theta, model: _Model):
-    v = dict(zip(("log_on", "log_off"), theta[:2]))
-    i = 2
-    v["sigma"] = _exp(theta[i]) if model.spread else 0.0
-    i += model.spread
-    if model.hot:
-        # hot pixels are a minority (f < HOT_MAX_FRACTION) far above the ordinary rate (> HOT_MIN_RATIO times it):
-        # without these bounds the second component can take over the role of the spread
-        f = HOT_MAX_FRACTION * _sigmoid(theta[i])
-        ordinary = _exp(theta[0]) + _exp(theta[1])
-        v.update(hot_fraction=f, hot_rate_hz=ordinary * (HOT_MIN_RATIO + _exp(theta[i + 1])),
-                 hot_sigma=_exp(theta[i + 2]), hot_on_fraction=_sigmoid(theta[i + 3]))
-        i += 4
-    else:
-        v.update(hot_fraction=0.0, hot_rate_hz=0.0, hot_sigma=0.0, hot_on_fraction=0.5)
-    if model.growth:
-        v["growth_on"], v["growth_off"] = _exp(theta[i]), _exp(theta[i + 1])
-        i += 2
-    else:
-        v["growth_on"] = v["growth_off"] = 0.0
-    v["regularity"] = _sigmoid(theta[i]) if model.regular else 0.0
-    v["rate_on_hz"], v["rate_off_hz"] = _exp(v.pop("log_on")), _exp(v.pop("log_off"))
-    return v
-
-
-def count_survival(k, rate_hz, duration_s, regularity):
-    """``P(N >= k)`` of the count ``N`` in a window of a stationary renewal process (arrays broadcast).
-
-    Gaps are ``r mu + Exp((1 - r) mu)`` with ``mu = 1 / rate_hz`` (``r`` = ``regularity``: 0 Poisson, 1
-    periodic), the continuous-time form of evnoise's background timer. The first arrival is the
-    stationary forward recurrence time: with probability ``r`` uniform on ``[0, r mu)``, else
-    ``r mu + Exp((1 - r) mu)``, so ``P(N >= k) = r A + (1 - r) P(Gamma_k <= T - k r mu)`` with
-    ``A = mean over u of P(Gamma_{k-1} <= T - (k - 1 + u) r mu)`` (Gamma of scale ``(1 - r) mu``), in
-    closed form through ``int_0^Y P(Gamma_n <= y) dy = Y P(n, Y/theta) - n theta P(n + 1, Y/theta)``.
-    """
-    from scipy.special import gammainc
-
-    k = np.asarray(k, dtype=np.float64)
-    rate = np.asarray(rate_hz, dtype=np.float64)
-    r = float(regularity)
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        mu = np.where(rate > 0, 1.0 / np.where(rate > 0, rate, 1.0), np.inf)
-        theta = (1.0 - r) * mu
-        T = float(duration_s)
-
-        def p_gamma(n, y):  # P(Gamma_n(theta) <= y), Gamma_0 = 0
-            y = np.maximum(y, 0.0)
-            if r >= 1.0:
-                return np.where(y > 0, 1.0, np.where(n == 0, 1.0, 0.0)) * 1.0
-            val = gammainc(np.maximum(n, 1e-300), y / theta)
-            return np.where(n == 0, 1.0, val)
-
-        def integral(n, y):  # int_0^y P(Gamma_n <= t) dt
-            y = np.maximum(y, 0.0)
-            if r >= 1.0:
-                return y
-            x = y / theta
-            val = y * gammainc(np.maximum(n, 1e-300), x) - n * theta * gammainc(n + 1.0, x)
-            return np.where(n == 0, y, val)
-
-        b = p_gamma(k, T - k * r * mu) if r < 1.0 else 0.0
-        if r > 0:
-            x0 = T - (k - 1.0) * r * mu
-            a = (integral(k - 1.0, x0) - integral(k - 1.0, x0 - r * mu)) / (r * mu)
-        else:
-            a = 0.0
-        out = r * a + (1.0 - r) * b
-        out = np.where(k <= 0, 1.0, out)
-        out = np.where(np.isfinite(mu), out, np.where(k <= 0, 1.0, 0.0))
-    return np.clip(out, 0.0, 1.0)
-
-
-def count_pmf(n_max: int, rate_hz, duration_s, regularity) -> np.ndarray:
-    """``P(N = n)`` for ``n = 0 .. n_max`` (last axis) at each rate (``rate_hz`` any shape)."""
-    rate = np.asarray(rate_hz, dtype=np.float64)[..., None]
-    k = np.arange(n_max + 2, dtype=np.float64)
-    surv = count_survival(k, rate, duration_s, regularity)
-    return np.maximum(surv[..., :-1] - surv[..., 1:], 0.0)
-
-
-def _component_rates(v, group_index, model: _Model, grp: _Group):
-    """Per component: total rates (M, W) events/s and ON shares (M, W) over its grid."""
-    T = np.array([w.duration_s for w in grp.windows])
-    shot = model.shot[group_index]
-    lux = model.lux[group_index] if model.growth else np.zeros(len(T))
-    base = np.stack([v["rate_on_hz"] + v["growth_on"] * lux, v["rate_off_hz"] + v["growth_off"] * lux], axis=1)
-    sigma = v["sigma"]
-    s = np.exp(-0.5 * sigma * sigma + sigma * _Z) if sigma > 0 else np.ones(1)
-    per_pol = s[:, None, None] * base[None] + shot[None]  # (M, W, 2)
-    comps = [(per_pol.sum(axis=2), per_pol[..., 0] / np.maximum(per_pol.sum(axis=2), 1e-300),
-              _WZ if sigma > 0 else np.ones(1))]
-    if v["hot_fraction"] > 0:
-        sh = v["hot_sigma"]
-        h = v["hot_rate_hz"] * np.exp(-0.5 * sh * sh + sh * _Z)
-        q = v["hot_on_fraction"]
-        hot = h[:, None, None] * np.array([q, 1.0 - q])[None, None, :] + base[None] + shot[None]
-        comps.append((hot.sum(axis=2), hot[..., 0] / np.maximum(hot.sum(axis=2), 1e-300), _WZ))
-    return comps
-
-
-def _log_component(vec, rates, share_on, weights, grp: _Group, regularity):
-    """log of sum over nodes of weight * prod over windows P(counts) for vectors (U, W, 2) -> (U,)."""
-    from scipy.special import logsumexp
-
-    n_tot = vec.sum(axis=2)  # (U, W)
-    acc = np.zeros((vec.shape[0], rates.shape[0]))
-    for wi, w in enumerate(grp.windows):
-        needed, where = np.unique(n_tot[:, wi], return_inverse=True)
-        k = np.concatenate([needed, needed + 1]).astype(np.float64)
-        surv = count_survival(k[None, :], rates[:, wi, None], w.duration_s, regularity)  # (M, 2 n)
-        pmf = np.maximum(surv[:, :needed.size] - surv[:, needed.size:], 0.0)
-        with np.errstate(divide="ignore"):
-            log_pmf = np.log(np.maximum(pmf, 1e-300))[:, where]  # (M, U)
-            lq = np.log(np.maximum(share_on[:, wi], 1e-300))
-            l1q = np.log(np.maximum(1.0 - share_on[:, wi], 1e-300))
-        k_on = vec[:, wi, 0].astype(np.float64)
-        k_off = vec[:, wi, 1].astype(np.float64)
-        acc += log_pmf.T + np.outer(k_on, lq) + np.outer(k_off, l1q)
-    return logsumexp(acc + np.log(weights)[None, :], axis=1)
-
-
-def _log_mix(vec, comps, v, grp, regularity):
-    """log-likelihood (U,) of each count vector under the mixture (binomial-split constants excluded)."""
-    lo = _log_component(vec, *comps[0], grp, regularity)
-    if len(comps) == 1:
-        return lo
-    lh = _log_component(vec, *comps[1], grp, regularity)
-    f = min(max(v["hot_fraction"], 1e-300), 0.5)
-    return np.logaddexp(math.log1p(-f) + lo, math.log(f) + lh)
-
-
-def _log_likelihood(theta, model: _Model, groups) -> float:
-    v = _unpack(theta, model)
-    total = 0.0
-    for gi, grp in enumerate(groups):
-        comps = _component_rates(v, gi, model, grp)
-        ll = _log_mix(grp.vectors, comps, v, grp, v["regularity"]) + grp.log_binom
-        total += float(np.dot(grp.weight, ll))
-    return total
-
-
-def _maximise(model, groups, start):
-    """BFGS from every start (numerical gradients of a smooth likelihood), a Nelder-Mead polish of the best."""
-    from scipy.optimize import minimize
-
-    def nll(theta):
-        val = -_log_likelihood(theta, model, groups)
-        return val if math.isfinite(val) else 1e300
-
-    best = None
-    for x0 in start:
-        res = minimize(nll, np.asarray(x0, dtype=np.float64), method="BFGS", options=dict(gtol=1e-3, maxiter=150))
-        if best is None or res.fun < best.fun:
-            best = res
-    polished = minimize(nll, best.x, method="Nelder-Mead", options=dict(xatol=1e-5, fatol=1e-6, maxfev=400,
-                                                                       adaptive=True))
-    return polished if polished.fun < best.fun else best
-
-
-def _hessian(fun, x, step=1e-3):
-    n = x.size
-    h = np.zeros((n, n))
-    for i in range(n):
-        for j in range(i, n):
-            e_i = np.zeros(n)
-            e_j = np.zeros(n)
-            e_i[i] = step
-            e_j[j] = step
-            val = (fun(x + e_i + e_j) - fun(x + e_i - e_j) - fun(x - e_i + e_j) + fun(x - e_i - e_j)) / (4 * step * step)
-            h[i, j] = h[j, i] = val
-    return h
 
 
 # --------------------------------------------------------------------------------------
@@ -668,134 +447,9 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
     return QuietFit(v, se, status, -float(res.fun), tests, goodness, windows, base, notes)
 
 
-#: Largest count evaluated one by one in the goodness-of-fit histograms (higher ones form the tail bin).
-GOF_MAX_COUNT = 200
-
-
-def _marginal_pmf(v, model, gi, grp, wi, pol, kmax):
-    """Model probability of a pixel's count 0..kmax of polarity ``pol`` in window ``wi`` (the mixture).
-
-    Each event is ON with the pixel's ON share, independently: the polarity's count is a binomial
-    thinning of the renewal count ``N`` (evaluated up to the window's largest total count).
-    """
-    from scipy.stats import binom
-
-    w = grp.windows[wi]
-    n_cap = min(int(w.counts.sum(axis=0).max()) + 5, 2 * GOF_MAX_COUNT)
-    n = np.arange(n_cap + 1)
-    k = np.arange(kmax + 1)
-    comps = _component_rates(v, gi, model, grp)
-    fractions = [1.0 - v["hot_fraction"], v["hot_fraction"]]
-    out = np.zeros(kmax + 1)
-    for (rates, share_on, weights), frac in zip(comps, fractions):
-        keep = weights > 1e-14 * weights.max()
-        pmf_n = count_pmf(n_cap, rates[keep, wi], w.duration_s, v["regularity"])  # (M, N)
-        q = share_on[keep, wi] if pol == 0 else 1.0 - share_on[keep, wi]
-        thin = binom.pmf(k[None, :, None], n[None, None, :], q[:, None, None])  # (M, K, N)
-        out += frac * np.einsum("mkn,mn,m->k", thin, pmf_n, weights[keep] / weights[keep].sum())
-    return out
-
-
-def _goodness(v, model, groups, n_fitted):
-    from scipy.stats import chi2
-
-    out = []
-    for gi, grp in enumerate(groups):
-        for wi, w in enumerate(grp.windows):
-            n_pix = int(np.prod(w.shape))
-            for pol, name in enumerate(("ON", "OFF")):
-                counts = np.minimum(w.counts[pol].ravel(), GOF_MAX_COUNT)
-                kmax = int(counts.max())
-                pmf = _marginal_pmf(v, model, gi, grp, wi, pol, kmax)
-                observed = np.bincount(counts, minlength=kmax + 1).astype(np.float64)
-                expected = pmf * n_pix
-                expected[-1] += max(n_pix - expected.sum(), 0.0)  # the tail beyond kmax
-                obs, exp = _pool(observed, expected)
-                dof = max(1, len(obs) - 1 - n_fitted)
-                stat = float(np.sum((obs - exp) ** 2 / exp)) if len(obs) > 1 else 0.0
-                out.append({"window": w.describe(), "polarity": name, "chi2": stat, "dof": dof,
-                            "p_value": float(chi2.sf(stat, dof)) if len(obs) > 1 else 1.0, "bins": len(obs),
-                            "pooled": len(obs) < kmax + 1, "max_count": kmax, "events": int(w.counts[pol].sum()),
-                            "expected_events": float(np.dot(np.arange(kmax + 1), pmf) * n_pix)})
-    return out
-
-
-def _pool(observed, expected, minimum=5.0):
-    """Adjacent bins merged (from 0 upwards) until each expected count is at least ``minimum``."""
-    obs, exp = [], []
-    acc_o = acc_e = 0.0
-    for o, e in zip(observed, expected):
-        acc_o += o
-        acc_e += e
-        if acc_e >= minimum:
-            obs.append(acc_o)
-            exp.append(acc_e)
-            acc_o = acc_e = 0.0
-    if acc_e > 0 or acc_o > 0:
-        if exp:
-            obs[-1] += acc_o
-            exp[-1] += acc_e
-        else:
-            obs.append(acc_o)
-            exp.append(acc_e)
-    return np.array(obs), np.array(exp)
-
-
 # --------------------------------------------------------------------------------------
 # a fitted preset against a recording, and the preset document
 # --------------------------------------------------------------------------------------
-def simulate_window(params, window: QuietWindow, *, replicas: int = 1, seed: int = 0) -> np.ndarray:
-    """Counts ``(replicas, 2, H, W)`` of ``params`` simulated on the window's sensor for its duration.
-
-    At the window's lux (0 when unknown: a quiet-scene preset carries the recording's shot noise in its
-    background), each replica with its own draw of thresholds and background maps.
-    """
-    import evnoise as ev
-
-    lux = np.full(window.shape, float(window.lux or 0.0))
-    seq = np.random.SeedSequence(seed)
-    return np.stack([ev.sample_counts(lux, params, window.duration_s, rng=np.random.default_rng(s))
-                     for s in seq.spawn(int(replicas))])
-
-
-def compare_to_recording(params, window: QuietWindow, *, replicas: int = 20, seed: int = 0) -> list:
-    """Two-sample chi-square test of the per-pixel count histograms: recording against simulation.
-
-    The simulated histogram pools ``replicas`` independent sensors (so its own noise is small and
-    accounted for): a homogeneity test of the 2 x bins table, bins merged from 0 upwards until both
-    expected counts are at least 5, ``bins - 1`` degrees of freedom. One dict per polarity.
-    """
-    from scipy.stats import chi2
-
-    sim = simulate_window(params, window, replicas=replicas, seed=seed)
-    out = []
-    for pol, name in enumerate(("ON", "OFF")):
-        real = np.minimum(window.counts[pol].ravel(), GOF_MAX_COUNT)
-        fake = np.minimum(sim[:, pol].ravel(), GOF_MAX_COUNT)
-        top = int(max(real.max(), fake.max()))
-        h_real = np.bincount(real, minlength=top + 1).astype(np.float64)
-        h_fake = np.bincount(fake, minlength=top + 1).astype(np.float64)
-        n_r, n_f = h_real.sum(), h_fake.sum()
-        # merge bins until the expected count of the smaller (real) row is at least 5
-        share = (h_real + h_fake) / (n_r + n_f)
-        obs_r, exp_r = _pool(h_real, share * n_r)
-        obs_f, _ = _pool(h_fake, share * n_r)  # same merging (driven by the same expected)
-        table = np.stack([obs_r, obs_f])
-        if table.shape[1] < 2:
-            stat, dof, p = 0.0, 0, 1.0
-        else:
-            tot = table.sum(axis=0)
-            expected = np.outer(table.sum(axis=1), tot) / tot.sum()
-            stat = float(np.sum((table - expected) ** 2 / expected))
-            dof = table.shape[1] - 1
-            p = float(chi2.sf(stat, dof))
-        out.append({"window": window.describe(), "polarity": name, "chi2": stat, "dof": dof, "p_value": p,
-                    "events": int(window.counts[pol].sum()),
-                    "simulated_events_per_replica": float(sim[:, pol].sum() / replicas),
-                    "replicas": int(replicas)})
-    return out
-
-
 def preset_toml(params, *, sensor: tuple, header: str, provenance: dict, fit: QuietFit | None = None,
                 validation: list | None = None) -> str:
     """A preset document: header comment, ``[sensor]``, ``[params]``, ``[provenance]``, ``[fit]``, validation."""

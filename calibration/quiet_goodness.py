@@ -1,0 +1,142 @@
+"""Goodness of fit of quiet-scene models: the fitted model's count histograms against the windows', and
+a preset simulated against a recording. Re-exported by :mod:`evnoise.calibration.quiet`.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .quiet_counts import count_pmf
+from .quiet_likelihood import _component_rates
+
+if TYPE_CHECKING:
+    from .quiet import QuietWindow
+
+__all__ = ["GOF_MAX_COUNT", "simulate_window", "compare_to_recording"]
+
+
+#: Largest count evaluated one by one in the goodness-of-fit histograms (higher ones form the tail bin).
+GOF_MAX_COUNT = 200
+
+
+def _marginal_pmf(v, model, gi, grp, wi, pol, kmax):
+    """Model probability of a pixel's count 0..kmax of polarity ``pol`` in window ``wi`` (the mixture).
+
+    Each event is ON with the pixel's ON share, independently: the polarity's count is a binomial
+    thinning of the renewal count ``N`` (evaluated up to the window's largest total count).
+    """
+    from scipy.stats import binom
+
+    w = grp.windows[wi]
+    n_cap = min(int(w.counts.sum(axis=0).max()) + 5, 2 * GOF_MAX_COUNT)
+    n = np.arange(n_cap + 1)
+    k = np.arange(kmax + 1)
+    comps = _component_rates(v, gi, model, grp)
+    fractions = [1.0 - v["hot_fraction"], v["hot_fraction"]]
+    out = np.zeros(kmax + 1)
+    for (rates, share_on, weights), frac in zip(comps, fractions):
+        keep = weights > 1e-14 * weights.max()
+        pmf_n = count_pmf(n_cap, rates[keep, wi], w.duration_s, v["regularity"])  # (M, N)
+        q = share_on[keep, wi] if pol == 0 else 1.0 - share_on[keep, wi]
+        thin = binom.pmf(k[None, :, None], n[None, None, :], q[:, None, None])  # (M, K, N)
+        out += frac * np.einsum("mkn,mn,m->k", thin, pmf_n, weights[keep] / weights[keep].sum())
+    return out
+
+
+def _goodness(v, model, groups, n_fitted):
+    from scipy.stats import chi2
+
+    out = []
+    for gi, grp in enumerate(groups):
+        for wi, w in enumerate(grp.windows):
+            n_pix = int(np.prod(w.shape))
+            for pol, name in enumerate(("ON", "OFF")):
+                counts = np.minimum(w.counts[pol].ravel(), GOF_MAX_COUNT)
+                kmax = int(counts.max())
+                pmf = _marginal_pmf(v, model, gi, grp, wi, pol, kmax)
+                observed = np.bincount(counts, minlength=kmax + 1).astype(np.float64)
+                expected = pmf * n_pix
+                expected[-1] += max(n_pix - expected.sum(), 0.0)  # the tail beyond kmax
+                obs, exp = _pool(observed, expected)
+                dof = max(1, len(obs) - 1 - n_fitted)
+                stat = float(np.sum((obs - exp) ** 2 / exp)) if len(obs) > 1 else 0.0
+                out.append({"window": w.describe(), "polarity": name, "chi2": stat, "dof": dof,
+                            "p_value": float(chi2.sf(stat, dof)) if len(obs) > 1 else 1.0, "bins": len(obs),
+                            "pooled": len(obs) < kmax + 1, "max_count": kmax, "events": int(w.counts[pol].sum()),
+                            "expected_events": float(np.dot(np.arange(kmax + 1), pmf) * n_pix)})
+    return out
+
+
+def _pool(observed, expected, minimum=5.0):
+    """Adjacent bins merged (from 0 upwards) until each expected count is at least ``minimum``."""
+    obs, exp = [], []
+    acc_o = acc_e = 0.0
+    for o, e in zip(observed, expected):
+        acc_o += o
+        acc_e += e
+        if acc_e >= minimum:
+            obs.append(acc_o)
+            exp.append(acc_e)
+            acc_o = acc_e = 0.0
+    if acc_e > 0 or acc_o > 0:
+        if exp:
+            obs[-1] += acc_o
+            exp[-1] += acc_e
+        else:
+            obs.append(acc_o)
+            exp.append(acc_e)
+    return np.array(obs), np.array(exp)
+
+
+def simulate_window(params, window: QuietWindow, *, replicas: int = 1, seed: int = 0) -> np.ndarray:
+    """Counts ``(replicas, 2, H, W)`` of ``params`` simulated on the window's sensor for its duration.
+
+    At the window's lux (0 when unknown: a quiet-scene preset carries the recording's shot noise in its
+    background), each replica with its own draw of thresholds and background maps.
+    """
+    import evnoise as ev
+
+    lux = np.full(window.shape, float(window.lux or 0.0))
+    seq = np.random.SeedSequence(seed)
+    return np.stack([ev.sample_counts(lux, params, window.duration_s, rng=np.random.default_rng(s))
+                     for s in seq.spawn(int(replicas))])
+
+
+def compare_to_recording(params, window: QuietWindow, *, replicas: int = 20, seed: int = 0) -> list:
+    """Two-sample chi-square test of the per-pixel count histograms: recording against simulation.
+
+    The simulated histogram pools ``replicas`` independent sensors (so its own noise is small and
+    accounted for): a homogeneity test of the 2 x bins table, bins merged from 0 upwards until both
+    expected counts are at least 5, ``bins - 1`` degrees of freedom. One dict per polarity.
+    """
+    from scipy.stats import chi2
+
+    sim = simulate_window(params, window, replicas=replicas, seed=seed)
+    out = []
+    for pol, name in enumerate(("ON", "OFF")):
+        real = np.minimum(window.counts[pol].ravel(), GOF_MAX_COUNT)
+        fake = np.minimum(sim[:, pol].ravel(), GOF_MAX_COUNT)
+        top = int(max(real.max(), fake.max()))
+        h_real = np.bincount(real, minlength=top + 1).astype(np.float64)
+        h_fake = np.bincount(fake, minlength=top + 1).astype(np.float64)
+        n_r, n_f = h_real.sum(), h_fake.sum()
+        # merge bins until the expected count of the smaller (real) row is at least 5
+        share = (h_real + h_fake) / (n_r + n_f)
+        obs_r, exp_r = _pool(h_real, share * n_r)
+        obs_f, _ = _pool(h_fake, share * n_r)  # same merging (driven by the same expected)
+        table = np.stack([obs_r, obs_f])
+        if table.shape[1] < 2:
+            stat, dof, p = 0.0, 0, 1.0
+        else:
+            tot = table.sum(axis=0)
+            expected = np.outer(table.sum(axis=1), tot) / tot.sum()
+            stat = float(np.sum((table - expected) ** 2 / expected))
+            dof = table.shape[1] - 1
+            p = float(chi2.sf(stat, dof))
+        out.append({"window": window.describe(), "polarity": name, "chi2": stat, "dof": dof, "p_value": p,
+                    "events": int(window.counts[pol].sum()),
+                    "simulated_events_per_replica": float(sim[:, pol].sum() / replicas),
+                    "replicas": int(replicas)})
+    return out
