@@ -9,6 +9,10 @@ import numpy as np
 
 __all__ = ["count_survival", "count_pmf"]
 
+#: Rates (events/s) at or below which the process counts as never firing (as at rate 0): ``P(N >= 1)``
+#: is below ``RATE_TINY_HZ * duration_s`` there, and ``k / rate`` would overflow.
+RATE_TINY_HZ = 1e-300
+
 
 def count_survival(k, rate_hz, duration_s, regularity):
     """``P(N >= k)`` of the count ``N`` in a window of a stationary renewal process (arrays broadcast).
@@ -19,6 +23,7 @@ def count_survival(k, rate_hz, duration_s, regularity):
     ``r mu + Exp((1 - r) mu)``, so ``P(N >= k) = r A + (1 - r) P(Gamma_k <= T - k r mu)`` with
     ``A = mean over u of P(Gamma_{k-1} <= T - (k - 1 + u) r mu)`` (Gamma of scale ``(1 - r) mu``), in
     closed form through ``int_0^Y P(Gamma_n <= y) dy = Y P(n, Y/theta) - n theta P(n + 1, Y/theta)``.
+    Rates up to :data:`RATE_TINY_HZ` count as 0 (no events), an infinite rate as events beyond any ``k``.
     """
     from scipy.special import gammainc
 
@@ -26,7 +31,8 @@ def count_survival(k, rate_hz, duration_s, regularity):
     rate = np.asarray(rate_hz, dtype=np.float64)
     r = float(regularity)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        mu = np.where(rate > 0, 1.0 / np.where(rate > 0, rate, 1.0), np.inf)
+        live = rate > RATE_TINY_HZ
+        mu = np.where(live, 1.0 / np.where(live, rate, 1.0), np.inf)
         theta = (1.0 - r) * mu
         T = float(duration_s)
 
@@ -48,7 +54,12 @@ def count_survival(k, rate_hz, duration_s, regularity):
         b = p_gamma(k, T - k * r * mu) if r < 1.0 else 0.0
         if r > 0:
             x0 = T - (k - 1.0) * r * mu
-            a = (integral(k - 1.0, x0) - integral(k - 1.0, x0 - r * mu)) / (r * mu)
+            step = r * mu  # the range of the uniform phase
+            a = (integral(k - 1.0, x0) - integral(k - 1.0, x0 - step)) / step
+            if np.any(step == 0.0):
+                # r mu below the smallest double (r tiny, or a huge rate): A is its limit, P(Gamma_{k-1} <= x0),
+                # not the 0 / 0 of the difference
+                a = np.where(step == 0.0, p_gamma(k - 1.0, x0), a)
         else:
             a = 0.0
         out = r * a + (1.0 - r) * b

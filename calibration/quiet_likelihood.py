@@ -22,9 +22,14 @@ _Z = np.linspace(-7.0, 7.0, GRID)
 _WZ = np.exp(-0.5 * _Z * _Z)
 _WZ /= _WZ.sum()
 _LOG_WZ = np.log(_WZ)
+_Z_MAX = float(_Z[-1])
 #: Hot pixels: at most this fraction of the pixels, at least this many times the ordinary mean rate.
 HOT_MAX_FRACTION = 0.05
 HOT_MIN_RATIO = 5.0
+#: Largest per-pixel rate (events/s) the likelihood evaluates. Only an optimiser's trial point far from
+#: any sensor gets there (a long step in a log rate, a hot-pixel rate that overflows); the log-likelihood
+#: is -inf there, where the arithmetic would overflow to inf and NaN.
+RATE_MAX_HZ = 1e300
 
 
 @dataclass
@@ -154,8 +159,32 @@ def _log_mix(vec, comps, v, grp, regularity):
     return np.logaddexp(math.log1p(-f) + lo, math.log(f) + lh)
 
 
+def _log_peak_rate(rate_hz, sigma):
+    """log of the largest of ``rate_hz * exp(-sigma^2 / 2 + sigma z)`` over the grid (``-inf`` for 0)."""
+    if not rate_hz > 0.0:
+        return -math.inf
+    if not math.isfinite(rate_hz):
+        return math.inf
+    return math.log(rate_hz) + sigma * (_Z_MAX - 0.5 * sigma)  # -inf where sigma * sigma overflows
+
+
+def _rates_in_range(v, model: _Model) -> bool:
+    """Whether every rate of the model (each component on its whole grid, every window) is at most
+    :data:`RATE_MAX_HZ`, so that sums and shares of the rates stay finite."""
+    lux_max = max((float(np.max(x, initial=0.0)) for x in model.lux), default=0.0) if model.growth else 0.0
+    shot_max = max((float(np.max(x, initial=0.0)) for x in model.shot), default=0.0)
+    top = max(v["rate_on_hz"] + v["growth_on"] * lux_max, v["rate_off_hz"] + v["growth_off"] * lux_max)
+    log_max = math.log(RATE_MAX_HZ)
+    if _log_peak_rate(top, v["sigma"]) > log_max or not top + shot_max <= RATE_MAX_HZ:
+        return False
+    return v["hot_fraction"] == 0.0 or _log_peak_rate(v["hot_rate_hz"], v["hot_sigma"]) <= log_max
+
+
 def _log_likelihood(theta, model: _Model, groups) -> float:
+    """Log-likelihood of every group's count vectors at ``theta`` (-inf where a rate is beyond :data:`RATE_MAX_HZ`)."""
     v = _unpack(theta, model)
+    if not _rates_in_range(v, model):
+        return -math.inf
     total = 0.0
     for gi, grp in enumerate(groups):
         comps = _component_rates(v, gi, model, grp)

@@ -81,6 +81,38 @@ TRUTH = ev.NoiseParams(eps_pos=5, eps_neg=5, bias_pr=2, trial_rate_hz=1000, phot
                        hot_pixel_rate_hz=6.0, hot_pixel_sigma=0.3, hot_pixel_on_fraction=0.7)
 
 
+def test_count_distribution_at_the_ends_of_the_float_range():
+    """Rates and regularities an optimiser's long step reaches: numbers, not NaN (r mu underflowing
+    to 0 takes the phase term's limit; rates that overflow k / rate count as 0, an infinite one fires always)."""
+    k = np.array([0.0, 1.0, 199000.0, 200000.0, 201000.0])
+    np.testing.assert_allclose(q.count_survival(k, 1e5, 2.0, 1e-320), poisson.sf(k - 1, 2e5), rtol=1e-10, atol=1e-15)
+    np.testing.assert_array_equal(q.count_survival(np.arange(5), 1e-308, 2.0, 0.5), [1, 0, 0, 0, 0])
+    np.testing.assert_array_equal(q.count_survival(np.arange(5), np.inf, 2.0, 0.5), [1, 1, 1, 1, 1])
+
+
+def test_likelihood_at_extreme_trial_points_is_a_number_without_warnings():
+    """Long optimiser steps from a plausible point (one or two log rates, logits or spreads pushed to the
+    ends of the float range) give -inf or a finite log-likelihood, never NaN, and no RuntimeWarning
+    (the fit of a real recording warned 'invalid value encountered in logaddexp')."""
+    import warnings
+    from itertools import combinations, product
+
+    groups = q._groups([_window(TRUTH, (16, 16), 4.0, 5)])
+    model = q._Model(True, True, [np.zeros((1, 2))], False, [np.zeros(1)], True)
+    start = np.array(q._theta(dict(rate_on_hz=0.2, rate_off_hz=0.05, sigma=0.6, hot_fraction=0.003, hot_rate_hz=6.0,
+                                   hot_sigma=0.3, hot_on_fraction=0.7, regularity=0.9), model))
+    steps = (-1e4, -720.0, -170.0, 170.0, 720.0, 1e4)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert math.isfinite(q._log_likelihood(start, model, groups))
+        for (i, j), (a, b) in product(combinations(range(start.size), 2), product(steps, steps)):
+            theta = start.copy()
+            theta[i] += a
+            theta[j] += b
+            ll = q._log_likelihood(theta, model, groups)
+            assert ll == -math.inf or math.isfinite(ll), (i, j, a, b, ll)
+
+
 @pytest.mark.slow
 def test_fit_recovers_known_background_within_its_uncertainty():
     fit = q.fit_quiet([_window(TRUTH, (96, 96), 8.0, 1)])
