@@ -281,6 +281,38 @@ def _hot_guess(windows, rates):
     return n_hot / n_pix, hot_events / hot_time
 
 
+def _profile_distance(nll, theta_hat, index: int, value: float) -> float:
+    """How far a proportion (coordinate ``index`` of ``theta_hat``, the logit of ``value``) can move down
+    before the profile of ``nll`` (the others re-fitted) rises by 1/2: a one-sided standard error."""
+    from scipy.optimize import brentq, minimize
+
+    base = nll(theta_hat)
+    others = [k for k in range(theta_hat.size) if k != index]
+    start = theta_hat.copy()
+
+    def rise(r):
+        def sub(z):
+            t = start.copy()
+            t[index] = _logit(r)
+            t[others] = z
+            val = nll(t)
+            return val if math.isfinite(val) else 1e300
+
+        best = minimize(sub, start[others], method="BFGS", options=dict(gtol=1e-3, maxiter=100))
+        start[others] = best.x  # the next point starts from this one
+        return best.fun - base - 0.5
+
+    hi = value
+    step = max(1e-3, 1.0 - value)
+    lo = max(value - step, 1e-6)
+    while lo > 1e-6 and rise(lo) < 0.0:
+        hi, step = lo, 2.0 * step
+        lo = max(value - step, 1e-6)
+    if lo <= 1e-6:
+        return value  # flat down to 0: not constrained from below
+    return value - brentq(rise, lo, hi, xtol=1e-4)
+
+
 def _logit(x):
     x = min(max(x, 1e-9), 1 - 1e-9)
     return math.log(x / (1 - x))
@@ -427,6 +459,12 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
             i += 2
         if model.regular:
             se["regularity"] = v["regularity"] * (1 - v["regularity"]) * d[i]
+            if v["regularity"] + 2.0 * se["regularity"] > 1.0:
+                # near r = 1 the delta method through the logit shrinks the error to nothing while the
+                # likelihood may be flat: the profile likelihood says how far r can move inwards
+                se["regularity"] = _profile_distance(nll, res.x, i, v["regularity"])
+                notes.append("regularity close to 1: its standard error is the profile-likelihood distance to "
+                             "the 1-sigma point below it (one-sided)")
     else:
         notes.append("the observed information is not positive definite: no standard errors")
     status = {n: "fitted" for n in NAMES}
