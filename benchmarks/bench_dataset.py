@@ -29,8 +29,9 @@ PAIRS_FULL = 64  # source images (one pair each) at scale 1
 
 
 def _write_sources(folder: Path, n: int) -> None:
-    from evnoise.generators import dead_leaves
     from PIL import Image
+
+    from evnoise.generators import dead_leaves
 
     for k in range(n):
         img = dead_leaves(SENSOR, 1000 + k)
@@ -88,9 +89,8 @@ def bench_dataset(size: dict, out_dir: Path, report: list) -> None:
     report : list of str
         Markdown lines, appended to.
     """
-    from evnoise.generators import DeadLeaves, PairConfig
-
     import evnoise as ev
+    from evnoise.generators import DeadLeaves, PairConfig
 
     n = max(4, round(PAIRS_FULL * size["scale"]))
     repeats = max(1, int(size["repeats"]))

@@ -128,9 +128,8 @@ def write_preset(path: Path, params, note: str) -> Path:
 
 
 def pair_config(size: Size, *, windows, preset: Path, seed: int, photos: bool):
-    from evnoise.generators import PairConfig
-
     from evnoise import load_preset
+    from evnoise.generators import PairConfig
 
     return PairConfig(sensor_shape=SENSOR, crop_shape=(size.crop_px, size.crop_px),
                       crops_per_image=size.photo_crops if photos else size.crops_per_image, binning=2,
@@ -152,6 +151,7 @@ def split_windows(data_dir, split: str):
     """``(PairDataset, window of every item in µs)`` for one split (reads only the shards'
     ``/window_s`` columns, in the reader's item order)."""
     import h5py
+
     from evnoise.generators import PairDataset, load_manifest
 
     ds = PairDataset(data_dir, split)
@@ -533,6 +533,7 @@ def paper_row(label, vals):
 def machine_info() -> dict:
     """``run.machine_info()`` (CPU, cores, load, versions, commit) plus the torch version."""
     import torch
+
     from run import machine_info as base_info
 
     return {**base_info(), "torch": torch.__version__}

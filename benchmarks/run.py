@@ -117,7 +117,6 @@ def stat_error(events_or_counts, lux, params, duration_s):
 # ------------------------------------------------------------------------------ 1. closed forms
 def bench_closed_forms(size, out_dir, report):
     from approximations import continuity_corrected_normal, saddle_point
-
     from evnoise._kernels.poisson import log_event_probability_exact_array
 
     eps, b = 0.904, 1.7

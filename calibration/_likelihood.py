@@ -17,11 +17,11 @@ import math
 
 import numpy as np
 
+from evnoise.mismatch import LevelStats
 from evnoise.params import NoiseParams
 
 from ._spec import FitSpec
 from .measurements import Measurements
-from evnoise.mismatch import LevelStats
 
 
 class _Prepared:

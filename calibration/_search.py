@@ -14,8 +14,20 @@ import numpy as np
 from evnoise.params import NoiseParams
 
 from ._likelihood import _Prepared, _Problem
-from ._spec import (FIT_NAMES, FLOORS, GROWTH, N_CONVERGED, PROFILE_MAX_STEP, PROFILE_ROUGH, PROFILE_STEP,
-                    PROFILE_STOP, SMOOTHING, SPREAD, FitSpec, _bounds)
+from ._spec import (
+    FIT_NAMES,
+    FLOORS,
+    GROWTH,
+    N_CONVERGED,
+    PROFILE_MAX_STEP,
+    PROFILE_ROUGH,
+    PROFILE_STEP,
+    PROFILE_STOP,
+    SMOOTHING,
+    SPREAD,
+    FitSpec,
+    _bounds,
+)
 from ._uncertainty import _covariance, _information, _rejected, _step_like, _steps
 
 log = logging.getLogger("evnoise.calibration")

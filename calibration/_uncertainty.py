@@ -10,8 +10,18 @@ import math
 import numpy as np
 
 from ._likelihood import _Problem
-from ._spec import (_AT_BOUND_OK, DARK_LUX, FIT_NAMES, FLOORS, NEVER, PROFILE_ROUGH, REJECT_P, REJECT_RMS,
-                    UNMODELLED, ZERO_AT_BOUND)
+from ._spec import (
+    _AT_BOUND_OK,
+    DARK_LUX,
+    FIT_NAMES,
+    FLOORS,
+    NEVER,
+    PROFILE_ROUGH,
+    REJECT_P,
+    REJECT_RMS,
+    UNMODELLED,
+    ZERO_AT_BOUND,
+)
 from .result import CalibrationResult
 
 

@@ -81,54 +81,62 @@ from __future__ import annotations
 import logging
 
 from evnoise.errors import InputError, ParameterError
+from evnoise.mismatch import METHODS
 from evnoise.params import NoiseParams
 
 # The method lives in one module per job (_likelihood, _search, _uncertainty, _spec, result);
 # the names below are re-exported for the tests and for readers who look for them here.
-from ._likelihood import _Problem  # noqa: F401
-from ._likelihood import _nb_log_shape_se  # noqa: F401
-from ._search import _MeanProxy  # noqa: F401
-from ._search import _comparable_loglik
-from ._search import _continuation  # noqa: F401
-from ._search import _fit
-from ._search import _local_fit  # noqa: F401
-from ._search import _optimise  # noqa: F401
-from ._search import _profile
-from ._search import _ridge_walk  # noqa: F401
-from ._search import _with_fixed  # noqa: F401
-from ._spec import BOUNDS  # noqa: F401
-from ._spec import CORE  # noqa: F401
-from ._spec import DISTRIBUTIONS
-from ._spec import FIT_NAMES
-from ._spec import FLOORS  # noqa: F401
-from ._spec import GROWTH  # noqa: F401
-from ._spec import NEVER  # noqa: F401
-from ._spec import SPREAD  # noqa: F401
-from ._spec import UNMODELLED  # noqa: F401
-from ._spec import ZERO_AT_BOUND  # noqa: F401
-from ._spec import LAM_MAX  # noqa: F401
-from ._spec import LAM_MAX_MISMATCH  # noqa: F401
-from ._spec import N_CONVERGED  # noqa: F401
-from ._spec import PROFILE_MAX_STEP  # noqa: F401
-from ._spec import PROFILE_ROUGH  # noqa: F401
-from ._spec import PROFILE_STEP  # noqa: F401
-from ._spec import PROFILE_STOP  # noqa: F401
-from ._spec import REJECT_P  # noqa: F401
-from ._spec import REJECT_RMS  # noqa: F401
-from ._spec import SMOOTHING  # noqa: F401
-from ._spec import TABLE_SIGMA
-from ._spec import _AT_BOUND_OK  # noqa: F401
-from ._spec import _DEFAULTS  # noqa: F401
-from ._spec import _bounds  # noqa: F401
-from ._spec import _check_bounds
-from ._spec import _resolve
-from ._uncertainty import _finish
-from ._uncertainty import _goodness  # noqa: F401
-from ._uncertainty import _information  # noqa: F401
-from ._uncertainty import _rejected
-from ._uncertainty import _verdict  # noqa: F401
+from ._likelihood import (
+    _nb_log_shape_se,  # noqa: F401
+    _Problem,  # noqa: F401
+)
+from ._search import (
+    _comparable_loglik,
+    _continuation,  # noqa: F401
+    _fit,
+    _local_fit,  # noqa: F401
+    _MeanProxy,  # noqa: F401
+    _optimise,  # noqa: F401
+    _profile,
+    _ridge_walk,  # noqa: F401
+    _with_fixed,  # noqa: F401
+)
+from ._spec import (
+    _AT_BOUND_OK,  # noqa: F401
+    _DEFAULTS,  # noqa: F401
+    BOUNDS,  # noqa: F401
+    CORE,  # noqa: F401
+    DISTRIBUTIONS,
+    FIT_NAMES,
+    FLOORS,  # noqa: F401
+    GROWTH,  # noqa: F401
+    LAM_MAX,  # noqa: F401
+    LAM_MAX_MISMATCH,  # noqa: F401
+    N_CONVERGED,  # noqa: F401
+    NEVER,  # noqa: F401
+    PROFILE_MAX_STEP,  # noqa: F401
+    PROFILE_ROUGH,  # noqa: F401
+    PROFILE_STEP,  # noqa: F401
+    PROFILE_STOP,  # noqa: F401
+    REJECT_P,  # noqa: F401
+    REJECT_RMS,  # noqa: F401
+    SMOOTHING,  # noqa: F401
+    SPREAD,  # noqa: F401
+    TABLE_SIGMA,
+    UNMODELLED,  # noqa: F401
+    ZERO_AT_BOUND,  # noqa: F401
+    _bounds,  # noqa: F401
+    _check_bounds,
+    _resolve,
+)
+from ._uncertainty import (
+    _finish,
+    _goodness,  # noqa: F401
+    _information,  # noqa: F401
+    _rejected,
+    _verdict,  # noqa: F401
+)
 from .measurements import Measurements
-from evnoise.mismatch import METHODS
 from .result import CalibrationResult
 
 __all__ = ["calibrate", "CalibrationResult", "FIT_NAMES"]

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-
 import numpy as np
 
 from evnoise.errors import OutputError
@@ -49,7 +48,6 @@ def plot_fit(result, path, *, title: str | None = None, overwrite: bool = False,
         raise OutputError("the plot needs matplotlib: pip install 'evnoise[plot]'") from None
 
     from evnoise.io import open_output_path
-
     from evnoise.mismatch import nb_shape, population_rate
 
     path = open_output_path(path, overwrite=overwrite, what="plot")

@@ -47,16 +47,39 @@ import numpy as np
 from evnoise.errors import InputError, ParameterError
 
 from .quiet_checks import CHECK_P
+
 # The model's parts live in one module per job; their names are re-exported here, where the tests, the
-# command line and the scripts look for them: the renewal count distribution, ...
+# command line and the scripts look for them: the renewal count distribution, the goodness of fit (the
+# model's histograms, a preset simulated against a recording), the likelihood and its maximisation.
 from .quiet_counts import count_pmf, count_survival  # noqa: F401
-# ... the likelihood of the windows and its maximisation, ...
-from .quiet_likelihood import (GRID, HOT_MAX_FRACTION, HOT_MIN_RATIO, _LOG_WZ, _WZ, _Z, _component_rates,  # noqa: F401
-                               _exp, _Group, _groups, _hessian, _log_component, _log_likelihood, _log_mix,
-                               _maximise, _Model, _sigmoid, _unpack)
-# ... and the goodness of fit (the model's histograms, a preset simulated against a recording)
-from .quiet_goodness import (GOF_MAX_COUNT, _goodness, _marginal_pmf, _pool, compare_to_recording,  # noqa: F401
-                             simulate_window)
+from .quiet_goodness import (  # noqa: F401
+    GOF_MAX_COUNT,
+    _goodness,
+    _marginal_pmf,
+    _pool,
+    compare_to_recording,
+    simulate_window,
+)
+from .quiet_likelihood import (  # noqa: F401
+    _LOG_WZ,
+    _WZ,
+    _Z,
+    GRID,
+    HOT_MAX_FRACTION,
+    HOT_MIN_RATIO,
+    _component_rates,
+    _exp,
+    _Group,
+    _groups,
+    _hessian,
+    _log_component,
+    _log_likelihood,
+    _log_mix,
+    _maximise,
+    _Model,
+    _sigmoid,
+    _unpack,
+)
 
 __all__ = ["QuietWindow", "quiet_window", "fit_quiet", "QuietFit", "GRID", "LR_P"]
 
@@ -112,8 +135,8 @@ def quiet_window(path, t_start_s: float, t_end_s: float, *, lux: float | None = 
     stationarity, scene motion; :func:`evnoise.calibration.quiet_checks.window_checks`, resampled
     with ``seed``), into ``QuietWindow.checks``.
     """
-    from evnoise.io import read_events
     from evnoise.events import count_events
+    from evnoise.io import read_events
 
     if not (t_end_s > t_start_s):
         raise ParameterError(f"--t-end must be after --t-start, got {t_start_s:g} .. {t_end_s:g} s")

@@ -45,8 +45,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError, ParameterError
 from ._recordings import recording_blocks, recording_info, recording_start_us
+from .errors import InputError, ParameterError
 from .events import check_events, check_shape, empty_events
 
 __all__ = [

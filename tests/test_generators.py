@@ -19,14 +19,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from evnoise.generators import DeadLeaves, PairConfig, PairDataset, make_dataset
-from evnoise.generators.dataset import MANIFEST, PROGRESS_DIR, _assign_splits, plan_dataset
-from evnoise.generators.pairs import CountSampler, linear_to_srgb, quantise, to_uint16
-from evnoise.generators.sources import FolderSource, PackagePhotos
 
 import evnoise as ev
 from evnoise.cli import main
 from evnoise.errors import InputError, OutputError, ParameterError
+from evnoise.generators import DeadLeaves, PairConfig, PairDataset, make_dataset
+from evnoise.generators.dataset import MANIFEST, PROGRESS_DIR, _assign_splits, plan_dataset
+from evnoise.generators.pairs import CountSampler, linear_to_srgb, quantise, to_uint16
+from evnoise.generators.sources import FolderSource, PackagePhotos
 
 # fixed model parameters (the shipped preset is being refitted; tests must not move with it)
 PARAMS = ev.NoiseParams(eps_pos=0.9, eps_neg=1.0, bias_pr=1.7, trial_rate_hz=22.0, photons_per_lux=1.0,

@@ -2,10 +2,10 @@
 
 import numpy as np
 import pytest
+from generators import pairs
 
 from evnoise import radiometry
 from evnoise.reconstruct import imaging
-from generators import pairs
 
 
 def test_srgb_names_are_one_function():

@@ -22,8 +22,8 @@ import numpy as np
 from numba import prange
 
 from ._jit import kernel
-from .poisson import log_event_probability_exact
 from .background import draw_timer, draw_timer_stationary, timer_shape
+from .poisson import log_event_probability_exact
 from .rng import geometric, poisson_emlam, seed_state, uniform
 
 NO_EVENT = math.nan

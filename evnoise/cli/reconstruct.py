@@ -59,7 +59,6 @@ def run(args) -> int:
     from ..errors import InputError, OutputError, ParameterError
     from ..reconstruct.imaging import write_png
     from ..reconstruct.infer import Reconstructor, counts_from_h5, default_model_path, h5_duration_s
-
     from ._paths import refuse_writing_inputs
 
     refuse_writing_inputs([("--out", args.out)], [("the events file", args.events), ("the --model", args.model)],

@@ -228,7 +228,6 @@ def main(argv=None) -> int:
     try:
         from ..params import load_preset
         from .data import open_pairs
-
         from .infer import default_model_path
 
         if args.model is None:

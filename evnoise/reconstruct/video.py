@@ -95,8 +95,8 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
     Frames start at the first step where a whole window has elapsed since ``t_start_s``. See
     the module docstring for how masked pixels are shown (the last static estimate).
     """
-    from ..readers import parse_sensor
     from .._recordings import recording_info, recording_start_us
+    from ..readers import parse_sensor
     from .imaging import write_png
     from .infer import Reconstructor
 
