@@ -167,8 +167,8 @@ class PairConfig:
     compression : {"lzf", "gzip", None}
         HDF5 filter of ``counts`` and ``image`` (with the shuffle filter; gzip at level 1). The
         default is ``"lzf"``: the shards' reader is h5py (evnoise's training and evaluation), which
-        always includes LZF, and LZF makes a one-worker job about 1.35x faster than gzip (the
-        compression was 39 % of a pair's time; benchmarks/REPORT.md) for files about 1.3x larger.
+        always includes LZF, and LZF makes a one-worker job about 1.3x faster than gzip (gzip's
+        compression is 39 % of a pair's time; benchmarks/REPORT.md) for shards about 1.17x larger.
         Choose ``"gzip"`` for shards that tools without h5py's LZF filter must read.
     seed : int, optional
         The seed everything derives from; ``None`` lets :func:`~evnoise.generators.make_dataset`
