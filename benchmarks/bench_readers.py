@@ -134,7 +134,8 @@ def run(n_speed: int, n_big: int, folder: Path) -> dict:
                 ("EVT 3.0 (Gen4.1, real)", "expelliarmus/evt3_sample.raw", {"sensor": "1280x720"}),
                 ("AEDAT 4 (DAVIS346, real)", "aestream/davis.aedat4", {}),
                 ("DAT Event2d (N-CARS, real)", "loris/NCARS_obj_004397_td.dat", {"sensor": "304x240"}),
-                ("CSV (EvCamMOKE, real)", "evcammoke/Expansion/slow.csv", {"sensor": "640x480", "csv_columns": "x,y,p,t"}),
+                ("CSV (EvCamMOKE, real)", "evcammoke/Expansion/slow.csv",
+                 {"sensor": "640x480", "csv_columns": "x,y,p,t"}),
                 ("N-MNIST (real)", "tonic/sample_nmnist.bin", {})]
         for label, rel, kw in real:
             n, sec = read_speed(REALDATA / rel, repeats=5, **kw)
@@ -174,7 +175,8 @@ def report_section(res: dict, command: str) -> str:
 
     m = machine_info()
     lines = ["", "## Camera-file readers: speed and memory", "",
-             f"Machine: {m.get('cpu')}, {m.get('cores')} cores (shared, load {m.get('load')}), Python {m.get('python')}, "
+             f"Machine: {m.get('cpu')}, {m.get('cores')} cores (shared, load {m.get('load')}), "
+             f"Python {m.get('python')}, "
              f"commit {m.get('commit', '?')}, {m.get('date')}. Command: `{command}`.", "",
              f"Reading speed through `evnoise.readers.iter_event_chunks` (best of 3 full reads, file in the page "
              f"cache): {res['n_speed']:.0e} synthetic events (1280x720, 1 MHz) written by evnoise in each output "
@@ -185,7 +187,8 @@ def report_section(res: dict, command: str) -> str:
                      f"{r['bytes_per_event']:.2f} |")
     lines += ["", "Writing the synthetic events (s): " + ", ".join(f"{k} {v:.2f}" for k, v in res["write_s"].items())
               + ".", "",
-              f"Peak memory (resident, whole process incl. Python, NumPy, h5py and faery: {res['baseline_mib']:.0f} MiB "
+              f"Peak memory (resident, whole process incl. Python, NumPy, h5py and faery: "
+              f"{res['baseline_mib']:.0f} MiB "
               f"after the imports alone) on one {res['n_big']:.0e}-event file: ",
               "", "| file | what | peak MiB | wall s |", "|---|---|---:|---:|"]
     for r in res["memory"]:

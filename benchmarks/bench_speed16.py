@@ -2,7 +2,8 @@
 
     nice -n 10 python benchmarks/bench_speed16.py                       # this checkout
     PYTHONPATH=/tmp/ev_before nice -n 10 python benchmarks/bench_speed16.py --label before
-        # the same measurements on an older tree, e.g. ``git archive 1044ad2 evnoise generators | tar -x -C /tmp/ev_before``
+        # the same measurements on an older tree, e.g.
+        # ``git archive 1044ad2 evnoise generators | tar -x -C /tmp/ev_before``
     nice -n 10 python benchmarks/bench_speed16.py --only trials,events  # part 2: trial tier, renewal per event
 
 Scene: ``benchmarks/run.py:scene`` at 1280x720 (0.2-18 lux, lam 13-1160 photons per trial),

@@ -327,7 +327,8 @@ def job_figure(*, model: str, id_test: dict, ood_test: dict, sigma: float, rows,
         item = ds[i]
         counts, target, window = np.asarray(item["counts"]), np.asarray(item["image"], np.float64), item["window_s"]
         ml = MLInversion(ds.params, max_lux=ds.max_lux, binning=ds.binning, smoothing_sigma=sigma)
-        preds = [count_image(counts, target=target, mode="affine"), ml.display(counts, window, max_lux=item["lux_scale"]),
+        preds = [count_image(counts, target=target, mode="affine"),
+                 ml.display(counts, window, max_lux=item["lux_scale"]),
                  net.predict_binned(counts, window)]
         panels = [counts.sum(axis=0)] + preds + [target]
         for c, img in enumerate(panels):
@@ -438,8 +439,8 @@ def plan(size_name: str, size: Size, work: Path, out: Path, seed: int, train_see
     for v in order:
         for kind in ("dl", "photos"):
             jobs.append(Job(f"data:{kind}-{v}", job_dataset,
-                            {"photos": kind == "photos", "windows": win[v], "preset": presets[v], "seed": seed, "size": sz,
-                                 "out": data[f"{kind}-{v}"]}))
+                            {"photos": kind == "photos", "windows": win[v], "preset": presets[v], "seed": seed,
+                             "size": sz, "out": data[f"{kind}-{v}"]}))
     deps = {v: (f"data:dl-{v}", f"data:photos-{v}") for v in variants}
 
     def model(name, v, w, pol, test_sets):
@@ -645,7 +646,8 @@ def write_report(*, run, info, size_name, size, args, machine_start, machine_end
     add(f"  Two variants are written to the work folder: *nominal* (`eps_sigma = 0`) and *mismatch* "
         f"(`eps_sigma = {variants['mismatch'].eps_sigma:g}`, "
         + ("the shipped value" if shipped.eps_sigma > 0 else
-           "a documented choice, since the shipped preset has none") + f"). The main table uses the **{main}** variant (= the shipped preset).")
+           "a documented choice, since the shipped preset has none")
+        + f"). The main table uses the **{main}** variant (= the shipped preset).")
     add(f"* **Scenes**: sensor {SENSOR[1]}×{SENSOR[0]} (photos are fitted by `cover`), crops of "
         f"{size.crop_px}×{size.crop_px} sensor pixels, counts binned 2×2 → pairs of "
         f"{size.crop_px // 2}×{size.crop_px // 2}; display white = {WHITE_LUX:g} lux (the paper's monitor), "

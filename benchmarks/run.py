@@ -175,7 +175,8 @@ def bench_closed_forms(size, out_dir, report):
     lines = [
         "## 1. Closed forms: time per million values and error",
         "",
-        f"`eps = {eps}`, `bias = {b}` (the Noise2Image authors' EVK3-HD ON values), lam log-uniform in each decade (fewer values above 1e4). Error: maximum "
+        f"`eps = {eps}`, `bias = {b}` (the Noise2Image authors' EVK3-HD ON values), lam log-uniform in each decade "
+        "(fewer values above 1e4). Error: maximum "
         "relative error of p against the exact windowed sum wherever p > 1e-300; the windowed sum itself "
         f"agrees with an mpmath evaluation (50 digits) to {worst:.1e} relative at {len(checks)} check points "
         "(lam 1e-12 … " + f"{max(c[0] for c in checks):g}" + "). Times use both cores.",
@@ -228,7 +229,8 @@ def bench_simulator(size, out_dir, report, params):
                  "`evk3-hd`. Statistical error: total ON/OFF counts against `expected_rate` (exact closed form) "
                  "for the same scene, as relative error and z-score (|z| < 3 is what a correct simulator shows).")
     lines.append("")
-    lines.append("| resolution | tier | threads | work | time (median, min–max) | throughput | rel. error ON / OFF | z ON / OFF |")
+    lines.append("| resolution | tier | threads | work | time (median, min–max) | throughput "
+                 "| rel. error ON / OFF | z ON / OFF |")
     lines.append("|---|---|---|---|---|---|---|---|")
     shapes = [(260, 346), (720, 1280)]
     for shape in shapes:

@@ -191,7 +191,8 @@ def summarize(prob, fits, grey, step):
                                                            "photons_per_lux", "dark_lux", "leak_off_hz")},
         "grey_step": step,
         "regions": {k: list(v) for k, v in REGIONS.items()},
-        "authors_mean_curve": "the authors' fitted rate curve with their constant extra OFF rate (refit_evk3.authors_rate)",
+        "authors_mean_curve": "the authors' fitted rate curve with their constant extra OFF rate "
+                              "(refit_evk3.authors_rate)",
         "models": [],
     }
     for fit in fits:
@@ -237,7 +238,8 @@ def _verdict(summary):
     bj = min(joint, key=lambda e: e["r_rms_log_ratio"] ** 2 + e["mean_rate_rms_log_ratio_vs_authors_curve"]["all"] ** 2)
     dark = "dark (grey < 64)"
     bounds = "; its parameters at their bounds" if best["at_bounds"] else ""
-    return (f"Threshold mismatch alone misses the measured r(grey) by an rms log ratio of {alone['r_rms_log_ratio']:.2f} "
+    return (f"Threshold mismatch alone misses the measured r(grey) by an rms log ratio of "
+            f"{alone['r_rms_log_ratio']:.2f} "
             f"(factor {math.exp(alone['r_rms_log_ratio']):.1f}); adding a log-normal background spread, a leak growing "
             f"with lux and hot pixels improves this only to {best['r_rms_log_ratio']:.2f} (factor "
             f"{math.exp(best['r_rms_log_ratio']):.1f}, dark levels still off by "
@@ -273,7 +275,8 @@ def run(reference: Path, out: Path | None, *, step: int = 1, models=MODELS, prog
 def main(argv=None) -> int:
     from .refit_evk3 import DEFAULT_REFERENCE
 
-    ap = argparse.ArgumentParser(prog="python -m evnoise.calibration.dispersion_evk3", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m evnoise.calibration.dispersion_evk3",
+                                 description=__doc__.split("\n")[0])
     ap.add_argument("--reference", type=Path, default=DEFAULT_REFERENCE, help="noise2image-reference folder")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT, help="summary JSON (default: %(default)s)")
     ap.add_argument("--step", type=int, default=4, help="use every STEP-th grey level (default: %(default)s)")

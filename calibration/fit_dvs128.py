@@ -94,8 +94,8 @@ def main(argv=None) -> int:
     failing = [r for r in validation if r["p_value"] < 1e-3]
     values = fit.values
     provenance = {
-        "summary": "DVS128 (128x128): background fitted to quiet-scene recordings of one camera (near-periodic ON leak); "
-                   "photon-noise scale assumed",
+        "summary": "DVS128 (128x128): background fitted to quiet-scene recordings of one camera "
+                   "(near-periodic ON leak); photon-noise scale assumed",
         "camera": "iniVation/INI DVS128 (DVS128-V1), the cam255 camera of AlexOuyang/DVS128DataAnalysis",
         "status": "background fitted; thresholds published; photon-noise scale assumed (not identified by quiet data)",
         "source": "quiet windows of AlexOuyang/DVS128DataAnalysis test_data (jAER AEDAT 2.0), listed in the "
@@ -109,8 +109,8 @@ def main(argv=None) -> int:
         "thresholds": "eps_sigma 0.021: the DVS128's contrast-threshold mismatch of 2.1 % (Lichtsteiner, Posch, "
                       "Delbruck, IEEE JSSC 43(2) 2008); eps_pos = eps_neg = 0.15: ASSUMPTION within the 10-20 % "
                       "contrast thresholds the paper reports for typical biases",
-        "photon_noise_scale": "ASSUMPTION: bias_pr, photons_per_lux and trial_rate_hz of the davis346 preset (same pixel "
-                              "lineage); quiet recordings at an unknown illuminance do not identify them",
+        "photon_noise_scale": "ASSUMPTION: bias_pr, photons_per_lux and trial_rate_hz of the davis346 preset "
+                              "(same pixel lineage); quiet recordings at an unknown illuminance do not identify them",
         "lux": "the recordings' illuminance is unknown, so their whole noise (shot noise included) is the fitted "
                "background: simulate at lux 0 to reproduce them (evnoise.calibration.quiet.simulate_window does); at "
                "other illuminances the assumed photon noise adds",
@@ -121,7 +121,8 @@ def main(argv=None) -> int:
                        "pixels with 2 ON events where a Poisson count of the same mean gives 113) and over-dispersed "
                        "in the tail; no mixture of Poisson counts can do the first, a near-periodic leak with a broad "
                        "spread of rates does both",
-        "validation": f"two-sample chi-square of the per-pixel count histograms, recording vs {args.replicas} simulated "
+        "validation": f"two-sample chi-square of the per-pixel count histograms, recording vs "
+                      f"{args.replicas} simulated "
                       f"sensors, for every quiet window (table [[validation]]): {len(failing)} of {len(validation)} "
                       f"window-polarities below p = 1e-3; lowest p = {worst['p_value']:.3g} ({worst['file']} "
                       f"{worst['polarity']}{', used in the fit' if worst['used_in_fit'] else ''})",

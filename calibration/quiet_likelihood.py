@@ -220,6 +220,7 @@ def _hessian(fun, x, step=1e-3):
             e_j = np.zeros(n)
             e_i[i] = step
             e_j[j] = step
-            val = (fun(x + e_i + e_j) - fun(x + e_i - e_j) - fun(x - e_i + e_j) + fun(x - e_i - e_j)) / (4 * step * step)
+            val = (fun(x + e_i + e_j) - fun(x + e_i - e_j) - fun(x - e_i + e_j)
+                   + fun(x - e_i - e_j)) / (4 * step * step)
             h[i, j] = h[j, i] = val
     return h

@@ -18,10 +18,11 @@ over 1 s for every grey level. Their raw rate measurements are not published, so
    evnoise the background shares the pixel's trials with the photon noise (a trial fires at most
    once), so the floor that reproduces the authors' strictly additive constant is not exactly
    their number (it differs by the factor ``(1 - p_on - p_off)`` and ``1 - exp(-l/N)`` vs ``l/N``);
-   the curve determines it (in the dark and at the bright end the photon noise is negligible). The curve has the shape of the model's
-   many-photon (Gaussian) limit, so ``photons_per_lux`` is not identified: the fit keeps
-   improving as it grows (thresholds shrinking like ``1/sqrt(photons_per_lux)``), and the
-   best value of the grid :data:`PHOTON_GRID` is used (both profiles are recorded in the preset);
+   the curve determines it (in the dark and at the bright end the photon noise is negligible).
+   The curve has the shape of the model's many-photon (Gaussian) limit, so ``photons_per_lux``
+   is not identified: the fit keeps improving as it grows (thresholds shrinking like
+   ``1/sqrt(photons_per_lux)``), and the best value of the grid :data:`PHOTON_GRID` is used
+   (both profiles are recorded in the preset);
 4. the measured ``r`` tables are compared with the NB shapes that a threshold mismatch
    ``eps_sigma`` predicts (a profile over ``eps_sigma`` at the mismatch-free fit). The best
    value fits ``r`` only to a factor ~2.5 rms, predicts the most dispersion in the dark where

@@ -227,7 +227,8 @@ def preset_text(params, errors: dict, profile: list) -> str:
         "# Regenerate with",
         "#     python -m evnoise.calibration.refit_evk4",
         f"# Mapped rate curve vs theirs: rms relative error {errors['rate_rms_relative_error']:.3f}, "
-        f"max {errors['rate_max_relative_error']:.3f} ({errors['worst_polarity']} at {errors['worst_at_lux']:.3g} lux).",
+        f"max {errors['rate_max_relative_error']:.3f} "
+        f"({errors['worst_polarity']} at {errors['worst_at_lux']:.3g} lux).",
         "",
         "[sensor]",
         "width = 1280",

@@ -101,7 +101,10 @@ def check_positive(value, name: str, unit: str = "") -> float:
 
 
 def check_float(value, name: str, unit: str, *, minimum: float = 0.0, strict: bool = True) -> float:
-    """``float(value)``, finite and above ``minimum`` (``strict``) or at least ``minimum``; ``ParameterError`` otherwise."""
+    """``float(value)``, finite and above ``minimum`` (``strict``) or at least ``minimum``.
+
+    Raises ``ParameterError`` otherwise.
+    """
     try:
         v = float(value)
     except (TypeError, ValueError):

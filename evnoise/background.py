@@ -169,7 +169,10 @@ def pr_tau_s(lux, params) -> np.ndarray:
 
 
 def _timer_mean_min(log1m_p, p, d, a2):
-    """``E[min(G_p, D + G)]`` for a whole ``d`` (arrays): ``(1 - q^(d+1)) / p + q^(d+1) (1 - a2) / (1 - q (1 - a2))``."""
+    """``E[min(G_p, D + G)]`` for a whole ``d`` (arrays).
+
+    ``(1 - q^(d+1)) / p + q^(d+1) (1 - a2) / (1 - q (1 - a2))``.
+    """
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         qd = np.exp((d + 1.0) * log1m_p)
         head = np.where(p > 0, -np.expm1((d + 1.0) * log1m_p) / np.where(p > 0, p, 1.0), d + 1.0)

@@ -54,7 +54,8 @@ With a regular background timer (``leak_regularity > 0``) a pixel's trials are n
 rate is :func:`evnoise.background.regular_rates` averaged over the threshold atoms of each polarity and
 the background nodes, with the other polarity's ``p`` at its mean (an approximation also for
 ``refractory_s = 0``, second order in the other polarity's spread because the timer couples the
-polarities; about 1 % at ``eps_sigma = 0.08``, ``eps ~ 0.65``, exact without threshold mismatch), and :func:`nb_shape` (a binomial count per pixel) raises :class:`ParameterError`.
+polarities; about 1 % at ``eps_sigma = 0.08``, ``eps ~ 0.65``, exact without threshold mismatch), and
+:func:`nb_shape` (a binomial count per pixel) raises :class:`ParameterError`.
 """
 
 from __future__ import annotations

@@ -371,7 +371,8 @@ def _array_blocks(events, t_start_us: int, t_end_us: int, block_us: int):
 
 def iter_motion(source, shape=None, *, fps: float, window_s: float, separator="density", is_signal=None,
                 mask: MaskParams | None = None, count: str = "noise", on_motion: str = "skip",
-                t_start_s: float | None = None, t_end_s: float | None = None, stats: dict | None = None, csv_columns=None) -> Iterator[MotionFrame]:
+                t_start_s: float | None = None, t_end_s: float | None = None, stats: dict | None = None,
+                csv_columns=None) -> Iterator[MotionFrame]:
     """Motion masks and moving-window noise counts of a recording, one :class:`MotionFrame` per step.
 
     Parameters
@@ -435,7 +436,8 @@ def iter_motion(source, shape=None, *, fps: float, window_s: float, separator="d
     else:
         if is_signal is not None:
             raise InputError("is_signal can only be given with an event array")
-        file_shape, n, t_first, t_last, t_file_end = recording_info(source, shape, csv_columns=csv_columns)  # any event file
+        # any event file
+        file_shape, n, t_first, t_last, t_file_end = recording_info(source, shape, csv_columns=csv_columns)
         shape = file_shape
         if t_start_s is None:
             t_start_us = recording_start_us(source, t_first)
@@ -549,7 +551,10 @@ def bin_rates(rates, binning: int) -> np.ndarray:
 
 
 def bin_mask(mask, binning: int) -> np.ndarray:
-    """A boolean mask ``(H, W)`` over ``binning x binning`` blocks: True where any pixel of the block is (partial edges dropped)."""
+    """A boolean mask ``(H, W)`` over ``binning x binning`` blocks.
+
+    True where any pixel of the block is (partial edges dropped).
+    """
     b = int(binning)
     h, w = mask.shape[0] // b, mask.shape[1] // b
     return mask[:h * b, :w * b].reshape(h, b, w, b).any(axis=(1, 3))

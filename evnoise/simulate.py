@@ -370,7 +370,8 @@ def _fill_static_cache(state: PixelState, lams: np.ndarray, params: NoiseParams,
     sel = np.flatnonzero(need)
     if sel.size == 0:
         return
-    p_on, p_off = trial_probabilities(lam0[sel], params, (eps_on[sel], eps_off[sel]), background=select_background(bg, sel))
+    p_on, p_off = trial_probabilities(lam0[sel], params, (eps_on[sel], eps_off[sel]),
+                                      background=select_background(bg, sel))
     p_all = p_on + p_off
     with np.errstate(divide="ignore", invalid="ignore"):
         state.cache_log1m_p[sel] = np.where(p_all < 1.0, np.log1p(-np.minimum(p_all, 1.0)), -np.inf)

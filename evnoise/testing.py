@@ -105,7 +105,8 @@ def naive_static_events(lux, params: NoiseParams, duration_s: float, rng=None, *
     bg = np.stack([np.ones(lux.shape), np.zeros(lux.shape)]) if background is None else np.asarray(background)
     q_hot = params.hot_pixel_on_fraction
     l_on = bg[0].ravel() * (params.leak_on_hz + params.leak_on_hz_per_lux * lux.ravel()) + bg[1].ravel() * q_hot
-    l_off = bg[0].ravel() * (params.leak_off_hz + params.leak_off_hz_per_lux * lux.ravel()) + bg[1].ravel() * (1 - q_hot)
+    l_off = (bg[0].ravel() * (params.leak_off_hz + params.leak_off_hz_per_lux * lux.ravel())
+             + bg[1].ravel() * (1 - q_hot))
     has_bg = bool(np.any(l_on + l_off > 0))
     b = params.bias_pr
     dt = params.trial_us

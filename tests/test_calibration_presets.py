@@ -89,7 +89,8 @@ def test_calibration_recovers_the_shipped_preset(name):
     truth = ev.load_preset(name)
     meas = _preset_table(truth)
     # bounds that contain the truth (davis346 has 3200 photons per trial at 50 lux, beyond LAM_MAX_MISMATCH)
-    lam_top = max(F.LAM_MAX_MISMATCH, 2.0 * float(truth.photons_per_trial(LUX.max()))) if truth.eps_sigma > 0 else F.LAM_MAX
+    lam_top = (max(F.LAM_MAX_MISMATCH, 2.0 * float(truth.photons_per_trial(LUX.max())))
+               if truth.eps_sigma > 0 else F.LAM_MAX)
     bounds = {"photons_per_lux": (1e-3 / LUX.max(), lam_top / LUX.max())}
     # the table has no dark level, so the floors are fitted only when asked (as with --fit)
     result = cal.calibrate(meas, free=list(F.CORE + F.FLOORS), fixed=_held(truth), n_starts=2, n_seeds=256, rng=0,

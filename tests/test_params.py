@@ -79,6 +79,7 @@ def test_import_is_light():
     import subprocess
     import sys
 
-    code = "import sys, evnoise; print(','.join(m for m in ('torch', 'colour', 'numba', 'scipy', 'h5py') if m in sys.modules))"
+    code = ("import sys, evnoise; "
+            "print(','.join(m for m in ('torch', 'colour', 'numba', 'scipy', 'h5py') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert out == ""

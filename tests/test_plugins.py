@@ -83,7 +83,8 @@ def test_tonic_added_events_match_expected_rate_on_a_real_nmnist_sample(nmnist):
     assert expected[0, 0] > 1000  # enough events for a test that can fail (a swapped x/y halves the top band)
     for i in range(2):
         for j in range(2):
-            _check_within(observed[i, j], expected[i, j], f"{('ON', 'OFF')[i]} noise in the {('top', 'bottom')[j]} band")
+            _check_within(observed[i, j], expected[i, j],
+                          f"{('ON', 'OFF')[i]} noise in the {('top', 'bottom')[j]} band")
 
 
 def test_tonic_composes_with_compose_and_to_frame(nmnist):
@@ -246,7 +247,8 @@ class StandInEmulator:
     @staticmethod
     def lin_log(x, threshold=20.0):
         x = np.asarray(x, dtype=np.float64)
-        return np.round(np.where(x <= threshold, x * np.log(threshold) / threshold, np.log(np.maximum(x, threshold))), 8)
+        return np.round(np.where(x <= threshold, x * np.log(threshold) / threshold,
+                                 np.log(np.maximum(x, threshold))), 8)
 
     def generate_events(self, new_frame, t_frame):
         self.frame_counter += 1

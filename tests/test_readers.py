@@ -24,8 +24,9 @@ from evnoise.readers import iter_event_chunks, open_events, read_events
 REALDATA = Path(__file__).resolve().parents[1].parent / "shared/data/realdata"
 EVENT_SUFFIXES = (".raw", ".dat", ".aedat4", ".aedat", ".es", ".csv", ".bin")
 #: files whose header gives no sensor size: the size the manifest states (W, H)
-NO_GEOMETRY = {"faery/evt2.raw", "expelliarmus/evt2_sample.raw", "expelliarmus/evt3_sample.raw", "tonic/sample_ncars.dat",
-               "loris/NCARS_obj_004397_td.dat", "evcammoke/Expansion/slow.csv", "evcammoke/Feedback/feedback-sorted.csv"}
+NO_GEOMETRY = {"faery/evt2.raw", "expelliarmus/evt2_sample.raw", "expelliarmus/evt3_sample.raw",
+               "tonic/sample_ncars.dat", "loris/NCARS_obj_004397_td.dat", "evcammoke/Expansion/slow.csv",
+               "evcammoke/Feedback/feedback-sorted.csv"}
 QUIET = "dvs128dataanalysis/cam255_neal_standing_up2.aedat"
 
 
@@ -99,11 +100,13 @@ def test_no_geometry_reports_the_extent_and_asks_for_sensor(capsys):
     assert src.shape is None and src.format == "evt2"
     code, out, _ = run_cli(capsys, "info", path, "--json")
     info = json.loads(out)
-    assert code == 0 and info["sensor"] is None and "640x480" in info["sensor_note"] and "--sensor" in info["sensor_note"]
+    assert (code == 0 and info["sensor"] is None and "640x480" in info["sensor_note"]
+            and "--sensor" in info["sensor_note"])
     code, out, err = run_cli(capsys, "info", path, "--stats")
     assert code == 2 and out == "" and err.count("\n") == 1 and "--sensor" in err
     code, _, err = run_cli(capsys, "info", path, "--sensor", "320x240")  # smaller than the events
-    assert code == 2 and err.startswith("evnoise: error:") and "outside the 320x240 sensor" in err and err.count("\n") == 1
+    assert (code == 2 and err.startswith("evnoise: error:") and "outside the 320x240 sensor" in err
+            and err.count("\n") == 1)
 
 
 def test_csv_without_header_needs_the_column_order(capsys):
@@ -199,8 +202,8 @@ def _known_events(n=20_000, width=320, height=240, t0=1_000, seed=11):
     return make_events(t, rng.integers(0, width, n), rng.integers(0, height, n), rng.integers(0, 2, n))
 
 
-@pytest.mark.parametrize("suffix,version", [(".raw", "evt2"), (".raw", "evt3"), (".dat", None),  # faery writes no EVT 2.1
-                                            (".aedat4", None), (".es", None), (".csv", None)])
+@pytest.mark.parametrize("suffix,version", [(".raw", "evt2"), (".raw", "evt3"),  # faery writes no EVT 2.1
+                                            (".dat", None), (".aedat4", None), (".es", None), (".csv", None)])
 def test_faery_written_files_read_back(tmp_path, suffix, version):
     faery = pytest.importorskip("faery")
     events = _known_events()
@@ -364,8 +367,8 @@ def test_reconstruct_real_recordings(tiny_model, tmp_path, capsys):
     _need_realdata()
     from PIL import Image
 
-    code, _, err = run_cli(capsys, "reconstruct", REALDATA / QUIET, "--model", tiny_model, "--out", tmp_path / "dvs.png",
-                           "--window", "2")
+    code, _, err = run_cli(capsys, "reconstruct", REALDATA / QUIET, "--model", tiny_model,
+                           "--out", tmp_path / "dvs.png", "--window", "2")
     assert code == 0, err
     assert Image.open(tmp_path / "dvs.png").size == (64, 64)  # 128x128, 2x2 binning
     assert "WARNING" in err and "DVS128" in err  # a camera's noise, not the model's: a warning, not a crash

@@ -486,13 +486,15 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
                             if fstate[k, LAST_TAU] == -math.inf:
                                 p_st = (math.exp(log_event_probability_exact(lam, thr[0, k], b))
                                         + math.exp(log_event_probability_exact(lam, thr[1, k], b)))
-                                fstate[k, BG_NEXT] = j + draw_timer_stationary(s, d_t, l1m_t, math.log1p(-min(p_st, 1.0))) - 1.0
+                                fstate[k, BG_NEXT] = j + draw_timer_stationary(s, d_t, l1m_t,
+                                                                               math.log1p(-min(p_st, 1.0))) - 1.0
                             else:
                                 fstate[k, BG_NEXT] = j + draw_timer(s, d_t, l1m_t) - 1.0
                             fstate[k, BG_L] = l_all
                         elif l_all != fstate[k, BG_L] and fstate[k, BG_L] > 0.0 and fstate[k, BG_NEXT] > j:
                             if l_all > 0.0:
-                                fstate[k, BG_NEXT] = j + math.floor((fstate[k, BG_NEXT] - j) * (fstate[k, BG_L] / l_all))
+                                fstate[k, BG_NEXT] = j + math.floor((fstate[k, BG_NEXT] - j)
+                                                                    * (fstate[k, BG_L] / l_all))
                             else:
                                 fstate[k, BG_NEXT] = math.inf
                             fstate[k, BG_L] = l_all

@@ -104,7 +104,8 @@ def run(args, recordings) -> int:
     params = fit.to_params(base)
     height, width = windows[0].shape
     provenance = {
-        "summary": f"background fitted to {len(windows)} quiet window(s) of {', '.join(Path(r).name for r in recordings)}",
+        "summary": f"background fitted to {len(windows)} quiet window(s) of "
+                   f"{', '.join(Path(r).name for r in recordings)}",
         "source": [w.describe() for w in windows],
         "method": "evnoise.calibration.quiet (evnoise calibrate REC --t-start --t-end)",
         "base": f"photon-noise parameters from preset {args.base} (not identified by quiet data)",

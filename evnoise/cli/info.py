@@ -40,13 +40,15 @@ def register(subparsers) -> None:
         f"Known kinds: {', '.join(KINDS) or 'none'}.",
     )
     p.add_argument("file", metavar="FILE", help="the file to describe")
-    p.add_argument("--json", action="store_true", help="print the summary as JSON (numbers as numbers, units in the keys)")
+    p.add_argument("--json", action="store_true",
+                   help="print the summary as JSON (numbers as numbers, units in the keys)")
     ev = p.add_argument_group("event files")
     ev.add_argument("--sensor", metavar="WxH",
                     help="sensor size, e.g. 640x480, for files whose header has none (EVT 2.0, CSV, N-CARS .dat) "
                     "or a wrong one")
     ev.add_argument("--t-start", type=float, metavar="S", help="start of the time window, seconds on the file's clock")
-    ev.add_argument("--t-end", type=float, metavar="S", help="end of the time window (exclusive), seconds on the file's clock")
+    ev.add_argument("--t-end", type=float, metavar="S",
+                    help="end of the time window (exclusive), seconds on the file's clock")
     ev.add_argument("--csv-columns", metavar="COLS", help="column order of a CSV file, e.g. x,y,p,t")
     ev.add_argument("--stats", action="store_true",
                     help="noise statistics: rate per pixel (mean, quantiles), ON fraction, active pixels, "

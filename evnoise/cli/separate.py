@@ -12,7 +12,8 @@ def register(subparsers):
         description="Label every event of a recording (events.h5 or a camera file: .raw, .dat, .aedat4, .aedat, "
         ".es, .csv, .bin) as signal (caused by an intensity change) or "
         "noise with a spatio-temporal correlation filter, streaming the file, and write the two parts to "
-        "event files (the suffix decides the format: .h5, .aedat4, .raw (EVT3), .dat, .es, .csv). density: YNoise-style event density in a (2R+1)x(2R+1) neighbourhood and the time "
+        "event files (the suffix decides the format: .h5, .aedat4, .raw (EVT3), .dat, .es, .csv). "
+        "density: YNoise-style event density in a (2R+1)x(2R+1) neighbourhood and the time "
         "window [t - WINDOW, t + LOOKAHEAD] (signal if >= THRESHOLD other events); activity: the background-"
         "activity filter (signal if another pixel within R fired in the last WINDOW).",
     )

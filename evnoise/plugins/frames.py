@@ -101,7 +101,8 @@ class EmulatorNoise:
 
     def __init__(self, emulator, params, frame_to_lux=None, rng=None, *, threads: int | None = None):
         if not callable(getattr(emulator, "generate_events", None)):
-            raise ParameterError(f"emulator must have a generate_events(frame, t_s) method, got {type(emulator).__name__}")
+            raise ParameterError("emulator must have a generate_events(frame, t_s) method, "
+                                 f"got {type(emulator).__name__}")
         self.emulator = emulator
         self.params = check_params(params)
         self._frame_to_lux = frame_to_lux
@@ -156,7 +157,8 @@ class EmulatorNoise:
             if lux.shape != stream.shape:
                 raise InputError(f"frame has shape {lux.shape}, but earlier frames had {stream.shape}")
             if t_us < stream.t_us:
-                raise ParameterError(f"t_frame={t_frame!r} s is before the previous frame's time {stream.t_us * 1e-6!r} s")
+                raise ParameterError(f"t_frame={t_frame!r} s is before the previous frame's time "
+                                     f"{stream.t_us * 1e-6!r} s")
         signal = self.emulator.generate_events(new_frame, t_frame)
         if stream is None:
             self._stream = NoiseStream(lux.shape, self.params, rng=self._gen, t_start_us=t_us, threads=self._threads)

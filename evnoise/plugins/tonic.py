@@ -118,7 +118,8 @@ class PhotonNoise:
     def __repr__(self):
         lux = self.lux
         lux_text = f"{lux.flat[0]:g}" if np.all(lux == lux.flat[0]) else f"map {lux.shape} {lux.min():g}..{lux.max():g}"
-        rng = "None" if self._seed is None and self._gen is None else (self._seed if self._seed is not None else "Generator")
+        rng = ("None" if self._seed is None and self._gen is None
+               else (self._seed if self._seed is not None else "Generator"))
         return f"PhotonNoise(sensor_size={self.sensor_size}, params={self.params!r}, lux={lux_text}, rng={rng})"
 
     def _check_events(self, events):
