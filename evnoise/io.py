@@ -218,6 +218,11 @@ class EventWriter(_AtomicWriter):
             self._ms = f.create_dataset("ms_to_idx", shape=(0,), maxshape=(None,), dtype=np.uint64,
                                         chunks=(CHUNK_MS,), **filt)
             f.create_dataset("t_offset", data=np.int64(self.t_offset_us))
+            self._gzip = None  # gzip chunks are compressed in threads (evnoise._gzip_chunks)
+            if compression == "gzip":
+                from ._gzip_chunks import ParallelGzipChunks
+
+                self._gzip = ParallelGzipChunks(self._dsets, CHUNK_EVENTS, GZIP_LEVEL, os.cpu_count() or 1)
         except BaseException:
             self.abort()
             raise
@@ -251,10 +256,13 @@ class EventWriter(_AtomicWriter):
             raise InputError(f"event at t = {t[-1]} us is not before t_end_us = {self.t_end_us}")
         base = self.n_events
         try:
-            for name, _ in _FIELDS:
-                ds = self._dsets[name]
-                ds.resize((base + n,))
-                ds[base:] = events[name]
+            if self._gzip is not None:
+                self._gzip.append({name: events[name] for name, _ in _FIELDS})
+            else:
+                for name, _ in _FIELDS:
+                    ds = self._dsets[name]
+                    ds.resize((base + n,))
+                    ds[base:] = events[name]
             # entries k with 1000 k <= t[-1] are final: no later event can fall before them
             last_ms = int(t[-1]) // 1000
             if last_ms >= self._next_ms:
@@ -284,6 +292,8 @@ class EventWriter(_AtomicWriter):
             n_ms = max(n_ms, self._next_ms)
             if n_ms > self._next_ms:
                 self._append_ms(np.full(n_ms - self._next_ms, self.n_events, dtype=np.uint64))
+            if self._gzip is not None:
+                self._gzip.finish(self.n_events)
             self._file.close()
 
         self._out.finish(close, self.abort)
@@ -293,6 +303,8 @@ class EventWriter(_AtomicWriter):
     def abort(self) -> None:
         """Discard everything written so far (the temporary file is removed)."""
         self._closed = True
+        if getattr(self, "_gzip", None) is not None:
+            self._gzip.close()
         file = getattr(self, "_file", None)
         if file is not None:
             try:
@@ -399,38 +411,6 @@ def output_format(path, *, flag: str = "--out") -> str:
     return OUTPUT_FORMATS[suffix]
 
 
-def _aedat_description(aedat, width: int, height: int, attrs: dict):
-    """AEDAT 4 description: the event track (as DV writes it) and evnoise's attributes."""
-    A = aedat.DescriptionAttribute
-    N = aedat.DescriptionNode
-    info = N("info", "/mainloop/Recorder/outInfo/0/info/",
-             {"sizeX": A("int", int(width)), "sizeY": A("int", int(height)), "source": A("string", "evnoise")}, [])
-    track = N("0", "/mainloop/Recorder/outInfo/0/",
-              {"compression": A("string", "LZ4"), "originalOutputName": A("string", "events"),
-               "typeIdentifier": A("string", "EVTS")}, [info])
-    nodes = [N("outInfo", "/mainloop/Recorder/outInfo/", {}, [track])]
-    if attrs:
-        from .params import NoiseParams
-
-        fields = {"evnoise_version": A("string", __version__)}
-        for key, value in attrs.items():
-            if value is None:
-                continue
-            if isinstance(value, bool) or not isinstance(value, (str, int, np.integer)):
-                if isinstance(value, NoiseParams):
-                    text = value.to_json()
-                else:
-                    text = json.dumps(value.tolist() if hasattr(value, "tolist") else
-                                      (os.fspath(value) if isinstance(value, Path) else value), sort_keys=True)
-                fields[f"{key}_json"] = A("string", text)
-            elif isinstance(value, str):
-                fields[key] = A("string", value)
-            else:
-                fields[key] = A("long", int(value))
-        nodes.append(N("evnoise", "/evnoise/", fields, []))
-    return nodes
-
-
 class EventFileWriter(_AtomicWriter):
     """Write an event file of any output format chunk by chunk, atomically (a context manager).
 
@@ -479,6 +459,8 @@ class EventFileWriter(_AtomicWriter):
         faery = _import_faery()
         from faery.extension import aedat, csv, dat, es, evt
 
+        from ._aedat import aedat_description
+
         self.path = open_output_path(path, overwrite=overwrite, what=what)
         self._out = AtomicFile(self.path, overwrite=overwrite, what=what)
         self._tmp = self._out.tmp
@@ -487,7 +469,7 @@ class EventFileWriter(_AtomicWriter):
         self._faery_dtype = faery.EVENTS_DTYPE
         try:
             if self.format == "aedat4":
-                enc = aedat.Encoder(self._tmp, _aedat_description(aedat, width, height, dict(attrs or {})),
+                enc = aedat.Encoder(self._tmp, aedat_description(aedat, width, height, dict(attrs or {})),
                                     ("lz4", 1))
             elif self.format == "evt3":
                 # zero_t0: the clock's origin goes into the header (% t0), the words count from it
