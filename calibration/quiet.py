@@ -152,7 +152,8 @@ def quiet_window(path, t_start_s: float, t_end_s: float, *, lux: float | None = 
     if checks:
         from .quiet_checks import window_checks
 
-        found = window_checks(events, counts, round(t_start_s * 1e6), round((t_end_s - t_start_s) * 1e6), seed=seed)
+        t0_us, t1_us = round(t_start_s * 1e6), round(t_end_s * 1e6)  # as read_events cuts the window
+        found = window_checks(events, counts, t0_us, t1_us - t0_us, seed=seed)
     return QuietWindow(counts, float(t_end_s - t_start_s), str(path), str(path), float(t_start_s), float(t_end_s),
                        None if lux is None else float(lux), found)
 
@@ -325,15 +326,20 @@ def _profile_distance(nll, theta_hat, index: int, value: float) -> float:
         start[others] = best.x  # the next point starts from this one
         return best.fun - base - 0.5
 
+    floor = 1e-6
     hi = value
     step = max(1e-3, 1.0 - value)
-    lo = max(value - step, 1e-6)
-    while lo > 1e-6 and rise(lo) < 0.0:
+    while True:
+        lo = max(value - step, floor)
+        if rise(lo) >= 0.0:
+            break
+        if lo <= floor:
+            return value  # flat down to 0: not constrained from below
         hi, step = lo, 2.0 * step
-        lo = max(value - step, 1e-6)
-    if lo <= 1e-6:
-        return value  # flat down to 0: not constrained from below
-    return value - brentq(rise, lo, hi, xtol=1e-4)
+    try:
+        return value - brentq(rise, lo, hi, xtol=1e-4)
+    except ValueError:  # the warm-started re-fits are not exactly repeatable: keep the bracket's outer end
+        return value - lo
 
 
 def _logit(x):

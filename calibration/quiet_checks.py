@@ -8,11 +8,13 @@ assumption fails, each with a p-value from a null distribution that does not dep
 
 - **polarity pairs**: the number of (OFF, ON) event pairs of one pixel closer than ``pair_gap_s``,
   against the same number after each pixel's ON stream is shifted circularly in time by its own
-  random offset (``shifts`` times). The shift keeps each stream exactly (rate, regularity, spread,
-  hot pixels) and removes only the coupling of ON and OFF, so an excess means the pixel's ON and OFF
-  events come in pairs (a transient that crosses the threshold and comes back), which the model
-  cannot produce: its ON and OFF arrivals are independent but for the refractory period and the
-  regular timer they share, which make close pairs rarer, never commoner (the test is one-sided);
+  random offset of 10 to 40 pair gaps, either way (``shifts`` times). The shift keeps each stream
+  exactly (rate, regularity, spread, hot pixels) and, being short, keeps what ON and OFF share on
+  longer time scales (a drifting rate, slow bursts); it removes only their coupling within a few
+  pair gaps. An excess means the pixel's ON and OFF events come in close pairs (a transient that
+  crosses the threshold and comes back), which the model cannot produce: its ON and OFF arrivals
+  are independent but for the refractory period and the regular timer they share, which make close
+  pairs rarer, never commoner (the test is one-sided);
 - **stationarity**: the window's events in ``pieces`` equal time slices against equal shares
   (Pearson chi-square on ``pieces - 1`` degrees of freedom; the pixels' streams are independent, so
   the total over many pixels is close to Poisson: a rate that drifts shows up here);
@@ -20,8 +22,9 @@ assumption fails, each with a p-value from a null distribution that does not dep
   Pearson's chi-square of independence of block and slice, against the same statistic after each
   pixel's whole stream is shifted circularly in time (``shifts`` times). A still scene's noise may
   follow the scene (the rate depends on the illuminance: that is the spread's business) and may
-  drift as a whole (the slice margin), but its pattern does not move; a structure that sweeps the
-  sensor (a slow edge, a domain wall, a person shifting) shows up here.
+  drift as a whole (the slice margin), but its pattern does not change; a structure that sweeps the
+  sensor (a slow edge, a domain wall, a person shifting) shows up here, and so does a drift that is
+  not the same factor for every pixel (e.g. ordinary pixels speeding up while hot pixels do not).
 
 And one for information, not an assumption of the fit:
 
@@ -33,8 +36,10 @@ And one for information, not an assumption of the fit:
 
 Each check is a dict ``{check, statistic, null_mean, null_sd, p_value, assumption, detail}``; p-values from
 resampling are ``(1 + #(null >= observed)) / (1 + resamples)``; where the observed value lies beyond
-every resample, the normal tail of the null (its mean and sd) is given instead when it is smaller, so that
-p-values below ``1 / (1 + shifts)`` can be stated (approximately).
+every resample, the tail of a gamma distribution with the resamples' mean and variance is given
+instead when it is smaller (right-skewed like the counts and chi-square statistics here; approximate),
+so that p-values below ``1 / (1 + shifts)`` can be stated. With 200 resamples, checks of simulated
+noise failed at ``CHECK_P`` about as often as they should (tests/test_quiet_checks.py).
 """
 
 from __future__ import annotations
@@ -54,16 +59,16 @@ CHECK_P = 1e-3
 
 def _resampled(observed: float, null: np.ndarray) -> tuple:
     """Mean, sd and p-value of ``observed`` against resamples ``null`` (module doc)."""
-    from scipy.stats import norm
+    from scipy.stats import gamma
 
     null = np.asarray(null, dtype=np.float64)
     mean = float(null.mean())
     sd = float(null.std(ddof=1)) if null.size > 1 else 0.0
     above = np.count_nonzero(null >= observed)
     p = (1.0 + above) / (1.0 + null.size)
-    if above == 0:  # beyond every resample: the normal tail of the null, if smaller
-        z = (observed - mean) / sd if sd > 0 else (math.inf if observed > mean else 0.0)
-        p = min(p, float(norm.sf(z)))
+    if above == 0 and sd > 0 and mean > 0:  # beyond every resample: a moment-matched gamma tail, if smaller
+        shape = (mean / sd) ** 2
+        p = min(p, float(gamma.sf(observed, shape, scale=mean / shape)))
     return mean, sd, float(p)
 
 
@@ -86,9 +91,12 @@ def polarity_pairs(events: np.ndarray, shape: tuple, t_start_us: int, duration_u
                    pair_gap_s: float = PAIR_GAP_S, shifts: int = 200, seed: int = 0) -> dict:
     """OFF/ON pairs of a pixel closer than ``pair_gap_s`` against circularly shifted ON streams (module doc)."""
     width = int(shape[1])
-    gap = int(round(pair_gap_s * 1e6))
-    duration_us = int(duration_us)
+    gap = max(1, int(round(pair_gap_s * 1e6)))
+    duration_us = max(int(duration_us), 1)
     stride = 2 * duration_us + 4 * gap + 1  # keys of different pixels never come within gap
+    # shift by 10 to 40 pair gaps either way, at most half the window
+    hi_shift = max(1, min(40 * gap, duration_us // 2))
+    lo_shift = min(10 * gap, hi_shift)
     pix = events["y"].astype(np.int64) * width + events["x"].astype(np.int64)
     t = events["t"].astype(np.int64) - int(t_start_us)
     on = events["p"] == 1
@@ -99,12 +107,12 @@ def polarity_pairs(events: np.ndarray, shape: tuple, t_start_us: int, duration_u
     n_pix = int(shape[0]) * width
     null = np.empty(int(shifts))
     for k in range(int(shifts)):
-        offset = rng.integers(0, duration_us, size=n_pix)
+        offset = rng.integers(lo_shift, hi_shift + 1, size=n_pix) * rng.choice(np.array([-1, 1]), size=n_pix)
         shifted = (on_t + offset[on_pix]) % duration_us
         null[k] = _pairs_within(off_key, np.sort(on_pix * stride + shifted), gap)
     return _result("polarity_pairs", observed, null, lambda mean, sd, ratio: (
-        f"{observed} OFF/ON pairs of one pixel within {pair_gap_s * 1e3:g} ms, {mean:.1f} +- {sd:.1f} with ON and "
-        f"OFF independent (x{ratio:.2g}; {int(shifts)} circular shifts)"))
+        f"{observed} OFF/ON pairs of one pixel within {pair_gap_s * 1e3:g} ms, {mean:.1f} +- {sd:.1f} with the "
+        f"ON streams shifted by {lo_shift / 1e6:.3g}-{hi_shift / 1e6:.3g} s (x{ratio:.2g}; {int(shifts)} shifts)"))
 
 
 def stationarity(events: np.ndarray, t_start_us: int, duration_us: int, *, pieces: int = 4) -> dict:
@@ -112,7 +120,8 @@ def stationarity(events: np.ndarray, t_start_us: int, duration_us: int, *, piece
     from scipy.stats import chi2
 
     t = events["t"].astype(np.int64) - int(t_start_us)
-    idx = np.minimum(t * pieces // max(int(duration_us), 1), pieces - 1)
+    duration_us = max(int(duration_us), 1)
+    idx = np.minimum(t * pieces // duration_us, pieces - 1)
     observed = np.bincount(idx, minlength=pieces).astype(np.float64)
     expected = observed.sum() / pieces
     stat = float(np.sum((observed - expected) ** 2 / expected)) if expected > 0 else 0.0

@@ -52,29 +52,44 @@ class ParallelGzipChunks:
         self.level = int(level)
         self.threads = max(1, int(threads))
         self._pool = ThreadPoolExecutor(max_workers=self.threads, thread_name_prefix="evnoise-gzip")
-        self._tails = {name: np.empty(0, dtype=ds.dtype) for name, ds in datasets.items()}
+        # per field: the pieces not yet handed to the pool (less than a chunk in all), kept as they
+        # came, so that many small appends cost their own size, not a chunk's copy each
+        self._pieces = {name: [] for name in datasets}
+        self._pending = 0
         self._queued = {name: 0 for name in datasets}  # elements handed to the pool, per field
         self._in_flight: deque = deque()
 
     def append(self, arrays: dict) -> None:
         """Append ``{name: 1-D array}`` (every field the same length) after what was appended before."""
+        n = 0
         for name, values in arrays.items():
-            data = np.concatenate([self._tails[name], np.asarray(values, dtype=self._tails[name].dtype)])
+            values = np.asarray(values, dtype=self.datasets[name].dtype)
+            n = values.size
+            if n:
+                self._pieces[name].append(values)
+        self._pending += n
+        if self._pending < self.chunk:
+            return
+        for name, pieces in self._pieces.items():
+            data = np.concatenate(pieces) if len(pieces) > 1 else pieces[0]
             whole = data.size - data.size % self.chunk
             for start in range(0, whole, self.chunk):
                 self._submit(name, self._queued[name], data[start:start + self.chunk])
                 self._queued[name] += self.chunk
-            self._tails[name] = data[whole:].copy()
+            self._pieces[name] = [data[whole:].copy()] if whole < data.size else []
+        self._pending %= self.chunk
 
     def finish(self, n: int) -> None:
         """Write the last partial chunks (zero-padded), every chunk in flight, and set the extent to ``n``."""
-        for name, tail in self._tails.items():
-            if tail.size:
+        for name, pieces in self._pieces.items():
+            if pieces:
+                tail = np.concatenate(pieces)
                 padded = np.zeros(self.chunk, dtype=tail.dtype)
                 padded[:tail.size] = tail
                 self._submit(name, self._queued[name], padded)
                 self._queued[name] += tail.size
-                self._tails[name] = tail[:0]
+                self._pieces[name] = []
+        self._pending = 0
         self._drain(0)
         for ds in self.datasets.values():
             ds.resize((int(n),))

@@ -53,7 +53,6 @@ __all__ = [
     "NoiseStream",
 ]
 
-CHUNK_PIXELS = 1 << 14
 TARGET_EVENTS_PER_WINDOW = 1_000_000
 TARGET_PIXEL_TRIALS_PER_WINDOW = 40_000_000
 MAX_WINDOW_US = 1 << 22  # bounds the counting sort's histogram

@@ -137,7 +137,9 @@ def test_video_matches_reference_in_changing_and_static_regions(reference, monke
 
 def test_video_same_output_for_any_thread_count(monkeypatch):
     monkeypatch.setattr(es, "TARGET_PIXEL_TRIALS_PER_WINDOW", 20_000)
-    monkeypatch.setattr(es, "CHUNK_PIXELS", 700)
+    from evnoise import _engine
+
+    monkeypatch.setattr(_engine, "CHUNK_PIXELS", 700)
     frames, times = _video()
     runs = [ev.simulate_video(frames, times, PARAMS, rng=6, method="trials", threads=t) for t in (1, 2, 3)]
     for r in runs[1:]:
