@@ -229,6 +229,14 @@ def test_cli_calibrates_from_a_recording(tmp_path, capsys):
     assert doc["fit"]["status"]["rate_on_hz"] == "fitted"
     se = doc["fit"]["std_error"]["rate_on_hz"]
     assert abs(float(ev.expected_rate(np.zeros(1), params)[0, 0]) - 0.4) < K * se
+    # the window was checked for pure stationary noise (simulated noise passes), unless asked not to
+    checks = {c["check"]: c for c in doc["fit"]["checks"]}
+    assert set(checks) == {"polarity_pairs", "stationarity", "scene_motion", "spatial_structure"}
+    assert all(c["p_value"] > 1e-3 for c in checks.values() if c["assumption"])
+    quick = tmp_path / "quick.toml"
+    assert main(["calibrate", str(rec), "--t-start", "2", "--t-end", "8", "--out", str(quick), "--hot", "off",
+                 "--base", "evk3-hd", "--no-checks"]) == 0
+    assert "checks" not in ev.params.load_preset_document(quick)["fit"]
     # the same output again needs --overwrite; the recording is never written over
     assert main(["calibrate", str(rec), "--t-start", "2", "--t-end", "8", "--out", str(out)]) != 0
     assert main(["calibrate", str(rec), "--t-start", "2", "--t-end", "8", "--out", str(rec), "--overwrite"]) != 0
