@@ -11,7 +11,7 @@ the one where nothing sweeps the sensor yet. Prints a table and writes
 
 What it shows (2026-11-24): in every part of the recording a pixel's OFF and ON events come in close
 pairs (an OFF followed within a few tens of ms by an ON) far more often than independent ON and OFF
-streams allow (about 2.5x, tens of standard deviations); from the second quarter on a band of higher
+streams allow (about 2.7x, a hundred standard deviations); from the second quarter on a band of higher
 noise sweeps across the sensor (the magnetic domain expanding), which the scene-motion check sees; and
 the rate rises by half over the recording. The model's ON and OFF events are independent (but for the
 shared refractory period and regular timer, which make close pairs rarer), so no preset reproduces the
