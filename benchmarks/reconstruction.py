@@ -28,6 +28,9 @@ wall-clock cap only guards against a machine far slower than expected, and is re
 it was hit). Results of finished jobs are cached in the work folder (keyed by every setting
 and the preset), so an interrupted run continues where it stopped; ``--fresh`` ignores them.
 Nothing is downloaded; nothing here is a test (the slow test suite only runs ``--tiny``).
+
+Why one file of ~1000 lines: it is a script whose parts (datasets, jobs, cache, tables, figures)
+only exist to write one report, read top to bottom; nothing imports them.
 """
 
 from __future__ import annotations
