@@ -239,6 +239,20 @@ def static_inputs(lam, params: NoiseParams, eps_on, eps_off, bg):
     return log1m_p, q_on, None, nu
 
 
+def event_buffers(capacity: int):
+    """Empty event columns ``(t, x, y, p)`` with room for ``capacity`` events (the window kernels fill them)."""
+    return (np.empty(capacity, dtype=np.int64), np.empty(capacity, dtype=np.uint16),
+            np.empty(capacity, dtype=np.uint16), np.empty(capacity, dtype=np.uint8))
+
+
+def grown(out, n: int):
+    """Event columns with twice the room (at least 1024), the first ``n`` events copied over."""
+    bigger = event_buffers(max(2 * out[0].size, 1024))
+    for new, old in zip(bigger, out):
+        new[:n] = old[:n]
+    return bigger
+
+
 def renewal_step(state: PixelState, width, log1m_p, q_on, dt, refr_us, j_min, w_end, discard_from,
                   t0_us, threads, store=True, expected=None, timer=None):
     """Run the renewal kernel over all pixels of ``state`` up to ``w_end``; returns chunk parts."""
@@ -250,11 +264,19 @@ def renewal_step(state: PixelState, width, log1m_p, q_on, dt, refr_us, j_min, w_
         cap = 0
         if store:
             cap = int(1.2 * expected[lo:hi].sum() + 64) if expected is not None else 1024
-        return renewal_window(
-            width, state.pix[lo:hi], log1m_p[lo:hi], q_on[lo:hi], no_timer if timer is None else timer[:, lo:hi],
-            state.states[lo:hi], state.fstate[lo:hi], dt, float(refr_us), float(j_min), float(w_end),
-            float(discard_from), np.int64(t0_us), cap, store,
-        )
+        out = event_buffers(cap)
+        on = np.zeros(hi - lo, dtype=np.int64)
+        off = np.zeros(hi - lo, dtype=np.int64)
+        n = k = 0
+        while True:
+            n, k = renewal_window(
+                width, state.pix[lo:hi], log1m_p[lo:hi], q_on[lo:hi], no_timer if timer is None else timer[:, lo:hi],
+                state.states[lo:hi], state.fstate[lo:hi], dt, float(refr_us), float(j_min), float(w_end),
+                float(discard_from), np.int64(t0_us), out, n, k, on, off, store,
+            )
+            if k == hi - lo:
+                return (*(a[:n] for a in out), on, off)
+            out = grown(out, n)  # full: twice the room, and the kernel goes on where it stopped
 
     return map_chunks(run, state.pix.size, threads)
 

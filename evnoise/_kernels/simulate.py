@@ -47,26 +47,22 @@ def _first_eligible(last_trial, tau, refr_us, dt):
     return max(j, last_trial + 1.0)
 
 
-@kernel
-def _grow(arr, n):
-    out = np.empty(max(2 * arr.shape[0], 1024), dtype=arr.dtype)
-    out[:n] = arr[:n]
-    return out
-
-
 @kernel(inline=True)
-def _push(t_out, x_out, y_out, p_out, n, t, flat, width, pol):
-    """Append one event, growing the buffers when full; returns the (possibly new) buffers."""
-    if n == t_out.shape[0]:
-        t_out = _grow(t_out, n)
-        x_out = _grow(x_out, n)
-        y_out = _grow(y_out, n)
-        p_out = _grow(p_out, n)
-    t_out[n] = t
-    x_out[n] = flat % width
-    y_out[n] = flat // width
-    p_out[n] = pol
-    return t_out, x_out, y_out, p_out
+def _put(out, n, t, x, y, pol):
+    """Write one event into slot ``n`` of the event columns ``out = (t, x, y, p)`` (room checked by the caller)."""
+    out[0][n] = t
+    out[1][n] = x
+    out[2][n] = y
+    out[3][n] = pol
+
+
+@kernel
+def _restore(states, fstate, k, snap_s, snap_f):
+    """Put pixel ``k``'s stream and state back to the snapshot taken before it ran."""
+    for w in range(4):
+        states[k, w] = snap_s[w]
+    for w in range(snap_f.shape[0]):
+        fstate[k, w] = snap_f[w]
 
 
 #: Columns of the per-pixel float state ``fstate`` ``(n, N_STATE)`` that the window kernels advance
@@ -81,7 +77,7 @@ N_STATE = 12
 
 @kernel
 def renewal_window(width, pix, log1m_p, q_on, timer, states, fstate, dt, refr_us, j_min, w_end, discard_from_trial,
-                   t0_us, capacity, store):
+                   t0_us, out, n, k_start, on_counts, off_counts, store):
     """Advance pixels ``pix`` whose probabilities are constant up to time ``w_end`` (µs).
 
     Per pixel ``k`` (all arrays are the chunk's slices): ``log1m_p = log1p(-(p_on + p_off))`` and
@@ -100,28 +96,31 @@ def renewal_window(width, pix, log1m_p, q_on, timer, states, fstate, dt, refr_us
     has had no event), every event restarts the timer, and a pending event keeps its polarity in
     ``PEND_ON`` (dropping it at ``discard_from_trial`` stays exact: the timer is kept).
 
-    Returns ``(t, x, y, p, on_counts, off_counts)``; with ``store`` false only the counts are filled.
+    Events go to the caller's buffers ``out = (t, x, y, p)`` from slot ``n`` on, and each pixel's
+    counts are added to ``on_counts[k]``, ``off_counts[k]`` (with ``store`` false only the counts).
+    The kernel starts at pixel ``k_start`` and returns ``(n, k)``: ``k = len(pix)`` when every pixel
+    is done, else the buffers are full and pixel ``k`` stopped with its next event (inside the
+    window, its polarity not yet drawn) saved as pending: grow the buffers and call again from ``k``;
+    the draws, and so the events, are the same as in one call. (The buffers are never replaced inside
+    the kernel: an array reassigned in the event loop costs Numba reference counting per event.)
     """
     has_timer = timer.shape[1] > 0
-    cap = capacity if store else 0
-    t_out = np.empty(cap, dtype=np.int64)
-    x_out = np.empty(cap, dtype=np.uint16)
-    y_out = np.empty(cap, dtype=np.uint16)
-    p_out = np.empty(cap, dtype=np.uint8)
+    t_out, x_out, y_out, p_out = out
+    cap = t_out.shape[0] if store else 0
     n_pix = pix.shape[0]
-    on_counts = np.zeros(n_pix, dtype=np.int64)
-    off_counts = np.zeros(n_pix, dtype=np.int64)
-    n = 0
-    for k in range(n_pix):
+    s = np.empty(4, dtype=np.uint64)  # the pixel's stream in a local copy (a view per pixel costs reference counting)
+    for k in range(k_start, n_pix):
         tau = fstate[k, PEND_TAU]
         if tau >= w_end:  # (NaN compares false) an event pending beyond the window: nothing to draw
             if fstate[k, PEND_TRIAL] >= discard_from_trial:
                 fstate[k, PEND_TAU] = NO_EVENT
             continue
-        s = states[k]
+        for w in range(4):
+            s[w] = states[k, w]
         jp = fstate[k, PEND_TRIAL]
         on = fstate[k, PEND_ON] == 1.0
-        flat = pix[k]
+        x_pix = pix[k] % width
+        y_pix = pix[k] // width
         # the pixel's state in locals (not per event): same draws, same bits
         lt = fstate[k, LAST_TRIAL]
         lta = fstate[k, LAST_TAU]
@@ -130,10 +129,11 @@ def renewal_window(width, pix, log1m_p, q_on, timer, states, fstate, dt, refr_us
         qk = q_on[k]
         n_on = 0
         n_off = 0
+        full = False
         while True:
             if math.isnan(tau):
-                if lta == -math.inf:
-                    j_e = lt + 1.0
+                if lta == -math.inf or refr_us == 0.0:
+                    j_e = lt + 1.0  # what _first_eligible gives without a refractory period (tau < (lt + 1) dt)
                 else:
                     j_e = _first_eligible(lt, lta, refr_us, dt)
                 j_e = max(j_e, j_min)
@@ -164,6 +164,9 @@ def renewal_window(width, pix, log1m_p, q_on, timer, states, fstate, dt, refr_us
                 tau = (jp + uniform(s)) * dt
             if tau >= w_end:
                 break
+            if store and n == cap:
+                full = True  # the event stays pending (its polarity is drawn when it is stored)
+                break
             if not has_timer:  # the Poisson path draws the polarity of an event inside the window only
                 on = uniform(s) < qk
             if on:
@@ -171,25 +174,31 @@ def renewal_window(width, pix, log1m_p, q_on, timer, states, fstate, dt, refr_us
             else:
                 n_off += 1
             if store:
-                t_out, x_out, y_out, p_out = _push(t_out, x_out, y_out, p_out, n, t0_us + np.int64(math.floor(tau)),
-                                                   flat, width, 1 if on else 0)
+                t_out[n] = t0_us + np.int64(math.floor(tau))
+                x_out[n] = x_pix
+                y_out[n] = y_pix
+                p_out[n] = 1 if on else 0
                 n += 1
             lta = tau
             lt = jp
             tau = NO_EVENT
             nxt = NO_EVENT  # every event restarts the timer
-        on_counts[k] = n_on
-        off_counts[k] = n_off
+        on_counts[k] += n_on
+        off_counts[k] += n_off
         fstate[k, LAST_TAU] = lta
         fstate[k, LAST_TRIAL] = lt
-        if jp >= discard_from_trial:
+        if jp >= discard_from_trial and not full:
             tau = NO_EVENT
         fstate[k, PEND_TAU] = tau
         fstate[k, PEND_TRIAL] = jp
         if has_timer:
             fstate[k, BG_NEXT] = nxt
             fstate[k, PEND_ON] = 1.0 if on else 0.0
-    return t_out[:n], x_out[:n], y_out[:n], p_out[:n], on_counts, off_counts
+        for w in range(4):
+            states[k, w] = s[w]
+        if full:
+            return n, k
+    return n, n_pix
 
 
 SIGNAL_FLAG = 2  # or-ed into a kernel's polarity output for signal (threshold-crossing) events
@@ -278,7 +287,7 @@ def _level(lam, b):
 
 @kernel
 def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, states, fstate, model, tau_limit, t0_us,
-                 capacity, fast_static):
+                 out, n, k_start, fast_static):
     """Trial-by-trial simulation of pixels ``pix`` for trials ``j_start .. j_end - 1``.
 
     ``frames_lam`` (F, P) holds the mean photon counts per trial of the frames at times
@@ -333,19 +342,32 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
     filter on the level ``log(lam + b)`` with step ``1 - exp(-lam * pr_alpha)`` per trial (time
     constant inversely proportional to the input photocurrent); once within ``1e-9`` of the input
     level it is snapped to it, so a settled pixel is exactly static again.
+
+    Events go to the caller's buffers ``out = (t, x, y, p)`` from slot ``n`` on, starting at pixel
+    ``k_start``; returns ``(n, k)``, ``k = len(pix)`` when every pixel is done. When the buffers fill
+    up, pixel ``k``'s stream and state are put back as they were before it and its events dropped:
+    grow the buffers and call again from ``k`` (same draws, same events as one call; the buffers are
+    never replaced inside the kernel, where Numba would count references on every trial).
     """
-    t_out = np.empty(capacity, dtype=np.int64)
-    x_out = np.empty(capacity, dtype=np.uint16)
-    y_out = np.empty(capacity, dtype=np.uint16)
-    p_out = np.empty(capacity, dtype=np.uint8)
-    n = 0
+    t_out, x_out, y_out, p_out = out
+    cap = t_out.shape[0]
+    snap_s = np.empty(4, dtype=np.uint64)
+    snap_f = np.empty(fstate.shape[1])
     n_frames = frames_lam.shape[0]
     max_signal = 1 << 20
     b, dt, refr_us, lux_per_photon, dark_lux, pr_alpha, regularity = model
     has_bg = bg.shape[1] > 0
     dt_s = dt * 1e-6
-    for k in range(pix.shape[0]):
+    for k in range(k_start, pix.shape[0]):
+        n_before = n
+        for w in range(4):
+            snap_s[w] = states[k, w]
+        for w in range(snap_f.shape[0]):
+            snap_f[w] = fstate[k, w]
+        full = False
         flat = pix[k]
+        x_pix = flat % width
+        y_pix = flat // width
         s = states[k]
         seg = 0
         e_on = math.exp(thr[2, k])
@@ -389,13 +411,16 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
                     tau = (jp + u_t) * dt
                     if tau >= tau_limit:
                         break
-                    t_out, x_out, y_out, p_out = _push(
-                        t_out, x_out, y_out, p_out, n, t0_us + np.int64(math.floor(tau)), flat, width,
-                        1 if on else 0,
-                    )
+                    if n == cap:
+                        full = True
+                        break
+                    _put(out, n, t0_us + np.int64(math.floor(tau)), x_pix, y_pix, 1 if on else 0)
                     n += 1
                     fstate[k, LAST_TAU] = tau
                     fstate[k, LAST_TRIAL] = jp
+                if full:
+                    _restore(states, fstate, k, snap_s, snap_f)
+                    return n_before, k
                 continue
         # cached exp(-lam) of the last Poisson means (most trials repeat them)
         lam_c = -1.0
@@ -448,10 +473,10 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
                         tau = fstate[k, LAST_TAU] + refr_us
                     if tau >= s_j + dt or tau >= tau_limit:
                         break  # does not fit in this trial: left for the next one
-                    t_out, x_out, y_out, p_out = _push(
-                        t_out, x_out, y_out, p_out, n, t0_us + np.int64(math.floor(tau)), flat, width,
-                        (1 if sign == 0 else 0) | SIGNAL_FLAG,
-                    )
+                    if n == cap:
+                        full = True
+                        break
+                    _put(out, n, t0_us + np.int64(math.floor(tau)), x_pix, y_pix, (1 if sign == 0 else 0) | SIGNAL_FLAG)
                     n += 1
                     emitted += 1
                     fired = True
@@ -460,6 +485,8 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
                     fstate[k, LAST_TRIAL] = j
                     if regularity > 0.0:
                         fstate[k, BG_NEXT] = math.nan
+                if full:
+                    break
                 if fired:
                     ref = max(math.exp(lev_ref) - b, 0.0)
             if not fired and j > fstate[k, LAST_TRIAL] and s_j >= fstate[k, LAST_TAU] + refr_us:
@@ -507,9 +534,10 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
                             pol = 1 if u_bg < a_bg * (l_on / l_all) else 0
                 tau = (j + uniform(s)) * dt if pol >= 0 else math.inf
                 if tau < tau_limit:
-                    t_out, x_out, y_out, p_out = _push(
-                        t_out, x_out, y_out, p_out, n, t0_us + np.int64(math.floor(tau)), flat, width, pol
-                    )
+                    if n == cap:
+                        full = True
+                        break
+                    _put(out, n, t0_us + np.int64(math.floor(tau)), x_pix, y_pix, pol)
                     n += 1
                     fstate[k, LAST_TAU] = tau
                     fstate[k, LAST_TRIAL] = j
@@ -517,5 +545,8 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
                     if regularity > 0.0:
                         fstate[k, BG_NEXT] = math.nan
             fstate[k, LAM_PREV] = lam
+        if full:
+            _restore(states, fstate, k, snap_s, snap_f)
+            return n_before, k
         fstate[k, LAM_REF] = ref
-    return t_out[:n], x_out[:n], y_out[:n], p_out[:n]
+    return n, pix.shape[0]
