@@ -131,6 +131,20 @@ class PixelState:
         # regular background (leak_regularity > 0): trial of the next background arrival, its intensity (events/s)
         self.bg_next = self.fstate[:, k.BG_NEXT]
         self.bg_l = self.fstate[:, k.BG_L]
+        # each chunk's event buffers, reused window after window (fresh pages cost page faults per event);
+        # what a window kernel returns are views of them, valid until the next window
+        self._buffers: dict[int, tuple] = {}
+
+    def buffers(self, lo: int, capacity: int):
+        """Event buffers of the chunk starting at pixel ``lo`` with room for at least ``capacity`` events."""
+        out = self._buffers.get(lo)
+        if out is None or out[0].size < capacity:
+            out = event_buffers(capacity)
+        return out
+
+    def keep(self, lo: int, out) -> None:
+        """Keep ``out`` (perhaps grown) as the buffers of chunk ``lo``."""
+        self._buffers[lo] = out
 
     def rescale_timers(self, l_all: np.ndarray, j_now: float):
         """Pending background arrivals at or after trial ``j_now`` move to a new intensity ``l_all``.
@@ -255,7 +269,10 @@ def grown(out, n: int):
 
 def renewal_step(state: PixelState, width, log1m_p, q_on, dt, refr_us, j_min, w_end, discard_from,
                   t0_us, threads, store=True, expected=None, timer=None):
-    """Run the renewal kernel over all pixels of ``state`` up to ``w_end``; returns chunk parts."""
+    """Run the renewal kernel over all pixels of ``state`` up to ``w_end``; returns chunk parts.
+
+    The parts' event columns are views of ``state``'s buffers: use them before the next window.
+    """
     from ._kernels.simulate import renewal_window
 
     no_timer = np.zeros((3, 0))
@@ -264,7 +281,7 @@ def renewal_step(state: PixelState, width, log1m_p, q_on, dt, refr_us, j_min, w_
         cap = 0
         if store:
             cap = int(1.2 * expected[lo:hi].sum() + 64) if expected is not None else 1024
-        out = event_buffers(cap)
+        out = state.buffers(lo, cap) if store else event_buffers(0)
         on = np.zeros(hi - lo, dtype=np.int64)
         off = np.zeros(hi - lo, dtype=np.int64)
         n = k = 0
@@ -275,6 +292,8 @@ def renewal_step(state: PixelState, width, log1m_p, q_on, dt, refr_us, j_min, w_
                 float(discard_from), np.int64(t0_us), out, n, k, on, off, store,
             )
             if k == hi - lo:
+                if store:
+                    state.keep(lo, out)
                 return (*(a[:n] for a in out), on, off)
             out = grown(out, n)  # full: twice the room, and the kernel goes on where it stopped
 

@@ -30,7 +30,6 @@ from ._engine import (
     background_coefficients,
     check_t_start,
     default_threads,
-    event_buffers,
     grown,
     map_chunks,
     progress_bar,
@@ -470,7 +469,7 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
 
                 def run(lo, hi, stack=stack, f_us=f_us, j_a=j_a, j_b=j_b):
                     s = dyn_state
-                    out = event_buffers(256)
+                    out = s.buffers(lo, 256)
                     n = k = 0
                     while True:
                         n, k = trial_window(
@@ -479,6 +478,7 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
                             fast_static,
                         )
                         if k == hi - lo:
+                            s.keep(lo, out)
                             return tuple(a[:n] for a in out)
                         out = grown(out, n)  # full: twice the room; the pixel that did not fit runs again
 
