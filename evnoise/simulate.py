@@ -355,28 +355,29 @@ def simulate_video(
     return np.concatenate(parts) if parts else empty_events(0)
 
 
-def _fill_static_cache(state: PixelState, lams: np.ndarray, params: NoiseParams, eps_on, eps_off, bg=None):
+def _fill_static_cache(state: PixelState, frames_lam: np.ndarray, params: NoiseParams, eps_on, eps_off, bg=None):
     """Closed-form probabilities of the pixels the trial tier will jump through in this window.
 
-    Those whose ``lam`` is the same in every frame ``lams`` (F, n) of the window and equals
-    their ``lam_ref`` and ``lam_prev`` (see :func:`evnoise._kernels.simulate.trial_window`),
+    Those whose ``lam`` is the same in every frame ``frames_lam`` (F, all pixels) of the window
+    and equals their ``lam_ref`` and ``lam_prev`` (see :func:`evnoise._kernels.simulate.trial_window`),
     and whose cache does not already hold that ``lam``. Vectorised here (the grouped closed
     form) so that the kernel does not evaluate the exact sum pixel by pixel.
     """
-    lam0 = lams[0]
-    need = (lam0 == state.lam_ref) & (lam0 == state.lam_prev) & ~(state.cache_lam == lam0)
-    for row in lams[1:]:
-        need &= row == lam0
+    from ._kernels.simulate import static_in_window
+
+    need = np.empty(state.pix.size, dtype=np.bool_)
+    static_in_window(frames_lam, state.pix, state.fstate, need)
     sel = np.flatnonzero(need)
     if sel.size == 0:
         return
-    p_on, p_off = trial_probabilities(lam0[sel], params, (eps_on[sel], eps_off[sel]),
+    lam0 = frames_lam[0, state.pix[sel]]
+    p_on, p_off = trial_probabilities(lam0, params, (eps_on[sel], eps_off[sel]),
                                       background=select_background(bg, sel))
     p_all = p_on + p_off
     with np.errstate(divide="ignore", invalid="ignore"):
         state.cache_log1m_p[sel] = np.where(p_all < 1.0, np.log1p(-np.minimum(p_all, 1.0)), -np.inf)
         state.cache_q_on[sel] = np.where(p_all > 0.0, p_on / np.where(p_all > 0.0, p_all, 1.0), 0.0)
-    state.cache_lam[sel] = lam0[sel]
+    state.cache_lam[sel] = lam0
 
 
 def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us, duration_us, threads,
@@ -464,7 +465,7 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
                 stack = np.stack([cache[int(i)] for i in idx])
                 f_us = np.ascontiguousarray(frame_us[idx]) if frames.n > 1 else np.zeros(1)
                 if fast_static:
-                    _fill_static_cache(dyn_state, stack[:, dyn_pix], params, dyn_e_on, dyn_e_off,
+                    _fill_static_cache(dyn_state, stack, params, dyn_e_on, dyn_e_off,
                                        None if bg is None else select_background(bg, dyn_pix))
 
                 def run(lo, hi, stack=stack, f_us=f_us, j_a=j_a, j_b=j_b):

@@ -267,6 +267,21 @@ def sort_into_events(t, x, y, p, t_lo, t_hi, out, labels):
 
 
 @kernel
+def static_in_window(frames_lam, pix, fstate, out):
+    """``out[k]``: pixel ``pix[k]`` has the same ``lam`` in every frame of ``frames_lam`` (F, all pixels),
+    equal to its ``LAM_REF`` and ``LAM_PREV``, and its cached probabilities belong to another ``lam``
+    (the pixels whose cache :func:`trial_window`'s jump needs filled)."""
+    for k in range(pix.shape[0]):
+        lam0 = frames_lam[0, pix[k]]
+        ok = lam0 == fstate[k, LAM_REF] and lam0 == fstate[k, LAM_PREV] and not fstate[k, CACHE_LAM] == lam0
+        f = 1
+        while ok and f < frames_lam.shape[0]:
+            ok = frames_lam[f, pix[k]] == lam0
+            f += 1
+        out[k] = ok
+
+
+@kernel
 def _add_background(p_on, p_off, l_on, l_off, dt_s):
     """Per-trial probabilities with background intensities ``l_on``, ``l_off`` (events/s) added."""
     l_all = l_on + l_off
