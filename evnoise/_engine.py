@@ -210,6 +210,9 @@ def sorted_window(parts, t_lo: int, t_hi: int, labels: bool = False, sink: Colle
     cols = [np.concatenate([p[i] for p in parts]) if len(parts) > 1 else parts[0][i] for i in range(4)]
     del parts
     out = np.empty(cols[0].size, dtype=EVENT_DTYPE) if sink is None else sink.reserve(cols[0].size)
+    # touch its fresh pages in order, from this thread: the sort's parallel scatter faulting them in
+    # costs ~14 ns per event (measured: 21 ms per million events into fresh memory, 8.7 touched first)
+    out.view(np.uint8)[::4096] = 0
     lab = np.empty(cols[0].size if labels else 0, dtype=np.uint8)
     sort_into_events(*cols, np.int64(t_lo), np.int64(t_hi), out, lab)
     return (out, lab.astype(bool)) if labels else out
