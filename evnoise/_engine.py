@@ -22,6 +22,9 @@ from .params import NoiseParams
 from .rates import draw_thresholds, trial_probabilities
 
 CHUNK_PIXELS = 1 << 14
+#: event buffers of a chunk larger than this are not kept between windows (13 bytes per event: 0.85 MB per chunk,
+#: ~48 MB at 1280x720; a window of ~1 M events needs ~20 k per chunk)
+KEEP_EVENTS_PER_CHUNK = 1 << 16
 
 
 def default_threads() -> int:
@@ -145,8 +148,12 @@ class PixelState:
         return out
 
     def keep(self, lo: int, out) -> None:
-        """Keep ``out`` (perhaps grown) as the buffers of chunk ``lo``."""
-        self._buffers[lo] = out
+        """Keep ``out`` (perhaps grown) as the buffers of chunk ``lo``, unless it is large (one long window, e.g.
+        a long ``NoiseStream.advance``, must not pin its memory for the life of the state)."""
+        if out[0].size <= KEEP_EVENTS_PER_CHUNK:
+            self._buffers[lo] = out
+        else:
+            self._buffers.pop(lo, None)
 
     def rescale_timers(self, l_all: np.ndarray, j_now: float):
         """Pending background arrivals at or after trial ``j_now`` move to a new intensity ``l_all``.

@@ -13,10 +13,10 @@ import evnoise._engine as engine
 import evnoise.simulate as es
 
 
-@pytest.fixture
-def one_slot_at_a_time(monkeypatch):
-    """Buffers that start with one slot in every window and grow by one: the kernels stop at every event."""
-
+def _force_stops(monkeypatch, keep: bool):
+    """Buffers that start with one slot and grow by one: the kernels stop at every event. With ``keep``
+    the grown buffers are kept for the next window (reuse and stops together), else every window starts
+    at one slot again."""
     buffers = engine.event_buffers
 
     def tiny(capacity):
@@ -31,7 +31,8 @@ def one_slot_at_a_time(monkeypatch):
     monkeypatch.setattr(engine, "event_buffers", tiny)
     monkeypatch.setattr(engine, "grown", one_more)
     monkeypatch.setattr(es, "grown", one_more)
-    monkeypatch.setattr(engine.PixelState, "keep", lambda self, lo, out: None)  # every window starts at one slot
+    if not keep:
+        monkeypatch.setattr(engine.PixelState, "keep", lambda self, lo, out: None)
 
 
 def _runs(params):
@@ -47,6 +48,9 @@ def _runs(params):
             out[f"video fast={fast}"] = ev.simulate_video(frames, times, params, rng=7, method="trials", threads=2)
         finally:
             es.TRIAL_FAST_STATIC = True
+    events, labels = ev.simulate_video(frames, times, params, rng=8, threads=2, return_labels=True)
+    out["video auto"] = events
+    out["labels"] = labels
     stream = ev.NoiseStream(lux.shape, params, rng=9, threads=1)
     out["stream"] = np.concatenate([stream.advance(frames[i], 200_000 * (i + 1)) for i in range(4)])
     return out
@@ -57,12 +61,25 @@ def _runs(params):
     {"hot_pixel_fraction": 0.2, "hot_pixel_rate_hz": 200.0},  # many events per pixel and window
     {"leak_regularity": 0.8, "hot_pixel_fraction": 0.2, "hot_pixel_rate_hz": 200.0},  # regular timer: PEND_ON
     {"refractory_s": 2e-3, "eps_sigma": 0.03},
+    {"pr_tau_s_at_1lux": 0.05},  # bandwidth: the trial tier's filtered level
 ])
-def test_stopping_at_every_event_gives_the_same_events(extra, request):
+@pytest.mark.parametrize("keep", [False, True])
+def test_stopping_at_every_event_gives_the_same_events(extra, keep, monkeypatch):
     params = ev.load_preset("evk3-hd").replace(**extra)
     whole = _runs(params)
-    request.getfixturevalue("one_slot_at_a_time")
+    _force_stops(monkeypatch, keep)
     pieces = _runs(params)
     for name, events in whole.items():
         assert events.size > 15, name  # the runs have events to cut
         np.testing.assert_array_equal(pieces[name], events, err_msg=name)
+
+
+def test_a_chunk_keeps_small_buffers_for_the_next_window_and_drops_large_ones():
+    state = engine.PixelState(np.arange(4), np.arange(1, 5, dtype=np.uint64), 1)
+    small = engine.event_buffers(10)
+    state.keep(0, small)
+    assert state.buffers(0, 5) is small  # reused: room enough
+    assert state.buffers(0, 11) is not small  # too small for the next window: new ones
+    state.keep(0, engine.event_buffers(engine.KEEP_EVENTS_PER_CHUNK + 1))  # one long window
+    fresh = state.buffers(0, 5)
+    assert fresh is not small and fresh[0].size == 5  # neither the long window's buffers nor the old ones

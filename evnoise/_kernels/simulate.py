@@ -100,7 +100,8 @@ def renewal_window(width, pix, log1m_p, q_on, timer, states, fstate, dt, refr_us
     counts are added to ``on_counts[k]``, ``off_counts[k]`` (with ``store`` false only the counts).
     The kernel starts at pixel ``k_start`` and returns ``(n, k)``: ``k = len(pix)`` when every pixel
     is done, else the buffers are full and pixel ``k`` stopped with its next event (inside the
-    window, its polarity not yet drawn) saved as pending: grow the buffers and call again from ``k``;
+    window) saved as pending - drawn but not stored; its polarity is drawn when it is stored, or, with a
+    timer, was drawn with it and kept in ``PEND_ON``: grow the buffers and call again from ``k``;
     the draws, and so the events, are the same as in one call. (The buffers are never replaced inside
     the kernel: an array reassigned in the event loop costs Numba reference counting per event.)
     """
@@ -133,7 +134,9 @@ def renewal_window(width, pix, log1m_p, q_on, timer, states, fstate, dt, refr_us
         while True:
             if math.isnan(tau):
                 if lta == -math.inf or refr_us == 0.0:
-                    j_e = lt + 1.0  # what _first_eligible gives without a refractory period (tau < (lt + 1) dt)
+                    # what _first_eligible gives without a refractory period, since this kernel's own
+                    # tau = (lt + u) dt rounds to at most (lt + 1) dt (state written by another kernel may not)
+                    j_e = lt + 1.0
                 else:
                     j_e = _first_eligible(lt, lta, refr_us, dt)
                 j_e = max(j_e, j_min)
@@ -165,7 +168,7 @@ def renewal_window(width, pix, log1m_p, q_on, timer, states, fstate, dt, refr_us
             if tau >= w_end:
                 break
             if store and n == cap:
-                full = True  # the event stays pending (its polarity is drawn when it is stored)
+                full = True  # the event stays pending (polarity drawn when it is stored; with a timer kept in PEND_ON)
                 break
             if not has_timer:  # the Poisson path draws the polarity of an event inside the window only
                 on = uniform(s) < qk
