@@ -62,9 +62,10 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--only", default="limit,setup,simulate,stream,mismatch,dataset",
                     help="comma-separated subset of limit,setup,simulate,stream,mismatch,dataset,memory,h5,"
-                         "trials,events")
+                         "trials,events,writer")
     ap.add_argument("--trial-seconds", type=float, default=2.0, help="simulated seconds of the trial-tier runs")
     ap.add_argument("--event-seconds", type=float, default=30.0, help="simulated seconds of the `events` runs")
+    ap.add_argument("--writer-seconds", type=float, default=60.0, help="simulated seconds of the `writer` runs")
     ap.add_argument("--memory-durations", default="10,60,240",
                     help="durations (s) of the peak-memory runs of simulate_events (`--only memory`)")
     ap.add_argument("--sigma", type=float, default=0.03, help="eps_sigma of the mismatch runs")
@@ -164,6 +165,8 @@ def main(argv=None) -> int:
                 t = timed(lambda: list(pool.map(lambda b: zlib.compress(b, 1), chunks)), args.repeats)
             emit(args.label, f"limit: zlib level 1 on shuffled chunks, {workers} thread(s)", t,
                  events_per_s=events.size / t[0])
+    if "writer" in which:
+        _bench_writer(ev, args, params, lux)
     if "trials" in which:
         _bench_trials(ev, args, params, lux, th)
     if "events" in which:
@@ -255,6 +258,27 @@ def _bench_trials(ev, args, params, lux, th):
     t = timed(lambda: per_event(states, -1e-3, 8), args.repeats)
     emit(args.label, "limit: bare Numba loop, geometric gap + 2 uniforms per event (1 thread)", t,
          events_per_s=8 * n_pix / t[0])
+
+
+def _bench_writer(ev, args, params, lux):
+    """End to end into events.h5 as `evnoise simulate` does it: `iter_events` windows into an `EventWriter`."""
+    import os
+    import tempfile
+
+    def run(path, compression):
+        n = 0
+        with ev.EventWriter(path, lux.shape, overwrite=True, compression=compression) as writer:
+            for window in ev.iter_events(lux, params, args.writer_seconds, rng=1):
+                writer.write(window)
+                n += window.size
+        return n
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = os.path.join(tmp, "events.h5")
+        for comp in ("gzip", "lzf", None):
+            t = timed(lambda: run(path, comp), args.repeats)
+            emit(args.label, f"iter_events into EventWriter, 1280x720 {args.writer_seconds:g} s, compression={comp}",
+                 t, events=int(t[3]), events_per_s=t[3] / t[0], mb=os.path.getsize(path) / 1e6)
 
 
 def _bench_events(ev, args, params, lux, th):
