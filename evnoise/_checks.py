@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +24,22 @@ def as_generator(rng) -> np.random.Generator:
             raise ParameterError(f"seed must be a non-negative integer, got {rng}")
         return np.random.default_rng(int(rng))
     raise ParameterError(f"rng must be a numpy Generator, an integer seed or None, got {type(rng).__name__}")
+
+
+def default_threads() -> int:
+    """Threads used by the simulators: ``NUMBA_NUM_THREADS`` if set, else the CPU count."""
+    env = os.environ.get("NUMBA_NUM_THREADS")
+    if env:
+        try:
+            return max(1, int(env))
+        except ValueError:
+            pass
+    return max(1, os.cpu_count() or 1)
+
+
+def resolve_threads(threads) -> int:
+    """``threads`` as given (at least 1), or :func:`default_threads` for None."""
+    return default_threads() if threads is None else max(1, int(threads))
 
 
 #: Words (uint64) of a simulator stream key (xoshiro256++ is keyed by 4 words and the pixel index).

@@ -10,7 +10,6 @@ and step, and the collection of each window's events in time order.
 from __future__ import annotations
 
 import math
-import os
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -25,17 +24,6 @@ CHUNK_PIXELS = 1 << 14
 #: event buffers of a chunk larger than this are not kept between windows (13 bytes per event: 0.85 MB per chunk,
 #: ~48 MB at 1280x720; a window of ~1 M events needs ~20 k per chunk)
 KEEP_EVENTS_PER_CHUNK = 1 << 16
-
-
-def default_threads() -> int:
-    """Threads used by the simulators: ``NUMBA_NUM_THREADS`` if set, else the CPU count."""
-    env = os.environ.get("NUMBA_NUM_THREADS")
-    if env:
-        try:
-            return max(1, int(env))
-        except ValueError:
-            pass
-    return max(1, os.cpu_count() or 1)
 
 
 def pixel_chunks(n: int):

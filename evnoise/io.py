@@ -220,7 +220,7 @@ class EventWriter(_AtomicWriter):
             f.create_dataset("t_offset", data=np.int64(self.t_offset_us))
             self._gzip = None  # gzip chunks are compressed in threads (evnoise._gzip_chunks)
             if compression == "gzip":
-                from ._engine import default_threads
+                from ._checks import default_threads
                 from ._gzip_chunks import ParallelGzipChunks
 
                 self._gzip = ParallelGzipChunks(self._dsets, CHUNK_EVENTS, GZIP_LEVEL, default_threads())

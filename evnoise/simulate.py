@@ -23,13 +23,12 @@ from typing import Iterator
 
 import numpy as np
 
-from ._checks import as_generator, check_lux, check_params, duration_to_us, kernel_key
+from ._checks import as_generator, check_lux, check_params, duration_to_us, kernel_key, resolve_threads
 from ._engine import (
     Collector,
     PixelState,
     background_coefficients,
     check_t_start,
-    default_threads,
     grown,
     map_chunks,
     progress_bar,
@@ -98,7 +97,7 @@ def _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, t
     if method not in METHODS:
         raise ParameterError(f"method must be one of {METHODS}, got {method!r}")
     t_start_us = check_t_start(t_start_us)
-    threads = default_threads() if threads is None else max(1, int(threads))
+    threads = resolve_threads(threads)
     gen = as_generator(rng)
     eps_on, eps_off = resolve_thresholds(lux.shape, params, gen, thresholds)
     bg = resolve_background(lux.shape, params, gen, background)
@@ -279,7 +278,7 @@ def iter_video(
     ts = _check_timestamps(timestamps_s, frames.n)
     if method not in METHODS:
         raise ParameterError(f"method must be one of {METHODS}, got {method!r}")
-    threads = default_threads() if threads is None else max(1, int(threads))
+    threads = resolve_threads(threads)
     shape = frames.shape
     static = np.ones(shape, dtype=bool)
     first = frames.get(0)
@@ -549,7 +548,7 @@ def sample_counts(
             raise ParameterError(f"nb_shape does not broadcast to (2, H, W) = {(2, *lux.shape)}") from None
     elif nb_shape is not None:
         raise ParameterError("nb_shape is only used with distribution='negative-binomial'")
-    threads = default_threads() if threads is None else max(1, int(threads))
+    threads = resolve_threads(threads)
     gen = as_generator(rng)
     eps_on, eps_off = resolve_thresholds(lux.shape, params, gen, thresholds)
     bg = resolve_background(lux.shape, params, gen, background)

@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._checks import as_generator, check_lux, check_params, kernel_key
+from ._checks import as_generator, check_lux, check_params, kernel_key, resolve_threads
 from ._engine import (
     PixelState,
     check_t_start,
-    default_threads,
     renewal_step,
     resolve_background,
     resolve_thresholds,
@@ -54,7 +53,7 @@ class NoiseStream:
 
         self.shape = check_shape(shape)
         self.params = check_params(params)
-        self.threads = default_threads() if threads is None else max(1, int(threads))
+        self.threads = resolve_threads(threads)
         gen = as_generator(rng)
         self._eps_on, self._eps_off = resolve_thresholds(self.shape, self.params, gen, thresholds)
         self._bg = resolve_background(self.shape, self.params, gen, background)

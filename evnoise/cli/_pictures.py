@@ -257,7 +257,7 @@ def simulate_sheet(counts, *, lux=None, duration_s=None, scene_title: str = "sce
 # --------------------------------------------------------------------------------------
 # make-dataset preview.png
 # --------------------------------------------------------------------------------------
-PREVIEW = "preview.png"
+from ..generators.folder import PREVIEW  # noqa: E402  (the dataset folder's file names have one home)
 
 
 def dataset_preview(root, *, n_pairs: int = 4):
