@@ -62,7 +62,7 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--only", default="limit,setup,simulate,stream,mismatch,dataset",
                     help="comma-separated subset of limit,setup,simulate,stream,mismatch,dataset,memory,h5,"
-                         "trials,events,writer")
+                         "trials,events,writer,sumlimit")
     ap.add_argument("--trial-seconds", type=float, default=2.0, help="simulated seconds of the trial-tier runs")
     ap.add_argument("--event-seconds", type=float, default=30.0, help="simulated seconds of the `events` runs")
     ap.add_argument("--writer-seconds", type=float, default=60.0, help="simulated seconds of the `writer` runs")
@@ -167,6 +167,8 @@ def main(argv=None) -> int:
                  events_per_s=events.size / t[0])
     if "writer" in which:
         _bench_writer(ev, args, params, lux)
+    if "sumlimit" in which:
+        _bench_sum_limit(args, params)
     if "trials" in which:
         _bench_trials(ev, args, params, lux, th)
     if "events" in which:
@@ -258,6 +260,38 @@ def _bench_trials(ev, args, params, lux, th):
     t = timed(lambda: per_event(states, -1e-3, 8), args.repeats)
     emit(args.label, "limit: bare Numba loop, geometric gap + 2 uniforms per event (1 thread)", t,
          events_per_s=8 * n_pix / t[0])
+
+
+def _bench_sum_limit(args, params):
+    """The floor of any exact, term-by-term evaluation of p: a bare loop of the sum's terms
+    ``pmf(m) P(N > m + floor(c (m + b)))`` from precomputed tables (no bounds, no stopping rule), per term,
+    and the terms the exact sum keeps (about 12 sqrt(lam): +-6 standard deviations of its summand)."""
+    from evnoise._kernels._jit import kernel
+
+    @kernel
+    def bare_sum(pmf, sf, c, b, m0, n_terms):
+        total = 0.0
+        for i in range(c.shape[0]):
+            ci = c[i]
+            acc = 0.0
+            for m in range(m0, m0 + n_terms):
+                acc += pmf[m] * sf[m + int(math.floor(ci * (m + b)))]
+            total += acc
+        return total
+
+    lam, n_terms = 1000.0, 380
+    from scipy import stats
+
+    grid = np.arange(4 * int(lam) + 4000)
+    pmf = stats.poisson.pmf(grid, lam)
+    sf = stats.poisson.sf(grid, lam)
+    c = np.expm1(np.random.default_rng(0).normal(params.eps_pos, 0.03, 100_000))
+    m0 = int(lam - n_terms // 2)
+    t = timed(lambda: bare_sum(pmf, sf, c, params.bias_pr, m0, n_terms), args.repeats)
+    per_term = t[0] / (c.size * n_terms)
+    emit("limit", "bare exact-sum loop from tables, per term (1 thread)", t, ns_per_term=per_term * 1e9,
+         us_per_value_at_lam_1e3=per_term * 12 * math.sqrt(1e3) * 1e6,
+         us_per_value_at_lam_1e5=per_term * 12 * math.sqrt(1e5) * 1e6)
 
 
 def _bench_writer(ev, args, params, lux):
