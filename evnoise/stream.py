@@ -60,6 +60,7 @@ class NoiseStream:
         self._state = PixelState(np.arange(self.shape[0] * self.shape[1]), kernel_key(gen), self.threads)
         self._t0 = check_t_start(t_start_us)
         self._t_rel = 0  # µs since t_start_us
+        self._inputs = None  # (lam, renewal inputs) of the last interval
 
     @property
     def t_us(self) -> int:
@@ -79,7 +80,11 @@ class NoiseStream:
         p = self.params
         dt = p.trial_us
         lam = p.photons_per_trial(lux).ravel()
-        log1m_p, q_on, timer, nu = static_inputs(lam, p, self._eps_on, self._eps_off, self._bg)
+        if self._inputs is not None and np.array_equal(lam, self._inputs[0]):
+            log1m_p, q_on, timer, nu = self._inputs[1]  # the same light as the last interval: same closed form
+        else:
+            log1m_p, q_on, timer, nu = static_inputs(lam, p, self._eps_on, self._eps_off, self._bg)
+            self._inputs = (lam, (log1m_p, q_on, timer, nu))
         j_min = _first_trial_at_or_after(self._t_rel, dt)
         discard = _first_trial_at_or_after(t_end, dt)
         if timer is not None:

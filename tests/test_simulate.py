@@ -348,6 +348,24 @@ def test_noise_stream_matches_static_rate_and_merges():
     assert merged.size == events.size + 2 and np.all(np.diff(merged["t"]) >= 0)
 
 
+def test_noise_stream_reuses_the_closed_form_only_while_the_light_is_the_same():
+    """The stream keeps the last interval's closed form and reuses it for the same light: the events must be
+    those of a stream that recomputes it every time (here: forgets it before each interval)."""
+    rng = np.random.default_rng(4)
+    lux = rng.uniform(0.1, 10.0, (20, 30))
+    one_pixel_brighter = lux.copy()
+    one_pixel_brighter[7, 11] *= 0.01  # a change in one pixel must not be missed
+    lights = [lux, lux.copy(), one_pixel_brighter, one_pixel_brighter, lux, lux]
+    kept = ev.NoiseStream(lux.shape, PARAMS, rng=5)
+    fresh = ev.NoiseStream(lux.shape, PARAMS, rng=5)
+    for k, light in enumerate(lights, start=1):
+        a = kept.advance(light, 400_000 * k)
+        fresh._inputs = None
+        b = fresh.advance(light, 400_000 * k)
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(kept._inputs[0], PARAMS.photons_per_trial(lux).ravel())  # the last light's
+
+
 # ------------------------------------------------------------------------------ bad input
 @pytest.mark.parametrize(
     "lux, duration, exc",
