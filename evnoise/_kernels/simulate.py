@@ -172,15 +172,14 @@ def renewal_window(width, pix, log1m_p, q_on, timer, states, fstate, dt, refr_us
                 break
             if not has_timer:  # the Poisson path draws the polarity of an event inside the window only
                 on = uniform(s) < qk
-            if on:
-                n_on += 1
-            else:
-                n_off += 1
+            pol = np.uint8(on)  # counted without a branch on the polarity (it is a coin flip)
+            n_on += pol
+            n_off += 1 - pol
             if store:
                 t_out[n] = t0_us + np.int64(math.floor(tau))
                 x_out[n] = x_pix
                 y_out[n] = y_pix
-                p_out[n] = 1 if on else 0
+                p_out[n] = pol
                 n += 1
             lta = tau
             lt = jp
