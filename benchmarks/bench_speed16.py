@@ -289,7 +289,7 @@ def _bench_sum_limit(args, params):
     m0 = int(lam - n_terms // 2)
     t = timed(lambda: bare_sum(pmf, sf, c, params.bias_pr, m0, n_terms), args.repeats)
     per_term = t[0] / (c.size * n_terms)
-    emit("limit", "bare exact-sum loop from tables, per term (1 thread)", t, ns_per_term=per_term * 1e9,
+    emit(args.label, "limit: bare exact-sum loop from tables, per term (1 thread)", t, ns_per_term=per_term * 1e9,
          us_per_value_at_lam_1e3=per_term * 12 * math.sqrt(1e3) * 1e6,
          us_per_value_at_lam_1e5=per_term * 12 * math.sqrt(1e5) * 1e6)
 

@@ -267,6 +267,18 @@ def grown(out, n: int):
     return bigger
 
 
+def run_to_end(call, out, n_pixels: int):
+    """Run a window kernel over a chunk of ``n_pixels`` pixels, ``call(out, n, k) -> (n, k)``, until it reports
+    every pixel done; when it stops with ``out`` full, ``out`` is :func:`grown` and the kernel called again from
+    where it stopped (its draws, and so its events, are those of one call). Returns ``(out, n)``."""
+    n = k = 0
+    while True:
+        n, k = call(out, n, k)
+        if k == n_pixels:
+            return out, n
+        out = grown(out, n)
+
+
 def renewal_step(state: PixelState, width, log1m_p, q_on, dt, refr_us, j_min, w_end, discard_from,
                   t0_us, threads, store=True, expected=None, timer=None):
     """Run the renewal kernel over all pixels of ``state`` up to ``w_end``; returns chunk parts.
@@ -284,18 +296,14 @@ def renewal_step(state: PixelState, width, log1m_p, q_on, dt, refr_us, j_min, w_
         out = state.buffers(lo, cap) if store else event_buffers(0)
         on = np.zeros(hi - lo, dtype=np.int64)
         off = np.zeros(hi - lo, dtype=np.int64)
-        n = k = 0
-        while True:
-            n, k = renewal_window(
-                width, state.pix[lo:hi], log1m_p[lo:hi], q_on[lo:hi], no_timer if timer is None else timer[:, lo:hi],
-                state.states[lo:hi], state.fstate[lo:hi], dt, float(refr_us), float(j_min), float(w_end),
-                float(discard_from), np.int64(t0_us), out, n, k, on, off, store,
-            )
-            if k == hi - lo:
-                if store:
-                    state.keep(lo, out)
-                return (*(a[:n] for a in out), on, off)
-            out = grown(out, n)  # full: twice the room, and the kernel goes on where it stopped
+        out, n = run_to_end(lambda buf, n, k: renewal_window(
+            width, state.pix[lo:hi], log1m_p[lo:hi], q_on[lo:hi], no_timer if timer is None else timer[:, lo:hi],
+            state.states[lo:hi], state.fstate[lo:hi], dt, float(refr_us), float(j_min), float(w_end),
+            float(discard_from), np.int64(t0_us), buf, n, k, on, off, store,
+        ), out, hi - lo)
+        if store:
+            state.keep(lo, out)
+        return (*(a[:n] for a in out), on, off)
 
     return map_chunks(run, state.pix.size, threads)
 

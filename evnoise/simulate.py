@@ -29,12 +29,12 @@ from ._engine import (
     PixelState,
     background_coefficients,
     check_t_start,
-    grown,
     map_chunks,
     progress_bar,
     renewal_step,
     resolve_background,
     resolve_thresholds,
+    run_to_end,
     select_background,
     sorted_window,
     static_inputs,
@@ -469,18 +469,13 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
 
                 def run(lo, hi, stack=stack, f_us=f_us, j_a=j_a, j_b=j_b):
                     s = dyn_state
-                    out = s.buffers(lo, 256)
-                    n = k = 0
-                    while True:
-                        n, k = trial_window(
-                            width, s.pix[lo:hi], stack, f_us, j_a, j_b, dyn_thr[:, lo:hi], dyn_bg[:, lo:hi],
-                            s.states[lo:hi], s.fstate[lo:hi], model, float(duration_us), np.int64(t0_us), out, n, k,
-                            fast_static,
-                        )
-                        if k == hi - lo:
-                            s.keep(lo, out)
-                            return tuple(a[:n] for a in out)
-                        out = grown(out, n)  # full: twice the room; the pixel that did not fit runs again
+                    out, n = run_to_end(lambda buf, n, k: trial_window(
+                        width, s.pix[lo:hi], stack, f_us, j_a, j_b, dyn_thr[:, lo:hi], dyn_bg[:, lo:hi],
+                        s.states[lo:hi], s.fstate[lo:hi], model, float(duration_us), np.int64(t0_us), buf, n, k,
+                        fast_static,
+                    ), s.buffers(lo, 256), hi - lo)
+                    s.keep(lo, out)
+                    return tuple(a[:n] for a in out)
 
                 parts += map_chunks(run, dyn_pix.size, threads)
             yield sorted_window([p[:4] for p in parts], t0_us + w_lo, t0_us + w_hi, labels=labels)

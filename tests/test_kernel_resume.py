@@ -30,7 +30,6 @@ def _force_stops(monkeypatch, keep: bool):
 
     monkeypatch.setattr(engine, "event_buffers", tiny)
     monkeypatch.setattr(engine, "grown", one_more)
-    monkeypatch.setattr(es, "grown", one_more)
     if not keep:
         monkeypatch.setattr(engine.PixelState, "keep", lambda self, lo, out: None)
 

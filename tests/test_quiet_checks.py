@@ -28,22 +28,23 @@ P_PASS = 1e-3  # a null check fails this with probability 1e-3 (fixed seeds: det
 P_FAIL = 1e-6
 
 
+def _still_noise(regularity: float):
+    params = dataclasses.replace(ev.load_preset("dvs128"), leak_on_hz=0.4, leak_off_hz=0.25, leak_sigma=0.8,
+                                 leak_regularity=regularity, hot_pixel_fraction=0.01, hot_pixel_rate_hz=3.0,
+                                 hot_pixel_on_fraction=0.5)
+    return ev.simulate_events(np.zeros(SHAPE), params, DURATION_S, rng=11, t_start_us=T0_US)
+
+
 @pytest.fixture(scope="module")
 def noise():
     """A still scene's noise: ON and OFF background with spread, regular arrivals and hot pixels."""
-    params = dataclasses.replace(ev.load_preset("dvs128"), leak_on_hz=0.4, leak_off_hz=0.25, leak_sigma=0.8,
-                                 leak_regularity=0.6, hot_pixel_fraction=0.01, hot_pixel_rate_hz=3.0,
-                                 hot_pixel_on_fraction=0.5)
-    return ev.simulate_events(np.zeros(SHAPE), params, DURATION_S, rng=11, t_start_us=T0_US)
+    return _still_noise(0.6)
 
 
 @pytest.fixture(scope="module")
 def poisson_noise():
     """The same without the regular timer (whose dead stretches would hide close pairs of any origin)."""
-    params = dataclasses.replace(ev.load_preset("dvs128"), leak_on_hz=0.4, leak_off_hz=0.25, leak_sigma=0.8,
-                                 leak_regularity=0.0, hot_pixel_fraction=0.01, hot_pixel_rate_hz=3.0,
-                                 hot_pixel_on_fraction=0.5)
-    return ev.simulate_events(np.zeros(SHAPE), params, DURATION_S, rng=11, t_start_us=T0_US)
+    return _still_noise(0.0)
 
 
 def _checks(events):
