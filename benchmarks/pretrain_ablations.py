@@ -25,6 +25,10 @@ VARIANTS = {
     "Anscombe, SSIM weight 0.5": ["--transform", "anscombe", "--ssim-weight", "0.5"],
     "rate input, no brightness augmentation (white 18 lux)": ["--transform", "rate", "--white-range", "18"],
     "rate input, dead leaves only (no photos)": ["--transform", "rate", "--no-photos"],
+    "Anscombe, 5 levels, MSE pixel loss": ["--transform", "anscombe", "--channel-mults", "1,2,4,4,4",
+                                           "--pixel-loss", "mse"],
+    "Anscombe, 5 levels, MSE pixel loss, no SSIM term": ["--transform", "anscombe", "--channel-mults", "1,2,4,4,4",
+                                                         "--pixel-loss", "mse", "--ssim-weight", "0"],
 }
 
 

@@ -206,7 +206,8 @@ def regular_rates(p_on, p_off, l_on, l_off, trial_rate_hz: float, refractory_s: 
     p_on, p_off, l_on, l_off = (np.asarray(x, dtype=np.float64) for x in (p_on, p_off, l_on, l_off))
     n = float(trial_rate_hz)
     p = np.minimum(p_on + p_off, 1.0)
-    log1m_p = np.log1p(-p)
+    with np.errstate(divide="ignore"):
+        log1m_p = np.log1p(-p)  # -inf where a trial always fires
     l_all = l_on + l_off
     has = l_all > 0
     d, log1m_a2 = timer_shape(l_all, 1.0 / n, regularity)

@@ -331,19 +331,17 @@ class LevelStats:
 
     def _regular_mean_rate(self):
         """Mean rate with a regular background timer (other polarity's ``p`` at its mean; module doc)."""
-        from .background import regular_rates
+        from ._kernels.background import regular_mean_rate
 
         out = np.empty_like(self.log_m1)
+        weight = np.ascontiguousarray(self.bg_weight, dtype=np.float64)
         for k in range(2):
             for j in range(out.shape[1]):
-                p = np.exp(self.log_p[k][j])[None, :]
-                po = np.full_like(p, math.exp(self.log_m1[1 - k, j]))
-                l_k = self.bg_l[k, :, j][:, None]
-                l_o = self.bg_l[1 - k, :, j][:, None]
-                p_on, p_off, l_on, l_off = (p, po, l_k, l_o) if k == 0 else (po, p, l_o, l_k)
-                nu = regular_rates(p_on, p_off, l_on, l_off, self.trial_rate_hz, self.refractory_s,
-                                   self.regularity)[k]
-                out[k, j] = float(self.bg_weight @ (nu @ self.mass[k][j]))
+                out[k, j] = regular_mean_rate(
+                    np.exp(self.log_p[k][j]), np.ascontiguousarray(self.mass[k][j], dtype=np.float64),
+                    math.exp(self.log_m1[1 - k, j]), np.ascontiguousarray(self.bg_l[k, :, j]),
+                    np.ascontiguousarray(self.bg_l[1 - k, :, j]), weight, self.trial_rate_hz, self.refractory_s,
+                    self.regularity)
         return out
 
     def _check_not_regular(self, what):

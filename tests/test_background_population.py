@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 import evnoise as ev
-from evnoise import mismatch
+from evnoise import background, mismatch
 
 K = 4.5  # standard errors; several comparisons per test
 
@@ -227,3 +227,26 @@ def test_dispersion_evk3_script_runs_on_the_reference_tables():
     # the joint fit trades r for the mean curve
     assert s["models"][1]["r_rms_log_ratio"] >= s["models"][0]["r_rms_log_ratio"] - 1e-9
     assert "r(grey)" in s["verdict"]
+
+
+@pytest.mark.parametrize("regularity, refractory_s", [(0.7, 0.002), (1.0, 0.0), (1e-6, 0.0005)])
+def test_regular_mean_rate_kernel_matches_the_broadcast_formula(regularity, refractory_s):
+    """The fused kernel of the population mean against ``regular_rates`` on the whole (node, atom) grid,
+    including atoms with p = 0, p = 1 and p_own + p_other > 1 and nodes without background."""
+    from evnoise._kernels.background import regular_mean_rate
+
+    rng = np.random.default_rng(5)
+    p_own = np.concatenate([[0.0, 1.0, 0.95, 1e-300], 10.0 ** rng.uniform(-12, -0.3, 60)])
+    mass = rng.random(p_own.size)
+    mass /= mass.sum()
+    l_own = np.concatenate([[0.0, 0.0, 1e-8, 1e4], 10.0 ** rng.uniform(-4, 2, 40)])
+    l_other = np.concatenate([[0.0, 0.5, 0.0, 1e3], 10.0 ** rng.uniform(-4, 2, 40)])
+    weight = rng.random(l_own.size)
+    weight /= weight.sum()
+    n = 40.0
+    for p_other in (0.0, 0.02, 0.3):
+        got = regular_mean_rate(p_own, mass, p_other, l_own, l_other, weight, n, refractory_s, regularity)
+        nu_own = background.regular_rates(p_own[None, :], np.full((1, p_own.size), p_other), l_own[:, None],
+                                          l_other[:, None], n, refractory_s, regularity)[0]
+        assert np.all(np.isfinite(nu_own))
+        assert got == pytest.approx(float(weight @ (nu_own @ mass)), rel=1e-12, abs=1e-300)

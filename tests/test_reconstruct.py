@@ -356,6 +356,23 @@ def test_training_refuses_bad_setups(tmp_path):
         train(tr, tmp_path / "n.pt", config=TrainConfig(**{**TINY_CFG, "crop": 15}), model=TINY, progress=False)
 
 
+def test_training_loss_terms_by_hand():
+    from evnoise.reconstruct.train import training_loss
+
+    rng = np.random.default_rng(3)
+    pred, target = rng.random((2, 1, 1, 20, 24))
+    tp, tt = torch.from_numpy(pred), torch.from_numpy(target)
+    l1 = float(training_loss(torch, tp, tt, TrainConfig(ssim_weight=0.0)))
+    mse = float(training_loss(torch, tp, tt, TrainConfig(ssim_weight=0.0, pixel_loss="mse")))
+    assert l1 == pytest.approx(np.abs(pred - target).mean(), rel=1e-12)
+    assert mse == pytest.approx(((pred - target) ** 2).mean(), rel=1e-12)
+    # the SSIM term adds w * (1 - SSIM), SSIM from the independent reference of test_ssim_matches_...
+    with_ssim = float(training_loss(torch, tp, tt, TrainConfig(ssim_weight=0.5, pixel_loss="mse")))
+    assert with_ssim == pytest.approx(mse + 0.5 * (1 - ssim(pred[0, 0], target[0, 0])), abs=1e-6)
+    with pytest.raises(ParameterError, match="pixel_loss"):
+        TrainConfig(pixel_loss="l2")
+
+
 def test_loss_curve_png_is_written(tmp_path):
     pytest.importorskip("matplotlib")
     tr = resampled(n=3, size=32, seed=1)

@@ -14,6 +14,9 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+from numba import prange
+
 from ._jit import kernel
 from .rng import geometric, uniform
 
@@ -98,3 +101,57 @@ def draw_timer_stationary(s, d, log1m_a2, log1m_p):
         return (dd - a) + geometric(s, log1m_a2)
     # age a > dd: a = dd + 1 + (failures of ratio q (1 - a2)); the rest of the timer is memoryless
     return geometric(s, log1m_a2)
+
+
+@kernel(parallel=True)
+def regular_mean_rate(p_own, mass, p_other, l_own, l_other, weight, trial_rate_hz, refractory_s, regularity):
+    """Population mean rate (events/s) of one polarity with the regular timer, summed in one pass.
+
+    ``sum_b weight[b] sum_a mass[a] nu_own(p_own[a], p_other, l_own[b], l_other[b])`` with ``nu_own``
+    the rate of :func:`evnoise.background.regular_rates` (its module doc's formula): threshold atoms
+    ``a`` (``p_own``, ``mass``), background nodes ``b`` (``l_own``, ``l_other`` events/s, ``weight``).
+    The two whole parts of the timer share their powers: ``E[min]`` at ``D = d0 + 1`` is
+    ``head + q^(d0+1) + q tail`` of the one at ``d0``. Each node's sum is its own (thread-count
+    independent), the nodes are added in order.
+    """
+    n = trial_rate_hz
+    n_atoms = p_own.size
+    p = np.empty(n_atoms)
+    q = np.empty(n_atoms)
+    log1m_p = np.empty(n_atoms)
+    share_p = np.empty(n_atoms)
+    for a in range(n_atoms):
+        pa = min(p_own[a] + p_other, 1.0)
+        p[a] = pa
+        log1m_p[a] = math.log1p(-pa)
+        q[a] = math.exp(log1m_p[a])
+        share_p[a] = p_own[a] / pa if pa > 0.0 else 0.0
+    dead = refractory_s * n
+    per_node = np.zeros(l_own.size)
+    for b in prange(l_own.size):
+        l_all = l_own[b] + l_other[b]
+        d, log1m_a2 = timer_shape(l_all, 1.0 / n, regularity)
+        acc = 0.0
+        if d < math.inf:
+            d0 = math.floor(d)
+            phi = d - d0
+            one_m_a2 = math.exp(log1m_a2)
+            share_l = l_own[b] / l_all
+            for a in range(n_atoms):
+                pa = p[a]
+                x = (d0 + 1.0) * log1m_p[a]
+                qd = math.exp(x)
+                head = -math.expm1(x) / pa if pa > 0.0 else d0 + 1.0
+                tail = qd * one_m_a2 / (1.0 - q[a] * one_m_a2)
+                e_min = (1.0 - phi) * (head + tail) + phi * (head + qd + q[a] * tail)
+                photon = pa * e_min
+                acc += mass[a] * n / (dead + e_min) * (photon * share_p[a] + (1.0 - photon) * share_l)
+        else:  # no background: photon noise alone, nu = N p / (1 + N p R)
+            for a in range(n_atoms):
+                if p[a] > 0.0:
+                    acc += mass[a] * n / (dead + 1.0 / p[a]) * share_p[a]
+        per_node[b] = acc
+    total = 0.0
+    for b in range(l_own.size):
+        total += weight[b] * per_node[b]
+    return total

@@ -28,6 +28,8 @@ def register(subparsers):
                    "its --binning (default: 64, or the largest size that fits the pairs)")
     p.add_argument("--lr", type=float, default=2e-3, help="AdamW learning rate (default 2e-3)")
     p.add_argument("--ssim-weight", type=float, default=0.2, help="weight of the 1 - SSIM loss term (default 0.2)")
+    p.add_argument("--pixel-loss", choices=("l1", "mse"), default="l1",
+                   help="pixel term of the loss: l1 (sharp) or mse (the mean, what PSNR scores; default l1)")
     p.add_argument("--patience", type=int, default=12, help="early stopping after N epochs without improvement "
                                                                "(default 12; 0 disables)")
     p.add_argument("--max-minutes", type=float, default=None, help="wall-clock budget in minutes (default: none)")
@@ -86,7 +88,7 @@ def run(args) -> int:
         epochs=args.epochs, steps_per_epoch=args.steps_per_epoch, batch_size=args.batch_size, crop=crop,
         lr=args.lr, ssim_weight=args.ssim_weight, patience=args.patience or None, max_minutes=args.max_minutes,
         val_fraction=args.val_fraction, polarities=args.polarities, seed=args.seed, transform=args.transform,
-        ml_sigma=args.ml_sigma,
+        ml_sigma=args.ml_sigma, pixel_loss=args.pixel_loss,
     )
     model = {"base_channels": args.base_channels} if args.base_channels else None
     result = train(data, args.out, val_data=val, config=config, model=model, resume=args.resume,

@@ -308,6 +308,8 @@ def main(argv=None) -> int:
     ap.add_argument("--crop", type=int, default=64, help="training crop side, binned pixels (default 64)")
     ap.add_argument("--lr", type=float, default=2e-3)
     ap.add_argument("--ssim-weight", type=float, default=0.2)
+    ap.add_argument("--pixel-loss", choices=("l1", "mse"), default="l1",
+                    help="pixel term of the loss (default l1; mse favours PSNR)")
     ap.add_argument("--transform", choices=("rate", "anscombe"), default="anscombe")
     ap.add_argument("--ml-sigma", type=float, default=None,
                     help="add the closed-form ML estimate (counts smoothed with this sigma) as an input channel")
@@ -367,7 +369,7 @@ def main(argv=None) -> int:
         config = TrainConfig(epochs=args.epochs, steps_per_epoch=args.steps_per_epoch, batch_size=args.batch_size,
                              crop=args.crop, lr=args.lr, ssim_weight=args.ssim_weight, patience=None,
                              max_minutes=args.max_minutes, val_crop=128, seed=args.seed, transform=args.transform,
-                             ml_sigma=args.ml_sigma)
+                             ml_sigma=args.ml_sigma, pixel_loss=args.pixel_loss)
         model = {"base_channels": args.base_channels,
                  "channel_mults": tuple(int(m) for m in args.channel_mults.split(","))}
         card = {"preset": PRESET, "sensor": "Prophesee EVK3-HD (IMX636), 1280x720 (the preset's camera)",

@@ -49,7 +49,10 @@ class TrainConfig:
     lr, weight_decay : float
         AdamW learning rate (cosine-decayed to ``lr / 20`` over ``epochs``) and weight decay.
     ssim_weight : float
-        Loss = L1 + ``ssim_weight`` * (1 - SSIM) (Gaussian window, sigma 1.5).
+        Loss = pixel loss + ``ssim_weight`` * (1 - SSIM) (Gaussian window, sigma 1.5).
+    pixel_loss : {"l1", "mse"}
+        Pixel term of the loss: mean absolute error (favours the median of what the counts allow,
+        sharp) or mean squared error (favours the mean, which is what PSNR scores).
     patience : int or None
         Early stopping: stop after this many epochs without a lower validation loss.
     max_minutes : float or None
@@ -88,6 +91,7 @@ class TrainConfig:
     seed: int = 0
     transform: str = "rate"
     ml_sigma: float | None = None
+    pixel_loss: str = "l1"
 
     def __post_init__(self):
         for name in ("epochs", "steps_per_epoch", "batch_size", "crop"):
@@ -116,6 +120,8 @@ class TrainConfig:
             raise ParameterError(f"seed must be a non-negative integer, got {self.seed!r}")
         if self.transform not in ("rate", "anscombe"):
             raise ParameterError(f"transform must be 'rate' or 'anscombe', got {self.transform!r}")
+        if self.pixel_loss not in ("l1", "mse"):
+            raise ParameterError(f"pixel_loss must be 'l1' or 'mse', got {self.pixel_loss!r}")
         if self.ml_sigma is not None and not (math.isfinite(self.ml_sigma) and self.ml_sigma >= 0):
             raise ParameterError(f"ml_sigma must be >= 0 or None, got {self.ml_sigma!r}")
 
@@ -197,6 +203,15 @@ def _ssim_loss(torch, pred, target):
     c1, c2 = 0.01**2, 0.03**2
     ssim = ((2 * mu_p * mu_t + c1) * (2 * s_pt + c2)) / ((mu_p**2 + mu_t**2 + c1) * (s_pp + s_tt + c2))
     return 1.0 - ssim.mean()
+
+
+def training_loss(torch, pred, target, config: TrainConfig):
+    """The loss ``config`` asks for: the pixel term (L1 or MSE) plus ``ssim_weight`` * (1 - SSIM)."""
+    diff = pred - target
+    loss = (diff * diff).mean() if config.pixel_loss == "mse" else diff.abs().mean()
+    if config.ssim_weight > 0:
+        loss = loss + config.ssim_weight * _ssim_loss(torch, pred, target)
+    return loss
 
 
 def plot_history(history: dict, path) -> Path | None:
@@ -325,7 +340,8 @@ def train(train_data, out, *, val_data=None, config: TrainConfig | None = None, 
             raise InputError(f"cannot resume {out}: it holds no training state")
         old = dict(state.get("config", {}))
         new = config.to_dict()
-        changed = sorted(k for k in new if k not in _RESUMABLE_CHANGES and old.get(k) != new[k])
+        defaults = TrainConfig().to_dict()  # a setting added later: the old run used its default
+        changed = sorted(k for k in new if k not in _RESUMABLE_CHANGES and old.get(k, defaults[k]) != new[k])
         if changed:
             raise ParameterError(f"cannot resume {out} with different settings: {', '.join(changed)}")
         if dict(doc["model"]) != model_config.to_dict():
@@ -390,10 +406,7 @@ def _run(torch, UNet, model_config, spec, config, train_data, val_data, out, sta
     val_y = [torch.from_numpy(np.asarray(it["image"], dtype=np.float32))[None, None] for it in val_items]
 
     def loss_fn(pred, target):
-        loss = (pred - target).abs().mean()
-        if config.ssim_weight > 0:
-            loss = loss + config.ssim_weight * _ssim_loss(torch, pred, target)
-        return loss
+        return training_loss(torch, pred, target, config)
 
     def validate():
         net.eval()
