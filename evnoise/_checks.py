@@ -131,8 +131,15 @@ def check_float(value, name: str, unit: str, *, minimum: float = 0.0, strict: bo
     return v
 
 
-def check_int(value, name: str, lo: int, hi: int, unit: str) -> int:
-    """``int(value)`` of an integer (not a bool, not a float) in ``lo .. hi``; ``ParameterError`` otherwise."""
+def check_int(value, name: str, lo: int, hi: int, unit: str, *, integral_floats: bool = False) -> int:
+    """``int(value)`` of an integer (not a bool) in ``lo .. hi``; ``ParameterError`` otherwise.
+
+    A float is refused unless ``integral_floats`` (then a finite whole float such as ``1e4`` is taken:
+    for durations in microseconds, which are naturally written that way).
+    """
+    whole_float = isinstance(value, (float, np.floating)) and math.isfinite(value) and float(value).is_integer()
+    if integral_floats and whole_float:
+        value = int(value)
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
         raise ParameterError(f"{name} must be an integer ({unit}), got {value!r}")
     if not lo <= int(value) <= hi:

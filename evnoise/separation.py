@@ -39,12 +39,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import numbers
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
+from ._checks import check_int
 from ._recordings import recording_blocks, recording_info, recording_start_us
 from .errors import InputError, ParameterError
 from .events import check_events, check_shape, empty_events
@@ -66,17 +67,8 @@ FILTERS = ("density", "activity")
 
 _MAX_US = 10**12  # about 11.6 days: a generous bound on windows, keeps int64 time arithmetic safe
 
-
-def _check_int(value, name: str, lo: int, hi: int, unit: str = "") -> int:
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-        if isinstance(value, numbers.Real) and math.isfinite(value) and float(value).is_integer():
-            value = int(value)
-        else:
-            raise ParameterError(f"{name} must be an integer{(' (' + unit + ')') if unit else ''}, got {value!r}")
-    value = int(value)
-    if not lo <= value <= hi:
-        raise ParameterError(f"{name} must be in {lo} .. {hi}{(' ' + unit) if unit else ''}, got {value}")
-    return value
+#: filter settings are whole numbers; 1e4 (a float) is taken for 10,000 microseconds
+_whole = partial(check_int, integral_floats=True)
 
 
 @dataclass(frozen=True)
@@ -121,11 +113,11 @@ class DensityFilter:
     polarity: str = "same"
 
     def __post_init__(self):
-        object.__setattr__(self, "radius_px", _check_int(self.radius_px, "radius_px", 0, 255, "pixels"))
-        object.__setattr__(self, "window_us", _check_int(self.window_us, "window_us", 0, _MAX_US, "microseconds"))
+        object.__setattr__(self, "radius_px", _whole(self.radius_px, "radius_px", 0, 255, "pixels"))
+        object.__setattr__(self, "window_us", _whole(self.window_us, "window_us", 0, _MAX_US, "microseconds"))
         object.__setattr__(self, "lookahead_us",
-                           _check_int(self.lookahead_us, "lookahead_us", 0, _MAX_US, "microseconds"))
-        object.__setattr__(self, "threshold", _check_int(self.threshold, "threshold", 1, 2**62, "events"))
+                           _whole(self.lookahead_us, "lookahead_us", 0, _MAX_US, "microseconds"))
+        object.__setattr__(self, "threshold", _whole(self.threshold, "threshold", 1, 2**62, "events"))
         if self.polarity not in ("any", "same"):
             raise ParameterError(f"polarity must be 'any' or 'same', got {self.polarity!r}")
 
@@ -146,8 +138,8 @@ class ActivityFilter:
     window_us: int = 5_000
 
     def __post_init__(self):
-        object.__setattr__(self, "radius_px", _check_int(self.radius_px, "radius_px", 1, 255, "pixels"))
-        object.__setattr__(self, "window_us", _check_int(self.window_us, "window_us", 0, _MAX_US, "microseconds"))
+        object.__setattr__(self, "radius_px", _whole(self.radius_px, "radius_px", 1, 255, "pixels"))
+        object.__setattr__(self, "window_us", _whole(self.window_us, "window_us", 0, _MAX_US, "microseconds"))
 
     @property
     def lookahead_us(self) -> int:
