@@ -397,6 +397,12 @@ def test_bad_filter_parameters(kwargs, match):
         density_filter(random_events(9, n=10), (10, 12), **kwargs)
 
 
+def test_filter_settings_written_as_whole_floats_are_taken():
+    assert DensityFilter(window_us=1e4, radius_px=np.int64(1)) == DensityFilter(window_us=10_000, radius_px=1)
+    with pytest.raises(ParameterError, match="radius_px"):
+        DensityFilter(radius_px=True)
+
+
 def test_bad_motion_parameters():
     events = random_events(10, n=50)
     with pytest.raises(ParameterError, match="fps"):
