@@ -120,12 +120,14 @@ def regular_mean_rate(p_own, mass, p_other, l_own, l_other, weight, trial_rate_h
     q = np.empty(n_atoms)
     log1m_p = np.empty(n_atoms)
     share_p = np.empty(n_atoms)
+    inv_p = np.empty(n_atoms)
     for a in range(n_atoms):
         pa = min(p_own[a] + p_other, 1.0)
         p[a] = pa
         log1m_p[a] = math.log1p(-pa)
         q[a] = math.exp(log1m_p[a])
         share_p[a] = p_own[a] / pa if pa > 0.0 else 0.0
+        inv_p[a] = 1.0 / pa if pa > 0.0 else 0.0
     dead = refractory_s * n
     per_node = np.zeros(l_own.size)
     for b in prange(l_own.size):
@@ -141,9 +143,15 @@ def regular_mean_rate(p_own, mass, p_other, l_own, l_other, weight, trial_rate_h
                 pa = p[a]
                 x = (d0 + 1.0) * log1m_p[a]
                 qd = math.exp(x)
-                head = -math.expm1(x) / pa if pa > 0.0 else d0 + 1.0
-                tail = qd * one_m_a2 / (1.0 - q[a] * one_m_a2)
-                e_min = (1.0 - phi) * (head + tail) + phi * (head + qd + q[a] * tail)
+                if pa <= 0.0:
+                    head = d0 + 1.0
+                elif x < -0.5:  # 1 - q^(d0+1) without cancellation: no expm1 needed
+                    head = (1.0 - qd) * inv_p[a]
+                else:
+                    head = -math.expm1(x) * inv_p[a]
+                e_min = head + phi * qd
+                if qd > 0.0:  # the geometric rest after the whole part; nothing left once q^(d0+1) underflows
+                    e_min += qd * one_m_a2 / (1.0 - q[a] * one_m_a2) * (1.0 - phi + phi * q[a])
                 photon = pa * e_min
                 acc += mass[a] * n / (dead + e_min) * (photon * share_p[a] + (1.0 - photon) * share_l)
         else:  # no background: photon noise alone, nu = N p / (1 + N p R)
