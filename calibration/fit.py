@@ -229,6 +229,11 @@ def calibrate(measurements: Measurements, *, method: str = "poisson", distributi
             f"{meas.n_levels} illuminance levels give {n_points} rates, too few to fit {needed - 1} parameters "
             f"({', '.join(n for n in free if n != 'eps_sigma')}); measure more levels or fix some parameters"
         )
+    if values["leak_regularity"] > 0 and (meas.kind == "flat-field" or meas.nb_shape is not None):
+        what = "flat fields (per-pixel counts)" if meas.kind == "flat-field" else "a table's measured NB shapes"
+        raise ParameterError(
+            f"a regular background (leak_regularity = {values['leak_regularity']:g}) is modelled in the mean rates "
+            f"only, not in {what}: fix leak_regularity=0, or calibrate the background from a quiet recording")
     bounds = _check_bounds(bounds)
     assumed = ("eps_sigma" not in free and "eps_sigma" not in fixed and initial is None
                and values["eps_sigma"] == TABLE_SIGMA)
