@@ -168,15 +168,16 @@ def pr_tau_s(lux, params) -> np.ndarray:
         return np.where(total > 0, params.pr_tau_s_at_1lux / np.where(total > 0, total, 1.0), math.inf)
 
 
-def _timer_mean_min(log1m_p, p, d, a2):
+def _timer_mean_min(log1m_p, p, d, log1m_a2):
     """``E[min(G_p, D + G)]`` for a whole ``d`` (arrays).
 
-    ``(1 - q^(d+1)) / p + q^(d+1) (1 - a2) / (1 - q (1 - a2))``.
+    ``(1 - q^(d+1)) / p + q^(d+1) (1 - a2) / (1 - q (1 - a2))``; the last denominator is
+    ``-expm1(log q + log(1 - a2))`` (no cancellation when ``p`` and ``a2`` are both small).
     """
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         qd = np.exp((d + 1.0) * log1m_p)
         head = np.where(p > 0, -np.expm1((d + 1.0) * log1m_p) / np.where(p > 0, p, 1.0), d + 1.0)
-        tail = qd * (1.0 - a2) / (1.0 - np.exp(log1m_p) * (1.0 - a2))
+        tail = np.where(qd > 0, qd * np.exp(log1m_a2) / -np.expm1(log1m_p + log1m_a2), 0.0)
     return head + tail
 
 
@@ -211,11 +212,12 @@ def regular_rates(p_on, p_off, l_on, l_off, trial_rate_hz: float, refractory_s: 
     l_all = l_on + l_off
     has = l_all > 0
     d, log1m_a2 = timer_shape(l_all, 1.0 / n, regularity)
-    a2 = -np.expm1(log1m_a2)
+    has = has & np.isfinite(d)  # an intensity too small to ever fire (1 / (1 - exp(-l / N)) overflows)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         d0 = np.floor(np.where(has, d, 0.0))
         phi = np.where(has, d, 0.0) - d0
-        e_min = (1.0 - phi) * _timer_mean_min(log1m_p, p, d0, a2) + phi * _timer_mean_min(log1m_p, p, d0 + 1.0, a2)
+        e_min = ((1.0 - phi) * _timer_mean_min(log1m_p, p, d0, log1m_a2)
+                 + phi * _timer_mean_min(log1m_p, p, d0 + 1.0, log1m_a2))
         e_min = np.where(has, e_min, np.where(p > 0, 1.0 / np.where(p > 0, p, 1.0), np.inf))
         gap = refractory_s * n + e_min
         nu = np.where(np.isfinite(gap), n / gap, 0.0)

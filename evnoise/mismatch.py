@@ -341,7 +341,7 @@ class LevelStats:
                     np.exp(self.log_p[k][j]), np.ascontiguousarray(self.mass[k][j], dtype=np.float64),
                     math.exp(self.log_m1[1 - k, j]), np.ascontiguousarray(self.bg_l[k, :, j]),
                     np.ascontiguousarray(self.bg_l[1 - k, :, j]), weight, self.trial_rate_hz, self.refractory_s,
-                    self.regularity)
+                    self.regularity, k == 0)
         return out
 
     def _check_not_regular(self, what):

@@ -231,22 +231,41 @@ def test_dispersion_evk3_script_runs_on_the_reference_tables():
 
 @pytest.mark.parametrize("regularity, refractory_s", [(0.7, 0.002), (1.0, 0.0), (1e-6, 0.0005)])
 def test_regular_mean_rate_kernel_matches_the_broadcast_formula(regularity, refractory_s):
-    """The fused kernel of the population mean against ``regular_rates`` on the whole (node, atom) grid,
-    including atoms with p = 0, p = 1 and p_own + p_other > 1 and nodes without background."""
+    """The fused kernel of the population mean against ``regular_rates`` on the whole (node, atom) grid, for
+    both polarities, including atoms with p = 0, p = 1 and p_own + p_other > 1 (clipped), nodes without
+    background and intensities so small that the timer's geometric rest has a2 below the float epsilon."""
     from evnoise._kernels.background import regular_mean_rate
 
     rng = np.random.default_rng(5)
-    p_own = np.concatenate([[0.0, 1.0, 0.95, 1e-300], 10.0 ** rng.uniform(-12, -0.3, 60)])
+    p_own = np.concatenate([[0.0, 1.0, 0.95, 0.8, 1e-300], 10.0 ** rng.uniform(-12, -0.3, 60)])
     mass = rng.random(p_own.size)
     mass /= mass.sum()
-    l_own = np.concatenate([[0.0, 0.0, 1e-8, 1e4], 10.0 ** rng.uniform(-4, 2, 40)])
-    l_other = np.concatenate([[0.0, 0.5, 0.0, 1e3], 10.0 ** rng.uniform(-4, 2, 40)])
+    l_own = np.concatenate([[0.0, 0.0, 1e-8, 1e4, 1e-300, 1e-20], 10.0 ** rng.uniform(-4, 2, 40)])
+    l_other = np.concatenate([[0.0, 0.5, 0.0, 1e3, 0.0, 1e-20], 10.0 ** rng.uniform(-4, 2, 40)])
     weight = rng.random(l_own.size)
     weight /= weight.sum()
     n = 40.0
     for p_other in (0.0, 0.02, 0.3):
-        got = regular_mean_rate(p_own, mass, p_other, l_own, l_other, weight, n, refractory_s, regularity)
-        nu_own = background.regular_rates(p_own[None, :], np.full((1, p_own.size), p_other), l_own[:, None],
-                                          l_other[:, None], n, refractory_s, regularity)[0]
-        assert np.all(np.isfinite(nu_own))
-        assert got == pytest.approx(float(weight @ (nu_own @ mass)), rel=1e-12, abs=1e-300)
+        po = np.full((1, p_own.size), p_other)
+        for own_is_on in (True, False):
+            got = regular_mean_rate(p_own, mass, p_other, l_own, l_other, weight, n, refractory_s, regularity,
+                                    own_is_on)
+            if own_is_on:
+                nu = background.regular_rates(p_own[None, :], po, l_own[:, None], l_other[:, None], n, refractory_s,
+                                              regularity)[0]
+            else:
+                nu = background.regular_rates(po, p_own[None, :], l_other[:, None], l_own[:, None], n, refractory_s,
+                                              regularity)[1]
+            assert np.all(np.isfinite(nu)) and np.all(nu >= -1e-12 * nu.max())  # rounding of 1 - p E[min]
+            assert got == pytest.approx(float(weight @ (nu @ mass)), rel=1e-12, abs=1e-300), (p_other, own_is_on)
+
+
+def test_regular_rates_at_the_smallest_intensities():
+    """A background too weak to matter leaves the photon-noise rate ``N p / (1 + N p R)`` (no NaN where
+    ``1 - q (1 - a2)`` would round to 0), with and without photon noise."""
+    n, r_s = 40.0, 0.002
+    for l_bg in (1e-300, 1e-20):
+        for p in (0.0, 1e-3):
+            on, off = background.regular_rates(p, 0.0, l_bg, 0.0, n, r_s, 0.8)
+            assert np.isfinite(on) and off == 0.0
+            assert float(on) == pytest.approx(n * p / (1 + n * p * r_s), rel=1e-9, abs=1e-12)

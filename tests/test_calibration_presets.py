@@ -371,7 +371,7 @@ def test_a_rate_table_fit_with_a_regular_background_finishes_and_says_why_no_sha
     assert result.gof["p_value"] > 1e-4, result.summary()
 
 
-def test_a_regular_background_is_refused_where_only_poisson_arrivals_are_modelled():
+def test_a_regular_background_is_refused_where_only_poisson_arrivals_are_modelled(monkeypatch):
     truth = ev.NoiseParams(eps_pos=0.3, eps_neg=0.35, bias_pr=5.0, trial_rate_hz=200.0, photons_per_lux=20.0,
                            leak_on_hz=0.05, leak_regularity=0.9)
     lux = np.geomspace(0.02, 20.0, 8)
@@ -379,4 +379,20 @@ def test_a_regular_background_is_refused_where_only_poisson_arrivals_are_modelle
     meas = cal.rate_table(lux, rate[0], rate[1], n_pixels=5000, duration_s=1.0, r_on=np.full(8, 50.0),
                           r_off=np.full(8, 50.0))
     with pytest.raises(ev.ParameterError, match="leak_regularity=0"):
+        cal.calibrate(meas, fixed={"leak_regularity": 0.9, "leak_on_hz": 0.05}, n_starts=1, n_seeds=4, rng=0)
+    with pytest.raises(ev.ParameterError, match="leak_regularity=0"):  # a preset's regular leak as the start
+        cal.calibrate(meas, initial=ev.load_preset("dvs128"), n_starts=1, n_seeds=4, rng=0)
+    with pytest.raises(ev.ParameterError, match="leak_regularity=0"):  # floors to be fitted
+        cal.calibrate(meas, free=["eps_pos", "leak_on_hz"], fixed={"leak_regularity": 0.9}, n_starts=1, n_seeds=4,
+                      rng=0)
+
+    # a regularity without any background to be regular is no reason to refuse: the fit starts
+    class Started(Exception):
+        pass
+
+    def started(*args, **kwargs):
+        raise Started
+
+    monkeypatch.setattr(F, "_fit", started)
+    with pytest.raises(Started):
         cal.calibrate(meas, fixed={"leak_regularity": 0.9}, n_starts=1, n_seeds=4, rng=0)

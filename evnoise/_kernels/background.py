@@ -46,7 +46,7 @@ def draw_timer(s, d, log1m_a2):
     """Trials ``L >= 1`` from the first eligible trial to the next background arrival."""
     if d == math.inf:
         return math.inf
-    d0 = math.floor(d)
+    d0 = np.floor(d)  # a float: math.floor is an int64 in Numba and overflows beyond 9.2e18
     if uniform(s) < d - d0:
         d0 += 1.0
     return d0 + geometric(s, log1m_a2)
@@ -65,7 +65,7 @@ def draw_timer_stationary(s, d, log1m_a2, log1m_p):
     """
     if d == math.inf:
         return math.inf
-    d0 = math.floor(d)
+    d0 = np.floor(d)  # a float: math.floor is an int64 in Numba and overflows beyond 9.2e18
     phi = d - d0
     q = math.exp(log1m_p)  # 1 - p
     p = -math.expm1(log1m_p)
@@ -94,24 +94,27 @@ def draw_timer_stationary(s, d, log1m_a2, log1m_p):
         # age a in 0..dd with weights q^a: inverse of the truncated geometric
         if p > 0.0:
             u = uniform(s)
-            a = math.floor(math.log1p(u * math.expm1((dd + 1.0) * log1m_p)) / log1m_p)
+            a = np.floor(math.log1p(u * math.expm1((dd + 1.0) * log1m_p)) / log1m_p)
             a = min(max(a, 0.0), dd)
         else:
-            a = math.floor(uniform(s) * (dd + 1.0))
+            a = np.floor(uniform(s) * (dd + 1.0))
         return (dd - a) + geometric(s, log1m_a2)
     # age a > dd: a = dd + 1 + (failures of ratio q (1 - a2)); the rest of the timer is memoryless
     return geometric(s, log1m_a2)
 
 
 @kernel(parallel=True)
-def regular_mean_rate(p_own, mass, p_other, l_own, l_other, weight, trial_rate_hz, refractory_s, regularity):
+def regular_mean_rate(p_own, mass, p_other, l_own, l_other, weight, trial_rate_hz, refractory_s, regularity,
+                      own_is_on):
     """Population mean rate (events/s) of one polarity with the regular timer, summed in one pass.
 
     ``sum_b weight[b] sum_a mass[a] nu_own(p_own[a], p_other, l_own[b], l_other[b])`` with ``nu_own``
     the rate of :func:`evnoise.background.regular_rates` (its module doc's formula): threshold atoms
     ``a`` (``p_own``, ``mass``), background nodes ``b`` (``l_own``, ``l_other`` events/s, ``weight``).
     The two whole parts of the timer share their powers: ``E[min]`` at ``D = d0 + 1`` is
-    ``head + q^(d0+1) + q tail`` of the one at ``d0``. Each node's sum is its own (thread-count
+    ``head + q^(d0+1) + q tail`` of the one at ``d0``. Where ``p_own + p_other > 1`` the total is
+    clipped to 1 and, as in ``regular_rates``, ON keeps ``p_on / p`` of the photon events and OFF the
+    rest (``own_is_on`` says which one ``p_own`` is). Each node's sum is its own (thread-count
     independent), the nodes are added in order.
     """
     n = trial_rate_hz
@@ -126,7 +129,10 @@ def regular_mean_rate(p_own, mass, p_other, l_own, l_other, weight, trial_rate_h
         p[a] = pa
         log1m_p[a] = math.log1p(-pa)
         q[a] = math.exp(log1m_p[a])
-        share_p[a] = p_own[a] / pa if pa > 0.0 else 0.0
+        if pa > 0.0:
+            share_p[a] = p_own[a] / pa if own_is_on else 1.0 - p_other / pa
+        else:
+            share_p[a] = 0.0
         inv_p[a] = 1.0 / pa if pa > 0.0 else 0.0
     dead = refractory_s * n
     per_node = np.zeros(l_own.size)
@@ -135,7 +141,7 @@ def regular_mean_rate(p_own, mass, p_other, l_own, l_other, weight, trial_rate_h
         d, log1m_a2 = timer_shape(l_all, 1.0 / n, regularity)
         acc = 0.0
         if d < math.inf:
-            d0 = math.floor(d)
+            d0 = np.floor(d)  # a float: math.floor is an int64 in Numba and overflows beyond 9.2e18
             phi = d - d0
             one_m_a2 = math.exp(log1m_a2)
             share_l = l_own[b] / l_all
@@ -151,9 +157,11 @@ def regular_mean_rate(p_own, mass, p_other, l_own, l_other, weight, trial_rate_h
                     head = -math.expm1(x) * inv_p[a]
                 e_min = head + phi * qd
                 if qd > 0.0:  # the geometric rest after the whole part; nothing left once q^(d0+1) underflows
-                    e_min += qd * one_m_a2 / (1.0 - q[a] * one_m_a2) * (1.0 - phi + phi * q[a])
-                photon = pa * e_min
-                acc += mass[a] * n / (dead + e_min) * (photon * share_p[a] + (1.0 - photon) * share_l)
+                    # 1 - q (1 - a2) = p + a2 - p a2, without cancellation when both are small
+                    e_min += qd * one_m_a2 / -math.expm1(log1m_p[a] + log1m_a2) * (1.0 - phi + phi * q[a])
+                if e_min < math.inf:  # else the pixel never fires: rate 0
+                    photon = pa * e_min
+                    acc += mass[a] * n / (dead + e_min) * (photon * share_p[a] + (1.0 - photon) * share_l)
         else:  # no background: photon noise alone, nu = N p / (1 + N p R)
             for a in range(n_atoms):
                 if p[a] > 0.0:

@@ -88,7 +88,7 @@ def geometric(s, log1m_p):
         return math.inf
     if log1m_p == -math.inf:
         return 1.0
-    return math.floor(math.log(uniform_pos(s)) / log1m_p) + 1.0
+    return np.floor(math.log(uniform_pos(s)) / log1m_p) + 1.0  # np.floor: a float (math.floor's int64 overflows)
 
 
 @kernel

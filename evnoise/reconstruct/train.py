@@ -214,7 +214,13 @@ def training_loss(torch, pred, target, config: TrainConfig):
     return loss
 
 
-def plot_history(history: dict, path) -> Path | None:
+def describe_loss(config: TrainConfig) -> str:
+    """The loss of ``config`` in words, for plots."""
+    pixel = "MSE" if config.pixel_loss == "mse" else "L1"
+    return f"{pixel} + {config.ssim_weight:g} (1 - SSIM)" if config.ssim_weight > 0 else pixel
+
+
+def plot_history(history: dict, path, *, loss_label: str = "L1 + w (1 - SSIM)") -> Path | None:
     """Loss curves (train and validation loss, validation PSNR) as a PNG; None without matplotlib."""
     try:
         import matplotlib
@@ -230,7 +236,7 @@ def plot_history(history: dict, path) -> Path | None:
     ax[0].plot(epochs, history.get("train_loss", []), ".-", label="train (crops)")
     ax[0].plot(epochs, history.get("val_loss", []), ".-", label="validation")
     ax[0].set_xlabel("epoch")
-    ax[0].set_ylabel("loss (L1 + w (1 - SSIM))")
+    ax[0].set_ylabel(f"loss ({loss_label})")
     ax[0].legend()
     ax[1].plot(epochs, history.get("val_psnr", []), ".-", color="C2")
     ax[1].set_xlabel("epoch")
@@ -486,7 +492,7 @@ def _run(torch, UNet, model_config, spec, config, train_data, val_data, out, sta
             _save(out, model_config, spec, best_state, net, opt, config, epoch, step, history, best_epoch, best_val,
                   elapsed0 + time.perf_counter() - start, finished, data_description, card)
             if plot_path is not None:
-                plot_history(history, plot_path)
+                plot_history(history, plot_path, loss_label=describe_loss(config))
             if over_budget:
                 break
             if on_epoch_end is not None and on_epoch_end(epoch, history) and epoch < config.epochs:
