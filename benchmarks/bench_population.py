@@ -42,7 +42,7 @@ def broadcast_reference(stats) -> np.ndarray:
     return out
 
 
-def best_of(fn, repeats):
+def median_time(fn, repeats):
     fn()
     times = []
     for _ in range(repeats):
@@ -73,9 +73,9 @@ def main(argv=None) -> int:
     def stats():
         return LevelStats(lam, params, "poisson")
 
-    t_stats, st = best_of(stats, args.repeats)
-    t_ref, ref = best_of(lambda: broadcast_reference(st), args.repeats)
-    t_new, new = best_of(st.mean_rate, args.repeats)
+    t_stats, st = median_time(stats, args.repeats)
+    t_ref, ref = median_time(lambda: broadcast_reference(st), args.repeats)
+    t_new, new = median_time(st.mean_rate, args.repeats)
     pairs = sum(len(st.mass[k][j]) for k in range(2) for j in range(LUX.size)) * st.bg_weight.size
     err = float(np.max(np.abs(new / ref - 1.0)))
     print(f"Machine: {platform.machine()}, {platform.system()}, Python {platform.python_version()}, "

@@ -11,7 +11,9 @@ gets with no counts at all, and what the U-Net gets when it is given the same or
 ``U-Net, affine fit``         the U-Net's best affine fit to the target (oracle, like the count image's)
 ``count image, affine fit``   baseline (a) of RECONSTRUCTION.md (oracle)
 
-PSNR only (the brightness question is a PSNR question). Prints a markdown table.
+PSNR only (the brightness question is a PSNR question), with each row's paired difference to the count
+image's oracle fit; standard errors over source images (the crops of one image are correlated).
+Prints a markdown table.
 
     python benchmarks/oracle_diagnostics.py --test-sets heldout [--model evnoise/models/evk3-hd.pt]
 """
@@ -27,6 +29,7 @@ import numpy as np
 
 ROWS = ("constant, target's mean", "constant 0.4", "U-Net", "U-Net, target's mean", "U-Net, affine fit",
         "count image, affine fit")
+REFERENCE = "count image, affine fit"
 
 
 def affine_fit(pred, target):
@@ -48,18 +51,38 @@ def variants(unet, counts_affine, target) -> dict:
     }
 
 
+def _per_source(values, sources):
+    """Means over the pairs of each source image (its crops are correlated), in order of first appearance."""
+    groups = {}
+    for v, src in zip(values, sources, strict=True):
+        groups.setdefault(src, []).append(v)
+    return np.array([np.mean(g) for g in groups.values()])
+
+
+def _mean_se(per_source):
+    return float(per_source.mean()), float(per_source.std(ddof=1) / math.sqrt(per_source.size))
+
+
 def diagnose(dataset, model) -> dict:
-    """Mean PSNR and its standard error over the pairs, per row."""
+    """Per row: mean PSNR ± standard error, and the paired difference to the count image's oracle fit ± its
+    standard error (both over source images)."""
     from evnoise.reconstruct.evaluate import evaluate
     from evnoise.reconstruct.metrics import psnr
 
     out = evaluate(dataset, model, methods=("unet", "counts-affine"), lpips=False, keep_predictions=len(dataset))
     scores = {r: [] for r in ROWS}
+    sources = [ex["source"] for ex in out["examples"]]
     for ex in out["examples"]:
         target = ex["target"]
         for name, img in variants(ex["predictions"]["unet"], ex["predictions"]["counts-affine"], target).items():
             scores[name].append(psnr(img, target))
-    return {r: (float(np.mean(v)), float(np.std(v, ddof=1) / math.sqrt(len(v)))) for r, v in scores.items()}
+    ref = np.array(scores[REFERENCE])
+    res = {}
+    for r, v in scores.items():
+        v = np.array(v)
+        res[r] = (*_mean_se(_per_source(v, sources)), *_mean_se(_per_source(v - ref, sources)))
+    res["n_sources"] = len(set(sources))
+    return res
 
 
 def main(argv=None) -> int:
@@ -73,10 +96,16 @@ def main(argv=None) -> int:
     model = args.model or str(default_model_path())
     names = ("dead-leaves", "photos")
     res = {n: diagnose(PairDataset(Path(args.test_sets) / n, "test"), model) for n in names}
-    print("| PSNR (dB) | " + " | ".join(names) + " |")
-    print("|---|" + "---|" * len(names))
+    print("PSNR in dB; ± standard errors over source images (" +
+          ", ".join(f"{n}: {res[n]['n_sources']}" for n in names) + f"); difference: paired, to '{REFERENCE}'.\n")
+    print("| image | " + " | ".join(f"{n} PSNR | {n} difference" for n in names) + " |")
+    print("|---|" + "---|---|" * len(names))
     for r in ROWS:
-        print(f"| {r} | " + " | ".join(f"{res[n][r][0]:.2f} ± {res[n][r][1]:.2f}" for n in names) + " |")
+        cells = []
+        for n in names:
+            m, se, dm, dse = res[n][r]
+            cells += [f"{m:.2f} ± {se:.2f}", "reference" if r == REFERENCE else f"{dm:+.2f} ± {dse:.2f}"]
+        print(f"| {r} | " + " | ".join(cells) + " |")
     return 0
 
 
