@@ -341,6 +341,24 @@ def test_tiny_training_reduces_validation_loss_and_is_reproducible(tmp_path):
         torch.testing.assert_close(sa[key], sb[key], rtol=0, atol=0)
 
 
+def test_a_run_saved_before_a_setting_existed_resumes_with_its_default(tmp_path):
+    """A checkpoint whose training config lacks a later setting (``pixel_loss``) resumes under the default and
+    is refused under another value."""
+    tr, va = resampled(n=3, size=64, seed=1), resampled(n=1, size=64, seed=2)
+    cfg = TrainConfig(**TINY_CFG)
+    path = tmp_path / "old.pt"
+    train(tr, path, val_data=va, config=cfg, model=TINY, progress=False, plot=False,
+          on_epoch_end=lambda epoch, history: epoch == 1)
+    doc = torch.load(path, map_location="cpu", weights_only=True)
+    del doc["train"]["config"]["pixel_loss"]
+    torch.save(doc, path)
+    with pytest.raises(ParameterError, match="pixel_loss"):
+        train(tr, path, val_data=va, config=TrainConfig(**TINY_CFG, pixel_loss="mse"), model=TINY, resume=True,
+              progress=False, plot=False)
+    done = train(tr, path, val_data=va, config=cfg, model=TINY, resume=True, progress=False, plot=False)
+    assert done["epochs"] == 3
+
+
 def test_training_refuses_bad_setups(tmp_path):
     tr = resampled(n=3, size=32, seed=1)
     with pytest.raises(ParameterError):
