@@ -104,6 +104,11 @@ def test_plot_writes_a_png(tmp_path, capsys, name):
         pixels = np.asarray(img.convert("L"))
     assert pixels.std() > 5  # not blank
     assert not list(tmp_path.glob("*.tmp*"))
+    # an existing plot is kept unless --overwrite
+    before = out.read_bytes()
+    assert main(["presets", name, "--plot", str(out)]) == 2
+    assert "already exists" in capsys.readouterr().err and out.read_bytes() == before
+    assert main(["presets", name, "--plot", str(out), "--overwrite"]) == 0
 
 
 def test_rate_curves_add_up():

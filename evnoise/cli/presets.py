@@ -34,6 +34,7 @@ def register(subparsers) -> None:
     p.add_argument("name", nargs="?", metavar="NAME", help="a preset name (see the list) or a preset .toml file")
     p.add_argument("--plot", metavar="FILE", help="with NAME: write a PNG of the rate against lux")
     p.add_argument("--json", action="store_true", help="print as JSON")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --plot file")
     p.set_defaults(func=run)
 
 
@@ -129,7 +130,7 @@ def rate_curves(params, lux) -> dict:
     return curves
 
 
-def plot_rates(params, path, *, title: str = "") -> None:
+def plot_rates(params, path, *, title: str = "", overwrite: bool = False) -> None:
     """PNG of the ON and OFF rates against lux (log-log), one panel per polarity, written atomically."""
     import numpy as np
 
@@ -167,7 +168,7 @@ def plot_rates(params, path, *, title: str = "") -> None:
         fig.suptitle(title)
     fig.tight_layout()
     try:
-        with atomic_output(path, overwrite=True, what="plot") as tmp:
+        with atomic_output(path, overwrite=overwrite, what="plot") as tmp:
             fig.savefig(tmp, dpi=110, format="png")
     finally:
         plt.close(fig)
@@ -184,8 +185,12 @@ def run(args) -> int:
         return 0
     d = describe(args.name)
     if args.plot:
+        from ..io import open_output_path
+
+        open_output_path(args.plot, overwrite=args.overwrite, what="plot")  # before the curves are computed
         params = load_preset(args.name)
-        plot_rates(params, args.plot, title=f"{d['name']}: {d['sensor'] or ''}".rstrip(": "))
+        plot_rates(params, args.plot, title=f"{d['name']}: {d['sensor'] or ''}".rstrip(": "),
+                   overwrite=args.overwrite)
         d["plot"] = str(args.plot)
     print(json.dumps(d, indent=2, default=_json_default) if args.json else _text_show(d))
     if args.plot and not args.json:
