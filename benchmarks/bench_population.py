@@ -17,9 +17,11 @@ import argparse
 import math
 import platform
 import sys
-import time
+from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 LUX = np.geomspace(0.05, 50.0, 15)
 
@@ -43,13 +45,11 @@ def broadcast_reference(stats) -> np.ndarray:
 
 
 def median_time(fn, repeats):
-    fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times)), out
+    """Median seconds of ``repeats`` calls after a warm-up (``run.timed``), and the last result."""
+    from run import timed
+
+    (median, _, _), out = timed(fn, repeats)
+    return median, out
 
 
 def main(argv=None) -> int:
