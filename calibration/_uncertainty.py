@@ -279,6 +279,11 @@ def _finish(problem: _Problem, theta, max_rel_se, *, profile=None, sigma_note=No
     if fit_status == "rejected":
         warnings.append(f"fit rejected: {why}; the model with these parameters does not describe the data (check "
                         f"the measurements, fixed values and bounds)")
+        held = [n for n in FLOORS if status[n].startswith("not identified (no dark level")]
+        if held:  # the commonest cause with real sensors: a background floor the default fit leaves at 0
+            warnings.append(f"the background floors were held at 0 (the table has no dark level): if the sensor has "
+                            f"background activity, fit them too (--fit ... {' '.join(held)}, or free=[..., "
+                            f"{', '.join(repr(n) for n in held)}])")
         for n in free:
             if status[n] == "fitted":
                 status[n] = "fitted (fit rejected)"

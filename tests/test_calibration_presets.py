@@ -107,15 +107,28 @@ def test_calibration_recovers_the_shipped_preset(name):
     _check_recovery(result, truth, meas)
 
 
+#: Presets whose background floors the default fit (floors held at 0 without a dark level) cannot do without.
+_FLOORS_NEEDED = ("dvs128",)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ev.list_presets())
 def test_default_calibration_recovers_the_shipped_preset(name, tmp_path):
-    """The default command (assumed mismatch or none, whichever the data prefer) on several tables."""
+    """The default command (assumed mismatch or none, whichever the data prefer) on several tables: it recovers
+    the preset, or (floors it cannot do without) rejects the fit and names the floors to fit."""
     truth = ev.load_preset(name)
     for seed in (1, 2):
         meas = _preset_table(truth, seed)
         result = cal.calibrate(meas, rng=seed)
         assert result.status["eps_sigma"] == "fixed (assumed)"
+        if name in _FLOORS_NEEDED:
+            # the table has no dark level, so the default holds the floors at 0; this preset's ON leak (0.028
+            # events/s) is nearly all of its ON rate at 50 lux (OFF there: 0.0015), which no photon-noise
+            # parameter can mimic: the fit must fail and say what to fit (the other presets' floors are
+            # absorbed within the fit's tolerance)
+            assert result.fit_status == "rejected", result.summary()
+            assert any("fit them too" in w and "leak_on_hz" in w for w in result.warnings), result.warnings
+            continue
         if truth.eps_sigma == 0:
             assert result.params.eps_sigma == 0, result.summary()
         _check_recovery(result, truth, meas)
@@ -405,3 +418,21 @@ def test_a_regular_background_is_refused_where_only_poisson_arrivals_are_modelle
     monkeypatch.setattr(F, "_fit", started)
     with pytest.raises(Started):
         cal.calibrate(meas, fixed={"leak_regularity": 0.9}, n_starts=1, n_seeds=4, rng=0)
+
+
+def test_a_fit_rejected_with_floors_held_at_0_says_to_fit_them():
+    """A table without a dark level from a sensor with a strong ON leak: the fit without floors fails and the
+    warning names the floors to fit; with them free, it is accepted."""
+    truth = ev.NoiseParams(eps_pos=0.3, eps_neg=0.35, bias_pr=5.0, trial_rate_hz=200.0, photons_per_lux=20.0,
+                           dark_lux=0.05, leak_on_hz=0.5)
+    lux = np.geomspace(0.02, 20.0, 8)
+    counts = np.random.default_rng(3).poisson(cal.population_rate(lux, truth) * 5000 * 1.0)
+    meas = cal.count_table(lux, counts[0], counts[1], 5000, 1.0)
+    held = {"eps_sigma": 0.0, "photons_per_lux": 20.0, "dark_lux": 0.05}
+    core = ["eps_pos", "eps_neg", "bias_pr", "trial_rate_hz"]
+    result = cal.calibrate(meas, free=core, fixed=held, n_starts=1, n_seeds=16, rng=0)
+    assert result.fit_status == "rejected", result.summary()
+    assert any("fit them too" in w and "leak_on_hz" in w for w in result.warnings), result.warnings
+    refit = cal.calibrate(meas, free=core + ["leak_on_hz", "leak_off_hz"], fixed=held, n_starts=1, n_seeds=16, rng=0)
+    assert refit.fit_status == "accepted", refit.summary()
+    assert not any("fit them too" in w for w in refit.warnings)
