@@ -173,10 +173,11 @@ def _finish(problem: _Problem, theta, max_rel_se, *, profile=None, sigma_note=No
     free = list(problem.free)
     p = len(free)
     status = {n: ("not identified" if n in NEVER else "fixed") for n in FIT_NAMES}
-    if float(meas.lux.min()) > DARK_LUX:
-        for n in FLOORS:  # held, not fitted: nothing in the data separates them from the photon noise
-            if n not in problem.free and problem.values[n] == 0.0:
-                status[n] = "not identified (no dark level; fit with --fit)"
+    # floors held at 0, not fitted: without a dark level nothing in the data separates them from the photon noise
+    held_floors = ([n for n in FLOORS if n not in problem.free and problem.values[n] == 0.0]
+                   if float(meas.lux.min()) > DARK_LUX else [])
+    for n in held_floors:
+        status[n] = "not identified (no dark level; fit with --fit)"
     at_bound = []  # indices held at a bound
     bound_side = {}  # name -> "lower" | "upper"
     for i, n in enumerate(free):
@@ -279,11 +280,10 @@ def _finish(problem: _Problem, theta, max_rel_se, *, profile=None, sigma_note=No
     if fit_status == "rejected":
         warnings.append(f"fit rejected: {why}; the model with these parameters does not describe the data (check "
                         f"the measurements, fixed values and bounds)")
-        held = [n for n in FLOORS if status[n].startswith("not identified (no dark level")]
-        if held:  # the commonest cause with real sensors: a background floor the default fit leaves at 0
+        if held_floors:  # the commonest cause with real sensors: a background floor the default fit leaves at 0
             warnings.append(f"the background floors were held at 0 (the table has no dark level): if the sensor has "
-                            f"background activity, fit them too (--fit ... {' '.join(held)}, or free=[..., "
-                            f"{', '.join(repr(n) for n in held)}])")
+                            f"background activity, fit them too (--fit ... {' '.join(held_floors)}, or free=[..., "
+                            f"{', '.join(repr(n) for n in held_floors)}])")
         for n in free:
             if status[n] == "fitted":
                 status[n] = "fitted (fit rejected)"

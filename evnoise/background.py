@@ -221,7 +221,7 @@ def regular_rates(p_on, p_off, l_on, l_off, trial_rate_hz: float, refractory_s: 
         e_min = np.where(has, e_min, np.where(p > 0, 1.0 / np.where(p > 0, p, 1.0), np.inf))
         gap = refractory_s * n + e_min
         nu = np.where(np.isfinite(gap), n / gap, 0.0)
-        photon = np.where(np.isfinite(e_min), p * e_min, 1.0)
+        photon = np.where(np.isfinite(e_min), np.minimum(p * e_min, 1.0), 1.0)  # a share: <= 1 after rounding
         share_on = np.where(has, l_on / np.where(has, l_all, 1.0), 0.0)
         share_p = np.where(p > 0, p_on / np.where(p > 0, p, 1.0), 0.0)
         nu_on = nu * (photon * share_p + (1.0 - photon) * share_on)

@@ -160,7 +160,7 @@ def regular_mean_rate(p_own, mass, p_other, l_own, l_other, weight, trial_rate_h
                     # 1 - q (1 - a2) = p + a2 - p a2, without cancellation when both are small
                     e_min += qd * one_m_a2 / -math.expm1(log1m_p[a] + log1m_a2) * (1.0 - phi + phi * q[a])
                 if e_min < math.inf:  # else the pixel never fires: rate 0
-                    photon = pa * e_min
+                    photon = min(pa * e_min, 1.0)  # the photon events' share: <= 1 after rounding
                     acc += mass[a] * n / (dead + e_min) * (photon * share_p[a] + (1.0 - photon) * share_l)
         else:  # no background: photon noise alone, nu = N p / (1 + N p R)
             for a in range(n_atoms):
