@@ -17,7 +17,14 @@ Invalid values (NaN, Inf, negative) are an :class:`~evnoise.InputError` that nam
 file, or, with ``clip_invalid=True``, replaced (NaN and negative values by 0, ``+Inf`` by the
 largest finite value of the image) with a logged warning.
 
-Heavy libraries (Pillow, tifffile, imagecodecs, OpenEXR) are imported inside the functions.
+Decompression bombs: every decoder's declared size is read from the file's header and checked
+against one pixel limit, :data:`DEFAULT_MAX_IMAGE_PIXELS` (64 megapixels, about 3 GB of working
+memory at most), *before* any pixel is decoded; ``EVNOISE_MAX_IMAGE_PIXELS`` (or ``max_pixels=``)
+raises or lowers it.
+
+Heavy libraries (Pillow, tifffile, imagecodecs, OpenEXR) are imported inside the functions;
+imagecodecs is optional (``pip install 'evnoise[imagecodecs]'``): it decodes 16-bit colour PNG
+and TIFF compressions other than deflate, LZMA and PackBits.
 """
 
 from __future__ import annotations
@@ -26,6 +33,7 @@ import functools
 import logging
 import os
 import re
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +43,8 @@ from .errors import InputError, ParameterError
 
 __all__ = [
     "DEFAULT_MAX_LUX",
+    "DEFAULT_MAX_IMAGE_PIXELS",
+    "max_image_pixels",
     "ENCODINGS",
     "FIT_MODES",
     "IMAGE_EXTENSIONS",
@@ -61,6 +71,13 @@ ENCODINGS = ("srgb", "gamma2.2", "linear")
 #: Ways to bring an image to the sensor size, see :func:`fit_to_sensor`.
 FIT_MODES = ("cover", "crop", "resize")
 
+#: Largest image (pixels) decoded unless ``EVNOISE_MAX_IMAGE_PIXELS`` or ``max_pixels=`` says otherwise:
+#: 64 megapixels (8192 x 8192). Decoding works in float64 (up to ~45 bytes per pixel at the peak).
+DEFAULT_MAX_IMAGE_PIXELS = 1 << 26
+MAX_PIXELS_ENV = "EVNOISE_MAX_IMAGE_PIXELS"
+#: channels beyond this count as extra pixels (a TIFF or EXR may declare thousands of channels)
+_CHANNELS_PER_PIXEL = 4
+
 #: File name extensions that :func:`list_frames` treats as images (case-insensitive).
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr")
 
@@ -70,6 +87,7 @@ REC709_LUMA = np.array([0.2126, 0.7152, 0.0722])
 _EXR_MAGIC = b"\x76\x2f\x31\x01"
 _TIFF_MAGICS = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+_PIL_LIMIT_LOCK = threading.Lock()  # held while Pillow's own bomb check is lifted (see _open_pillow)
 
 
 # --------------------------------------------------------------------------------------
@@ -172,19 +190,62 @@ def _sniff(path: Path) -> bytes:
     return head
 
 
-def load_luminance(path, encoding: str = "srgb"):
-    """``(values, kind)``: relative linear luminance (float64, H x W) and ``"display"`` or ``"linear"``."""
+def max_image_pixels(max_pixels=None) -> int:
+    """The pixel limit of image decoding: ``max_pixels``, else ``$EVNOISE_MAX_IMAGE_PIXELS``, else the default."""
+    source = "max_pixels"
+    if max_pixels is None:
+        text = os.environ.get(MAX_PIXELS_ENV, "").strip()
+        if not text:
+            return DEFAULT_MAX_IMAGE_PIXELS
+        source, max_pixels = MAX_PIXELS_ENV, text.replace("_", "")
+    try:
+        limit = int(max_pixels)
+    except (TypeError, ValueError, OverflowError):
+        limit = 0
+    if limit < 1 or (not isinstance(max_pixels, str) and limit != max_pixels):
+        raise ParameterError(f"{source} must be a positive whole number of pixels, got {max_pixels!r}")
+    return limit
+
+
+def _declared_pixels(width, height, channels: int = 1, depth: int = 1) -> int:
+    """Pixels an image header declares; every 4 channels beyond the first 4 count as another image."""
+    return int(width) * int(height) * max(1, int(depth)) * max(1, -(-int(channels) // _CHANNELS_PER_PIXEL))
+
+
+def _check_pixels(name: str, pixels: int, size: str, limit: int) -> None:
+    """Refuse an image whose header declares more than ``limit`` pixels (before anything is decoded)."""
+    if pixels <= limit:
+        return
+    raise InputError(f"{name}: the image declares {size} ({pixels:,} pixels), more than the limit of {limit:,} "
+                     f"pixels (a guard against decompression bombs); to read it, raise the limit with "
+                     f"{MAX_PIXELS_ENV}=N (max_pixels=N in Python)")
+
+
+def _require_imagecodecs(name: str, what: str):
+    try:
+        import imagecodecs
+    except ImportError:
+        raise InputError(f"{name}: {what} needs the imagecodecs package: pip install 'evnoise[imagecodecs]'") from None
+    return imagecodecs
+
+
+def load_luminance(path, encoding: str = "srgb", *, max_pixels=None):
+    """``(values, kind)``: relative linear luminance (float64, H x W) and ``"display"`` or ``"linear"``.
+
+    ``max_pixels``: see :func:`max_image_pixels`; the size is checked from the header, before decoding.
+    """
     path = Path(path)
     encoding = _check_encoding(encoding)
+    limit = max_image_pixels(max_pixels)
     head = _sniff(path)
     if head.startswith(_EXR_MAGIC):
-        return _read_exr(path), "linear"
+        return _read_exr(path, limit), "linear"
     if head[:4] in _TIFF_MAGICS:
-        raw = _read_tiff(path)
+        raw = _read_tiff(path, limit)
     elif head.startswith(_PNG_MAGIC) and len(head) >= 26 and head[24] == 16 and head[25] in (2, 4, 6):
-        raw = _read_png16(path)  # Pillow would truncate 16-bit colour / grey+alpha PNG to 8 bits
+        raw = _read_png16(path, head, limit)  # Pillow would truncate 16-bit colour / grey+alpha PNG to 8 bits
     else:
-        raw = _read_pillow(path)
+        raw = _read_pillow(path, limit)
     return to_luminance(raw, encoding, _describe(path))
 
 
@@ -210,12 +271,35 @@ def to_luminance(raw: np.ndarray, encoding: str, name: str):
     raise InputError(f"{name}: unsupported pixel type {raw.dtype} (use 8/16-bit integers or floats)")
 
 
-def _read_pillow(path: Path) -> np.ndarray:
-    from PIL import Image, ImageOps
+def _open_pillow(path: Path, limit: int):
+    """``Image.open`` with evnoise's pixel limit in place of Pillow's own bomb check (header only)."""
+    import warnings
+
+    from PIL import Image
+
+    pil_limit = Image.MAX_IMAGE_PIXELS
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # the limit below is the one that counts
+        try:
+            return Image.open(path)
+        except Image.DecompressionBombError:
+            pass
+        # beyond Pillow's refusal threshold: open the header without that check; the caller checks the size
+        with _PIL_LIMIT_LOCK:
+            Image.MAX_IMAGE_PIXELS = None
+            try:
+                return Image.open(path)
+            finally:
+                Image.MAX_IMAGE_PIXELS = pil_limit
+
+
+def _read_pillow(path: Path, limit: int = DEFAULT_MAX_IMAGE_PIXELS) -> np.ndarray:
+    from PIL import ImageOps
 
     name = _describe(path)
     try:
-        with Image.open(path) as im:
+        with _open_pillow(path, limit) as im:
+            _check_pixels(name, _declared_pixels(im.width, im.height), f"{im.width}x{im.height}", limit)
             im.load()
             im = ImageOps.exif_transpose(im)
             if "icc_profile" in im.info:
@@ -244,9 +328,13 @@ def _read_pillow(path: Path) -> np.ndarray:
     return arr
 
 
-def _read_png16(path: Path) -> np.ndarray:
-    import imagecodecs
-
+def _read_png16(path: Path, head: bytes, limit: int = DEFAULT_MAX_IMAGE_PIXELS) -> np.ndarray:
+    name = _describe(path)
+    if head[12:16] != b"IHDR":
+        raise InputError(f"cannot read image {name}: the PNG does not start with its IHDR header")
+    width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    _check_pixels(name, _declared_pixels(width, height), f"{width}x{height}", limit)
+    imagecodecs = _require_imagecodecs(name, "a 16-bit colour or grey+alpha PNG")
     try:
         arr = imagecodecs.png_decode(path.read_bytes())
     except Exception as exc:
@@ -254,22 +342,29 @@ def _read_png16(path: Path) -> np.ndarray:
     return np.asarray(arr)
 
 
-def _read_tiff(path: Path) -> np.ndarray:
+def _read_tiff(path: Path, limit: int = DEFAULT_MAX_IMAGE_PIXELS) -> np.ndarray:
     import tifffile
 
     name = _describe(path)
     ph = tifffile.PHOTOMETRIC
     try:
         with tifffile.TiffFile(path) as tif:
-            page = tif.pages[0]
+            page = tif.pages[0]  # the header (tags) only; pixels are decoded by asarray
+            size = f"{page.imagewidth}x{page.imagelength}" + (f"x{page.imagedepth}" if page.imagedepth > 1 else "")
+            if page.samplesperpixel > _CHANNELS_PER_PIXEL:
+                size += f" with {page.samplesperpixel} samples"
+            _check_pixels(name, _declared_pixels(page.imagewidth, page.imagelength, page.samplesperpixel,
+                                                 page.imagedepth), size, limit)
             photometric = page.photometric
             if photometric not in (ph.MINISBLACK, ph.MINISWHITE, ph.RGB):
-                return _read_pillow(path)  # palette, CMYK, YCbCr: let Pillow convert
+                return _read_pillow(path, limit)  # palette, CMYK, YCbCr: let Pillow convert
             arr = page.asarray()
             axes = page.axes
     except InputError:
         raise
     except Exception as exc:
+        if "imagecodecs" in str(exc):  # a compression tifffile cannot decode on its own (LZW, JPEG, ...)
+            _require_imagecodecs(name, f"this TIFF ({exc})")
         raise InputError(f"cannot read image {name}: {exc}") from None
     if axes.startswith("S") and arr.ndim == 3:
         arr = np.moveaxis(arr, 0, -1)  # planar configuration: samples first
@@ -280,10 +375,24 @@ def _read_tiff(path: Path) -> np.ndarray:
     return arr
 
 
-def _read_exr(path: Path) -> np.ndarray:
+def _read_exr(path: Path, limit: int = DEFAULT_MAX_IMAGE_PIXELS) -> np.ndarray:
     import OpenEXR
 
     name = _describe(path)
+    try:
+        with OpenEXR.File(os.fspath(path), header_only=True) as exr:
+            sizes = []
+            for part in exr.parts:
+                header = part.header
+                (x0, y0), (x1, y1) = (np.asarray(c, dtype=np.int64) for c in header["dataWindow"])
+                sizes.append((int(x1) - int(x0) + 1, int(y1) - int(y0) + 1, len(header.get("channels", ()))))
+    except Exception as exc:
+        raise InputError(f"cannot read OpenEXR image {name}: {exc}") from None
+    if any(w < 1 or h < 1 for w, h, _ in sizes):
+        raise InputError(f"{name}: EXR declares an empty data window {sizes}")
+    # all parts are decoded: they count together
+    size = " + ".join(f"{w}x{h}" + (f" with {c} channels" if c > _CHANNELS_PER_PIXEL else "") for w, h, c in sizes)
+    _check_pixels(name, sum(_declared_pixels(w, h, c) for w, h, c in sizes), size, limit)
     try:
         with OpenEXR.File(os.fspath(path), separate_channels=True) as exr:
             chroma = exr.header().get("chromaticities")  # the header is emptied on close
@@ -336,7 +445,7 @@ def handle_invalid(values: np.ndarray, name: str, clip_invalid: bool) -> np.ndar
 # --------------------------------------------------------------------------------------
 # public functions
 # --------------------------------------------------------------------------------------
-def read_image(path, *, encoding: str = "srgb", clip_invalid: bool = False) -> np.ndarray:
+def read_image(path, *, encoding: str = "srgb", clip_invalid: bool = False, max_pixels=None) -> np.ndarray:
     """Read an image file as relative *linear* luminance.
 
     Parameters
@@ -351,6 +460,9 @@ def read_image(path, *, encoding: str = "srgb", clip_invalid: bool = False) -> n
     clip_invalid : bool
         Replace NaN and negative values by 0 and ``+Inf`` by the largest finite value (with a
         logged warning) instead of raising.
+    max_pixels : int, optional
+        Largest image decoded, in pixels, checked from the file's header before decoding
+        (default ``$EVNOISE_MAX_IMAGE_PIXELS`` or :data:`DEFAULT_MAX_IMAGE_PIXELS`, 64 megapixels).
 
     Returns
     -------
@@ -362,9 +474,9 @@ def read_image(path, *, encoding: str = "srgb", clip_invalid: bool = False) -> n
     ------
     InputError
         Missing, unreadable or corrupt file; unsupported layout; NaN, Inf or negative values
-        (unless ``clip_invalid``).
+        (unless ``clip_invalid``); more pixels than ``max_pixels``.
     """
-    values, _ = load_luminance(path, encoding)
+    values, _ = load_luminance(path, encoding, max_pixels=max_pixels)
     return handle_invalid(values, _describe(path), clip_invalid)
 
 
@@ -378,6 +490,7 @@ def image_to_lux(
     sensor_shape=None,
     fit: str = "cover",
     name: str | None = None,
+    max_pixels=None,
 ) -> np.ndarray:
     """Illuminance at the sensor, in lux, of an image file or array.
 
@@ -404,6 +517,8 @@ def image_to_lux(
         How to fit the sensor size (see :func:`fit_to_sensor`).
     name : str, optional
         Label of an array input in error messages (default ``"image"``).
+    max_pixels : int, optional
+        Largest image file decoded, in pixels (see :func:`read_image`).
 
     Returns
     -------
@@ -413,7 +528,7 @@ def image_to_lux(
     encoding = _check_encoding(encoding)
     if isinstance(path_or_array, (str, os.PathLike)):
         label = name or _describe(path_or_array)
-        values, kind = load_luminance(path_or_array, encoding)
+        values, kind = load_luminance(path_or_array, encoding, max_pixels=max_pixels)
     else:
         label = name or "image"
         values, kind = _array_luminance(path_or_array, encoding, label)
