@@ -9,17 +9,45 @@ whatever integer (or bool) types the dataset chose, and a sensor as ``sensor_siz
 from __future__ import annotations
 
 import hashlib
+import math
 import numbers
+import os
+import sys
 
 import numpy as np
 
-from .._checks import as_generator, check_lux, check_params
+from .._checks import as_generator, check_lux, check_params, kernel_key, resolve_threads
 from ..errors import InputError, ParameterError
 
 __all__ = ["PhotonNoise"]
 
 _SAMPLE_STREAM = 1  # SeedSequence words that separate the per-sample noise ...
 _THRESHOLD_STREAM = 0  # ... from the sensor's threshold mismatch
+_WORKER_STREAM = 2  # ... and a Generator's per-worker streams
+
+
+def _worker_identity():
+    """``("torch", worker seed)`` inside a torch DataLoader worker, else ``("pid", process id)``.
+
+    torch is not imported here: if the process has not loaded ``torch.utils.data`` it is not a
+    DataLoader worker. A worker's seed is ``base_seed + worker_id``, with ``base_seed`` drawn from
+    torch's generator in the main process for each epoch (so ``torch.manual_seed`` fixes it).
+    """
+    data = sys.modules.get("torch.utils.data")
+    info = data.get_worker_info() if data is not None and hasattr(data, "get_worker_info") else None
+    if info is not None:
+        return "torch", int(info.seed)
+    return "pid", os.getpid()
+
+
+def _signed_p(dtype: np.dtype) -> np.dtype:
+    """``dtype`` with an unsigned ``p`` field made signed of the same width (tonic writes -1 into ``p``:
+    ``ToVoxelGrid`` maps OFF to -1 in place, which overflows an unsigned field)."""
+    if dtype["p"].kind != "u":
+        return dtype
+    signed = np.dtype(f"{dtype['p'].byteorder if dtype['p'].byteorder in '<>' else '='}i{dtype['p'].itemsize}")
+    fields = [(name, signed if name == "p" else dtype.fields[name][0]) for name in dtype.names]
+    return np.dtype(fields)
 
 
 def _check_sensor_size(sensor_size):
@@ -55,22 +83,33 @@ class PhotonNoise:
           content*: calling the transform again on the same sample gives the same output (in
           any epoch, order or DataLoader worker), and different samples get independent noise;
         * a Generator: drawn from it on every call, so the same sample gets new noise each
-          time (reproducible for a fixed order of calls in one process; DataLoader workers
-          forked from one process would share its state).
+          time (reproducible for a fixed order of calls in one process). A copy of the
+          transform in another process (a DataLoader worker, forked or spawned) draws from its
+          own stream, derived once per process from the Generator's state and the worker's
+          seed (torch's ``get_worker_info().seed``: ``base_seed + worker_id``, new each epoch,
+          fixed by ``torch.manual_seed``), or from the process id outside torch: workers never
+          repeat each other's noise.
 
         Threshold mismatch (``params.eps_sigma > 0``) belongs to the sensor: it is drawn once,
         at construction, and used for every sample.
     threads : int, optional
-        Worker threads of the noise simulator.
+        Python threads over blocks of 16384 pixels in one call (default ``NUMBA_NUM_THREADS``
+        or the CPU count; a sensor of at most 16384 pixels, such as N-MNIST's, uses one).
 
     Notes
     -----
     The span of a sample is ``t_first <= t <= t_last`` of its events (integer microseconds),
     so the expected number of added events is ``sum(expected_rate(lux)) * (t_last - t_first +
     1e-6 s)``. An empty sample is returned unchanged (it has no span). The output has the input's
-    dtype and field names and is sorted by ``t`` (stably: input events before noise events at
-    equal times). Noise events take the input's polarity convention: 1 ON and 0 OFF, or -1 OFF
-    when the input uses -1.
+    dtype and field names (an unsigned ``p`` becomes signed of the same width, so that tonic's
+    ``ToVoxelGrid`` can write -1 into it) and is sorted by ``t`` (stably: input events before
+    noise events at equal times). Noise events take the input's polarity convention: 1 ON and 0
+    OFF, or -1 OFF when the input uses -1.
+
+    Everything that depends only on the constructor's arguments (the per-pixel event
+    probabilities and rates at ``lux``) is computed once, at construction; a call only draws the
+    sample's events, with single-threaded kernels: it starts no OpenMP pool, so the transform
+    runs in forked DataLoader workers whatever the main process computed before.
     """
 
     def __init__(self, sensor_size, params, lux, rng=None, *, threads: int | None = None):
@@ -92,6 +131,8 @@ class PhotonNoise:
             thr_gen = np.random.default_rng(np.random.SeedSequence([self._seed, _THRESHOLD_STREAM]))
         else:
             raise ParameterError(f"rng must be None, an integer seed or a numpy Generator, got {type(rng).__name__}")
+        self._pid = os.getpid()  # a Generator's copy in another process derives its own stream
+        self._worker_gen = None  # (process identity, Generator) of that copy
         if self.params.eps_sigma > 0:
             eps_on, eps_off = resolve_thresholds((height, width), self.params, thr_gen, None)
             self._thresholds = np.stack([eps_on, eps_off]).reshape(2, height, width)
@@ -102,6 +143,18 @@ class PhotonNoise:
             from ..background import draw_background
 
             self._background = draw_background((height, width), self.params, thr_gen)  # once per sensor
+        self._precompute()
+
+    def _precompute(self):
+        """The renewal kernel's per-pixel inputs at ``self.lux`` (what ``simulate_events`` computes per call)."""
+        from .._engine import resolve_background, resolve_thresholds, static_inputs
+
+        shape = self.lux.shape
+        eps_on, eps_off = resolve_thresholds(shape, self.params, None, self._thresholds)
+        bg = resolve_background(shape, self.params, None, self._background)
+        lam = self.params.photons_per_trial(self.lux).ravel()
+        self._log1m_p, self._q_on, self._timer, self._nu = static_inputs(lam, self.params, eps_on, eps_off, bg)
+        self._pix = np.arange(self.lux.size, dtype=np.int64)
 
     @staticmethod
     def _lux_map(lux, height, width):
@@ -143,29 +196,40 @@ class PhotonNoise:
             digest.update(np.ascontiguousarray(events).tobytes())
             words = np.frombuffer(digest.digest(), dtype=np.uint32).tolist()
             return np.random.default_rng(np.random.SeedSequence([self._seed, _SAMPLE_STREAM, *words]))
-        return as_generator(self._gen)
+        if self._gen is None:
+            return np.random.default_rng()
+        if os.getpid() == self._pid:
+            return self._gen
+        # a copy in another process: every worker starts from the same Generator state, so give each its own stream
+        kind, ident = _worker_identity()
+        if self._worker_gen is None or self._worker_gen[0] != (kind, ident, os.getpid()):
+            state = self._gen.integers(0, 2**32, size=4, dtype=np.uint64).tolist()
+            seq = np.random.SeedSequence([*state, _WORKER_STREAM, int(kind == "torch"), ident])
+            self._worker_gen = ((kind, ident, os.getpid()), np.random.default_rng(seq))
+        return self._worker_gen[1]
 
-    def noise(self, events) -> np.ndarray:
-        """The noise events alone that :meth:`__call__` adds to ``events`` (same dtype, sorted by t)."""
-        from ..simulate import simulate_events
+    def _draw(self, events):
+        """The sample's noise as unsorted columns ``(t, x, y, on)`` (the kernel's order, chunk by chunk)."""
+        from .._engine import PixelState, renewal_step
 
-        events = self._check_events(events)
-        out_dtype = events.dtype
-        if events.size == 0:
-            return np.empty(0, dtype=out_dtype)
         gen = self._generator(events)
+        key = kernel_key(gen)
         t = events["t"]
         t_first = int(np.floor(t.min()))
-        t_last = int(np.ceil(t.max()))
-        span_us = t_last - t_first + 1
-        noise = simulate_events(self.lux, self.params, span_us * 1e-6, rng=gen, thresholds=self._thresholds,
-                                background=self._background,
-                                t_start_us=t_first, threads=self.threads)
-        out = np.zeros(noise.size, dtype=out_dtype)
-        out["x"] = noise["x"]
-        out["y"] = noise["y"]
-        out["t"] = noise["t"]
-        on = noise["p"] == 1
+        span_us = int(np.ceil(t.max())) - t_first + 1
+        threads = resolve_threads(self.threads)
+        state = PixelState(self._pix, key, threads)
+        parts = renewal_step(state, self.sensor_size[0], self._log1m_p, self._q_on, self.params.trial_us,
+                             self.params.refractory_us, 0, span_us, math.inf, t_first, threads,
+                             expected=self._nu * (span_us * 1e-6), timer=self._timer)
+        cols = [np.concatenate([p[i] for p in parts]) if len(parts) != 1 else parts[0][i].copy() for i in range(4)]
+        return cols[0], cols[1], cols[2], cols[3] == 1
+
+    def _as_events(self, events, t, x, y, on, dtype):
+        out = np.zeros(t.size, dtype=dtype)
+        out["x"] = x
+        out["y"] = y
+        out["t"] = t
         if self.sensor_size[2] == 1:
             out["p"] = 0
         elif events["p"].dtype.kind == "b":
@@ -175,11 +239,23 @@ class PhotonNoise:
             out["p"] = np.where(on, 1, off)
         return out
 
-    def __call__(self, events):
-        """``events`` with photon-noise events added, sorted by ``t``, in the input's dtype."""
+    def noise(self, events) -> np.ndarray:
+        """The noise events alone that :meth:`__call__` adds to ``events`` (the output's dtype, sorted by t)."""
         events = self._check_events(events)
+        dtype = _signed_p(events.dtype)
         if events.size == 0:
-            return events
-        noise = self.noise(events)
-        out = np.concatenate([events, noise])
+            return np.empty(0, dtype=dtype)
+        t, x, y, on = self._draw(events)
+        order = np.argsort(t, kind="stable")
+        return self._as_events(events, t[order], x[order], y[order], on[order], dtype)
+
+    def __call__(self, events):
+        """``events`` with photon-noise events added, sorted by ``t``, in the input's dtype (``p`` signed)."""
+        events = self._check_events(events)
+        dtype = _signed_p(events.dtype)
+        if events.size == 0:
+            return events.astype(dtype, copy=False)
+        noise = self._as_events(events, *self._draw(events), dtype)
+        out = np.concatenate([events.astype(dtype, copy=False), noise])
+        # stable: input events first at equal times, the noise in the order the sorted noise alone has
         return out[np.argsort(out["t"], kind="stable")]
