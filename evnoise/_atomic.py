@@ -83,11 +83,27 @@ class AtomicFile:
             raise
         except catch as exc:
             abort()
-            text = " ".join(str(exc).split()) if one_line else str(exc)
+            if isinstance(exc, OSError) and exc.errno:  # h5py's texts span lines and name the temporary file
+                text = exc.strerror or os.strerror(exc.errno)
+            else:
+                text = " ".join(str(exc).split()) if one_line else str(exc)
             raise OutputError(f"cannot finish {self.what} {self.path}: {text}") from None
         except BaseException:
             abort()
             raise
+
+    def release(self) -> None:
+        """Truncate the temporary file to 0 bytes (before a library that still holds it open closes it).
+
+        A writer that failed on a full disk frees the space it took, so that the library's last flush
+        on close (HDF5 writes its metadata and cached chunks then) finds room and the handle closes
+        cleanly: an HDF5 file left open after a failed close is flushed again when the interpreter
+        exits, and that crashed the process (exit 139). Errors are ignored: the file is discarded next.
+        """
+        try:
+            os.truncate(self.tmp, 0)
+        except OSError:
+            pass
 
     def discard(self) -> None:
         """Remove the temporary file if it is there (a failure to remove is logged, not raised)."""

@@ -5,7 +5,8 @@ Layout (readable by plain h5py, DSEC's ``EventSlicer``, evlib, tonic)::
     /events/x  uint16     /events/y  uint16
     /events/t  int64 (microseconds, non-decreasing)     /events/p  uint8 (1 = ON, 0 = OFF)
     /ms_to_idx uint64     ms_to_idx[k] = index of the first event with t >= 1000 k
-    /t_offset  int64 scalar 0   (absolute time = t + t_offset)
+    /t_offset  int64 scalar     (absolute time = t + t_offset; 0 for a clock that starts near 0,
+                                 the first event's whole second for a Unix clock)
     root attributes: width, height, time_unit = "us", evnoise_version, and the caller's
     attributes (model parameters as JSON, seed, source, ...)
 
@@ -39,6 +40,14 @@ log = logging.getLogger(__name__)
 CHUNK_EVENTS = 1 << 16
 #: Entries per HDF5 chunk of ``/ms_to_idx``.
 CHUNK_MS = 1 << 14
+#: ``t_offset_us=None``: a first event at or after this time (2**32 µs, 71.6 minutes) sets
+#: ``/t_offset`` to its whole second; an earlier one keeps the clock as it is (``t_offset`` 0).
+AUTO_OFFSET_US = 1 << 32
+#: Longest ``/ms_to_idx`` written (2**32 entries, 49.7 days after ``t_offset``, 32 GiB); a longer
+#: one is refused (a clock that does not start near ``t_offset``), never allocated.
+MAX_MS_ENTRIES = 1 << 32
+#: ``/ms_to_idx`` entries computed and appended at a time (bounds the memory of a long gap).
+_MS_BLOCK = 1 << 20
 
 _FIELDS = (("x", np.uint16), ("y", np.uint16), ("t", np.int64), ("p", np.uint8))
 _RESERVED = ("width", "height", "time_unit", "evnoise_version", "json_attrs", "t_end_us")
@@ -68,6 +77,69 @@ def open_output_path(path, *, overwrite: bool = False, what: str = "output") -> 
     if not os.access(parent, os.W_OK | os.X_OK):
         raise OutputError(f"cannot write {what} {path}: directory {parent} is not writable")
     return path
+
+
+def _close_h5_discarding(file) -> None:
+    """Close an h5py file whose content is being thrown away, even when its disk refuses writes.
+
+    If HDF5's last flush fails (no space left), the file descriptor is pointed at an anonymous file
+    in memory (Linux ``memfd``) and the close tried again: the flush then lands there and HDF5 holds
+    no half-closed file (one it would flush again, and crash on, when the interpreter exits).
+    """
+    try:
+        fd = file.id.get_vfd_handle()
+    except Exception:  # noqa: BLE001 - not a POSIX driver, or already closed
+        fd = None
+    try:
+        file.close()
+        return
+    except Exception:  # noqa: BLE001
+        if not isinstance(fd, int) or not hasattr(os, "memfd_create"):
+            return
+    try:
+        spare = os.memfd_create("evnoise-discarded")
+        try:
+            os.dup2(spare, fd)
+        finally:
+            os.close(spare)
+        file.close()
+    except Exception:  # noqa: BLE001 - nothing more to do; the temporary file is removed next
+        pass
+
+
+def _as_os_error(exc: Exception) -> OSError:
+    """h5py's RuntimeError for a failed write, as an OSError with the errno that its text names."""
+    import re
+
+    m = re.search(r"errno = (\d+)", str(exc))
+    if m:
+        return OSError(int(m.group(1)), os.strerror(int(m.group(1))))
+    return OSError(_one_line(str(exc)))
+
+
+def _one_line(text: str) -> str:
+    return " ".join(text.split())
+
+
+def _os_error_text(exc: OSError) -> str:
+    """An OS error in one line: its ``strerror`` when it has an errno (h5py's texts span lines and
+    name the temporary file), else its text with the whitespace squeezed."""
+    if exc.errno:
+        return os.strerror(exc.errno)
+    return _one_line(str(exc))
+
+
+def _check_us(value, name: str) -> int | None:
+    """A non-negative integer of microseconds (or ``None``), else :class:`~evnoise.ParameterError`."""
+    if value is None:
+        return None
+    try:
+        ok = not isinstance(value, bool) and int(value) == value and value >= 0
+    except (TypeError, ValueError, OverflowError):
+        ok = False
+    if not ok or int(value) >= 1 << 63:
+        raise ParameterError(f"{name} must be a non-negative integer of microseconds, got {value!r}")
+    return int(value)
 
 
 def _encode_attr(key: str, value):
@@ -138,10 +210,13 @@ class EventWriter(_AtomicWriter):
         ``t < t_end_us``. It sets the length of ``/ms_to_idx`` (one entry per millisecond
         up to and including ``ceil(t_end_us / 1000)``) and is stored as an attribute.
         Without it ``/ms_to_idx`` ends one entry after the last event's millisecond.
-    t_offset_us : int
+    t_offset_us : int or None
         Stored as ``/t_offset`` (DSEC): events are given on the recording's clock and stored as
         ``t - t_offset_us`` (as is ``t_end_us``), so a camera recording whose clock reads, say,
-        1.6e15 µs keeps a short ``/ms_to_idx``. :func:`read_events` adds it back.
+        1.6e15 µs keeps a short ``/ms_to_idx``. :func:`read_events` adds it back. ``None`` (the
+        default) picks it from the first event: 0 when that event is before
+        :data:`AUTO_OFFSET_US` (a clock that starts near 0, as simulated streams do), otherwise
+        the first event's time rounded down to a whole second (a Unix clock).
 
     Examples
     --------
@@ -151,22 +226,17 @@ class EventWriter(_AtomicWriter):
     """
 
     def __init__(self, path, shape, attrs=None, *, overwrite: bool = False, compression: str | None = "gzip",
-                 t_end_us: int | None = None, t_offset_us: int = 0):
+                 t_end_us: int | None = None, t_offset_us: int | None = None):
         import h5py
 
         self.shape = check_shape(shape)
         if compression not in COMPRESSIONS:
             raise ParameterError(f"compression must be one of {COMPRESSIONS}, got {compression!r}")
-        if t_end_us is not None:
-            if isinstance(t_end_us, bool) or int(t_end_us) != t_end_us or t_end_us < 0:
-                raise ParameterError(f"t_end_us must be a non-negative integer of microseconds, got {t_end_us!r}")
-            t_end_us = int(t_end_us)
-        if isinstance(t_offset_us, bool) or int(t_offset_us) != t_offset_us or t_offset_us < 0:
-            raise ParameterError(f"t_offset_us must be a non-negative integer of microseconds, got {t_offset_us!r}")
-        self.t_offset_us = int(t_offset_us)
-        if t_end_us is not None:
-            t_end_us -= self.t_offset_us
-        self.t_end_us = t_end_us
+        t_end_us = _check_us(t_end_us, "t_end_us")
+        self._auto_offset = t_offset_us is None
+        self.t_offset_us = 0 if t_offset_us is None else _check_us(t_offset_us, "t_offset_us")
+        self._t_end_abs = t_end_us  # on the recording's clock
+        self.t_end_us = None  # on the file's clock (t - t_offset), once the offset is known
         encoded = {}
         json_keys = []
         for key, value in dict(attrs or {}).items():
@@ -180,6 +250,8 @@ class EventWriter(_AtomicWriter):
             if is_json:
                 json_keys.append(key)
         self.path = open_output_path(path, overwrite=overwrite, what="event file")
+        if not self._auto_offset:
+            self._set_offset(self.t_offset_us)
         self.overwrite = overwrite
         self._out = AtomicFile(self.path, overwrite=overwrite, what="event file")
         self._tmp = self._out.tmp
@@ -192,7 +264,7 @@ class EventWriter(_AtomicWriter):
             self._file = h5py.File(self._tmp, "w")
         except OSError as exc:
             self._remove_tmp()
-            raise OutputError(f"cannot write event file {self.path}: {exc}") from None
+            raise OutputError(f"cannot write event file {self.path}: {_os_error_text(exc)}") from None
         try:
             f = self._file
             height, width = self.shape
@@ -200,8 +272,6 @@ class EventWriter(_AtomicWriter):
             f.attrs["height"] = np.int64(height)
             f.attrs["time_unit"] = "us"
             f.attrs["evnoise_version"] = __version__
-            if t_end_us is not None:
-                f.attrs["t_end_us"] = np.int64(t_end_us)
             for key, value in encoded.items():
                 f.attrs[key] = value
             if json_keys:
@@ -217,7 +287,7 @@ class EventWriter(_AtomicWriter):
             }
             self._ms = f.create_dataset("ms_to_idx", shape=(0,), maxshape=(None,), dtype=np.uint64,
                                         chunks=(CHUNK_MS,), **filt)
-            f.create_dataset("t_offset", data=np.int64(self.t_offset_us))
+            self._offset_ds = f.create_dataset("t_offset", data=np.int64(self.t_offset_us))
             self._gzip = None  # gzip chunks are compressed in threads (evnoise._gzip_chunks)
             if compression == "gzip":
                 from ._checks import default_threads
@@ -245,12 +315,18 @@ class EventWriter(_AtomicWriter):
         n = events.size
         if n == 0:
             return
+        if self._auto_offset and self._last_t is None:
+            t0 = int(events["t"][0])
+            self._set_offset(t0 // 1_000_000 * 1_000_000 if t0 >= AUTO_OFFSET_US else 0)
         if self.t_offset_us:
+            if int(events["t"][0]) < self.t_offset_us:
+                raise InputError(f"event at t = {int(events['t'][0])} us is before t_offset_us = {self.t_offset_us}")
             events = events.copy()
             events["t"] -= self.t_offset_us
         t = events["t"]
         if t[0] < 0:
             raise InputError(f"event times must be >= 0 microseconds in an events.h5 file, got t = {t[0]}")
+        self._check_ms(int(t[-1]) // 1000 + 1, f"an event at t = {int(t[-1]) + self.t_offset_us} us")
         if self._last_t is not None and t[0] < self._last_t:
             raise InputError(f"events are not sorted across chunks: t = {t[0]} after t = {self._last_t}")
         if self.t_end_us is not None and t[-1] >= self.t_end_us:
@@ -266,13 +342,33 @@ class EventWriter(_AtomicWriter):
                     ds[base:] = events[name]
             # entries k with 1000 k <= t[-1] are final: no later event can fall before them
             last_ms = int(t[-1]) // 1000
-            if last_ms >= self._next_ms:
-                ks = np.arange(self._next_ms, last_ms + 1, dtype=np.int64)
+            for lo in range(self._next_ms, last_ms + 1, _MS_BLOCK):  # a long gap: in bounded blocks
+                ks = np.arange(lo, min(lo + _MS_BLOCK, last_ms + 1), dtype=np.int64)
                 self._append_ms(base + np.searchsorted(t, ks * 1000, side="left"))
         except OSError as exc:
-            raise OutputError(f"writing event file {self.path} failed: {exc}") from None
+            raise OutputError(f"writing event file {self.path} failed: {_os_error_text(exc)}") from None
         self.n_events = base + n
         self._last_t = int(t[-1])
+
+    def _set_offset(self, offset: int) -> None:
+        """Fix ``t_offset`` (before the first event): ``t_end_us`` moves to the file's clock."""
+        self.t_offset_us = int(offset)
+        if getattr(self, "_offset_ds", None) is not None:
+            self._offset_ds[()] = np.int64(self.t_offset_us)
+        self._auto_offset = False
+        if self._t_end_abs is not None:
+            if self._t_end_abs < self.t_offset_us:
+                raise ParameterError(f"t_end_us = {self._t_end_abs} is before t_offset_us = {self.t_offset_us}")
+            self.t_end_us = self._t_end_abs - self.t_offset_us
+            self._check_ms(-(-self.t_end_us // 1000) + 1, f"t_end_us = {self._t_end_abs}")
+
+    def _check_ms(self, n_ms: int, what: str) -> None:
+        """Refuse a ``/ms_to_idx`` longer than :data:`MAX_MS_ENTRIES` before anything is allocated."""
+        if n_ms > MAX_MS_ENTRIES:
+            raise InputError(f"cannot write event file {self.path}: {what} is {(n_ms - 1) / 86_400_000:.4g} days "
+                             f"after t_offset_us = {self.t_offset_us}, and /ms_to_idx would need {n_ms:,} entries "
+                             f"(at most {MAX_MS_ENTRIES:,}); leave t_offset_us at None (it is then taken from the "
+                             f"first event) or give the recording's start")
 
     def _append_ms(self, values):
         m = self._ms.shape[0]
@@ -286,16 +382,26 @@ class EventWriter(_AtomicWriter):
             return self.path
 
         def close():
+            if self._auto_offset:  # no event: an end on a Unix clock sets the offset
+                end = self._t_end_abs
+                self._set_offset(end // 1_000_000 * 1_000_000 if end is not None and end >= AUTO_OFFSET_US else 0)
             if self.t_end_us is not None:
+                self._file.attrs["t_end_us"] = np.int64(self.t_end_us)
                 n_ms = -(-self.t_end_us // 1000) + 1
             else:
                 n_ms = 1 if self._last_t is None else self._last_t // 1000 + 2
             n_ms = max(n_ms, self._next_ms)
-            if n_ms > self._next_ms:
-                self._append_ms(np.full(n_ms - self._next_ms, self.n_events, dtype=np.uint64))
+            for lo in range(self._next_ms, n_ms, _MS_BLOCK):
+                self._append_ms(np.full(min(_MS_BLOCK, n_ms - lo), self.n_events, dtype=np.uint64))
             if self._gzip is not None:
                 self._gzip.finish(self.n_events)
-            self._file.close()
+            # flush first: a failure (a full disk) leaves the file open, so abort() can free the space
+            # and close it cleanly (a failed close leaves HDF5 a handle it crashes on at exit)
+            try:
+                self._file.flush()
+                self._file.close()
+            except RuntimeError as exc:  # h5py raises some write failures as RuntimeError
+                raise _as_os_error(exc) from None
 
         self._out.finish(close, self.abort)
         self._closed = True
@@ -306,12 +412,21 @@ class EventWriter(_AtomicWriter):
         self._closed = True
         if getattr(self, "_gzip", None) is not None:
             self._gzip.close()
-        file = getattr(self, "_file", None)
+        file, self._file = getattr(self, "_file", None), None
         if file is not None:
-            try:
-                file.close()
-            except Exception:
-                pass
+            # A full disk: HDF5 flushes its cached chunks and metadata on close, and a close that fails
+            # leaves a handle that HDF5 flushes again when the interpreter exits, which crashed the
+            # process (exit 139). Cut the datasets to nothing (no chunk left to flush) and free the
+            # space written (AtomicFile.release), so that the close succeeds.
+            for ds in [*getattr(self, "_dsets", {}).values(), getattr(self, "_ms", None)]:
+                if ds is not None:
+                    try:
+                        ds.resize((0,))
+                    except Exception:  # noqa: BLE001 - best effort; the file is discarded
+                        pass
+            if getattr(self, "_out", None) is not None:
+                self._out.release()
+            _close_h5_discarding(file)
         self._remove_tmp()
 
     def _remove_tmp(self):
@@ -321,27 +436,33 @@ class EventWriter(_AtomicWriter):
 
 
 def write_events(path, events, shape, attrs=None, *, overwrite: bool = False, compression: str | None = "gzip",
-                 t_end_us: int | None = None) -> Path:
-    """Write an event array to an events.h5 file (DSEC layout, atomically).
+                 t_end_us: int | None = None, t_offset_us: int | None = None) -> Path:
+    """Write an event array to an event file, atomically, in the format its suffix names.
 
     Parameters
     ----------
     path : str or os.PathLike
-        Output file.
+        Output file. The suffix decides the format, as for the command line's ``--out``
+        (:data:`OUTPUT_FORMATS`): ``.h5``/``.hdf5`` (events.h5, DSEC layout), ``.aedat4``,
+        ``.raw`` (EVT 3.0), ``.dat``, ``.es``, ``.csv``; any other suffix is a
+        :class:`~evnoise.ParameterError`.
     events : numpy.ndarray
         Events (:data:`evnoise.EVENT_DTYPE`), sorted by time, ``t >= 0`` microseconds.
     shape : (H, W)
         Sensor size in pixels.
-    attrs, overwrite, compression, t_end_us
-        As in :class:`EventWriter`.
+    attrs, overwrite, compression, t_end_us, t_offset_us
+        As in :class:`EventWriter` (``compression`` and ``t_offset_us`` apply to events.h5 only;
+        by default ``t_offset`` is taken from the first event, so a Unix clock is stored compactly).
 
     Returns
     -------
     pathlib.Path
         The written file.
     """
+    fmt = output_format(path, flag="path")
     events = check_events(events, shape)
-    with EventWriter(path, shape, attrs, overwrite=overwrite, compression=compression, t_end_us=t_end_us) as out:
+    with EventFileWriter(path, shape, attrs, overwrite=overwrite, compression=compression, t_end_us=t_end_us,
+                         file_format=fmt, t_offset_us=t_offset_us) as out:
         for lo in range(0, events.size, READ_BLOCK):
             out.write(events[lo:lo + READ_BLOCK])
     return out.path
@@ -436,7 +557,7 @@ class EventFileWriter(_AtomicWriter):
     """
 
     def __new__(cls, path, shape, attrs=None, *, overwrite: bool = False, compression: str | None = "gzip",
-                t_end_us: int | None = None, file_format: str | None = None, t_offset_us: int = 0):
+                t_end_us: int | None = None, file_format: str | None = None, t_offset_us: int | None = None):
         fmt = file_format or output_format(path)
         if fmt == "h5":
             return EventWriter(path, shape, attrs, overwrite=overwrite, compression=compression, t_end_us=t_end_us,
@@ -444,7 +565,7 @@ class EventFileWriter(_AtomicWriter):
         return super().__new__(cls)
 
     def __init__(self, path, shape, attrs=None, *, overwrite: bool = False, compression: str | None = "gzip",
-                 t_end_us: int | None = None, file_format: str | None = None, t_offset_us: int = 0):
+                 t_end_us: int | None = None, file_format: str | None = None, t_offset_us: int | None = None):
         self.format = file_format or output_format(path)
         what = {"aedat4": "AEDAT4 file", "evt3": "RAW file", "dat": "DAT file", "es": "Event Stream file",
                 "csv": "CSV file"}[self.format]
@@ -595,10 +716,11 @@ class EventFileWriter(_AtomicWriter):
 
 
 def open_event_writer(path, shape, attrs=None, *, overwrite: bool = False, compression: str | None = "gzip",
-                      t_end_us: int | None = None, t_offset_us: int = 0):
+                      t_end_us: int | None = None, t_offset_us: int | None = None):
     """A writer for ``path`` in the format its suffix names (:class:`EventWriter` or :class:`EventFileWriter`).
 
-    ``t_offset_us`` applies to events.h5 only (the other formats store the clock as it is).
+    ``t_offset_us`` applies to events.h5 only (``None``: taken from the first event, see
+    :class:`EventWriter`).
     """
     return EventFileWriter(path, shape, attrs, overwrite=overwrite, compression=compression, t_end_us=t_end_us,
                            t_offset_us=t_offset_us)

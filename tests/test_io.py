@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 
 import numpy as np
 import pytest
@@ -275,7 +276,7 @@ def test_unwritable_destinations(tmp_path):
     with pytest.raises(OutputError, match="not a directory"):
         write_events(tmp_path / "afile" / "ev.h5", events, SHAPE)
     (tmp_path / "adir.h5").mkdir()
-    with pytest.raises(OutputError, match="is a directory"):
+    with pytest.raises(OutputError, match="is a (directory|folder)"):
         write_events(tmp_path / "adir.h5", events, SHAPE, overwrite=True)
 
 
@@ -462,3 +463,107 @@ def test_unwritable_output_is_one_clean_line(tmp_path, capsys):
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and err.startswith("evnoise: error: cannot write") and "h5py" not in err
         assert "Unable to" not in err and "errno" not in err
+
+
+# --------------------------------------------------------------------------------------
+# issue 29 §3.1-2: the API picks the format by suffix; a Unix clock gets a t_offset
+# --------------------------------------------------------------------------------------
+@pytest.mark.parametrize("suffix,magic", [(".aedat4", b"#!AER-DAT4"), (".raw", b"%"), (".es", b"Event Stream"),
+                                          (".h5", b"\x89HDF")])
+def test_write_events_picks_the_format_by_suffix(tmp_path, suffix, magic):
+    pytest.importorskip("faery")
+    events = random_events(500, 1_000_000, seed=40)
+    path = write_events(tmp_path / f"x{suffix}", events, SHAPE)
+    assert path.read_bytes().startswith(magic)  # not HDF5 under another name
+    got, meta = read_events(path)
+    assert got.tobytes() == events.tobytes() and meta["shape"] == SHAPE
+
+
+def test_write_events_refuses_an_unknown_suffix(tmp_path):
+    events = random_events(10, 1000, seed=41)
+    for name in ("x.aedat5", "x.txt", "x"):
+        with pytest.raises(ParameterError, match="suffix"):
+            write_events(tmp_path / name, events, SHAPE)
+    assert leftovers(tmp_path) == []
+
+
+@pytest.mark.parametrize("streamed", [False, True])
+def test_unix_clock_gets_a_t_offset(tmp_path, streamed):
+    from evnoise.io import open_event_writer
+
+    off = 1_643_240_000_123_456  # a DV camera's clock (Unix time in µs)
+    events = random_events(4000, 2_000_000, seed=42)
+    events["t"] += off
+    path = tmp_path / "unix.h5"
+    if streamed:
+        with open_event_writer(path, SHAPE, t_end_us=off + 2_500_000) as out:
+            out.write(events[:1000])
+            out.write(events[1000:])
+    else:
+        write_events(path, events, SHAPE)  # was: MemoryError, 12 TiB for /ms_to_idx
+    with h5py.File(path, "r") as f:
+        stored_off = int(f["t_offset"][()])
+        assert stored_off == off // 1_000_000 * 1_000_000  # the first event's whole second
+        assert f["ms_to_idx"].shape[0] < 3000
+        assert int(f["events/t"][0]) == int(events["t"][0]) - stored_off
+        if streamed:
+            assert int(f.attrs["t_end_us"]) == off + 2_500_000 - stored_off
+    got, meta = read_events(path)
+    assert got.tobytes() == events.tobytes() and meta["t_offset"] == stored_off
+    a, b = off + 300_000, off + 900_000
+    window, _ = read_events(path, a, b)
+    assert window.tobytes() == events[(events["t"] >= a) & (events["t"] < b)].tobytes()
+
+
+def test_a_clock_near_zero_keeps_t_offset_0(tmp_path):
+    events = random_events(100, 2_000_000, seed=43, t_min_us=1_000_000)
+    write_events(tmp_path / "e.h5", events, SHAPE)
+    with h5py.File(tmp_path / "e.h5", "r") as f:
+        assert int(f["t_offset"][()]) == 0 and int(f["events/t"][0]) == int(events["t"][0])
+
+
+def test_an_offset_that_cannot_fit_is_refused_before_allocating(tmp_path):
+    events = random_events(10, 1000, seed=44)
+    events["t"] += 1_643_240_000_000_000
+    with pytest.raises(InputError, match="ms_to_idx would need"):
+        write_events(tmp_path / "e.h5", events, SHAPE, t_offset_us=0)
+    with pytest.raises(InputError, match="ms_to_idx would need"):
+        EventWriter(tmp_path / "e.h5", SHAPE, t_offset_us=0, t_end_us=1_643_240_000_000_000)
+    assert leftovers(tmp_path) == []
+
+
+# --------------------------------------------------------------------------------------
+# issue 35 §1: a full disk is one clean error line, no crash, no partial file
+# --------------------------------------------------------------------------------------
+_FULL_DISK = """
+import resource, signal, sys
+import numpy as np
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails (EFBIG), as on a full disk
+resource.setrlimit(resource.RLIMIT_FSIZE, (3 << 20, 3 << 20))
+from evnoise.errors import EvnoiseError
+from evnoise.events import make_events
+from evnoise.io import write_events
+rng = np.random.default_rng(0)
+n = 2_000_000
+events = make_events(np.sort(rng.integers(0, 10_000_000, n)), rng.integers(0, 1280, n), rng.integers(0, 720, n),
+                     rng.integers(0, 2, n))
+try:
+    write_events(sys.argv[1], events, (720, 1280), compression=None if sys.argv[2] == "none" else sys.argv[2])
+except EvnoiseError as exc:
+    print("evnoise: error:", exc)
+    sys.exit(2)
+"""
+
+
+@pytest.mark.skipif(not hasattr(os, "fork") or sys.platform != "linux", reason="needs RLIMIT_FSIZE (Linux)")
+@pytest.mark.parametrize("compression", ["gzip", "none"])
+def test_a_disk_that_refuses_writes_is_one_error_line(tmp_path, compression):
+    """HDF5 kept a half-closed file after the failure and crashed on it at exit (exit 139)."""
+    import subprocess
+
+    proc = subprocess.run([sys.executable, "-c", _FULL_DISK, str(tmp_path / "big.h5"), compression],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2, (proc.returncode, proc.stderr[-2000:])
+    assert proc.stderr == "" and proc.stdout.count("\n") == 1, proc.stdout + proc.stderr
+    assert proc.stdout.startswith("evnoise: error: writing event file") and "File too large" in proc.stdout
+    assert leftovers(tmp_path) == []
