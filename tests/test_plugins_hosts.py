@@ -174,3 +174,78 @@ def test_tonic_transforms_accept_the_output(dtype):
     assert surfaces.shape[1:] == (2, 34, 34)
     kept = T.Denoise(filter_time=10_000)(out)
     assert 0 < kept.size <= out.size and kept.dtype == out.dtype
+
+
+# --------------------------------------------------------------------------------------
+# AEDAT 4 in iniVation's reader
+# --------------------------------------------------------------------------------------
+def _aedat4_with_metadata(tmp_path):
+    pytest.importorskip("faery", reason="writing .aedat4 needs faery")
+    from evnoise.io import write_aedat4
+
+    events = ev.simulate_events(np.full((24, 30), 5.0), ev.load_preset("evk3-hd"), 2.0, rng=3)
+    path = write_aedat4(tmp_path / "noise.aedat4", [events], (24, 30),
+                        attrs={"params": ev.load_preset("evk3-hd"), "seed": 3, "lux": 5.0, "note": "test"})
+    return path, events
+
+
+def _description_xml(path):
+    import xml.etree.ElementTree as ET
+
+    data = Path(path).read_bytes()
+    start, end = data.index(b"<dv"), data.index(b"</dv>") + len(b"</dv>")
+    return ET.fromstring(data[start:end].decode("utf-8"))
+
+
+def test_aedat4_description_has_one_root_node_with_evnoise_under_the_stream(tmp_path):
+    """DV's description may have only one root node: evnoise's attributes sit under the stream's node."""
+    path, _ = _aedat4_with_metadata(tmp_path)
+    root = _description_xml(path)
+    assert [n.get("name") for n in root.findall("node")] == ["outInfo"]
+    stream = root.find("node/node")
+    assert stream.get("path") == "/mainloop/Recorder/outInfo/0/"
+    assert {n.get("name") for n in stream.findall("node")} == {"info", "evnoise"}
+    own = stream.find("node[@name='evnoise']")
+    assert own.get("path") == "/mainloop/Recorder/outInfo/0/evnoise/"
+    assert {a.get("key") for a in own.findall("attr")} >= {"seed", "lux_json", "params_json", "note"}
+    # evnoise's own reader still finds them
+    from evnoise.io import read_metadata
+
+    meta = read_metadata(path)
+    assert meta["seed"] == 3 and meta["lux"] == 5.0 and meta["note"] == "test" and meta["params"]["eps_pos"] > 0
+
+
+def test_aedat4_opens_in_dv_processing_with_the_same_events(tmp_path):
+    """iniVation's own reader (dv-processing, what DV uses) opens a file written with metadata."""
+    dv = pytest.importorskip("dv_processing", reason="dv-processing is iniVation's reader: pip install dv-processing")
+    path, events = _aedat4_with_metadata(tmp_path)
+    recording = dv.io.MonoCameraRecording(str(path))
+    assert recording.isEventStreamAvailable()
+    assert tuple(recording.getEventResolution()) == (30, 24)
+    batches = []
+    while recording.isRunning():
+        batch = recording.getNextEventBatch()
+        if batch is not None and batch.size():
+            batches.append(batch.numpy())
+    got = np.concatenate(batches)
+    assert got.size == events.size > 500
+    assert np.array_equal(got["timestamp"], events["t"])
+    assert np.array_equal(got["x"], events["x"]) and np.array_equal(got["y"], events["y"])
+    assert np.array_equal(got["polarity"].astype(bool), events["p"] == 1)
+    # and faery, and evnoise's reader, give the same events
+    from evnoise.io import read_events
+
+    own, _ = read_events(path)
+    assert np.array_equal(own, events)
+
+
+def test_aedat4_opens_in_the_aedat_package(tmp_path):
+    """The ``aedat`` package (neuromorphic-drivers' AEDAT 4 decoder) reads the same events."""
+    aedat = pytest.importorskip("aedat", reason="pip install aedat")
+    path, events = _aedat4_with_metadata(tmp_path)
+    decoder = aedat.Decoder(str(path))
+    assert decoder.id_to_stream() == {0: {"type": "events", "width": 30, "height": 24}}
+    got = np.concatenate([packet["events"] for packet in decoder if "events" in packet])
+    assert np.array_equal(got["t"], events["t"])
+    assert np.array_equal(got["x"], events["x"]) and np.array_equal(got["y"], events["y"])
+    assert np.array_equal(got["on"], events["p"] == 1)
