@@ -57,4 +57,8 @@ __all__ = [
 ]
 
 
-__getattr__, __dir__ = lazy_attributes(__name__, _LAZY)
+#: submodules that are attributes of the package on first access (``evnoise.io.read_metadata``)
+_SUBMODULES = ("io", "readers", "plugins", "simulate", "stream", "model", "rates", "background", "mismatch",
+               "radiometry", "separation", "motion", "reconstruct")
+
+__getattr__, __dir__ = lazy_attributes(__name__, _LAZY, _SUBMODULES)

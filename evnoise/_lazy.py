@@ -9,13 +9,18 @@ from __future__ import annotations
 import importlib
 
 
-def lazy_attributes(package: str, names: dict[str, str]):
+def lazy_attributes(package: str, names: dict[str, str], submodules=()):
     """``(__getattr__, __dir__)`` for ``package`` where ``names`` maps attribute -> module.
 
-    A module name starting with ``.`` is relative to ``package``.
+    A module name starting with ``.`` is relative to ``package``. ``submodules`` names submodules
+    of ``package`` that are attributes too (``evnoise.io`` without ``import evnoise.io``), imported
+    on first access.
     """
+    submodules = frozenset(submodules)
 
     def __getattr__(name):
+        if name in submodules:
+            return importlib.import_module(f"{package}.{name}")  # the import sets the attribute
         module = names.get(name)
         if module is None:
             raise AttributeError(f"module {package!r} has no attribute {name!r}")
@@ -25,6 +30,6 @@ def lazy_attributes(package: str, names: dict[str, str]):
         return value
 
     def __dir__():
-        return sorted(set(vars(importlib.import_module(package))) | set(names))
+        return sorted(set(vars(importlib.import_module(package))) | set(names) | submodules)
 
     return __getattr__, __dir__

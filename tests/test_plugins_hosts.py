@@ -249,3 +249,20 @@ def test_aedat4_opens_in_the_aedat_package(tmp_path):
     assert np.array_equal(got["t"], events["t"])
     assert np.array_equal(got["x"], events["x"]) and np.array_equal(got["y"], events["y"])
     assert np.array_equal(got["on"], events["p"] == 1)
+
+
+# --------------------------------------------------------------------------------------
+# evnoise's own namespace
+# --------------------------------------------------------------------------------------
+def test_evnoise_io_is_an_attribute_and_import_stays_light():
+    """``import evnoise; evnoise.io.read_metadata`` works (a fresh interpreter: no test imported it yet),
+    and ``import evnoise`` alone still loads neither evnoise.io nor Numba."""
+    proc = _run_python("""
+        import sys
+        import evnoise
+        light = [m for m in ("evnoise.io", "evnoise.readers", "numba", "scipy") if m in sys.modules]
+        print(light, callable(evnoise.io.read_metadata), callable(evnoise.readers.open_events),
+              evnoise.plugins.__name__, "io" in dir(evnoise))
+    """)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.split() == ["[]", "True", "True", "evnoise.plugins", "True"]
