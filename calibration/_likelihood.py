@@ -122,7 +122,22 @@ class _Problem:
     assumed_sigma = property(lambda self: self.spec.assumed_sigma)
 
     # -- parameters --------------------------------------------------------------------
+    def in_domain(self, theta) -> bool:
+        """Whether ``theta`` (log values of the free parameters) is finite and within the bounds: the
+        search's domain. :meth:`loglik` is ``-inf`` outside it, so that an optimiser step there is
+        rejected like any worse point (and the search goes on)."""
+        t = np.asarray(theta, dtype=np.float64)
+        tol = 1e-9  # log(exp(t)) round trips of a value on a bound (NoiseParams -> theta) stay inside
+        return bool(t.shape == self.lo.shape and np.all(np.isfinite(t)) and np.all(t >= self.lo - tol)
+                    and np.all(t <= self.hi + tol))
+
     def params(self, theta) -> NoiseParams:
+        t = np.asarray(theta, dtype=np.float64)
+        if t.shape != self.lo.shape or not np.all(np.isfinite(t)) or not np.all(np.abs(t) < 700.0):
+            # a bug of the search, not of the data: the optimisers only evaluate the model within the
+            # bounds (loglik refuses other points) or a finite-difference step beyond them
+            raise RuntimeError(f"calibration: the model was asked at a non-finite point (log values "
+                               f"{dict(zip(self.free, t.ravel().tolist()))})")
         vals = dict(self.values)
         for name, t in zip(self.free, theta, strict=True):
             vals[name] = float(math.exp(t))
@@ -206,6 +221,10 @@ class _Problem:
         return out
 
     def loglik(self, theta) -> float:
+        """Log-likelihood (up to constants); ``-inf`` outside the search domain (a non-finite point or one
+        beyond the bounds: an optimiser step there is rejected like any worse point, and the search goes on)."""
+        if not self.in_domain(theta):
+            return -math.inf
         stats = self.stats(theta)
         if self.meas.kind == "flat-field":
             total = 0.0
@@ -223,7 +242,8 @@ class _Problem:
         return total
 
     def objective(self, theta) -> float:
-        """Negative log-likelihood, scaled per data point (for the optimisers)."""
+        """Negative log-likelihood, scaled per data point (for the optimisers); clipped into the bounds,
+        ``inf`` at a non-finite point."""
         theta = np.clip(theta, self.lo, self.hi)
         return -self.loglik(theta) / self.n_data
 

@@ -210,6 +210,8 @@ def _local_fit(problem: _Problem, theta0, *, max_iter: int = 80, polish: bool = 
     """
     lo, hi = problem.lo, problem.hi
     theta = np.clip(np.asarray(theta0, dtype=np.float64), lo, hi)
+    if not problem.in_domain(theta):  # a non-finite start: nothing to fit from
+        return theta, math.inf
     ll = problem.loglik(theta)
     damping = 1e-3
     h = _steps(problem, 1e-4)
@@ -233,6 +235,9 @@ def _local_fit(problem: _Problem, theta0, *, max_iter: int = 80, polish: bool = 
             big = np.max(np.abs(step))
             if big > 1.0:  # at most a factor e per step on any parameter
                 step /= big
+            # a degenerate information (e.g. where no count has a finite probability) can give a
+            # non-finite step: the candidate is then outside the domain, its log-likelihood -inf, and it
+            # is rejected like any worse point (more damping, then the next start)
             cand = np.clip(theta + step, lo, hi)
             ll_c = problem.loglik(cand)
             if ll_c > ll:
@@ -487,8 +492,10 @@ def _optimise(problem: _Problem, values, gen, n_starts, n_seeds, progress, have_
     for _, k, t0 in trial[:N_CONVERGED]:
         t, f = _local_fit(problem, t0)
         log.info("start %d/%d: objective %.10g", k + 1, len(starts), f)
-        if f < best[1]:
+        if f < best[1] or (best[0] is None and problem.in_domain(t)):
             best = (t, f)
+    if best[0] is None:
+        raise RuntimeError("calibration: no start of the search is a finite point within the bounds")
     if bar is not None:
         bar.close()
     return _ridge_walk(problem, best[0], best[1])

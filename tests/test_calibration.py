@@ -357,10 +357,19 @@ def test_bad_inputs_more(tmp_path):
 # --------------------------------------------------------------------------------------
 # presets
 # --------------------------------------------------------------------------------------
-def test_preset_round_trip(tmp_path):
+def _round_trip_fit():
     truth = _random_params(9)
     meas = _flat_fields(truth, 10, shape=(20, 20), lux=LUX_LEVELS[1:])
-    result = cal.calibrate(meas, n_starts=1, initial=truth, fixed={"refractory_s": 0.0}, rng=0)
+    return truth, cal.calibrate(meas, n_starts=1, initial=truth, fixed={"refractory_s": 0.0}, rng=0)
+
+
+@pytest.fixture(scope="module")
+def round_trip_fit():
+    return _round_trip_fit()
+
+
+def test_preset_round_trip(tmp_path, round_trip_fit):
+    _, result = round_trip_fit
     path = result.write_preset(tmp_path / "p.toml")
     assert ev.load_preset(path) == result.params
     with pytest.raises(ev.OutputError):
@@ -370,6 +379,75 @@ def test_preset_round_trip(tmp_path):
     doc = load_preset_document(path)
     assert set(doc) >= {"params", "provenance", "fit"}
     assert doc["fit"]["std_error"]["eps_pos"] == pytest.approx(result.std_error["eps_pos"], rel=1e-6)
+
+
+def _round_trip_problem():
+    """The flat fields of test_preset_round_trip and their likelihood (the core parameters free)."""
+    from evnoise.calibration import fit as F
+
+    truth = _random_params(9)
+    meas = _flat_fields(truth, 10, shape=(20, 20), lux=LUX_LEVELS[1:])
+    free = list(F.CORE)
+    values = truth.to_dict()
+    return truth, F._Problem(meas, "poisson", "binomial", free, values, F._bounds(meas, free, values))
+
+
+def test_points_outside_the_domain_have_infinite_cost():
+    """A non-finite or out-of-bounds point is rejected (loglik -inf, objective inf; the objective clips
+    into the bounds first), and a local fit from a non-finite start returns at once; none raises."""
+    from evnoise.calibration import _search
+
+    truth, problem = _round_trip_problem()
+    theta = problem.theta(truth)
+    assert math.isfinite(problem.loglik(theta))
+    for i in range(theta.size):
+        for bad in (math.nan, math.inf, -math.inf, problem.hi[i] + 0.1, problem.lo[i] - 0.1):
+            t = theta.copy()
+            t[i] = bad
+            assert problem.loglik(t) == -math.inf
+            if math.isnan(bad):
+                assert problem.objective(t) == math.inf
+            assert not problem.in_domain(t)
+    assert problem.in_domain(theta)
+    t = np.full(theta.size, math.nan)
+    got, f = _search._local_fit(problem, t)
+    assert f == math.inf and not problem.in_domain(got)
+
+
+def test_calibration_survives_a_non_finite_optimiser_step(monkeypatch, round_trip_fit):
+    """A degenerate information matrix (as on a CPU whose last bits differ, where Fisher scoring
+    proposed NaN for eps_pos and bias_pr) is forced on purpose: the NaN step is rejected, no
+    NoiseParams is ever built from a non-finite value, and the search goes on to the optimum the
+    undisturbed fit finds (every estimate within a tenth of its standard error of it)."""
+    from evnoise.calibration import _likelihood, _search
+
+    information = _search._information
+    corrupted = []
+
+    def nan_score_at_first_call(problem, theta, h, **kw):
+        info, meat, extras = information(problem, theta, h, **kw)
+        if not corrupted:  # the first Fisher-scoring iteration of the first start
+            extras = dict(extras, score=np.where(np.arange(len(theta)) == 0, math.nan, extras["score"]))
+            corrupted.append(problem.free[0])
+        return info, meat, extras
+
+    built = []
+
+    def checked_params(**vals):
+        built.append(vals)
+        assert all(math.isfinite(v) for v in vals.values()), vals
+        return ev.NoiseParams(**vals)
+
+    monkeypatch.setattr(_search, "_information", nan_score_at_first_call)
+    monkeypatch.setattr(_likelihood, "NoiseParams", checked_params)
+    _, result = _round_trip_fit()
+    assert corrupted == ["eps_pos"] and len(built) > 50
+    _, undisturbed = round_trip_fit
+    fitted = [n for n in result.free if result.status[n] == "fitted"]
+    assert len(fitted) >= 6 and fitted == [n for n in undisturbed.free if undisturbed.status[n] == "fitted"]
+    for n in fitted:
+        a, b = getattr(result.params, n), getattr(undisturbed.params, n)
+        assert abs(a - b) <= 0.1 * undisturbed.std_error[n], (n, a, b, undisturbed.std_error[n])
 
 
 def refit_evk3_authors():
