@@ -287,8 +287,11 @@ def test_truncated_and_renamed_real_files(tmp_path, capsys):
     (tmp_path / "davis.raw").write_bytes((REALDATA / "aestream/davis.aedat4").read_bytes())
     code, _, err = run_cli(capsys, "info", tmp_path / "davis.raw")
     assert code == 2 and "rename" in err and err.count("\n") == 1
-    (tmp_path / "dvs.txt").write_bytes((REALDATA / QUIET).read_bytes())
+    (tmp_path / "dvs.txt").write_bytes((REALDATA / QUIET).read_bytes())  # .txt is a text event list now
     code, _, err = run_cli(capsys, "info", tmp_path / "dvs.txt")
+    assert code == 2 and "rename" in err and err.count("\n") == 1
+    (tmp_path / "dvs.xyz").write_bytes((REALDATA / QUIET).read_bytes())
+    code, _, err = run_cli(capsys, "info", tmp_path / "dvs.xyz")
     assert code == 2 and "not a kind of file" in err
 
 

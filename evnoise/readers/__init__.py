@@ -9,7 +9,8 @@ suffix                    format                       decoder
 ``.aedat4``               iniVation AEDAT 4            faery
 ``.aedat``                jAER AEDAT 2.0 (or 4)        tonic's container reader + address table
 ``.es``                   Event Stream (DVS, ATIS)     faery
-``.csv``                  CSV event list               faery (column order: header or ``csv_columns``)
+``.csv``, ``.txt``        CSV / text event list        evnoise (comma or space separated; column order:
+                                                       header, ``csv_columns`` or ``t x y p``)
 ``.bin``                  N-MNIST                      tonic
 ========================  ===========================  ==========================================
 
@@ -46,12 +47,13 @@ SUFFIXES = {
     ".aedat4": ("aedat4",),
     ".aedat": ("aedat2", "aedat4"),
     ".es": ("es",),
-    ".csv": ("csv",),
+    ".csv": ("csv",), ".txt": ("csv",),
     ".bin": ("nmnist",),
 }
 
 _NAMES = {"h5": "events.h5 (HDF5)", "raw": "Prophesee RAW", "dat": "Prophesee DAT", "aedat4": "AEDAT 4",
-          "aedat2": "jAER AEDAT 2.0", "es": "Event Stream", "csv": "CSV", "nmnist": "N-MNIST .bin"}
+          "aedat2": "jAER AEDAT 2.0", "es": "Event Stream", "csv": "CSV / text event list",
+          "nmnist": "N-MNIST .bin"}
 
 
 def _magic(head: bytes) -> str | None:
@@ -127,7 +129,8 @@ def open_events(path, *, sensor=None, csv_columns=None) -> EventSource:
         Sensor size ``"WxH"`` (e.g. ``"640x480"``) or ``(width, height)``; overrides the header
         (with a warning when they differ) and sets it where the header has none.
     csv_columns : str or list of str, optional
-        Column order of a CSV file, e.g. ``"x,y,p,t"`` (t in µs, p 1 = ON / 0 = OFF).
+        Column order of a CSV or text file, e.g. ``"x,y,p,t"`` (t in µs, or seconds when written
+        with a decimal point; p 1 = ON, 0 or -1 = OFF).
 
     Returns
     -------

@@ -213,8 +213,13 @@ def from_faery(packet: np.ndarray) -> np.ndarray:
     return to_events(packet["t"], packet["x"], packet["y"], packet["on"])
 
 
-def header_lines(path: Path, prefix: bytes, *, limit: int = 1 << 20) -> tuple[list[str], int]:
-    """The leading lines of ``path`` that start with ``prefix`` (decoded) and the offset after them."""
+def header_lines(path: Path, prefix: bytes, *, limit: int = 1 << 20, what: str | None = None
+                 ) -> tuple[list[str], int]:
+    """The leading lines of ``path`` that start with ``prefix`` (decoded) and the offset after them.
+
+    With ``what`` (the format's name), a file that ends inside a header line (no line end) is an
+    :class:`InputError` naming the truncation.
+    """
     lines = []
     offset = 0
     with open(path, "rb") as fh:
@@ -225,6 +230,24 @@ def header_lines(path: Path, prefix: bytes, *, limit: int = 1 << 20) -> tuple[li
                 fh.seek(start)
                 break
             line = fh.readline()
+            if what is not None and not line.endswith(b"\n"):
+                raise InputError(f"cannot read {path} as {what}: the file ends inside its text header (line "
+                                 f"{len(lines) + 1} has no end); it was cut (truncated file)")
             lines.append((head + line).decode("latin-1").rstrip("\r\n"))
             offset = fh.tell()
     return lines, offset
+
+
+def check_whole_records(path, what: str, body: int, size: int, unit: str = "event") -> None:
+    """An :class:`InputError` when a data section of ``body`` bytes is not a whole number of ``size``-byte
+    records: the file was cut inside one (or has bytes appended)."""
+    if body % size:
+        raise InputError(f"cannot read {path} as {what}: the data section ({body} bytes) is not a whole number "
+                         f"of {size}-byte {unit}s; the file was cut inside one (truncated file) or has "
+                         f"{body % size} stray bytes at its end")
+
+
+def warn_no_data(path, what: str) -> None:
+    """A warning for a file whose header is followed by no event data at all."""
+    log.warning("%s: the %s file has a header and no event data after it (an empty recording, or a file cut "
+                "at the end of its header)", path, what)

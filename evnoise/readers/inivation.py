@@ -21,7 +21,18 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ._base import EventSource, decoder_error, from_faery, header_lines, packets_in_window, require, to_events
+from ._base import (
+    EventSource,
+    check_whole_records,
+    decoder_error,
+    from_faery,
+    header_lines,
+    log,
+    packets_in_window,
+    require,
+    to_events,
+    warn_no_data,
+)
 
 # --------------------------------------------------------------------------------------
 # AEDAT 4
@@ -162,9 +173,15 @@ class Aedat2Source(EventSource):
         if created_ms is not None:
             self.meta["created_unix_ms"] = int(created_ms)
         body = self.path.stat().st_size - start
-        if body % _AEDAT2_RECORD.itemsize:
-            raise InputError(f"cannot read {self.path} as jAER AEDAT 2.0: the data section ({body} bytes) is not "
-                             f"a whole number of 8-byte events (truncated file?)")
+        check_whole_records(self.path, "jAER AEDAT 2.0", body, _AEDAT2_RECORD.itemsize)
+        if body == 0:
+            opened = any(line.startswith("#Start of Preferences") for line in lines)
+            closed = any(line.startswith(("#End of Preferences", "#End Of ASCII Header")) for line in lines)
+            if opened and not closed:
+                log.warning("%s: the AEDAT 2.0 header stops inside its preferences block and no event follows: the "
+                            "file was cut inside its header (truncated file); reading it as 0 events", self.path)
+            else:
+                warn_no_data(self.path, "jAER AEDAT 2.0")
         self._start = start
         self.n_records = body // _AEDAT2_RECORD.itemsize
         self._decode = None

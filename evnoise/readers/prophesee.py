@@ -15,7 +15,17 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError
-from ._base import EventSource, decoder_error, from_faery, header_lines, packets_in_window, require, to_events
+from ._base import (
+    EventSource,
+    check_whole_records,
+    decoder_error,
+    from_faery,
+    header_lines,
+    packets_in_window,
+    require,
+    to_events,
+    warn_no_data,
+)
 
 #: Placeholder geometry handed to faery when a file has none (faery needs one; no event is
 #: checked against it). The events' extent is what evnoise reports then.
@@ -33,6 +43,11 @@ def _header_dict(lines):
     return out
 
 
+def fields_end(lines) -> bool:
+    """Whether a RAW header closes with Metavision's ``% end`` line (a complete header of an empty file)."""
+    return bool(lines) and lines[-1].strip().lower() == "% end"
+
+
 class RawSource(EventSource):
     """Prophesee RAW (EVT 2.0 / 2.1 / 3.0)."""
 
@@ -41,7 +56,7 @@ class RawSource(EventSource):
         require("faery", "Prophesee RAW files")
         from faery.extension import evt
 
-        lines, self._data_offset = header_lines(self.path, b"%")
+        lines, self._data_offset = header_lines(self.path, b"%", what="Prophesee RAW")
         self.meta = {"header_fields": _header_dict(lines)}
         geometry = True
         try:
@@ -60,6 +75,12 @@ class RawSource(EventSource):
             raise decoder_error(self.path, "Prophesee RAW (EVT)", exc) from None
         self.format = str(version)
         self.meta["evt_version"] = str(version)
+        # EVT 2.0 / 2.1 words are 32 bits, EVT 3.0 words 16 bits: a cut inside a word is a truncation
+        # (a cut between words cannot be told from a shorter recording)
+        body = self.path.stat().st_size - self._data_offset
+        check_whole_records(self.path, f"Prophesee RAW ({version})", body, 2 if "3" in str(version) else 4, "word")
+        if body == 0 and not fields_end(lines):
+            warn_no_data(self.path, "Prophesee RAW")
         fields = self.meta["header_fields"]
         if fields.get("plugin_name") or fields.get("integrator_name"):
             self.meta["camera"] = " ".join(v for v in (fields.get("integrator_name"), fields.get("plugin_name")) if v)
@@ -96,7 +117,7 @@ class DatSource(EventSource):
         require("faery", "Prophesee DAT files")
         from faery.extension import dat
 
-        lines, self._data_offset = header_lines(self.path, b"%")
+        lines, self._data_offset = header_lines(self.path, b"%", what="Prophesee DAT")
         self.meta = {"header_fields": _header_dict(lines)}
         if self._data_offset + 2 > self.path.stat().st_size:
             raise InputError(f"cannot read {self.path} as Prophesee DAT: no event-type header after the text header")
@@ -124,9 +145,9 @@ class DatSource(EventSource):
         if self.shape is None and not geometry:
             self.meta["geometry"] = "none in the header"
         body = self.path.stat().st_size - self._data_offset - 2
-        if body % 8:
-            raise InputError(f"cannot read {self.path} as Prophesee DAT: the data section ({body} bytes) is not a "
-                             f"whole number of 8-byte events (truncated file?)")
+        check_whole_records(self.path, "Prophesee DAT", body, 8)
+        if body == 0:
+            warn_no_data(self.path, "Prophesee DAT")
 
     def _chunks(self, t_start_us, t_end_us):
         if self._kind == "cd":

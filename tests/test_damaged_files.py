@@ -1,0 +1,231 @@
+"""Damaged camera files are never read silently (issues 29 §3.4 and 35 §3), and text exports are read (29 §3.11).
+
+A file cut inside a word, an event or its header, or with stray bytes at its end, gives one
+:class:`InputError` line naming the truncation (or, where the damage leaves a readable but empty
+file, a warning). The real recordings of ``../shared/data/realdata`` are read in place, never
+copied into the repository; the tests that need them skip when the folder is absent.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import evnoise as ev
+from evnoise.cli import main
+from evnoise.errors import InputError
+from evnoise.events import make_events
+from evnoise.readers import read_events
+
+REALDATA = Path(__file__).resolve().parents[1].parent / "shared/data/realdata"
+
+
+def _real(name: str) -> Path:
+    path = REALDATA / name
+    if not path.is_file():
+        pytest.skip(f"the real recording {name} is not here ({REALDATA}); it lives in shared/data/realdata beside "
+                    f"the repository")
+    return path
+
+
+def _events(n=3000, seed=0, shape=(240, 320), t0=0):
+    rng = np.random.default_rng(seed)
+    t = t0 + np.sort(rng.integers(0, 2_000_000, n))
+    return make_events(t, rng.integers(0, shape[1], n), rng.integers(0, shape[0], n), rng.integers(0, 2, n))
+
+
+def _written(tmp_path, suffix) -> bytes:
+    pytest.importorskip("faery")
+    path = ev.write_events(tmp_path / f"w{suffix}", _events(), (240, 320))
+    data = path.read_bytes()
+    path.unlink()
+    return data
+
+
+def _one_line(capsys, path, *flags):
+    capsys.readouterr()  # what earlier steps printed
+    code = main(["info", str(path), *flags])
+    out, err = capsys.readouterr()
+    assert code == 2 and out == "" and err.startswith("evnoise: error:") and err.count("\n") == 1, (code, err)
+    assert "Traceback" not in err
+    return err
+
+
+# --------------------------------------------------------------------------------------
+# Prophesee RAW: a cut inside a word, inside the header
+# --------------------------------------------------------------------------------------
+@pytest.mark.parametrize("drop", [1, 2, 3, 1001])
+def test_real_evt2_cut_mid_word_is_an_error(tmp_path, capsys, drop):
+    data = _real("faery/evt2.raw").read_bytes()
+    (tmp_path / "cut.raw").write_bytes(data[:-drop])
+    with pytest.raises(InputError, match="cut inside one .truncated file."):
+        read_events(tmp_path / "cut.raw", sensor="640x480")
+    assert "truncated" in _one_line(capsys, tmp_path / "cut.raw", "--sensor", "640x480")
+
+
+def test_real_evt3_cut_mid_word_and_stray_bytes(tmp_path):
+    data = _real("expelliarmus/evt3_sample.raw").read_bytes()
+    for name, damaged in (("cut.raw", data[:-1]), ("cut2.raw", data[:-1001]), ("tail.raw", data + b"\x00\x01\x02")):
+        (tmp_path / name).write_bytes(damaged)
+        with pytest.raises(InputError, match="16-bit|2-byte word"):
+            read_events(tmp_path / name, sensor="1280x720")
+
+
+def test_evnoise_raw_cut_mid_word_is_an_error(tmp_path):
+    data = _written(tmp_path, ".raw")  # EVT 3.0
+    (tmp_path / "cut.raw").write_bytes(data[:-1])
+    with pytest.raises(InputError, match="truncated"):
+        read_events(tmp_path / "cut.raw")
+
+
+def test_raw_cut_inside_its_header(tmp_path, capsys, caplog):
+    data = _real("expelliarmus/evt3_sample.raw").read_bytes()
+    end = data.index(b"\n% system_ID") + 1  # cut at a header line's end: no event data at all
+    (tmp_path / "lines.raw").write_bytes(data[:end])
+    with caplog.at_level(logging.WARNING, logger="evnoise"):
+        events, _ = read_events(tmp_path / "lines.raw", sensor="1280x720")
+    assert events.size == 0 and "no event data" in caplog.text
+    (tmp_path / "head.raw").write_bytes(data[:50])  # ends inside the third header line: was 0 events, no word
+    with pytest.raises(InputError, match="ends inside its text header"):
+        read_events(tmp_path / "head.raw", sensor="1280x720")
+    _one_line(capsys, tmp_path / "head.raw", "--sensor", "1280x720")
+
+
+# --------------------------------------------------------------------------------------
+# Event Stream: a cut inside an event, inside the header, stray bytes
+# --------------------------------------------------------------------------------------
+@pytest.mark.parametrize("drop", [1, 2, 3, 4])
+def test_real_event_stream_cut_inside_an_event(tmp_path, capsys, drop):
+    data = _real("loris/test.es").read_bytes()
+    (tmp_path / "cut.es").write_bytes(data[:-drop])  # faery read 4,406 of 4,407 events without a word
+    with pytest.raises(InputError, match="ends inside an event"):
+        read_events(tmp_path / "cut.es")
+    assert "truncated" in _one_line(capsys, tmp_path / "cut.es")
+
+
+def test_event_stream_whole_file_still_reads(tmp_path):
+    events, meta = read_events(_real("loris/test.es"))
+    assert events.size == 4407 and meta["shape"] == (239, 54)
+
+
+def test_evnoise_event_stream_cut_and_extended(tmp_path):
+    data = _written(tmp_path, ".es")
+    assert read_events_bytes(tmp_path, "ok.es", data).size == 3000
+    for damaged in (data[:-2], data + b"\x01\x02"):
+        with pytest.raises(InputError, match="ends inside an event"):
+            read_events_bytes(tmp_path, "bad.es", damaged)
+
+
+def read_events_bytes(tmp_path, name, data):
+    (tmp_path / name).write_bytes(data)
+    return read_events(tmp_path / name)[0]
+
+
+@pytest.mark.parametrize("size", [12, 15, 16, 19])
+def test_event_stream_cut_inside_its_header(tmp_path, size):
+    data = _written(tmp_path, ".es")
+    with pytest.raises(InputError, match="inside its header|not a valid Event Stream"):
+        read_events_bytes(tmp_path, "head.es", data[:size])
+
+
+def test_event_stream_header_without_events_warns(tmp_path, caplog):
+    data = _written(tmp_path, ".es")
+    with caplog.at_level(logging.WARNING, logger="evnoise"):
+        assert read_events_bytes(tmp_path, "empty.es", data[:20]).size == 0
+    assert "no event data" in caplog.text
+
+
+# --------------------------------------------------------------------------------------
+# AEDAT 2.0 and DAT
+# --------------------------------------------------------------------------------------
+def test_aedat2_cut_inside_its_header_warns(caplog):
+    with caplog.at_level(logging.WARNING, logger="evnoise"):
+        events, _ = read_events(_real("tonic/sample_aedat_header.aedat"))  # the header stops mid-preferences
+    assert events.size == 0 and "cut inside its header" in caplog.text
+
+
+def test_dat_stray_bytes_are_an_error(tmp_path):
+    data = _written(tmp_path, ".dat")
+    with pytest.raises(InputError, match="8-byte events"):
+        read_events_bytes(tmp_path, "tail.dat", data + b"abc")
+    with pytest.raises(InputError, match="ends inside its text header"):
+        read_events_bytes(tmp_path, "head.dat", data[:data.index(b"\n") - 2])
+
+
+# --------------------------------------------------------------------------------------
+# CSV and text: time going back, a cut last line (faery clamped the time and dropped the line)
+# --------------------------------------------------------------------------------------
+def test_csv_row_going_back_in_time_is_an_error(tmp_path, capsys):
+    path = tmp_path / "back.csv"
+    path.write_text("t,x,y,p\n1000,3,4,1\n999,5,6,0\n1001,5,6,0\n")
+    with pytest.raises(InputError, match="line 3: the time goes back .999 us after 1000 us."):
+        read_events(path)
+    _one_line(capsys, path)
+
+
+def test_real_csv_cut_in_its_last_line(tmp_path, capsys):
+    data = _real("evcammoke/Feedback/feedback-sorted.csv").read_bytes()
+    last = data.rstrip(b"\n").rindex(b"\n")
+    for keep in (3, 8, len(data) - last - 4):  # x,y,p,t: a cut inside t reads as an earlier time
+        (tmp_path / "cut.csv").write_bytes(data[:last + 1 + keep])
+        with pytest.raises(InputError, match="columns instead of 4|time goes back"):
+            read_events(tmp_path / "cut.csv", csv_columns="x,y,p,t", sensor="640x480")
+    _one_line(capsys, tmp_path / "cut.csv", "--csv-columns", "x,y,p,t", "--sensor", "640x480")
+    (tmp_path / "whole.csv").write_bytes(data.rstrip(b"\n"))  # a last line without its line end is fine
+    events, _ = read_events(tmp_path / "whole.csv", csv_columns="x,y,p,t", sensor="640x480")
+    assert events.size == 21436 and int(events["t"][-1]) == 135541940
+
+
+def test_csv_garbage_rows_are_an_error(tmp_path):
+    path = tmp_path / "junk.csv"
+    path.write_bytes(b"t,x,y,p\n1000,3,4,1\n1005,5,6,0\n\x00\x13zz,1,2,3\n")
+    with pytest.raises(InputError, match="line 4: 'zz' is not a number|line 4"):
+        read_events(path)
+    path.write_text("t,x,y,p\n1000,3,4,7\n")
+    with pytest.raises(InputError, match="polarity 7"):
+        read_events(path)
+
+
+# --------------------------------------------------------------------------------------
+# issue 29 §3.11: space-separated exports with a size line or # comments (events.txt)
+# --------------------------------------------------------------------------------------
+def test_events_txt_with_a_size_line_and_seconds(tmp_path, capsys):
+    path = tmp_path / "events.txt"  # the layout of E2VID's and RPG's event files
+    path.write_text("240 180\n0.000000000 33 39 1\n0.000011001 158 145 1\n0.000050000 88 143 0\n1.5 239 179 0\n")
+    events, meta = read_events(path)
+    assert meta["shape"] == (180, 240) and meta["time_unit"] == "s"
+    assert events["t"].tolist() == [0, 11, 50, 1_500_000] and events["p"].tolist() == [1, 1, 0, 0]
+    assert events["x"].tolist() == [33, 158, 88, 239] and events["y"].tolist() == [39, 145, 143, 179]
+    code = main(["info", str(path), "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    assert '"events": 4' in out
+
+
+def test_events_txt_with_comments_and_column_order(tmp_path):
+    path = tmp_path / "a.txt"
+    path.write_text("# exported by some tool\n# t x y p\n1000\t3\t4\t1\n1005\t5\t6\t-1\n")
+    events, meta = read_events(path, sensor="8x8")
+    assert events.tolist() == [(1000, 3, 4, 1), (1005, 5, 6, 0)] and meta["columns"] == "t,x,y,p"
+    path.write_text("3 4 1 1000\n5 6 0 1005\n")  # x y p t without names: the default t x y p cannot be right
+    with pytest.raises(InputError, match="--csv-columns"):
+        read_events(path)
+    events, _ = read_events(path, csv_columns="x,y,p,t")
+    assert events.tolist() == [(1000, 3, 4, 1), (1005, 5, 6, 0)]
+
+
+def test_events_txt_size_line_is_checked_against_the_events(tmp_path):
+    path = tmp_path / "b.txt"
+    path.write_text("180 240\n0.1 200 10 1\n")  # H W by mistake: x = 200 is outside a 180-wide sensor
+    with pytest.raises(InputError, match="outside the 180x240 sensor"):
+        read_events(path)
+
+
+def test_comma_csv_without_header_still_needs_the_order(tmp_path):
+    path = tmp_path / "c.csv"
+    path.write_text("3,4,1,1000\n")
+    with pytest.raises(InputError, match="--csv-columns"):
+        read_events(path)
