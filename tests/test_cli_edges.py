@@ -87,7 +87,7 @@ def test_every_command_refuses_to_write_over_its_input(tmp_path, capsys):
     rates = tmp_path / "rates.csv"
     rates.write_text("lux,rate_on_hz,rate_off_hz\n0.5,0.4,0.3\n1,0.5,0.4\n2,0.6,0.5\n4,0.5,0.4\n")
     events = small_events_file(tmp_path / "rec.h5")
-    odd = small_events_file(tmp_path / "odd.png")  # an events.h5 file under a .png name
+    odd = small_events_file(tmp_path / "odd.h5").rename(tmp_path / "odd.png")  # an events.h5 file under a .png name
     pairs = tmp_path / "pairs.npz"
     pairs.write_bytes(b"not really pairs")
     photos = tmp_path / "photos"

@@ -349,9 +349,13 @@ def test_info_on_an_events_file(tmp_path, image, capsys):
 def test_info_errors(tmp_path, capsys):
     code, _, err = run_cli(capsys, "info", tmp_path / "missing.h5")
     assert code == 2 and "not found" in err
+    (tmp_path / "notes.md").write_text("hello")
+    code, _, err = run_cli(capsys, "info", tmp_path / "notes.md")
+    assert code == 2 and "notes.md" in err and "not a kind of file" in err
+    # .txt is read as a text export of events: a file that is not one is one clean line too
     (tmp_path / "notes.txt").write_text("hello")
     code, _, err = run_cli(capsys, "info", tmp_path / "notes.txt")
-    assert code == 2 and "notes.txt" in err and "not a kind of file" in err
+    assert code == 2 and "notes.txt" in err and len(err.strip().splitlines()) == 1
 
 
 def test_info_kinds_can_be_added(tmp_path, capsys, monkeypatch):

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import re
 import sys
 
 from .._version import __version__
@@ -22,8 +23,34 @@ COMMANDS = ["simulate", "make_dataset", "calibrate", "train", "evaluate", "recon
 log = logging.getLogger("evnoise")
 
 
+class ArgumentsError(Exception):
+    """A command line argparse refused; :func:`main` prints it as one line (argparse would print the usage
+    block and exit)."""
+
+    def __init__(self, prog: str, message: str):
+        super().__init__(message)
+        self.prog = prog
+        self.message = message
+
+    def line(self) -> str:
+        """``evnoise: error: ...`` without argparse's ``argument --x:`` when the message names the flag."""
+        message = self.message
+        m = re.match(r"argument ([^:]+): (.*)$", message, re.S)
+        if m and any(m.group(2).startswith(flag) for flag in m.group(1).split("/")):
+            message = m.group(2)
+        return f"evnoise: error: {message} (see {self.prog} --help)"
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser whose errors are one line (:class:`ArgumentsError`); its subparsers are of this
+    class too."""
+
+    def error(self, message):
+        raise ArgumentsError(self.prog, message)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="evnoise",
         description="Photon noise of event cameras: simulate noise events, make datasets, "
         "calibrate the model, train and run a reconstructor.",
@@ -61,7 +88,12 @@ def main(argv=None) -> int:
     SIGTERM; Ctrl-C gives 130).
     """
     parser = build_parser()
-    args = parser.parse_args(argv)
+    _tolerant_streams()
+    try:
+        args = parser.parse_args(argv)
+    except ArgumentsError as exc:
+        print(exc.line(), file=sys.stderr)
+        return 2
     args.verbose = args.verbose + getattr(args, "sub_verbose", 0)
     args.quiet = bool(args.quiet or getattr(args, "sub_quiet", False))
     level = logging.ERROR if args.quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
@@ -91,9 +123,61 @@ def main(argv=None) -> int:
 
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    except Exception as exc:
+        line = _known_failure(exc)
+        if line is None:
+            raise
+        _close_progress_bars()
+        print(f"evnoise: error: {line}", file=sys.stderr)
+        return 2
     finally:
         _restore_sigterm(previous)
     return 0 if code is None else int(code)
+
+
+def _tolerant_streams() -> None:
+    """Print file names that are not valid UTF-8 (bytes kept by Python as surrogates) with backslash escapes
+    instead of failing with ``UnicodeEncodeError`` on standard output."""
+    for stream in (sys.stdout, sys.stderr):
+        reconfigure = getattr(stream, "reconfigure", None)
+        if reconfigure is not None and getattr(stream, "errors", "strict") == "strict":
+            try:
+                reconfigure(errors="backslashreplace")
+            except (ValueError, OSError):  # pragma: no cover - a stream that cannot change now
+                pass
+
+
+def _known_failure(exc: BaseException) -> str | None:
+    """One line (what went wrong and what to do) for failures outside evnoise's own errors that have a known
+    cause; ``None`` for anything else (a bug: the traceback is shown)."""
+    cache = _numba_cache_dir(exc)
+    if cache is not None:
+        return (f"the cache of compiled kernels is damaged ({type(exc).__name__}: {exc}); delete the folder "
+                f"{cache} (it is rebuilt on the next run, which compiles again) or point NUMBA_CACHE_DIR to an "
+                f"empty folder")
+    if isinstance(exc, UnicodeEncodeError) and "surrogates not allowed" in str(exc):
+        return (f"a file name or text is not valid UTF-8 ({exc.object[exc.start:exc.end]!r} in "
+                f"{exc.object!r}); rename the file to a UTF-8 name")
+    return None
+
+
+def _numba_cache_dir(exc: BaseException):
+    """The folder of Numba's on-disk cache when ``exc`` was raised while loading from it, else ``None``."""
+    import os
+
+    tb = exc.__traceback__
+    found = None
+    while tb is not None:
+        frame = tb.tb_frame
+        if frame.f_code.co_filename.replace(os.sep, "/").endswith("numba/core/caching.py"):
+            found = found or "the Numba cache folder (NUMBA_CACHE_DIR, or __pycache__ beside evnoise/_kernels)"
+            owner = frame.f_locals.get("self")
+            for attr in ("_cache_path", "cache_path"):
+                path = getattr(owner, attr, None)
+                if isinstance(path, str) and path:
+                    found = path
+        tb = tb.tb_next
+    return found
 
 
 class Terminated(KeyboardInterrupt):

@@ -13,6 +13,7 @@ import logging
 import math
 
 from ..errors import InputError, ParameterError
+from . import _options as opt
 
 log = logging.getLogger(__name__)
 
@@ -28,17 +29,17 @@ _ADVICE = {
 
 def add_arguments(p) -> None:
     g = p.add_argument_group("quiet recording (calibrate from a camera file of a still scene)")
-    g.add_argument("--t-start", type=float, metavar="S",
+    g.add_argument("--t-start", type=opt.seconds("--t-start"), metavar="S",
                    help="start of the still window in seconds on the file's clock (switches to this mode)")
-    g.add_argument("--t-end", type=float, metavar="S", help="end of the still window in seconds")
+    g.add_argument("--t-end", type=opt.seconds("--t-end"), metavar="S", help="end of the still window in seconds")
     g.add_argument("--window", action="append", default=[], metavar="A:B[@LUX]",
                    help="another still window of the same file(s), seconds (repeatable; optional lux)")
     g.add_argument("--lux", type=float, metavar="LUX",
                    help="illuminance of the windows, if known (the base preset's shot noise is then part of the model)")
     g.add_argument("--base", default="davis346", metavar="PRESET",
                    help="preset for the photon-noise part of the written preset (default: %(default)s)")
-    g.add_argument("--sensor", metavar="WxH", help="sensor size, for files whose header has none")
-    g.add_argument("--csv-columns", metavar="COLS", help="column order of a CSV recording, e.g. x,y,p,t")
+    opt.add_sensor(g)
+    opt.add_csv_columns(g)
     g.add_argument("--spread", choices=("auto", "on", "off"), default="auto",
                    help="per-pixel spread of the rates (default: kept if a likelihood-ratio test says so)")
     g.add_argument("--hot", choices=("auto", "on", "off"), default="auto", help="hot pixels (default: auto)")
@@ -69,8 +70,9 @@ def _windows(args):
         if not sep:
             raise ParameterError(f"--window expects A:B or A:B@LUX in seconds, got {text!r}")
     for a, b, lux in spans:
-        if not (math.isfinite(a) and math.isfinite(b) and b > a):
-            raise ParameterError(f"a window must have its end after its start, got {a:g}..{b:g} s")
+        if not (math.isfinite(a) and math.isfinite(b) and b > a and max(abs(a), abs(b)) <= opt.MAX_SECONDS):
+            raise ParameterError(f"a window must have its end after its start (finite seconds, at most "
+                                 f"{opt.MAX_SECONDS:.3g}), got {a:g}..{b:g} s")
         if lux is not None and not (math.isfinite(lux) and lux >= 0):
             raise ParameterError(f"--lux must be finite and >= 0, got {lux!r}")
     return spans
@@ -84,7 +86,6 @@ def run(args, recordings) -> int:
     from evnoise.calibration.quiet_checks import failed_checks
 
     from ..io import open_output_path
-    from ..params import load_preset
     from ._paths import refuse_writing_inputs
 
     if not recordings:
@@ -95,7 +96,7 @@ def run(args, recordings) -> int:
     out = open_output_path(args.out, overwrite=args.overwrite, what="preset")
     if args.plot:
         open_output_path(args.plot, overwrite=args.overwrite, what="plot")
-    base = load_preset(args.base)
+    base = opt.load_preset_arg(args.base, "--base")
     windows = []
     for rec in recordings:
         for a, b, lux in spans:

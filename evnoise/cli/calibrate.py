@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 
 from ..errors import ParameterError
+from . import _options as opt
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +43,7 @@ def register(subparsers) -> None:
     p.add_argument("--example", action="store_true",
                    help=f"use the bundled example rate table ({EXAMPLE}, simulated from the evk3-hd preset) "
                    "as MEASUREMENTS")
-    p.add_argument("-o", "--out", required=True, metavar="TOML", help="preset file to write")
+    opt.add_out(p, required=True, metavar="TOML", help="preset file to write")
     p.add_argument("--plot", metavar="PNG", help="also write a figure of the data and the fitted curves")
     p.add_argument("--monitor", metavar="CSV", help="grey -> lux table of a monitor (columns grey, lux)")
     p.add_argument("--monitor-model", choices=("interp", "gamma"), default="interp",
@@ -61,14 +62,14 @@ def register(subparsers) -> None:
                    help="hold parameters at given values, e.g. --fix eps_sigma=0.05 refractory_s=1e-4")
     p.add_argument("--initial", metavar="PRESET",
                    help="starting point and values of parameters that are not fitted (a preset name or TOML)")
-    p.add_argument("--starts", type=int, default=6, metavar="N",
+    p.add_argument("--starts", type=opt.count("--starts"), default=6, metavar="N",
                    help="strata of starting points (2 each are screened; more is slower and safer) "
                    "(default: %(default)s)")
-    p.add_argument("--seed", type=int, default=0, metavar="N", help="seed of the starting points (default 0)")
+    opt.add_seed(p, default=0, help="seed of the starting points (default 0)")
     p.add_argument("--unidentified", choices=("report", "fix"), default="report",
                    help="parameters the data do not constrain: report them, or fix them and refit the rest "
                    "(default: %(default)s)")
-    p.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    opt.add_overwrite(p)
     from . import _calibrate_quiet
 
     _calibrate_quiet.add_arguments(p)
@@ -120,10 +121,7 @@ def run(args) -> int:
                              "--t-start/--t-end (a quiet-scene calibration)")
     args.measurements = args.measurements[0] if args.measurements else None
     from ..io import open_output_path
-    from ..params import load_preset
 
-    if args.starts < 1:
-        raise ParameterError(f"--starts must be >= 1, got {args.starts}")
     source = _measurements_path(args)
     fixed = _parse_fix(args.fix)
     from ._paths import refuse_writing_inputs
@@ -133,7 +131,7 @@ def run(args) -> int:
                            ("the --initial preset", args.initial)])
     out = open_output_path(args.out, overwrite=args.overwrite, what="preset")
     plot = open_output_path(args.plot, overwrite=args.overwrite, what="plot") if args.plot else None
-    initial = load_preset(args.initial) if args.initial else None
+    initial = opt.load_preset_arg(args.initial, "--initial") if args.initial else None
 
     from ..calibration import calibrate, read_measurements
 

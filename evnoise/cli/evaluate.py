@@ -14,6 +14,8 @@ log = logging.getLogger("evnoise")
 
 
 def register(subparsers):
+    from . import _options as opt
+
     p = subparsers.add_parser(
         "evaluate",
         help="score the reconstructor against the baselines on a test set (PSNR, SSIM, LPIPS)",
@@ -37,12 +39,12 @@ def register(subparsers):
     p.add_argument("--no-lpips", action="store_true", help="skip LPIPS (faster)")
     p.add_argument("--max-items", type=int, metavar="N", help="score only the first N pairs")
     p.add_argument("--title", help="title line of the table (default: the dataset and split)")
-    p.add_argument("--out", metavar="TABLE.md", help="write the markdown table here")
+    opt.add_out(p, metavar="TABLE.md", help="write the markdown table here")
     p.add_argument("--json", metavar="RESULTS.json", help="write every number (per pair too) here")
     p.add_argument("--figure", metavar="FIG.png",
                    help="PNG of counts / ML baseline / U-Net / ground truth (first pair of up to 6 source images)")
-    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
-    p.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    opt.add_threads(p, default=1, help="torch CPU threads (default 1)")
+    opt.add_overwrite(p)
     p.set_defaults(func=run)
 
 
@@ -104,9 +106,9 @@ def run(args) -> int:
                     "images are on a different brightness scale than the targets", data_white, model.spec.max_lux)
     params = None
     if args.preset:
-        from ..params import load_preset
+        from ._options import load_preset_arg
 
-        params = load_preset(args.preset)
+        params = load_preset_arg(args.preset)
     sigmas = args.ml_sigma or [0.7]
     result = evaluate(data, model, params=params, max_lux=args.max_lux, lpips=not args.no_lpips,
                       max_items=args.max_items, keep_predictions=len(data) if args.figure else 0,

@@ -30,10 +30,11 @@ def register_kind(name: str, detect: Detector, summarise: Summariser) -> None:
 
 
 def register(subparsers) -> None:
+    from . import _options as opt
+
     p = subparsers.add_parser(
         "info",
-        help="summarise a file: events.h5 or a camera recording (.raw, .dat, .aedat4, .aedat, .es, .csv, .bin), "
-        "a dataset, a model",
+        help=f"summarise a file: events.h5 or a camera recording ({opt.event_suffixes()}), a dataset, a model",
         description="Summarise a file: for an event file (evnoise's events.h5 or a camera recording) the "
         "sensor size, duration, event counts and rates, and the header's facts (model parameters, seed and "
         "version for evnoise's files); with --stats the noise statistics of the recording. "
@@ -43,13 +44,13 @@ def register(subparsers) -> None:
     p.add_argument("--json", action="store_true",
                    help="print the summary as JSON (numbers as numbers, units in the keys)")
     ev = p.add_argument_group("event files")
-    ev.add_argument("--sensor", metavar="WxH",
-                    help="sensor size, e.g. 640x480, for files whose header has none (EVT 2.0, CSV, N-CARS .dat) "
-                    "or a wrong one")
-    ev.add_argument("--t-start", type=float, metavar="S", help="start of the time window, seconds on the file's clock")
-    ev.add_argument("--t-end", type=float, metavar="S",
+    opt.add_sensor(ev, help="sensor size, e.g. 640x480, for files whose header has none (EVT 2.0, CSV, N-CARS "
+                   ".dat) or a wrong one")
+    ev.add_argument("--t-start", type=opt.seconds("--t-start"), metavar="S",
+                    help="start of the time window, seconds on the file's clock")
+    ev.add_argument("--t-end", type=opt.seconds("--t-end"), metavar="S",
                     help="end of the time window (exclusive), seconds on the file's clock")
-    ev.add_argument("--csv-columns", metavar="COLS", help="column order of a CSV file, e.g. x,y,p,t")
+    opt.add_csv_columns(ev)
     ev.add_argument("--stats", action="store_true",
                     help="noise statistics: rate per pixel (mean, quantiles), ON fraction, active pixels, "
                     "variance/mean of per-pixel counts, hot pixels")
@@ -58,7 +59,7 @@ def register(subparsers) -> None:
                     "at least 10)")
     ev.add_argument("--png", metavar="FILE",
                     help="--stats: also write a PNG of the ON/OFF count maps and the per-pixel count histogram")
-    ev.add_argument("--overwrite", action="store_true", help="replace an existing --png file")
+    opt.add_overwrite(ev, help="replace an existing --png file")
     p.set_defaults(func=run)
 
 

@@ -13,6 +13,7 @@ shards are verified by checksum and kept) or, for a complete dataset, verifies i
 
 from __future__ import annotations
 
+import argparse
 import logging
 import time
 
@@ -22,6 +23,8 @@ log = logging.getLogger(__name__)
 
 
 def register(subparsers) -> None:
+    from . import _options as opt
+
     p = subparsers.add_parser(
         "make-dataset",
         help="make NE2I-style training pairs (noise-event counts + image), sharded and reproducible",
@@ -38,7 +41,7 @@ def register(subparsers) -> None:
     )
     p.add_argument("images", nargs="*", metavar="IMAGES",
                    help="image folders (PNG, JPEG, TIFF, OpenEXR; not recursive) and/or image files")
-    p.add_argument("-o", "--out", required=True, metavar="DIR", help="output folder (new, empty, or this job's)")
+    opt.add_out(p, required=True, metavar="DIR", help="output folder (new, empty, or this job's)")
     src = p.add_argument_group("procedural and packaged scenes")
     src.add_argument("--procedural", choices=("dead-leaves",), help="add procedural images (needs --count)")
     src.add_argument("--count", type=int, metavar="N", help="number of procedural images")
@@ -46,8 +49,7 @@ def register(subparsers) -> None:
                      help="add the natural photos that installed packages ship (scikit-image, matplotlib, "
                      "scikit-learn, PyWavelets); nothing is downloaded")
     geo = p.add_argument_group("geometry")
-    geo.add_argument("--sensor", default="1280x720", metavar="WxH",
-                     help="sensor size every image is fitted to (default: %(default)s)")
+    opt.add_sensor(geo, default="1280x720", help="sensor size every image is fitted to (default: %(default)s)")
     geo.add_argument("--fit", choices=("cover", "crop", "resize"), default="cover",
                      help="how images are brought to --sensor (default: %(default)s)")
     geo.add_argument("--crop", metavar="WxH",
@@ -80,8 +82,7 @@ def register(subparsers) -> None:
                      help="clip NaN/Inf/negative pixel values instead of skipping the image")
     sim.add_argument("--preset", default="evk3-hd", metavar="NAME|TOML",
                      help="noise-model preset (default: %(default)s)")
-    sim.add_argument("--seed", type=int, metavar="N",
-                     help="seed of everything (default: the interrupted run's in --out, else a fresh one, stored)")
+    opt.add_seed(sim, help="seed of everything (default: the interrupted run's in --out, else a fresh one, stored)")
     out = p.add_argument_group("output and execution")
     out.add_argument("--split", default="0.8,0.1,0.1", metavar="TRAIN,VAL,TEST",
                      help="fractions of source images per split (default: %(default)s)")
@@ -92,13 +93,12 @@ def register(subparsers) -> None:
                           "reads; gzip for tools without h5py's LZF filter)")
     out.add_argument("--workers", type=int, metavar="N",
                      help="worker processes (default: the CPU count); never changes the output")
-    out.add_argument("--threads", type=int, metavar="N",
-                     help="threads per worker for --mode events and the general sampler (default: CPUs / workers)")
+    opt.add_threads(out, help="threads per worker for --mode events and the general sampler (default: CPUs / "
+                    "workers)")
     out.add_argument("--scheduler", metavar="ADDRESS",
                      help="run on a Dask distributed cluster (e.g. tcp://host:8786; needs evnoise[dask]; workers "
                      "must see --out and the images at the same paths)")
-    out.add_argument("--overwrite", action="store_true",
-                     help="replace a dataset made with different options in --out")
+    opt.add_overwrite(out, help="replace a dataset made with different options in --out")
     p.set_defaults(func=run)
 
 
@@ -116,6 +116,16 @@ def _splits(text: str):
 def build_config(args):
     """A :class:`~evnoise.generators.PairConfig` from parsed arguments."""
     from ..generators.config import PairConfig, parse_range, parse_shape, parse_windows
+    from . import _options as opt
+    from ._options import check_text_file
+
+    check_text_file(args.preset)
+    for text in args.window or []:
+        for part in filter(str.strip, str(text).split(",")):
+            try:
+                opt.seconds("--window", positive=True)(part)
+            except argparse.ArgumentTypeError as exc:
+                raise ParameterError(str(exc)) from None
 
     return PairConfig(
         sensor_shape=parse_shape(args.sensor, "--sensor"),

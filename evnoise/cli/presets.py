@@ -22,6 +22,8 @@ _QUALITY_KEYS = ("rate_rms_relative_residual", "rate_max_relative_residual", "ra
 
 
 def register(subparsers) -> None:
+    from . import _options as opt
+
     p = subparsers.add_parser(
         "presets",
         help="list the camera presets, show one, plot its noise rate against lux",
@@ -34,7 +36,7 @@ def register(subparsers) -> None:
     p.add_argument("name", nargs="?", metavar="NAME", help="a preset name (see the list) or a preset .toml file")
     p.add_argument("--plot", metavar="FILE", help="with NAME: write a PNG of the rate against lux")
     p.add_argument("--json", action="store_true", help="print as JSON")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing --plot file")
+    opt.add_overwrite(p, help="replace an existing --plot file")
     p.set_defaults(func=run)
 
 
@@ -52,7 +54,9 @@ def _non_default(params) -> dict:
 def describe(name_or_path) -> dict:
     """Everything ``evnoise presets NAME`` shows, as plain JSON types."""
     from ..params import NoiseParams, load_preset_document, preset_info
+    from ._options import check_text_file
 
+    check_text_file(name_or_path, "preset")
     info = preset_info(name_or_path)
     doc = load_preset_document(name_or_path)
     if not isinstance(doc.get("params"), dict):

@@ -1,4 +1,6 @@
-"""``evnoise reconstruct events.h5 --out image.png [--model model.pt]``: image from noise events.
+"""``evnoise reconstruct EVENTS --out image.png [--model model.pt]``: image from noise events.
+
+EVENTS is any event file evnoise reads (events.h5 or a camera recording).
 
 Without ``--model`` the reconstructor shipped with evnoise (``evnoise/models/evk3-hd.pt``,
 trained for the ``evk3-hd`` preset) is used.
@@ -12,34 +14,39 @@ log = logging.getLogger("evnoise")
 
 
 def register(subparsers):
+    from . import _options as opt
+
     p = subparsers.add_parser(
         "reconstruct",
-        help="reconstruct a static image from the noise events of an events.h5 file",
+        help="reconstruct a static image from the noise events of an event file (events.h5 or a camera "
+        "recording)",
         description="Count the ON/OFF events of a window, bin them as in training, run the trained "
         "U-Net and write an 8-bit grayscale PNG. With --step, a moving window writes one PNG per "
-        "position (OUT_0000.png, OUT_0001.png, ...).",
+        "position (OUT_0000.png, OUT_0001.png, ...). A window shorter than the model's training window is "
+        "shown to the model as its counts scaled up to that window (an estimate of the same rates; noisier).",
     )
-    p.add_argument("events", help="events.h5 (DSEC layout) or a camera recording (.raw, .dat, .aedat4, .aedat, .es, "
-                   ".csv, .bin)")
-    p.add_argument("--sensor", metavar="WxH", help="sensor size, e.g. 640x480, for recordings whose header has none")
-    p.add_argument("--csv-columns", metavar="COLS", help="column order of a CSV recording, e.g. x,y,p,t")
+    p.add_argument("events", help=opt.event_input_help())
+    opt.add_sensor(p)
+    opt.add_csv_columns(p)
     p.add_argument("--model", default=None,
                    help="checkpoint written by `evnoise train` (default: the shipped evk3-hd model)")
-    p.add_argument("--out", required=True, help="output PNG")
-    p.add_argument("--window", type=float, default=None, metavar="S",
+    opt.add_out(p, required=True, metavar="PNG|DIR", help="output PNG (with --fps: the output folder)")
+    p.add_argument("--window", type=opt.seconds("--window", positive=True), default=None, metavar="S",
                    help="integration window in seconds (default: the longest window the model was trained on "
                    "that fits into the recording)")
-    p.add_argument("--t-start", type=float, default=None, metavar="S",
+    p.add_argument("--t-start", type=opt.seconds("--t-start"), default=None, metavar="S",
                    help="start of the window in seconds on the recording's clock (default: its start, 0 for "
                    "events.h5, the first event of a camera file)")
-    p.add_argument("--step", type=float, default=None, metavar="S",
+    p.add_argument("--step", type=opt.seconds("--step", positive=True, minimum=1e-6), default=None, metavar="S",
                    help="moving window: advance by S seconds per frame")
-    p.add_argument("--frames", type=int, default=None, help="with --step or --fps: at most this many frames")
-    p.add_argument("--binning", type=int, default=None, help="check that the model uses this binning")
-    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
-    p.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    p.add_argument("--frames", type=opt.count("--frames"), default=None,
+                   help="with --step or --fps: at most this many frames")
+    p.add_argument("--binning", type=opt.count("--binning"), default=None,
+                   help="check that the model uses this binning")
+    opt.add_threads(p, default=1, help="torch CPU threads (default 1)")
+    opt.add_overwrite(p)
     video = p.add_argument_group("video mode (--fps): the static background behind moving things")
-    video.add_argument("--fps", type=float, default=None, metavar="F",
+    video.add_argument("--fps", type=opt.frequency("--fps"), default=None, metavar="F",
                        help="write one frame per 1/F seconds into the folder --out (frame_NNNNN.png, "
                        "overlay_NNNNN.png, frames.csv), from the noise events of pixels without motion over the "
                        "last --window seconds")

@@ -6,22 +6,24 @@ from __future__ import annotations
 
 
 def register(subparsers):
+    from . import _options as opt
+
     p = subparsers.add_parser(
         "separate",
         help="split an event file (events.h5 or a camera recording) into signal and noise events",
-        description="Label every event of a recording (events.h5 or a camera file: .raw, .dat, .aedat4, .aedat, "
-        ".es, .csv, .bin) as signal (caused by an intensity change) or "
+        description="Label every event of a recording (events.h5 or a camera file: "
+        f"{opt.event_suffixes()}) as signal (caused by an intensity change) or "
         "noise with a spatio-temporal correlation filter, streaming the file, and write the two parts to "
         "event files (the suffix decides the format: .h5, .aedat4, .raw (EVT3), .dat, .es, .csv). "
         "density: YNoise-style event density in a (2R+1)x(2R+1) neighbourhood and the time "
         "window [t - WINDOW, t + LOOKAHEAD] (signal if >= THRESHOLD other events); activity: the background-"
         "activity filter (signal if another pixel within R fired in the last WINDOW).",
     )
-    p.add_argument("events", help="input event file: events.h5 or a camera recording")
-    p.add_argument("--out", default=None, help="event file for the signal events (.h5, .aedat4, .raw, .dat, .es, .csv)")
+    p.add_argument("events", help=opt.event_input_help())
+    opt.add_out(p, metavar="FILE", help="event file for the signal events (.h5, .aedat4, .raw, .dat, .es, .csv)")
     p.add_argument("--noise-out", default=None, help="event file for the noise events (same formats)")
-    p.add_argument("--sensor", metavar="WxH", help="sensor size, e.g. 640x480, for inputs whose header has none")
-    p.add_argument("--csv-columns", metavar="COLS", help="column order of a CSV input, e.g. x,y,p,t")
+    opt.add_sensor(p)
+    opt.add_csv_columns(p)
     p.add_argument("--method", choices=("density", "activity"), default="density", help="filter (default density)")
     p.add_argument("--radius", type=int, default=None, metavar="PX",
                    help="neighbourhood half-side in pixels (default 2 for density, 1 for activity)")
@@ -35,7 +37,7 @@ def register(subparsers):
                    help="density: count events of any polarity or only the event's own (default same)")
     p.add_argument("--png", default=None, metavar="FILE",
                    help="also write a picture of the signal and noise event rates (PNG)")
-    p.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    opt.add_overwrite(p)
     p.set_defaults(func=run)
 
 

@@ -8,8 +8,6 @@ file name (``frame2`` before ``frame10``) and read lazily.
 from __future__ import annotations
 
 import logging
-import math
-import re
 import secrets
 import textwrap
 import time
@@ -17,6 +15,7 @@ from pathlib import Path
 from typing import Iterator, NamedTuple
 
 from ..errors import InputError, OutputError, ParameterError
+from . import _options as opt
 
 log = logging.getLogger(__name__)
 
@@ -37,34 +36,33 @@ def register(subparsers) -> None:
     p.add_argument("input", nargs="?", metavar="INPUT",
                    help="an image (PNG, JPEG, TIFF, OpenEXR) or a folder of frames")
     p.add_argument("--example", action="store_true", help="use the bundled 1280x720 example image as INPUT")
-    p.add_argument("-o", "--out", required=True, metavar="FILE",
-                   help="output event file; the suffix decides the format: .h5 (events.h5, DSEC layout, with "
-                   "parameters and seed), .aedat4 (parameters and seed in its description), .raw (Prophesee EVT 3.0), "
-                   ".dat (Prophesee DAT), .es (Event Stream), .csv (t,x,y,on)")
-    p.add_argument("--duration", type=float, metavar="S",
+    opt.add_out(p, required=True, metavar="FILE",
+                help="output event file; the suffix decides the format: .h5 (events.h5, DSEC layout, with "
+                "parameters and seed), .aedat4 (parameters and seed in its description), .raw (Prophesee EVT 3.0), "
+                ".dat (Prophesee DAT), .es (Event Stream), .csv (t,x,y,on)")
+    p.add_argument("--duration", type=opt.seconds("--duration", positive=True), metavar="S",
                    help="length of a static scene in seconds (default 1); not used for a folder")
-    p.add_argument("--fps", type=float, metavar="F",
+    p.add_argument("--fps", type=opt.frequency("--fps"), metavar="F",
                    help="frame rate of a folder of frames (required for a folder)")
     p.add_argument("--preset", default="evk3-hd", metavar="NAME|TOML",
                    help="noise-model preset name or parameter TOML file (default: %(default)s)")
-    p.add_argument("--seed", type=int, metavar="N",
-                   help="random seed (default: a fresh one, printed and stored in the file)")
+    opt.add_seed(p, help="random seed, 0 .. 2**63-1 (default: a fresh one, printed and stored in the file)")
     p.add_argument("--method", choices=("auto", "renewal", "trials"), default="auto",
                    help="simulation tier (default: %(default)s)")
-    p.add_argument("--sensor", metavar="WxH", help="sensor size, e.g. 1280x720 (default: the image's size)")
+    opt.add_sensor(p, help="sensor size, e.g. 1280x720 (default: the image's size)")
     p.add_argument("--fit", choices=FIT_MODES, default="cover",
                    help="how to bring images to --sensor: cover (scale keeping the aspect ratio, crop the "
                    "centre), crop (centre crop, no scaling), resize (stretch) (default: %(default)s)")
-    p.add_argument("--max-lux", type=float, metavar="LUX",
+    p.add_argument("--max-lux", type=opt.positive_number("--max-lux", "lux"), metavar="LUX",
                    help=f"illuminance of full-scale white of 8/16-bit images (default {DEFAULT_MAX_LUX:g} lux, "
                    "the Noise2Image monitor at grey 255)")
-    p.add_argument("--lux-scale", type=float, metavar="K",
+    p.add_argument("--lux-scale", type=opt.positive_number("--lux-scale", "lux per unit"), metavar="K",
                    help="lux per unit of linear images (OpenEXR, float TIFF) (default 1)")
     p.add_argument("--encoding", choices=ENCODINGS, default="srgb",
                    help="transfer function of 8/16-bit images (default: %(default)s)")
     p.add_argument("--clip-invalid", action="store_true",
                    help="clip NaN, Inf and negative pixel values (with a warning) instead of failing")
-    p.add_argument("--threads", type=int, metavar="N", help="worker threads (default: all CPUs)")
+    opt.add_threads(p, help="worker threads (default: all CPUs)")
     p.add_argument("--format", choices=("h5", "aedat4", "evt3", "dat", "es", "csv"),
                    help="check the output format: the --out suffix decides it, and this must agree "
                    "(formats other than h5 need the faery package)")
@@ -72,29 +70,16 @@ def register(subparsers) -> None:
                    help="HDF5 compression of the events (default: %(default)s)")
     p.add_argument("--png", metavar="FILE",
                    help="also write a PNG of the scene beside its ON/OFF event-rate maps (log scales, colour bars)")
-    p.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    opt.add_overwrite(p)
     p.set_defaults(func=run)
 
 
 # --------------------------------------------------------------------------------------
 # argument checks
 # --------------------------------------------------------------------------------------
-def _positive(value, flag: str, unit: str) -> float | None:
-    if value is None:
-        return None
-    if not math.isfinite(value) or value <= 0:
-        raise ParameterError(f"{flag} must be finite and > 0 {unit}, got {value:g}")
-    return float(value)
-
-
 def parse_sensor(text):
     """``"1280x720"`` -> ``(720, 1280)`` (H, W); ``None`` stays ``None``."""
-    if text is None:
-        return None
-    m = re.fullmatch(r"\s*(\d+)\s*[xX*,]\s*(\d+)\s*", text)
-    if not m or int(m.group(1)) < 1 or int(m.group(2)) < 1 or max(int(m.group(1)), int(m.group(2))) > 65536:
-        raise ParameterError(f"--sensor must be WIDTHxHEIGHT, e.g. 1280x720 (1 .. 65536 each), got {text!r}")
-    return int(m.group(2)), int(m.group(1))
+    return opt.parse_wxh(text)
 
 
 class LuxFrames:
@@ -138,7 +123,6 @@ class LuxFrames:
 def run(args) -> int:
     """Run ``evnoise simulate`` with parsed arguments; returns the exit code."""
     from ..io import open_output_path
-    from ..params import load_preset
     from ._paths import refuse_writing_inputs
 
     started = time.perf_counter()
@@ -149,12 +133,9 @@ def run(args) -> int:
                           [("the input folder" if is_video else "the input image", source),
                            ("the --preset file", args.preset)], frames_folder=True)
     duration, fps = _timing(args, source, is_video)
-    if args.threads is not None and args.threads < 1:
-        raise ParameterError(f"--threads must be >= 1, got {args.threads}")
-    if args.seed is not None and args.seed < 0:
-        raise ParameterError(f"--seed must be a non-negative integer, got {args.seed}")
+    # --threads, --seed, --duration, --fps are checked when parsed (_options), before anything runs
     sensor = parse_sensor(args.sensor)
-    params = load_preset(args.preset)
+    params = opt.load_preset_arg(args.preset)
     from ..io import output_format
 
     fmt = output_format(args.out)  # the suffix decides; a folder or an unknown suffix is an error
@@ -174,7 +155,7 @@ def run(args) -> int:
     if args.seed is None:
         log.info("no --seed given; using seed %d (stored in the file)", seed)
     attrs = {
-        "source": source_label, "preset": str(args.preset), "params": params, "seed": int(seed),
+        "source": source_label, "preset": text_of(args.preset), "params": params, "seed": int(seed),
         "method": args.method, "encoding": args.encoding, "max_lux": args.max_lux, "lux_scale": args.lux_scale,
         "fit": args.fit if sensor else None,
     }
@@ -198,13 +179,19 @@ def _source(args):
     source = Path(args.input)
     if not source.exists():
         raise InputError(f"input not found: {source}")
-    return source, str(source)
+    return source, text_of(source)
+
+
+def text_of(path) -> str:
+    """``path`` as text that can be stored and printed: bytes of a name that are not UTF-8 (which Python keeps
+    as surrogates) written as ``\\xNN``."""
+    return str(path).encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
 
 
 def _timing(args, source, is_video):
     """``(duration_s, fps)``: a duration for an image (default 1 s), a frame rate for a folder."""
-    duration = _positive(args.duration, "--duration", "seconds")
-    fps = _positive(args.fps, "--fps", "frames per second")
+    duration = opt.positive(args.duration, "--duration", "seconds")
+    fps = opt.positive(args.fps, "--fps", "frames per second")
     if is_video:
         if duration is not None:
             raise ParameterError("--duration is for a single image; the length of a folder of frames is set "

@@ -8,6 +8,8 @@ log = logging.getLogger("evnoise")
 
 
 def register(subparsers):
+    from . import _options as opt
+
     p = subparsers.add_parser(
         "train",
         help="train the U-Net reconstructor on count/image pairs",
@@ -16,7 +18,7 @@ def register(subparsers):
         "loss curves next to it.",
     )
     p.add_argument("dataset", help="make-dataset folder or .npz pairs file")
-    p.add_argument("--out", required=True, help="checkpoint to write (e.g. model.pt)")
+    opt.add_out(p, required=True, metavar="MODEL.pt", help="checkpoint to write (e.g. model.pt)")
     p.add_argument("--val", help="separate validation dataset (default: the dataset's 'val' split, "
                                   "else a share of its source images)")
     p.add_argument("--val-fraction", type=float, default=0.15, help="share of source images held out (default 0.15)")
@@ -41,12 +43,12 @@ def register(subparsers):
     p.add_argument("--ml-sigma", type=float, default=None, metavar="S",
                    help="add the closed-form ML estimate (counts smoothed with a Gaussian of S binned pixels) as "
                    "an input channel")
-    p.add_argument("--seed", type=int, default=0, help="seed of everything random (default 0)")
-    p.add_argument("--threads", type=int, default=1,
-                   help="torch CPU threads (default 1: on a busy 2-core machine one thread was 3-10x faster "
+    opt.add_seed(p, default=0, help="seed of everything random (default 0)")
+    opt.add_threads(p, default=1,
+                    help="torch CPU threads (default 1: on a busy 2-core machine one thread was 3-10x faster "
                         "per step than two; raise it on an idle machine)")
     p.add_argument("--resume", action="store_true", help="continue the run stored in --out")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    opt.add_overwrite(p, help="replace an existing --out")
     p.add_argument("--no-plot", action="store_true", help="do not write the loss-curve PNG")
     p.set_defaults(func=run)
 

@@ -1,0 +1,199 @@
+"""Issue 29 section 3 (what a new user hit on the command line) and issue 35's absurd numbers, non-UTF-8 files
+and a damaged Numba cache: each gives a result or one clean error line, never a traceback."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import evnoise as ev
+from evnoise.cli import build_parser, main
+
+PIL_Image = pytest.importorskip("PIL.Image")
+h5py = pytest.importorskip("h5py")
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def run_cli(capsys, *args):
+    code = main([*map(str, args)])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def one_error_line(code, err, expect=None):
+    lines = err.strip().splitlines()
+    assert code == 2, err
+    assert len(lines) == 1 and lines[0].startswith("evnoise: error: "), err
+    if expect is not None:
+        assert expect in lines[0], lines[0]
+
+
+def grey_image(path, shape=(24, 32), value=128):
+    PIL_Image.fromarray(np.full(shape, value, dtype=np.uint8)).save(path)
+    return path
+
+
+def small_events_file(path, shape=(16, 20), n=400, seed=0, duration_us=1_000_000):
+    rng = np.random.default_rng(seed)
+    t = np.sort(rng.integers(0, duration_us, n))
+    events = ev.events.make_events(t, rng.integers(0, shape[1], n), rng.integers(0, shape[0], n),
+                                   rng.integers(0, 2, n))
+    return ev.write_events(path, events, shape, t_end_us=duration_us)
+
+
+def subparsers():
+    parser = build_parser()
+    return parser._defaults["subparsers_action"].choices
+
+
+# --------------------------------------------------------------------------------------
+# item 12: -o is --out everywhere; help texts name every format read
+# --------------------------------------------------------------------------------------
+def test_o_is_out_in_every_command_that_has_out():
+    with_out = []
+    for name, sub in subparsers().items():
+        for action in sub._actions:
+            if "--out" in action.option_strings:
+                with_out.append(name)
+                assert "-o" in action.option_strings, f"evnoise {name}: --out has no -o"
+    assert {"simulate", "make-dataset", "calibrate", "train", "evaluate", "reconstruct", "separate"} <= set(with_out)
+
+
+def test_o_writes_like_out(tmp_path, capsys):
+    events = small_events_file(tmp_path / "rec.h5")
+    code, _, err = run_cli(capsys, "separate", events, "-o", tmp_path / "signal.h5", "-q")
+    assert code == 0, err
+    assert (tmp_path / "signal.h5").is_file()
+
+
+def test_help_of_commands_that_read_any_event_file_does_not_say_events_h5_only():
+    subs = subparsers()
+    parser = build_parser()
+    commands = parser._defaults["subparsers_action"]._choices_actions
+    helps = {a.dest: a.help for a in commands}
+    assert "events.h5 file" not in helps["reconstruct"] and "camera" in helps["reconstruct"]
+    for name in ("reconstruct", "separate"):
+        positional = next(a for a in subs[name]._actions if a.dest == "events")
+        for suffix in (".h5", ".raw", ".dat", ".aedat4", ".aedat", ".es", ".csv", ".bin"):
+            assert suffix in positional.help, (name, suffix)
+
+
+# --------------------------------------------------------------------------------------
+# issue 35: absurd numbers are one error line, before any work
+# --------------------------------------------------------------------------------------
+@pytest.fixture
+def no_simulation(monkeypatch):
+    """Fail the test if a simulation starts (the check must come before it)."""
+    import evnoise.simulate as sim
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the simulation ran before the arguments were checked")
+
+    monkeypatch.setattr(sim, "iter_events", refuse)
+    monkeypatch.setattr(sim, "iter_video", refuse)
+
+
+@pytest.mark.parametrize("argv, expect", [
+    (["simulate", "IMAGE", "--duration", "1e308"], "--duration must be at most"),
+    (["simulate", "IMAGE", "--duration", "inf"], "--duration must be finite"),
+    (["simulate", "FRAMES", "--fps", "1e308"], "--fps must be at most"),
+    (["simulate", "IMAGE", "--seed", str(2**64)], "--seed must be at most 2**63 - 1"),
+    (["simulate", "IMAGE", "--seed", "-3"], "--seed must be a non-negative integer"),
+    (["simulate", "IMAGE", "--threads", "0"], "--threads must be >= 1"),
+    (["simulate", "IMAGE", "--duration", "abc"], "--duration must be a number"),
+    (["reconstruct", "EVENTS", "--window", "1e308"], "--window must be at most"),
+    (["reconstruct", "EVENTS", "--t-start", "1e308"], "--t-start must be at most"),
+    (["reconstruct", "EVENTS", "--fps", "1e308"], "--fps must be at most"),
+    (["reconstruct", "EVENTS", "--step", "1e-308"], "--step must be at least"),
+    (["info", "EVENTS", "--t-start", "1e308"], "--t-start must be at most"),
+    (["info", "EVENTS", "--t-end=-1e308"], "--t-end must be at most"),
+    (["calibrate", "EVENTS", "--t-start", "0", "--t-end", "1e308"], "--t-end must be at most"),
+    (["calibrate", "EVENTS", "--window", "0:1e308"], "at most"),
+    (["make-dataset", "IMAGE", "--window", "1e308"], "--window must be at most"),
+    (["make-dataset", "IMAGE", "--seed", str(2**64)], "--seed must be at most"),
+])
+def test_absurd_numbers_are_one_line_before_any_work(tmp_path, capsys, no_simulation, argv, expect):
+    image = grey_image(tmp_path / "g.png")
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i in range(2):
+        grey_image(frames / f"f{i}.png")
+    events = small_events_file(tmp_path / "rec.h5")
+    subst = {"IMAGE": image, "FRAMES": frames, "EVENTS": events}
+    out = {"simulate": ["-o", tmp_path / "o.h5"], "reconstruct": ["-o", tmp_path / "r.png"], "info": [],
+           "calibrate": ["-o", tmp_path / "c.toml"], "make-dataset": ["-o", tmp_path / "ds"]}[argv[0]]
+    before = sorted(p.name for p in tmp_path.iterdir())
+    code, _, err = run_cli(capsys, *[subst.get(a, a) for a in argv], *out)
+    one_error_line(code, err, expect)
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_a_preset_file_that_is_not_utf8_is_one_line(tmp_path, capsys, no_simulation):
+    image = grey_image(tmp_path / "g.png")
+    bad = tmp_path / "cam.toml"
+    bad.write_bytes(b"eps_pos = 0.2\n# caf\xe9 (Latin-1)\n")
+    cases = [
+        (["simulate", image, "--preset", bad, "-o", tmp_path / "o.h5"], "--preset"),
+        (["presets", bad], "preset"),
+        (["make-dataset", image, "--preset", bad, "-o", tmp_path / "ds"], "--preset"),
+        (["calibrate", "--example", "--initial", bad, "-o", tmp_path / "c.toml"], "--initial"),
+    ]
+    for argv, flag in cases:
+        code, _, err = run_cli(capsys, *argv)
+        one_error_line(code, err, f"{flag} {bad}: not UTF-8 text (byte 0xe9 at position 19)")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cam.toml", "g.png"]
+
+
+@pytest.mark.skipif(sys.platform in ("win32", "darwin"), reason="file names are bytes on Linux only")
+def test_a_file_name_that_is_not_utf8_is_simulated_and_described(tmp_path, capsys):
+    image = grey_image(tmp_path / os.fsdecode(b"sc\xe8ne.png"))
+    out = tmp_path / os.fsdecode(b"\xe9v.h5")
+    code, _, err = run_cli(capsys, "simulate", image, "--duration", "0.01", "--seed", "1", "-o", out, "-q")
+    assert code == 0, err
+    from evnoise.io import read_metadata
+
+    meta = read_metadata(out)
+    assert meta["source"].endswith("sc\\xe8ne.png")  # the byte, escaped: stored as UTF-8 text
+    code, text, err = run_cli(capsys, "info", out)
+    assert code == 0, err
+    assert "events.h5" in text
+
+
+def test_a_damaged_numba_cache_is_one_line_naming_the_folder_to_delete(tmp_path):
+    pytest.importorskip("numba")
+    (tmp_path / "tinymod.py").write_text(textwrap.dedent("""
+        import numba
+
+        @numba.njit(cache=True)
+        def plus_one(x):
+            return x + 1
+    """))
+    cache = tmp_path / "cache"
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "PYTHONPATH": f"{tmp_path}{os.pathsep}{REPO}"}
+    subprocess.run([sys.executable, "-c", "import tinymod; tinymod.plus_one(1)"], env=env, check=True,
+                   timeout=300)
+    damaged = list(cache.rglob("*.nbc"))
+    assert damaged
+    for path in damaged:
+        path.write_bytes(b"\x15 not a pickle")
+    script = textwrap.dedent("""
+        import sys
+        import tinymod
+        from evnoise.cli import info, main
+
+        info.run = lambda args: tinymod.plus_one(1)
+        sys.exit(main(["info", "anything"]))
+    """)
+    proc = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2, proc.stderr
+    assert len(lines) == 1 and lines[0].startswith("evnoise: error: the cache of compiled kernels is damaged"), \
+        proc.stderr
+    assert str(damaged[0].parent) in lines[0] and "delete the folder" in lines[0]
