@@ -743,7 +743,14 @@ def read_metadata(path, *, sensor=None, csv_columns=None) -> dict:
         return source_meta(open_events(path, sensor=sensor, csv_columns=csv_columns))
     with open_h5(path) as f:
         ds = event_datasets(f, path)
-        return h5_metadata(f, ds)
+        return _with_sensor(h5_metadata(f, ds))
+
+
+def _with_sensor(meta: dict) -> dict:
+    """``meta["sensor"]``: the ``"WxH"`` string to pass back as ``sensor=`` (``shape`` is (H, W))."""
+    if meta.get("shape") is not None:
+        meta["sensor"] = f"{meta['shape'][1]}x{meta['shape'][0]}"
+    return meta
 
 
 def read_events(path, t_start_us: int | None = None, t_end_us: int | None = None, *, sensor=None,
@@ -761,8 +768,9 @@ def read_events(path, t_start_us: int | None = None, t_end_us: int | None = None
         (for events.h5: ``t`` as stored plus ``t_offset``, which is 0 in evnoise's files);
         located through ``/ms_to_idx`` when the file has it.
     sensor : str or (int, int), optional
-        Sensor size ``"WxH"`` or ``(width, height)``, for files whose header has none (EVT 2.0,
-        CSV, N-CARS ``.dat``) or a wrong one.
+        Sensor size ``"WxH"`` or ``(width, height)`` (width first, unlike ``meta["shape"]``), for
+        files whose header has none (EVT 2.0, CSV, N-CARS ``.dat``) or a wrong one. A tuple that is
+        the header's size swapped is refused; pass ``meta["sensor"]`` back, not ``meta["shape"]``.
     t_start, t_end : float, optional
         The time window in seconds instead (give one form, not both).
     csv_columns : str, optional
@@ -774,9 +782,10 @@ def read_events(path, t_start_us: int | None = None, t_end_us: int | None = None
         :data:`evnoise.EVENT_DTYPE`, sorted by time.
     meta : dict
         For events.h5: the root attributes (decoded: JSON attributes such as ``params`` become
-        dicts), plus ``shape`` ``(H, W)`` (or ``None``), ``n_events`` (in the file) and
-        ``t_offset``. For camera files: the header's facts, ``format``, ``shape`` (or ``None``),
-        ``shape_from``, ``t_offset`` and ``n_events`` (events returned).
+        dicts), plus ``shape`` ``(H, W)`` (or ``None``), ``sensor`` (``"WxH"``, when known),
+        ``n_events`` (in the file) and ``t_offset``. For camera files: the header's facts,
+        ``format``, ``shape`` (or ``None``), ``sensor``, ``shape_from``, ``t_offset`` and
+        ``n_events`` (events returned).
 
     Raises
     ------
@@ -791,7 +800,7 @@ def read_events(path, t_start_us: int | None = None, t_end_us: int | None = None
         return read_any(path, sensor=sensor, csv_columns=csv_columns, t_start_us=t_start_us, t_end_us=t_end_us)
     with open_h5(path) as f:
         ds = event_datasets(f, path)
-        meta = h5_metadata(f, ds)
+        meta = _with_sensor(h5_metadata(f, ds))
         n = meta["n_events"]
         off = meta["t_offset"]
         try:

@@ -402,3 +402,30 @@ def test_davis346_address_table(tmp_path):
     np.testing.assert_array_equal(events["y"], ys)
     np.testing.assert_array_equal(events["p"], ons)
     np.testing.assert_array_equal(events["t"], ts[:4])
+
+
+# --------------------------------------------------------------------------------------
+# issue 29 §3.3: sensor is (W, H), meta["shape"] is (H, W): one passed for the other is refused
+# --------------------------------------------------------------------------------------
+def test_meta_shape_passed_as_sensor_is_refused(tmp_path):
+    events = _known_events()
+    path = ev.write_events(tmp_path / "e.h5", events, (240, 320))
+    _, meta = read_events(path)
+    assert meta["shape"] == (240, 320) and meta["sensor"] == "320x240"
+    with pytest.raises(ParameterError, match=r"swapped.*\(width, height\)"):
+        read_events(path, sensor=meta["shape"])  # was: a 240-wide, 320-high sensor, with a warning only
+    with pytest.raises(ParameterError, match="swapped"):
+        ev.read_events(path, sensor=meta["shape"])
+    got, again = read_events(path, sensor=meta["sensor"])  # the round trip that works
+    assert again["shape"] == (240, 320) and got.tobytes() == events.tobytes()
+    got, again = read_events(path, sensor=(320, 240))
+    assert again["shape"] == (240, 320)
+
+
+def test_real_ncars_sensor_round_trip():
+    _need_realdata()
+    path = REALDATA / "tonic/sample_ncars.dat"  # no size in the header: the 304x240 ATIS is given
+    _, meta = read_events(path, sensor="304x240")
+    assert meta["shape"] == (240, 304) and meta["sensor"] == "304x240"
+    _, again = read_events(path, sensor=meta["sensor"])
+    assert again["shape"] == meta["shape"]

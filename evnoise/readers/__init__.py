@@ -127,7 +127,9 @@ def open_events(path, *, sensor=None, csv_columns=None) -> EventSource:
         The file.
     sensor : str or (int, int), optional
         Sensor size ``"WxH"`` (e.g. ``"640x480"``) or ``(width, height)``; overrides the header
-        (with a warning when they differ) and sets it where the header has none.
+        (with a warning when they differ) and sets it where the header has none. Width first,
+        unlike ``shape`` (H, W): a tuple that is the header's size swapped is a
+        :class:`~evnoise.ParameterError`; ``meta["sensor"]`` is the ``"WxH"`` string to pass back.
     csv_columns : str or list of str, optional
         Column order of a CSV or text file, e.g. ``"x,y,p,t"`` (t in µs, or seconds when written
         with a decimal point; p 1 = ON, 0 or -1 = OFF).
@@ -221,6 +223,7 @@ def source_meta(src: EventSource) -> dict:
     if src.shape is not None:
         meta.setdefault("height", src.shape[0])
         meta.setdefault("width", src.shape[1])
+        meta["sensor"] = f"{src.shape[1]}x{src.shape[0]}"  # what to pass back as sensor= (width first)
     return meta
 
 
@@ -229,7 +232,8 @@ def read_events(path, *, sensor=None, t_start=None, t_end=None, csv_columns=None
     """All events of a file (or of a time window) in memory: ``(events, meta)``.
 
     Parameters as in :func:`iter_event_chunks`. ``meta`` holds the header's facts, ``format``,
-    ``shape`` (H, W) or ``None``, ``shape_from``, ``t_offset`` and ``n_events`` (events returned).
+    ``shape`` (H, W) or ``None``, ``sensor`` (``"WxH"``, what ``sensor=`` takes) when known,
+    ``shape_from``, ``t_offset`` and ``n_events`` (events returned).
     For files larger than memory use :func:`iter_event_chunks`.
     """
     a, b = _window(t_start, t_end, t_start_us, t_end_us)

@@ -27,7 +27,12 @@ EXTRA = "readers"
 
 
 def parse_sensor(sensor) -> tuple[int, int] | None:
-    """Sensor size ``(H, W)`` from ``"WxH"`` (e.g. ``"640x480"``) or ``(width, height)``; ``None`` stays ``None``."""
+    """Sensor size ``(H, W)`` from ``"WxH"`` (e.g. ``"640x480"``) or ``(width, height)``; ``None`` stays ``None``.
+
+    Note the orders: ``sensor`` is width first (as ``--sensor WxH``), ``shape`` and ``meta["shape"]``
+    are height first (as NumPy arrays). ``meta["sensor"]`` (``"WxH"``) is what to pass back as
+    ``sensor``; a tuple that is exactly a file header's size swapped is refused.
+    """
     if sensor is None:
         return None
     if isinstance(sensor, str):
@@ -109,6 +114,7 @@ class EventSource:
         self.shape_from = None
         self.meta: dict = {}
         self._user_shape = parse_sensor(sensor)
+        self._user_tuple = sensor is not None and not isinstance(sensor, str)
         self._last_t = None
 
     # -- sensor size -----------------------------------------------------------------
@@ -118,6 +124,12 @@ class EventSource:
         if header_shape is not None:
             header_shape = check_shape(header_shape)
         if user is not None:
+            if self._user_tuple and header_shape is not None and header_shape != user and header_shape == user[::-1]:
+                # meta["shape"] is (H, W) and sensor is (W, H): one passed for the other swaps the sensor
+                raise ParameterError(
+                    f"{self.path}: sensor=({user[1]}, {user[0]}) is the header's {header_shape[1]}x{header_shape[0]} "
+                    f"sensor swapped: sensor is (width, height), while meta['shape'] is (height, width); pass "
+                    f"meta['sensor'] (\"WxH\"), or the string \"{user[1]}x{user[0]}\" if the header is wrong")
             if header_shape is not None and header_shape != user:
                 log.warning("%s: the header says %dx%d; using --sensor %dx%d", self.path, header_shape[1],
                             header_shape[0], user[1], user[0])
