@@ -308,12 +308,17 @@ def renewal_step(state: PixelState, width, log1m_p, q_on, dt, refr_us, j_min, w_
     return map_chunks(run, state.pix.size, threads)
 
 
-def progress_bar(total, enabled, desc, unit="s"):
+def progress_bar(total, enabled, desc, unit="s", scale=None):
+    """A tqdm bar (None unless ``enabled``); with ``scale`` the counts are shown multiplied by it.
+
+    Count in integers where the steps are fractions (microseconds with ``scale=1e-6`` for seconds):
+    float steps can add up past ``total`` (tqdm then warns and shows a negative time left).
+    """
     if not enabled:
         return None
     from tqdm.auto import tqdm
 
-    return tqdm(total=total, desc=desc, unit=unit, leave=False,
+    return tqdm(total=total, desc=desc, unit=unit, leave=False, unit_scale=scale or False,
                 bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.1f}/{total:.1f} " + unit + " [{elapsed}<{remaining}]")
 
 

@@ -19,6 +19,7 @@ of threads, the chunking of pixels, or the windows in which time is generated.
 from __future__ import annotations
 
 import math
+import os
 from typing import Iterator
 
 import numpy as np
@@ -40,13 +41,16 @@ from ._engine import (
     static_inputs,
 )
 from .errors import InputError, ParameterError
-from .events import empty_events
+from .events import EVENT_DTYPE, empty_events
 from .params import NoiseParams
 from .rates import trial_probabilities
 
 __all__ = [
     "simulate_events",
     "iter_events",
+    "EventWindows",
+    "estimate_file_size",
+    "check_disk_space",
     "simulate_video",
     "iter_video",
     "sample_counts",
@@ -60,6 +64,136 @@ MAX_WINDOW_US = 1 << 22  # bounds the counting sort's histogram
 # gaps (O(events)); False keeps the per-trial reference algorithm (tests compare the two).
 TRIAL_FAST_STATIC = True
 METHODS = ("auto", "renewal", "trials")
+INT64_MAX = (1 << 63) - 1
+
+
+class EventWindows:
+    """The windows of a simulation, produced lazily (what :func:`iter_events` and :func:`iter_video` return).
+
+    An iterator of time-sorted event arrays (memory stays bounded by one window whatever the
+    duration) that also says what to expect before the first window is made:
+
+    ``expected_events``
+        expected number of events (float): exact in expectation for a static scene; for a video
+        the noise events of its first frame over the whole run (signal events come on top).
+    ``t_start_us``, ``duration_us``
+        the span of the recording in microseconds.
+    """
+
+    def __init__(self, windows, *, expected_events, t_start_us: int, duration_us: int):
+        self._windows = windows
+        self._expected = expected_events  # a number, or a function computing it when first asked
+        self.t_start_us = int(t_start_us)
+        self.duration_us = int(duration_us)
+
+    @property
+    def expected_events(self) -> float:
+        if callable(self._expected):
+            self._expected = self._expected()
+        return float(self._expected)
+
+    def __iter__(self):
+        return self
+
+    def __next__(self):
+        return next(self._windows)
+
+    def close(self) -> None:
+        """Stop early (closes the progress bar; nothing more is simulated)."""
+        self._windows.close()
+
+
+def _check_span(t_start_us: int, duration_us: int) -> None:
+    if t_start_us + duration_us > INT64_MAX:
+        raise ParameterError(f"t_start_us + duration ({t_start_us} + {duration_us} us) goes beyond the largest "
+                             f"64-bit timestamp ({INT64_MAX} us, about 292,000 years)")
+
+
+def _available_memory() -> int | None:
+    """Bytes of memory available to a new allocation (Linux ``MemAvailable``), or None if unknown."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def _check_memory(expected_events: float, what: str = "simulate_events") -> None:
+    """Refuse to hold an event array that cannot fit in memory (before allocating it)."""
+    need = (expected_events + 8.0 * math.sqrt(max(expected_events, 0.0))) * EVENT_DTYPE.itemsize
+    have = _available_memory()
+    if have is not None and need > have:
+        raise ParameterError(f"{what} would return about {expected_events:,.0f} events ({_human_bytes(need)} in "
+                             f"memory), more than the {_human_bytes(have)} available; shorten the duration, "
+                             f"stream the windows with iter_events, or write a file (evnoise simulate --out)")
+
+
+def _human_bytes(n: float) -> str:
+    for unit in ("bytes", "kB", "MB", "GB", "TB", "PB"):
+        if abs(n) < 1000 or unit == "PB":
+            return f"{n:,.0f} {unit}" if unit == "bytes" else f"{n:,.1f} {unit}"
+        n /= 1000.0
+    return f"{n:.3g} PB"  # pragma: no cover
+
+
+# Bytes per event of each output format (measured on `simulate --example`, 1 M events in 2 s), and
+# events.h5's bytes per millisecond of its ms_to_idx index. Typical values, not bounds: a file can
+# come out somewhat larger or smaller.
+BYTES_PER_EVENT = {"h5": 4.0, "h5-lzf": 5.0, "h5-none": 14.0, "aedat4": 9.5, "evt3": 6.0, "dat": 8.0, "es": 5.5,
+                   "csv": 13.0}
+H5_BYTES_PER_MS = {"gzip": 2.0, "lzf": 3.0, None: 8.0}
+
+
+def estimate_file_size(expected_events: float, duration_us: int, fmt: str = "h5", *, compression="gzip",
+                       t_end_us: int | None = None) -> float:
+    """Typical size in bytes of an event file of ``expected_events`` events over ``duration_us``.
+
+    ``fmt`` is the output format (``"h5"``, ``"aedat4"``, ``"evt3"``, ``"dat"``, ``"es"``, ``"csv"``);
+    ``compression`` applies to ``"h5"``. A CSV row grows with the digits of its timestamps (``t_end_us``).
+    """
+    events = max(float(expected_events), 0.0)
+    if fmt == "h5":
+        key = "h5" if compression == "gzip" else f"h5-{compression or 'none'}"
+        per_ms = H5_BYTES_PER_MS.get(compression, 8.0)
+        return events * BYTES_PER_EVENT[key] + (duration_us / 1000.0) * per_ms + 4096.0
+    per_event = BYTES_PER_EVENT.get(fmt, 16.0)
+    if fmt == "csv":
+        per_event += len(str(int(t_end_us if t_end_us is not None else duration_us)))
+    return events * per_event + 4096.0
+
+
+def check_disk_space(windows, path, fmt: str = "h5", *, compression="gzip") -> str:
+    """One line with the expected events and file size of a simulation; refuses what cannot fit on the disk.
+
+    ``windows`` is what :func:`iter_events` / :func:`iter_video` returned. Raises
+    :class:`~evnoise.OutputError` when the typical file size exceeds the free space of ``path``'s
+    file system (:func:`shutil.disk_usage`), before anything is simulated or written.
+    """
+    import shutil
+    from pathlib import Path
+
+    from .errors import OutputError
+
+    expected = windows.expected_events
+    size = estimate_file_size(expected, windows.duration_us, fmt, compression=compression,
+                              t_end_us=windows.t_start_us + windows.duration_us)
+    folder = Path(path).parent if str(Path(path).parent) else Path(".")
+    line = f"expecting about {expected:,.0f} events, a file of about {_human_bytes(size)}"
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return line
+    if size > free:
+        raise OutputError(f"{path} would be about {_human_bytes(size)} ({expected:,.0f} events expected), more "
+                          f"than the {_human_bytes(free)} free on its disk; shorten the duration or choose "
+                          f"another disk")
+    return f"{line} ({_human_bytes(free)} free)"
 
 
 # --------------------------------------------------------------------------------------
@@ -97,6 +231,7 @@ def _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, t
     if method not in METHODS:
         raise ParameterError(f"method must be one of {METHODS}, got {method!r}")
     t_start_us = check_t_start(t_start_us)
+    _check_span(t_start_us, duration_us)
     threads = resolve_threads(threads)
     gen = as_generator(rng)
     eps_on, eps_off = resolve_thresholds(lux.shape, params, gen, thresholds)
@@ -104,8 +239,11 @@ def _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, t
     key = kernel_key(gen)
     if method == "trials":
         frames = _FrameSource([lux], name="lux")
-        return _iter_dynamic(frames, np.array([0.0, float(duration_us)]), params, key, eps_on, eps_off,
-                             np.zeros(lux.size, dtype=bool), t_start_us, duration_us, threads, progress, bg=bg)
+        windows = _iter_dynamic(frames, np.array([0.0, float(duration_us)]), params, key, eps_on, eps_off,
+                                np.zeros(lux.size, dtype=bool), t_start_us, duration_us, threads, progress, bg=bg)
+        if sink is not None:
+            _check_memory(windows.expected_events)
+        return windows
     return _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, threads, progress, sink, bg)
 
 
@@ -118,17 +256,19 @@ def _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, thr
     refr = params.refractory_us
     del lam  # not needed while the windows run: keep the per-pixel memory small
     total = float(nu.sum()) * duration_us * 1e-6
-    n_win = max(1, math.ceil(total / TARGET_EVENTS_PER_WINDOW), math.ceil(duration_us / MAX_WINDOW_US))
-    ends = [duration_us * (k + 1) // n_win for k in range(n_win)]
+    # window ends are made one at a time (exact integers): any duration streams in bounded memory
+    n_win = max(1, math.ceil(total / TARGET_EVENTS_PER_WINDOW), -(-duration_us // MAX_WINDOW_US))
     if sink is not None:
+        _check_memory(total)
         # counts are under-dispersed against Poisson (renewal with dead time): 8 sigma is ample
         sink.__init__(int(math.ceil(total + 8.0 * math.sqrt(total) + 4096)))
 
     def gen():
         state = PixelState(np.arange(lux.size), key, threads)
-        bar = progress_bar(duration_us * 1e-6, progress, "simulate")
+        bar = _time_bar(duration_us, progress)
         t_prev = 0
-        for w_end in ends:
+        for k in range(n_win):
+            w_end = duration_us * (k + 1) // n_win
             expected = nu * (w_end - t_prev) * 1e-6
             parts = renewal_step(state, width, log1m_p, q_on, dt, refr, 0, w_end, math.inf,
                                   t_start_us, threads, expected=expected, timer=timer)
@@ -138,12 +278,17 @@ def _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, thr
             yield window
             del window
             if bar is not None:
-                bar.update((w_end - t_prev) * 1e-6)
+                bar.update(w_end - t_prev)  # whole microseconds: the steps add up to the total exactly
             t_prev = w_end
         if bar is not None:
             bar.close()
 
-    return gen()
+    return EventWindows(gen(), expected_events=total, t_start_us=t_start_us, duration_us=duration_us)
+
+
+def _time_bar(duration_us: int, enabled: bool):
+    """Progress in simulated seconds, counted in whole microseconds (no float drift past the total)."""
+    return progress_bar(duration_us, enabled, "simulate", scale=1e-6)
 
 
 def simulate_events(
@@ -297,6 +442,7 @@ def iter_video(
     duration_us = int(round(frame_us[-1]))
     if duration_us < 1:
         raise InputError("the video is shorter than one microsecond")
+    _check_span(t0_us, duration_us)
     return _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static.ravel(), t0_us,
                          duration_us, threads, progress, labels=return_labels, bg=bg)
 
@@ -403,6 +549,15 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
         lam0 = lam_of(0)[stat_pix]
         log1m_p, q_on, stat_timer, nu = static_inputs(lam0, params, eps_on[stat_pix], eps_off[stat_pix],
                                                        select_background(bg, stat_pix))
+
+    def expected_events():
+        """The static pixels' events, and the changing ones' noise at their first frame (asked for only)."""
+        rate = float(nu.sum()) if stat_pix.size else 0.0
+        if dyn_pix.size:
+            *_, dyn_nu = static_inputs(lam_of(0)[dyn_pix], params, eps_on[dyn_pix], eps_off[dyn_pix],
+                                       select_background(bg, dyn_pix))
+            rate += float(dyn_nu.sum())
+        return rate * duration_us * 1e-6
     dyn_bg = background_coefficients(params, bg, dyn_pix)
     from .background import pr_alpha_per_photon
 
@@ -417,7 +572,7 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
         stat_rate = float(nu.sum())
         if stat_rate > 0:
             per_window = min(per_window, max(1, int(TARGET_EVENTS_PER_WINDOW / (stat_rate * dt * 1e-6))))
-    trial_edges = list(range(0, n_trials, per_window)) + [n_trials]
+    n_windows = -(-n_trials // per_window)  # windows of per_window trials, made one at a time
 
     def frame_indices(j_a, j_b):
         """Indices of the frames bracketing the centres of trials j_a .. j_b - 1."""
@@ -443,8 +598,9 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
             dyn_state.lam_prev[:] = lam_first
         dyn_e_on, dyn_e_off = eps_on[dyn_pix], eps_off[dyn_pix]
         dyn_thr = np.stack([c_on[dyn_pix], c_off[dyn_pix], dyn_e_on, dyn_e_off])
-        bar = progress_bar(duration_us * 1e-6, progress, "simulate")
-        for j_a, j_b in zip(trial_edges[:-1], trial_edges[1:]):
+        bar = _time_bar(duration_us, progress)
+        for w in range(n_windows):
+            j_a, j_b = w * per_window, min((w + 1) * per_window, n_trials)
             w_lo = 0 if j_a == 0 else int(math.floor(j_a * dt))
             w_hi = duration_us if j_b == n_trials else int(math.floor(j_b * dt))
             parts = []
@@ -480,11 +636,11 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
                 parts += map_chunks(run, dyn_pix.size, threads)
             yield sorted_window([p[:4] for p in parts], t0_us + w_lo, t0_us + w_hi, labels=labels)
             if bar is not None:
-                bar.update((w_hi - w_lo) * 1e-6)
+                bar.update(w_hi - w_lo)
         if bar is not None:
             bar.close()
 
-    return gen()
+    return EventWindows(gen(), expected_events=expected_events, t_start_us=t0_us, duration_us=duration_us)
 
 
 # --------------------------------------------------------------------------------------

@@ -419,3 +419,108 @@ def test_video_bad_input():
         stream.advance(np.ones((4, 4)), 500)
     with pytest.raises(ev.InputError, match="shape"):
         stream.advance(np.ones((5, 4)), 2000)
+
+
+# --------------------------------------------------------------------------------------
+# bounded memory for any duration; the size of a run known before it runs (issue 35)
+# --------------------------------------------------------------------------------------
+@pytest.mark.parametrize("method", ["auto", "trials"])
+def test_windows_are_made_lazily_whatever_the_duration(method):
+    import tracemalloc
+
+    from evnoise.simulate import EventWindows
+
+    lux = np.full((4, 4), 2.0)
+    list(ev.iter_events(lux, PARAMS, 0.5, rng=1, method=method))  # compile outside the measurement
+    tracemalloc.start()
+    try:
+        # 1e7 s: 2.4 million windows of at most 4.2 s (the window list alone used to take ~90 MB; 1e12 s: GBs)
+        windows = ev.iter_events(lux, PARAMS, 1e7, rng=1, method=method)
+        first = next(windows)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    windows.close()
+    assert isinstance(windows, EventWindows) and windows.duration_us == 10**13
+    assert peak < 5_000_000, peak
+    assert first.size and first["t"].max() < 5_000_000  # the first window only
+    rate = float(np.sum(ev.expected_rate(lux, PARAMS)))
+    assert windows.expected_events == pytest.approx(rate * 1e7, rel=1e-9)
+
+
+def test_expected_events_match_a_run():
+    lux = flat_fields()
+    windows = ev.iter_events(lux, PARAMS, 5.0, rng=3)
+    expected = windows.expected_events
+    n = sum(w.size for w in windows)
+    assert abs(n - expected) < K * math.sqrt(expected)
+    video = ev.iter_video(np.stack([lux, lux * 1.01]), [0.0, 5.0], PARAMS, rng=3)
+    assert video.expected_events == pytest.approx(expected, rel=1e-12)  # noise of the first frame
+    video.close()
+
+
+def test_simulate_events_refuses_what_cannot_fit_in_memory(monkeypatch):
+    import evnoise.simulate as sim
+
+    lux = np.full((16, 16), 2.0)
+    monkeypatch.setattr(sim, "_available_memory", lambda: 10_000)
+    with pytest.raises(ev.ParameterError, match=r"would return about [\d,]+ events .*iter_events"):
+        ev.simulate_events(lux, PARAMS, 100.0, rng=1)
+    with pytest.raises(ev.ParameterError, match="would return about"):
+        ev.simulate_events(lux, PARAMS, 100.0, rng=1, method="trials")
+    assert ev.simulate_events(lux, PARAMS, 0.05, rng=1).size < 400  # a small run still fits
+    monkeypatch.undo()
+    with pytest.raises(ev.ParameterError, match="would return about"):  # 1e12 s: refused at once, not run
+        ev.simulate_events(lux, PARAMS, 1e12, rng=1)
+
+
+def test_disk_check_refuses_a_run_that_cannot_fit(tmp_path, monkeypatch):
+    import shutil
+
+    from evnoise.simulate import check_disk_space, estimate_file_size
+
+    lux = np.full((64, 64), 2.0)
+    huge = ev.iter_events(lux, PARAMS, 1e12, rng=1)  # made lazily: nothing is simulated yet
+    with pytest.raises(ev.OutputError, match=r"x\.h5 would be about .* events expected\), more than the .* free"):
+        check_disk_space(huge, tmp_path / "x.h5")
+    small = ev.iter_events(lux, PARAMS, 1.0, rng=1)
+    line = check_disk_space(small, tmp_path / "x.h5")
+    assert line.startswith(f"expecting about {small.expected_events:,.0f} events, a file of about")
+    usage = shutil.disk_usage(tmp_path)
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage._replace(free=1000))
+    with pytest.raises(ev.OutputError, match="more than the 1.0 kB free"):
+        check_disk_space(small, tmp_path / "x.csv", "csv")
+    # the estimate grows with the events, and with the index of events.h5 (one entry per millisecond)
+    assert estimate_file_size(2e6, 10**6) > estimate_file_size(1e6, 10**6) > estimate_file_size(1e6, 10**3)
+    assert estimate_file_size(1e6, 10**6, "h5", compression=None) > estimate_file_size(1e6, 10**6)
+    assert estimate_file_size(0, 10**15) > 1e12  # 1e12 s of nothing still needs its ms_to_idx
+
+
+def test_timestamps_beyond_int64_are_refused():
+    with pytest.raises(ev.ParameterError, match="64-bit timestamp"):
+        ev.iter_events(np.ones((2, 2)), PARAMS, 1e13, rng=1, t_start_us=2**62)
+
+
+@pytest.mark.parametrize("method", ["auto", "trials"])
+def test_progress_steps_add_up_to_the_total_without_warnings(monkeypatch, method):
+    """``simulate --preset davis346 --duration 20`` printed ``TqdmWarning: clamping frac`` and a negative ETA:
+    20 s in 7 windows of float seconds add up to 20.000000000000004 s."""
+    import warnings
+
+    import evnoise.simulate as sim
+
+    monkeypatch.setattr(sim, "MAX_WINDOW_US", -(-20_000_000 // 7))  # 7 windows, as davis346 gave
+    totals = []
+    from tqdm import tqdm as real_tqdm
+
+    class Spy(real_tqdm):
+        def close(self):
+            totals.append((self.n, self.total))
+            super().close()
+
+    monkeypatch.setattr("tqdm.auto.tqdm", Spy)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        n = sum(w.size for w in ev.iter_events(np.full((4, 4), 2.0), PARAMS, 20.0, rng=1, method=method,
+                                                progress=True))
+    assert n > 0 and totals and all(done == total for done, total in totals), totals
