@@ -254,3 +254,22 @@ def test_radiometry_imports_neither_colour_nor_imagecodecs():
             "print(sorted(m for m in ('colour', 'imagecodecs') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+# --------------------------------------------------------------------------------------
+# simulate: the expected size first; a file that cannot fit on the disk is refused before the run
+# --------------------------------------------------------------------------------------
+def test_cli_simulate_prints_the_expected_size_and_refuses_what_cannot_fit(tmp_path, capsys):
+    from evnoise.cli import main
+
+    image = tmp_path / "grey.png"
+    PIL_Image.fromarray(np.full((24, 32), 128, np.uint8)).save(image)
+    assert main(["simulate", str(image), "--out", str(tmp_path / "a.h5"), "--duration", "0.5", "--seed", "1"]) == 0
+    err = capsys.readouterr().err
+    assert "evnoise: expecting about " in err and " events, a file of about " in err and " free)" in err
+    # 1e12 s (32 x 24 pixels): about 1e15 events; refused at once, nothing simulated or written
+    assert main(["-q", "simulate", str(image), "--out", str(tmp_path / "b.h5"), "--duration", "1e12"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("evnoise: error: ") and "more than the" in err[0], err
+    assert "free on its disk" in err[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.h5", "grey.png"]

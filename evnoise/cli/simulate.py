@@ -161,6 +161,15 @@ def run(args) -> int:
     }
     scene = _scene(args, source, is_video, duration, fps, sensor, params, seed, progress=not quiet)
     attrs.update(scene.attrs)
+    if hasattr(scene.stream, "expected_events"):  # before anything runs: print the size, refuse what cannot fit
+        import sys
+
+        from ..simulate import check_disk_space
+
+        compression = None if args.compression == "none" else args.compression
+        room = check_disk_space(scene.stream, out, fmt, compression=compression)
+        if not quiet:
+            print(f"evnoise: {room}", file=sys.stderr)
     counts = _write_outputs(args, fmt, out, png, scene, attrs)
     if not quiet:
         print(summary(counts, scene.t_end_us * 1e-6, scene.text, params_label=str(args.preset), seed=seed,
