@@ -576,6 +576,8 @@ class EventFileWriter(_AtomicWriter):
         self.n_events = 0
         self._last_t = None
         self._t0 = None
+        #: What is subtracted from every time written (``.raw``/``.dat`` only; see :meth:`_check_time_base`).
+        self.time_shift_us = 0
         self._closed = False
         self._encoder = None
         faery = _import_faery()
@@ -594,10 +596,11 @@ class EventFileWriter(_AtomicWriter):
                 enc = aedat.Encoder(self._tmp, aedat_description(aedat, width, height, dict(attrs or {})),
                                     ("lz4", 1))
             elif self.format == "evt3":
-                # zero_t0: the clock's origin goes into the header (% t0), the words count from it
-                enc = evt.Encoder(self._tmp, "evt3", True, (width, height), True)
+                # no zero_t0: the words hold the clock itself (less time_shift_us), as Prophesee's cameras
+                # write it, with no "% t0" line that only faery reads (see _check_time_base)
+                enc = evt.Encoder(self._tmp, "evt3", False, (width, height), True)
             elif self.format == "dat":
-                enc = dat.Encoder(self._tmp, "dat2", "cd", True, (width, height))
+                enc = dat.Encoder(self._tmp, "dat2", "cd", False, (width, height))
             elif self.format == "es":
                 enc = es.Encoder(self._tmp, "dvs", False, (width, height))
             else:
@@ -633,6 +636,8 @@ class EventFileWriter(_AtomicWriter):
         if self.t_end_us is not None and t[-1] >= self.t_end_us:
             raise InputError(f"event at t = {t[-1]} us is not before t_end_us = {self.t_end_us}")
         self._check_time_base(t)
+        if self.time_shift_us:
+            t = t - self.time_shift_us
         out = np.empty(events.size, dtype=self._faery_dtype)
         out["t"] = t
         out["x"] = events["x"]
@@ -656,23 +661,42 @@ class EventFileWriter(_AtomicWriter):
 
     #: EVT 3.0 time base: 12-bit TIME_HIGH of 4096 µs, wrapping every 2**24 µs
     _EVT3_WRAP_US = 1 << 24
+    #: First times that ``.raw`` (EVT 3.0) and ``.dat`` hold as they are: every decoder (faery,
+    #: expelliarmus for DAT, one written from Prophesee's description) then reads the same clock. EVT 3.0
+    #: counts time modulo 2**24 µs from the first TIME_HIGH word, DAT in 32 bits.
+    _ABSOLUTE_BELOW_US = {"evt3": 1 << 24, "dat": 1 << 32}
 
     def _check_time_base(self, t):
-        """Refuse what the format cannot hold (before anything of the chunk is written)."""
+        """Choose the time shift at the first event, and refuse what the format cannot hold (before
+        anything of the chunk is written).
+
+        ``.raw`` and ``.dat`` count time from the camera's start. A clock whose first event is before
+        :data:`_ABSOLUTE_BELOW_US` (every simulated stream, most camera recordings) is written as it
+        is. A later one (a Unix clock from an AEDAT4 camera) cannot be: it is written from the first
+        event's whole second, ``time_shift_us``, with a warning naming the shift; the file keeps no
+        ``% t0`` line (only faery reads one), so every decoder reads the same, shifted, times.
+        """
         if self._t0 is None:
             self._t0 = int(t[0])
             if self.format == "es" and self._t0 >= 1 << 32:
                 raise OutputError(f"cannot write {self.what} {self.path}: Event Stream counts time from 0 and this "
                                   f"recording's clock starts at {self._t0 * 1e-6:.6g} s; write .h5 or .aedat4")
-        rel = t - self._t0
+            limit = self._ABSOLUTE_BELOW_US.get(self.format)
+            if limit is not None and self._t0 >= limit:
+                self.time_shift_us = self._t0 // 1_000_000 * 1_000_000
+                log.warning("%s: %s counts time from the camera's start and cannot hold this clock (first event at "
+                            "%d us); times are written minus %d us (add it back for the original clock; .h5 and "
+                            ".aedat4 keep it)", self.path, "EVT 3.0" if self.format == "evt3" else "DAT",
+                            self._t0, self.time_shift_us)
+        rel = t - self.time_shift_us
         if self.format == "dat" and int(rel[-1]) >= 1 << 32:
             raise OutputError(f"cannot write {self.what} {self.path}: DAT holds 32-bit timestamps (71.6 minutes "
-                              f"from the first event); write .h5 or .aedat4")
+                              f"from the camera's start or the first event's second); write .h5 or .aedat4")
         if self.format == "evt3":
             # faery 0.7.1 decodes a TIME_HIGH wrap only when the words step 4095 -> 0: a stream
             # without an event in the last and first 4096 us around a wrap would read back wrong
             prev = np.empty(rel.size, dtype=np.int64)
-            prev[0] = rel[0] if self._last_t is None else self._last_t - self._t0
+            prev[0] = rel[0] if self._last_t is None else self._last_t - self.time_shift_us
             prev[1:] = rel[:-1]
             crossed = (rel >> 24) != (prev >> 24)
             if crossed.any():
@@ -683,8 +707,8 @@ class EventFileWriter(_AtomicWriter):
                     k = int(bad[0])
                     raise OutputError(
                         f"cannot write {self.what} {self.path} as EVT 3.0: the stream has no event near "
-                        f"{(self._t0 + ((int(rel[k]) >> 24) << 24)) * 1e-6:.6g} s, where the EVT 3.0 time base "
-                        f"(16.8 s) wraps, and faery's decoder would misread every later time; write .h5, "
+                        f"{(self.time_shift_us + ((int(rel[k]) >> 24) << 24)) * 1e-6:.6g} s, where the EVT 3.0 time "
+                        f"base (16.8 s) wraps, and faery's decoder would misread every later time; write .h5, "
                         f".aedat4 or .dat, or a shorter or denser stream")
 
     def close(self) -> Path:

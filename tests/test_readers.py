@@ -429,3 +429,98 @@ def test_real_ncars_sensor_round_trip():
     assert meta["shape"] == (240, 304) and meta["sensor"] == "304x240"
     _, again = read_events(path, sensor=meta["sensor"])
     assert again["shape"] == meta["shape"]
+
+
+# --------------------------------------------------------------------------------------
+# issue 31: .raw / .dat hold the clock itself; other decoders read the same times as evnoise
+# --------------------------------------------------------------------------------------
+def _evt3_words_decoded(path):
+    """EVT 3.0 decoded here from Prophesee's format description (16-bit words, type in the top 4 bits):
+    ADDR_Y 0x0, ADDR_X 0x2 (bit 11 polarity), VECT_BASE_X 0x3, VECT_12 0x4, VECT_8 0x5, TIME_LOW 0x6,
+    TIME_HIGH 0x8; t = TIME_HIGH << 12 | TIME_LOW, plus 2**24 per TIME_HIGH wrap. No header line is
+    used (a decoder from the description does not read faery's ``% t0``)."""
+    data = path.read_bytes()
+    pos = 0
+    while data[pos:pos + 1] == b"%":
+        pos = data.index(b"\n", pos) + 1
+    words = np.frombuffer(data[pos:], dtype="<u2")
+    out = []
+    y = base_x = pol = high = low = 0
+    wraps = 0
+    for w in words.tolist():
+        kind, v = w >> 12, w & 0xFFF
+        if kind == 0x0:
+            y = v & 0x7FF
+        elif kind == 0x2:
+            out.append(((wraps + (high << 12)) | low, v & 0x7FF, y, (v >> 11) & 1))
+        elif kind == 0x3:
+            base_x, pol = v & 0x7FF, (v >> 11) & 1
+        elif kind in (0x4, 0x5):
+            bits = 12 if kind == 0x4 else 8
+            t = (wraps + (high << 12)) | low
+            out += [(t, base_x + i, y, pol) for i in range(bits) if (v >> i) & 1]
+            base_x += bits
+        elif kind == 0x6:
+            low = v
+        elif kind == 0x8:
+            if v < high:
+                wraps += 1 << 24
+            high = v
+    t, x, yy, p = (np.array(c, dtype=np.int64) for c in zip(*out))
+    order = np.argsort(t, kind="stable")  # vectors and single events of one time come in any order
+    return t[order], x[order], yy[order], p[order]
+
+
+def _same_events(events, t, x, y, p):
+    key = np.lexsort((events["p"], events["y"], events["x"], events["t"]))
+    key2 = np.lexsort((p, y, x, t))
+    np.testing.assert_array_equal(events["t"][key], t[key2])
+    np.testing.assert_array_equal(events["x"][key], x[key2])
+    np.testing.assert_array_equal(events["y"][key], y[key2])
+    np.testing.assert_array_equal(events["p"][key], p[key2])
+
+
+@pytest.mark.parametrize("t0", [0, 5_000_000])
+def test_raw_holds_the_clock_for_a_decoder_from_the_description(tmp_path, t0):
+    events = _known_events(n=3000, seed=31, t0=t0)
+    path = ev.write_events(tmp_path / "e.raw", events, (240, 320))
+    assert b"% t0" not in path.read_bytes()[:400]  # was: relative times, the origin in a line only faery reads
+    got, _ = ev.read_events(path)
+    assert got.tobytes() == events.tobytes()
+    _same_events(events, *_evt3_words_decoded(path))
+
+
+@pytest.mark.parametrize("t0", [0, 5_000_000, 3_000_000_000])
+def test_dat_holds_the_clock_for_expelliarmus(tmp_path, t0):
+    expelliarmus = pytest.importorskip("expelliarmus")
+    events = _known_events(n=3000, seed=32, t0=t0)
+    path = ev.write_events(tmp_path / "e.dat", events, (240, 320))
+    got, _ = ev.read_events(path)
+    assert got.tobytes() == events.tobytes()
+    other = expelliarmus.Wizard(encoding="dat", fpath=str(path)).read()
+    np.testing.assert_array_equal(other["t"], events["t"])  # was: 0 at the first event
+    np.testing.assert_array_equal(other["x"], events["x"])
+    np.testing.assert_array_equal(other["p"], events["p"])
+
+
+@pytest.mark.parametrize("suffix", [".raw", ".dat"])
+def test_a_unix_clock_is_shifted_with_a_warning_and_read_alike(tmp_path, suffix, caplog):
+    import logging
+
+    from evnoise.io import EventFileWriter
+
+    unix = 1_643_240_000_123_456
+    events = _known_events(n=2000, seed=33, t0=unix)
+    with caplog.at_level(logging.WARNING, logger="evnoise"):
+        with EventFileWriter(tmp_path / f"u{suffix}", (240, 320)) as out:
+            out.write(events)
+    shift = unix // 1_000_000 * 1_000_000
+    assert out.time_shift_us == shift and f"minus {shift} us" in caplog.text
+    got, _ = ev.read_events(tmp_path / f"u{suffix}")
+    np.testing.assert_array_equal(got["t"], events["t"] - shift)  # evnoise reads what the others read
+    if suffix == ".raw":
+        _same_events(got, *_evt3_words_decoded(tmp_path / "u.raw"))
+    else:
+        expelliarmus = pytest.importorskip("expelliarmus")
+        other = expelliarmus.Wizard(encoding="dat", fpath=str(tmp_path / "u.dat")).read()
+        np.testing.assert_array_equal(other["t"], got["t"])
