@@ -44,6 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
+from evnoise._clock import seconds_text
 from evnoise.errors import InputError, ParameterError
 
 from .quiet_checks import CHECK_P
@@ -122,7 +123,7 @@ class QuietWindow:
         return self.counts.shape[1:]
 
     def describe(self) -> str:
-        when = "" if self.t_start_s is None else f" {self.t_start_s:g}-{self.t_end_s:g} s"
+        when = "" if self.t_start_s is None else f" {seconds_text(self.t_start_s)}-{seconds_text(self.t_end_s)} s"
         return f"{Path(self.source).name or 'counts'}{when}"
 
 
@@ -139,14 +140,15 @@ def quiet_window(path, t_start_s: float, t_end_s: float, *, lux: float | None = 
     from evnoise.io import read_events
 
     if not (t_end_s > t_start_s):
-        raise ParameterError(f"--t-end must be after --t-start, got {t_start_s:g} .. {t_end_s:g} s")
+        raise ParameterError(f"--t-end must be after --t-start, got {seconds_text(t_start_s)} .. "
+                             f"{seconds_text(t_end_s)} s")
     events, meta = read_events(path, t_start=t_start_s, t_end=t_end_s, sensor=sensor, csv_columns=csv_columns)
     shape = meta.get("shape")
     if shape is None:
         raise InputError(f"{path}: the file does not give its sensor size; pass sensor='WxH'")
     if events.size == 0:
-        raise InputError(f"{path}: no events in the window {t_start_s:g} .. {t_end_s:g} s (check the times: "
-                         "they are seconds on the file's clock)")
+        raise InputError(f"{path}: no events in the window {seconds_text(t_start_s)} .. {seconds_text(t_end_s)} s "
+                         "(check the times: they are seconds on the file's clock)")
     counts = count_events(events, tuple(shape))
     found = []
     if checks:

@@ -197,3 +197,108 @@ def test_a_damaged_numba_cache_is_one_line_naming_the_folder_to_delete(tmp_path)
     assert len(lines) == 1 and lines[0].startswith("evnoise: error: the cache of compiled kernels is damaged"), \
         proc.stderr
     assert str(damaged[0].parent) in lines[0] and "delete the folder" in lines[0]
+
+
+# --------------------------------------------------------------------------------------
+# item 5: a recording shorter than the model's window gives an image, not a black PNG
+# --------------------------------------------------------------------------------------
+def test_reconstruct_a_45_ms_recording_is_not_black(tmp_path, capsys):
+    pytest.importorskip("torch")
+    from evnoise.reconstruct.infer import Reconstructor, default_model_path
+
+    rec = Reconstructor(default_model_path(), threads=1)
+    assert min(rec.spec.windows_s) >= 0.5  # the shipped model was trained on longer windows
+    events = tmp_path / "short.h5"
+    code, _, err = run_cli(capsys, "simulate", "--example", "--sensor", "320x180", "--duration", "0.045",
+                           "--seed", "5", "-o", events, "-q")
+    assert code == 0, err
+    code, _, err = run_cli(capsys, "reconstruct", events, "-o", tmp_path / "r.png")
+    assert code == 0, err
+    assert "counts are scaled by" in err and "make-dataset --window" in err  # says what it did, and what to do
+    image = np.asarray(PIL_Image.open(tmp_path / "r.png"), dtype=np.float64)
+    assert image.mean() > 40 and image.std() > 5  # was all 0: the Anscombe input of empty pixels out of range
+
+
+def test_a_short_window_is_shown_to_the_model_as_the_same_rates_over_its_window():
+    torch = pytest.importorskip("torch")
+    from evnoise.reconstruct.infer import Reconstructor, default_model_path, model_window
+
+    rec = Reconstructor(default_model_path(), threads=1)
+    trained = min(rec.spec.windows_s)
+    assert model_window(rec.spec, trained / 10) == trained
+    assert model_window(rec.spec, trained * 2) == trained * 2  # longer windows as they are
+    counts = np.random.default_rng(0).poisson(0.05, (2, 32, 48))
+    torch.manual_seed(0)
+    short = rec.predict_binned(counts, trained / 20)
+    scaled = rec.predict_binned(counts * 20.0, trained)
+    np.testing.assert_allclose(short, scaled, atol=1e-6)
+
+
+# --------------------------------------------------------------------------------------
+# item 7: times on a Unix clock are printed to the microsecond
+# --------------------------------------------------------------------------------------
+UNIX_T0_US = 1_643_240_000_000_000  # 2022-01-26, a DV camera's clock
+
+
+def unix_clock_file(path, shape=(16, 20), n=600):
+    rng = np.random.default_rng(3)
+    t = np.sort(rng.integers(0, 1_000_000, n)) + UNIX_T0_US
+    events = ev.events.make_events(t, rng.integers(0, shape[1], n), rng.integers(0, shape[0], n),
+                                   rng.integers(0, 2, n))
+    return ev.write_events(path, events, shape, t_offset_us=UNIX_T0_US)
+
+
+def test_info_prints_unix_clock_windows_to_the_microsecond(tmp_path, capsys, monkeypatch):
+    import evnoise.cli.info
+    import evnoise.readers.stats
+
+    titles = []
+
+    def fake_png(path, counts, *, title="", overwrite=False):
+        titles.append(title)
+        Path(path).write_bytes(b"png")
+
+    monkeypatch.setattr(evnoise.cli.info, "stats_png", fake_png, raising=False)
+    monkeypatch.setattr(evnoise.readers.stats, "stats_png", fake_png, raising=False)
+    path = unix_clock_file(tmp_path / "unix.h5")
+    code, out, err = run_cli(capsys, "info", path, "--t-start", "1643240000.25", "--t-end", "1643240000.750001",
+                             "--stats", "--png", tmp_path / "stats.png")
+    assert code == 0, err
+    assert "1.64324e+09" not in out
+    assert "t_start_s:  1643240000.25\n" in out and "t_end_s:    1643240000.750001\n" in out
+    assert titles and "t 1643240000.25" in titles[0] and "-1643240000.750001 s" in titles[0], titles
+
+
+# --------------------------------------------------------------------------------------
+# item 6: info --stats --png shows a pixel with one event in colour, not black
+# --------------------------------------------------------------------------------------
+def test_info_png_shows_pixels_with_one_event(tmp_path, capsys):
+    pytest.importorskip("matplotlib")
+    shape = (40, 60)
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]]
+    t = np.arange(yy.size) * 100
+    events = ev.events.make_events(t, xx.ravel(), yy.ravel(), np.ones(yy.size, dtype=int))  # one ON event each
+    path = ev.write_events(tmp_path / "ones.h5", events, shape, t_end_us=int(t[-1]) + 1)
+    png = tmp_path / "ones.png"
+    code, _, err = run_cli(capsys, "info", path, "--stats", "--png", png)
+    assert code == 0, err
+    rgb = np.asarray(PIL_Image.open(png).convert("RGB"), dtype=np.int64)
+    on_panel = rgb[:, : rgb.shape[1] // 3]  # the ON count map and its colour bar
+    black = np.mean(on_panel.max(axis=2) < 25)
+    assert black < 0.05, f"{black:.0%} of the ON panel is black: its pixels with one event are drawn black"
+
+
+def test_seconds_text():
+    from evnoise._clock import seconds_text
+
+    assert seconds_text(1643240000.05) == "1643240000.05"
+    assert seconds_text(1643240000.000001) == "1643240000.000001"
+    assert seconds_text(0.5) == "0.5" and seconds_text(12.0) == "12" and seconds_text(-0.0) == "0"
+
+
+def test_quiet_window_names_unix_clock_times_to_the_microsecond(tmp_path):
+    from evnoise.calibration.quiet import quiet_window
+
+    path = unix_clock_file(tmp_path / "unix.h5")
+    w = quiet_window(path, 1643240000.0, 1643240000.9)
+    assert w.describe() == "unix.h5 1643240000-1643240000.9 s"

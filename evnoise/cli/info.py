@@ -125,6 +125,8 @@ def format_summary(info: dict, indent: str = "") -> str:
 
 
 _COUNTS = {"events", "ON", "OFF", "count", "pixels"}
+#: times on the file's clock (often Unix time, 1.6e9 s): printed to the microsecond
+_CLOCK = {"t_start_s", "t_end_s"}
 
 
 def _fmt(key, value) -> str:
@@ -132,6 +134,10 @@ def _fmt(key, value) -> str:
         return f"{value:,} ({human_bytes(value)})"
     if value is None:
         return "-"
+    if key in _CLOCK and isinstance(value, float):
+        from .._clock import seconds_text
+
+        return seconds_text(value)
     if isinstance(value, float):
         return f"{value:.6g}"
     if key in _COUNTS and isinstance(value, int) and not isinstance(value, bool):
@@ -157,7 +163,7 @@ def summarise_events(path, *, sensor=None, t_start=None, t_end=None, csv_columns
                      hot_threshold=None, png=None, overwrite: bool = False) -> dict:
     """Summary of an event file (any format :mod:`evnoise.readers` opens): plain JSON numbers, units in keys."""
     from ..readers import _window, open_events
-    from ..readers.stats import noise_stats, pixel_counts, stats_png
+    from ..readers.stats import noise_stats, pixel_counts
 
     path = Path(path)
     a_us, b_us = _window(t_start, t_end)
@@ -219,8 +225,11 @@ def summarise_events(path, *, sensor=None, t_start=None, t_end=None, csv_columns
         st = noise_stats(counts, duration_us * 1e-6, hot_threshold=hot_threshold)
         out["stats"] = {k: v for k, v in st.items() if k not in ("events", "duration_s")}
         if png is not None:
-            window = "" if "window_s" not in out else f", t {a_us * 1e-6 if a_us is not None else t_first * 1e-6:.6g}" \
-                f"-{(b_us if b_us is not None else t_last) * 1e-6:.6g} s"
+            from .._clock import seconds_text
+
+            window = "" if "window_s" not in out else \
+                f", t {seconds_text((a_us if a_us is not None else t_first) * 1e-6)}" \
+                f"-{seconds_text((b_us if b_us is not None else t_last) * 1e-6)} s"
             stats_png(png, counts, title=f"{path.name}{window}: {n:,} events, {out['duration_s']:.6g} s",
                       overwrite=overwrite)
             out["png"] = os.fspath(png)
@@ -235,6 +244,65 @@ def summarise_events(path, *, sensor=None, t_start=None, t_end=None, csv_columns
         if header:
             out["header"] = header
     return out
+
+
+#: the colour of the fewest events (1) on the count maps: this far up the magma map (its bottom is black, the
+#: colour of "no events")
+_LOWEST_COLOUR = 0.25
+
+
+def count_colours(vmax: int):
+    """``(cmap, norm)`` of the count maps of ``info --stats --png``: log scale from 1 to ``vmax`` events, a pixel
+    with one event in a visible violet; pixels without events are masked and shown black (the axes' colour)."""
+    import numpy as np
+    from matplotlib import colormaps
+    from matplotlib.colors import ListedColormap, LogNorm
+
+    magma = colormaps["magma"]
+    cmap = ListedColormap(magma(np.linspace(_LOWEST_COLOUR, 1.0, 256)), name="magma_from_violet")
+    return cmap, LogNorm(vmin=1, vmax=max(int(vmax), 2))
+
+
+def stats_png(path, counts, *, title: str = "", overwrite: bool = False) -> None:
+    """ON and OFF count maps (log colour scale, black = no events) and the per-pixel count histogram (log y)."""
+    import numpy as np
+
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        raise InputError("--png needs matplotlib: pip install 'evnoise[plot]'") from None
+    from .._atomic import atomic_output
+
+    counts = np.asarray(counts)
+    total = counts.sum(axis=0)
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.6), gridspec_kw={"width_ratios": [1, 1, 1.1]})
+    cmap, norm = count_colours(int(counts.max()))
+    for ax, img, label in zip(axes[:2], counts, ("ON", "OFF"), strict=True):
+        im = ax.imshow(np.ma.masked_equal(img, 0), cmap=cmap, norm=norm, interpolation="nearest")
+        ax.set_facecolor("black")
+        ax.set_title(f"{label} events per pixel ({int(img.sum()):,} events)")
+        ax.set_xlabel("x (px)")
+        ax.set_ylabel("y (px)")
+        fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, label="events (black: none)")
+    ax = axes[2]
+    flat = total.ravel()
+    top = int(flat.max())
+    bins = np.arange(0, top + 2) - 0.5 if top < 200 else np.unique(np.round(np.logspace(0, np.log10(top + 1), 80)))
+    ax.hist(flat, bins=bins, color="0.3", log=True)
+    ax.set_xlabel("events per pixel")
+    ax.set_ylabel("pixels (log)")
+    ax.set_title("per-pixel count histogram")
+    if top >= 200:
+        ax.set_xscale("symlog", linthresh=1)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    with atomic_output(path, overwrite=overwrite, what="PNG file") as tmp:
+        fig.savefig(tmp, format="png", dpi=100)
+    plt.close(fig)
 
 
 def _h5_details(path, meta, out):

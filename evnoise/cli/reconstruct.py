@@ -63,6 +63,7 @@ def run(args) -> int:
     import time
     from pathlib import Path
 
+    from .._clock import seconds_text
     from ..errors import InputError, OutputError, ParameterError
     from ..reconstruct.imaging import write_png
     from ..reconstruct.infer import Reconstructor, counts_from_h5, default_model_path, h5_duration_s
@@ -99,10 +100,6 @@ def run(args) -> int:
         raise ParameterError(f"--out must be a .png file, got {out}")
     if not (out.parent if str(out.parent) else Path(".")).is_dir():
         raise OutputError(f"output folder {out.parent} does not exist")
-    if args.step is not None and args.step <= 0:
-        raise ParameterError(f"--step must be > 0 seconds, got {args.step}")
-    if args.frames is not None and args.frames < 1:
-        raise ParameterError(f"--frames must be >= 1, got {args.frames}")
     from ..readers import recording_span_us, window_counts
 
     camera = (args.sensor is not None or args.csv_columns is not None
@@ -131,14 +128,14 @@ def run(args) -> int:
             f"the model was trained on {rec.binning}x{rec.binning}-binned counts; "
             f"--binning {args.binning} does not match"
         )
-    if args.window is not None:
-        window = args.window
-    else:
-        from ..reconstruct.infer import choose_window
+    from ..reconstruct.infer import choose_window, short_window_note
 
+    if args.window is not None:
+        window, note = args.window, short_window_note(rec.spec, args.window)
+    else:
         window, note = choose_window(rec.spec, duration, args.t_start)
-        if note:
-            log.warning(note)
+    if note:
+        log.warning(note)
     starts = [args.t_start]
     if args.step is not None:
         starts = []
@@ -161,8 +158,8 @@ def run(args) -> int:
     for t0, path in zip(starts, targets, strict=True):
         if camera:
             if t0 + window > duration + 1e-6:
-                raise InputError(f"the window {t0:.6f} s + {window:g} s runs past the end of the recording "
-                                 f"({duration:.6f} s)")
+                raise InputError(f"the window {seconds_text(t0)} s + {window:g} s runs past the end of the "
+                                 f"recording ({seconds_text(duration)} s)")
             counts, used = window_counts(args.events, t0, window, sensor=args.sensor,
                                          csv_columns=args.csv_columns), window
         else:
@@ -172,7 +169,7 @@ def run(args) -> int:
         ms = 1000 * (time.perf_counter() - tic)
         times.append(ms)
         write_png(path, image)
-        log.info("%s: window %.3g s from %.3g s, %d events, %dx%d -> %dx%d in %.0f ms", path, used, t0,
+        log.info("%s: window %.6g s from %s s, %d events, %dx%d -> %dx%d in %.0f ms", path, used, seconds_text(t0),
                  int(counts.sum()), counts.shape[2], counts.shape[1], image.shape[1], image.shape[0], ms)
     if not args.quiet:
         what = targets[0] if len(targets) == 1 else f"{len(targets)} frames {targets[0]} ... {targets[-1]}"

@@ -11,12 +11,13 @@ from pathlib import Path
 
 import numpy as np
 
+from .._clock import seconds_text
 from .._h5 import event_datasets, first_index, open_h5, sensor_shape
 from ..errors import InputError, ParameterError
 from .imaging import bin_counts
 
 __all__ = ["counts_from_h5", "h5_duration_s", "counts_to_input", "Reconstructor", "default_model_path",
-           "choose_window", "recording_mismatch"]
+           "choose_window", "recording_mismatch", "model_window", "trained_windows", "short_window_note"]
 
 #: file name of the shipped reconstructor inside the package folder ``evnoise/models``
 DEFAULT_MODEL_FILE = "evk3-hd.pt"
@@ -36,14 +37,29 @@ def default_model_path() -> Path:
     return path
 
 
+def trained_windows(spec) -> list:
+    """The windows (seconds) a model was trained on, sorted; empty if its checkpoint does not say."""
+    return sorted(getattr(spec, "windows_s", None) or ([] if spec.window_s is None else [spec.window_s]))
+
+
+def model_window(spec, window_s: float) -> float:
+    """The window the model is shown counts of: ``window_s`` itself, or the shortest trained window when
+    ``window_s`` is shorter (see :meth:`Reconstructor.predict_binned`)."""
+    windows = trained_windows(spec)
+    if windows and window_s < windows[0] * (1 - 1e-9):
+        return float(windows[0])
+    return float(window_s)
+
+
 def choose_window(spec, duration_s: float, t_start_s: float = 0.0):
     """``(window_s, note)``: the longest trained window that fits into the recording after ``t_start_s``.
 
     A model trained on several windows (``spec.windows_s``) is best used at the longest one
     (the least noisy); a recording shorter than every trained window is used whole, with a
-    ``note`` saying so (``note`` is None otherwise).
+    ``note`` saying so (``note`` is None otherwise): its counts are scaled up to the shortest
+    trained window before the model sees them (:meth:`Reconstructor.predict_binned`).
     """
-    windows = list(getattr(spec, "windows_s", None) or ([] if spec.window_s is None else [spec.window_s]))
+    windows = trained_windows(spec)
     if not windows:
         raise ParameterError("the model does not record its training window: give --window")
     available = duration_s - t_start_s
@@ -51,10 +67,20 @@ def choose_window(spec, duration_s: float, t_start_s: float = 0.0):
     if fitting:
         return max(fitting), None
     if available <= 0:
-        raise InputError(f"the recording ({duration_s:.6g} s) has nothing after t = {t_start_s:g} s")
-    trained = ", ".join(f"{w:g}" for w in sorted(windows))
-    return available, (f"the recording ({available:.6g} s after the start) is shorter than every window the "
-                       f"model was trained on ({trained} s): using all of it; expect a noisier image")
+        raise InputError(f"the recording ({duration_s:.6g} s) has nothing after t = {seconds_text(t_start_s)} s")
+    return available, short_window_note(spec, available, "the recording")
+
+
+def short_window_note(spec, window_s: float, what: str = "the window") -> str | None:
+    """A warning when ``window_s`` is shorter than every window the model was trained on (else ``None``)."""
+    seen = model_window(spec, window_s)
+    if seen == window_s:
+        return None
+    trained = ", ".join(f"{w:g}" for w in trained_windows(spec))
+    return (f"{what} ({window_s:.6g} s) is shorter than every window the model was trained on ({trained} s): its "
+            f"counts are scaled by {seen / window_s:.3g} to the model's {seen:g} s window (the same rates; "
+            f"expect a noisier image; a model trained on windows this short does better: make-dataset --window "
+            f"{window_s:.3g}, then train)")
 
 
 _PARAM_KEYS = ("eps_pos", "eps_neg", "bias_pr", "trial_rate_hz", "photons_per_lux", "dark_lux", "refractory_s",
@@ -150,14 +176,14 @@ def counts_from_h5(path, *, t_start_s: float = 0.0, window_s: float | None = Non
         end = _end_us(f)
         if window_s is None:
             if end <= t0:
-                raise InputError(f"{path} has no events after t = {t_start_s:g} s")
+                raise InputError(f"{path} has no events after t = {seconds_text(t_start_s)} s")
             t1 = end
             window_s = (t1 - t0) * 1e-6
         else:
             t1 = t0 + int(round(window_s * 1e6))
             if t1 > end:
                 raise InputError(
-                    f"the window {t_start_s:g} s + {window_s:g} s runs past the end of the recording "
+                    f"the window {seconds_text(t_start_s)} s + {window_s:g} s runs past the end of the recording "
                     f"({end * 1e-6:.6g} s)"
                 )
         lo, hi = first_index(f, ds["t"], t0), first_index(f, ds["t"], t1)
@@ -221,7 +247,19 @@ class Reconstructor:
         return self.spec.binning
 
     def predict_binned(self, counts, window_s: float) -> np.ndarray:
-        """Image ``(h, w)`` in ``[0, 1]`` from counts already binned like the training data."""
+        """Image ``(h, w)`` in ``[0, 1]`` from counts already binned like the training data.
+
+        A window shorter than every window the model was trained on is shown to it as its counts
+        scaled to the shortest trained window ``W`` (``counts * W / window_s`` over ``W``: the same
+        rates; :func:`model_window`). Unscaled, the Anscombe input of a pixel without events,
+        ``sqrt(3/8) / sqrt(window_s * rate_scale_hz)``, rises far above anything seen in training
+        as the window shrinks (4.7x at 45 ms for a 1 s model), and the network answered with an
+        all-black image.
+        """
+        seen = model_window(self.spec, float(window_s))
+        if seen != float(window_s):
+            counts = np.asarray(counts, dtype=np.float64) * (seen / float(window_s))
+            window_s = seen
         x = self.torch.from_numpy(counts_to_input(counts, window_s, self.spec))[None]
         x = x.contiguous(memory_format=self.torch.channels_last)
         with self.torch.inference_mode():

@@ -8,6 +8,7 @@ and ``evnoise.motion.reconstruct_video`` name the function here.
 from __future__ import annotations
 
 import csv
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -98,7 +99,7 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
     from .._recordings import recording_info, recording_start_us
     from ..readers import parse_sensor
     from .imaging import write_png
-    from .infer import Reconstructor
+    from .infer import Reconstructor, short_window_note
 
     fps = check_float(fps, "fps", "frames per second")
     if max_frames is not None:
@@ -127,6 +128,9 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
         if window_s is None:
             raise ParameterError("the model does not record its training window: give window_s (--window)")
     window_s = check_float(window_s, "window_s", "seconds")
+    note = short_window_note(rec.spec, window_s)
+    if note:  # the frames are still made (counts scaled to the model's window), but the user must know
+        logging.getLogger("evnoise").warning(note)
     step_us = int(round(1e6 / fps))
     window_steps = max(1, int(round(window_s * 1e6 / step_us)))
     if t_start_s is None:
