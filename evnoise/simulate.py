@@ -131,7 +131,7 @@ def _check_memory(expected_events: float, what: str = "simulate_events") -> None
     if have is not None and need > have:
         raise ParameterError(f"{what} would return about {expected_events:,.0f} events ({_human_bytes(need)} in "
                              f"memory), more than the {_human_bytes(have)} available; shorten the duration, "
-                             f"stream the windows with iter_events, or write a file (evnoise simulate --out)")
+                             f"stream the windows (iter_events, iter_video), or write a file (evnoise simulate --out)")
 
 
 def _human_bytes(n: float) -> str:
@@ -491,8 +491,10 @@ def simulate_video(
     thresholds away from the pixel's reference (about ``|delta log(lam + b)| / eps`` events per
     step change); noise events everywhere, from the per-trial photon-count comparison.
     """
-    parts = list(iter_video(frames_lux, timestamps_s, params, rng, method, thresholds=thresholds,
-                            background=background, threads=threads, progress=progress, return_labels=return_labels))
+    windows = iter_video(frames_lux, timestamps_s, params, rng, method, thresholds=thresholds, background=background,
+                         threads=threads, progress=progress, return_labels=return_labels)
+    _check_memory(windows.expected_events, "simulate_video")  # before anything runs (iter_video streams)
+    parts = list(windows)
     if return_labels:
         if not parts:
             return empty_events(0), np.zeros(0, dtype=bool)

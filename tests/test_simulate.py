@@ -524,3 +524,15 @@ def test_progress_steps_add_up_to_the_total_without_warnings(monkeypatch, method
         n = sum(w.size for w in ev.iter_events(np.full((4, 4), 2.0), PARAMS, 20.0, rng=1, method=method,
                                                 progress=True))
     assert n > 0 and totals and all(done == total for done, total in totals), totals
+
+
+def test_simulate_video_refuses_what_cannot_fit_in_memory(monkeypatch):
+    import evnoise.simulate as sim
+
+    frames = np.stack([np.full((16, 16), 2.0), np.full((16, 16), 3.0)])
+    monkeypatch.setattr(sim, "_available_memory", lambda: 10_000)
+    with pytest.raises(ev.ParameterError, match=r"simulate_video would return about [\d,]+ events .*iter_events"):
+        ev.simulate_video(frames, [0.0, 100.0], PARAMS, rng=1)
+    monkeypatch.undo()
+    with pytest.raises(ev.ParameterError, match="simulate_video would return about"):  # 1e12 s: not run
+        ev.simulate_video(frames, [0.0, 1e12], PARAMS, rng=1)
