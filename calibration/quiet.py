@@ -47,7 +47,7 @@ import numpy as np
 from evnoise._clock import seconds_text
 from evnoise.errors import InputError, ParameterError
 
-from .quiet_checks import CHECK_P
+from .quiet_checks import check_verdict
 
 # The model's parts live in one module per job; their names are re-exported here, where the tests, the
 # command line and the scripts look for them: the renewal count distribution, the goodness of fit (the
@@ -209,13 +209,16 @@ class QuietFit:
         for name, t in self.tests.items():
             lines.append(f"  test {name}: twice the log-likelihood ratio {t['lr']:.3g}, p = {t['p_value']:.3g}")
         for g in self.goodness:
+            if not math.isfinite(g["p_value"]):
+                events = f"{g['events']} event{'' if g['events'] == 1 else 's'}"
+                lines.append(f"  fit {g['window']} {g['polarity']}: not testable ({events}: counts 0..{g['max_count']} "
+                             f"pool into one bin of expected count >= 5; a chi-square needs two)")
+                continue
             lines.append(f"  fit {g['window']} {g['polarity']}: chi2 {g['chi2']:.2f} on {g['dof']} dof, "
                          f"p = {g['p_value']:.3g} ({g['bins']} bins over counts 0..{g['max_count']})")
         for w in self.windows:
             for c in w.checks:
-                verdict = ("information" if not c["assumption"] else
-                           "FAILED" if c["p_value"] < CHECK_P else "passed")
-                lines.append(f"  check {w.describe()} {c['check']}: p = {c['p_value']:.3g} ({verdict}); {c['detail']}")
+                lines.append(f"  check {w.describe()} {c['check']}: {check_verdict(c)}; {c['detail']}")
         lines += [f"  note: {n}" for n in self.notes]
         return "\n".join(lines)
 

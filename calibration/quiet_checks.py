@@ -34,7 +34,9 @@ And one for information, not an assumption of the fit:
   on the illuminance) or the sensor's (vignetting); the fit's spread absorbs it, since the
   per-pixel count histograms do not depend on where a pixel sits.
 
-Each check is a dict ``{check, statistic, null_mean, null_sd, p_value, assumption, detail}``; p-values from
+Each check is a dict ``{check, statistic, null_mean, null_sd, p_value, assumption, detail}`` (and
+``testable: False`` where the window holds nothing to test, e.g. no OFF events for the pairs: such a check
+neither passes nor fails; :func:`check_verdict` words a result with its threshold); p-values from
 resampling are ``(1 + #(null >= observed)) / (1 + resamples)``; where the observed value lies beyond
 every resample, the tail of a gamma distribution with the resamples' mean and variance is given
 instead when it is smaller (right-skewed like the counts and chi-square statistics here; approximate),
@@ -44,12 +46,10 @@ noise failed at ``CHECK_P`` about as often as they should (tests/test_quiet_chec
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-__all__ = ["window_checks", "failed_checks", "polarity_pairs", "stationarity", "scene_motion", "spatial_structure",
-           "PAIR_GAP_S", "CHECK_P"]
+__all__ = ["window_checks", "failed_checks", "check_verdict", "polarity_pairs", "stationarity", "scene_motion",
+           "spatial_structure", "PAIR_GAP_S", "CHECK_P"]
 
 #: Largest gap (seconds) between a pixel's OFF and ON events counted as a pair.
 PAIR_GAP_S = 0.05
@@ -73,11 +73,30 @@ def _resampled(observed: float, null: np.ndarray) -> tuple:
 
 
 def _result(name: str, observed: float, null: np.ndarray, describe, *, assumption: bool = True) -> dict:
-    """A check's dict; ``describe(mean, sd, ratio)`` writes its detail (``ratio`` = observed / null mean)."""
+    """A check's dict; ``describe(mean, sd)`` writes its detail."""
     mean, sd, p = _resampled(observed, null)
-    ratio = observed / mean if mean > 0 else (math.inf if observed > 0 else 1.0)
     return {"check": name, "statistic": observed, "null_mean": mean, "null_sd": sd, "p_value": p,
-            "assumption": assumption, "detail": describe(mean, sd, ratio)}
+            "assumption": assumption, "detail": describe(mean, sd)}
+
+
+def _times(observed: float, mean: float) -> str:
+    """``observed`` against the resamples' ``mean`` in words: ``"2.6 times"``, ``"none"`` (no resample had any)."""
+    if mean > 0:
+        return f"{observed / mean:.3g} times"
+    return "none" if observed == 0 else "some (none)"
+
+
+def check_verdict(check: dict, *, p: float = CHECK_P) -> str:
+    """``"passed (p = 0.41 >= 0.001)"``, ``"FAILED (p = 8e-05 < 0.001)"``, ``"information (p = ...)"`` or
+    ``"not testable"``: the p-value always with the threshold it is compared with."""
+    if check.get("testable") is False:
+        return "not testable"
+    pv = check["p_value"]
+    if not check["assumption"]:
+        return f"information (p = {pv:.3g}; not a test of the fit's assumptions)"
+    if pv < p:
+        return f"FAILED (p = {pv:.3g} < {p:g})"
+    return f"passed (p = {pv:.3g} >= {p:g})"
 
 
 def _pairs_within(off_key: np.ndarray, on_key: np.ndarray, gap: int) -> int:
@@ -110,9 +129,22 @@ def polarity_pairs(events: np.ndarray, shape: tuple, t_start_us: int, duration_u
         offset = rng.integers(lo_shift, hi_shift + 1, size=n_pix) * rng.choice(np.array([-1, 1]), size=n_pix)
         shifted = (on_t + offset[on_pix]) % duration_us
         null[k] = _pairs_within(off_key, np.sort(on_pix * stride + shifted), gap)
-    return _result("polarity_pairs", observed, null, lambda mean, sd, ratio: (
-        f"{observed} OFF/ON pairs of one pixel within {pair_gap_s * 1e3:g} ms, {mean:.1f} +- {sd:.1f} with the "
-        f"ON streams shifted by {lo_shift / 1e6:.3g}-{hi_shift / 1e6:.3g} s (x{ratio:.2g}; {int(shifts)} shifts)"))
+    if lo_shift == hi_shift:
+        by = f"{lo_shift / 1e6:.3g} s either way"
+        if hi_shift < 40 * gap:  # the window (at most 20 gaps) leaves no room for the usual range
+            by += (f" (half the window, which is too short for the usual {10 * pair_gap_s:g} to "
+                   f"{40 * pair_gap_s:g} s)")
+    else:
+        by = f"{lo_shift / 1e6:.3g} to {hi_shift / 1e6:.3g} s either way"
+    out = _result("polarity_pairs", observed, null, lambda mean, sd: (
+        f"{observed} OFF/ON pairs of one pixel within {pair_gap_s * 1e3:g} ms, {mean:.1f} +- {sd:.1f} with each "
+        f"pixel's ON stream shifted by {by} ({_times(observed, mean)} as many; {int(shifts)} shifts)"))
+    if observed == 0 and not np.any(null):
+        n_on, n_off = int(on.sum()), int((~on).sum())
+        out["testable"] = False
+        out["detail"] = (f"no OFF/ON pairs of one pixel within {pair_gap_s * 1e3:g} ms, shifted or not "
+                         f"({n_off} OFF and {n_on} ON events): nothing to compare")
+    return out
 
 
 def stationarity(events: np.ndarray, t_start_us: int, duration_us: int, *, pieces: int = 4) -> dict:
@@ -162,9 +194,9 @@ def spatial_structure(counts: np.ndarray, *, block: int = 16, shifts: int = 200,
     observed = _block_variance(flat, index, n_blocks)
     rng = np.random.default_rng(seed)
     null = np.array([_block_variance(rng.permutation(flat), index, n_blocks) for _ in range(int(shifts))])
-    return _result("spatial_structure", observed, null, lambda mean, sd, ratio: (
-        f"variance of {block}x{block}-block counts x{ratio:.3g} that of pixels placed at random ({int(shifts)} "
-        "permutations; the noise follows the scene or the optics)"), assumption=False)
+    return _result("spatial_structure", observed, null, lambda mean, sd: (
+        f"variance of {block}x{block}-block counts {_times(observed, mean)} that of pixels placed at random "
+        f"({int(shifts)} permutations; the noise follows the scene or the optics)"), assumption=False)
 
 
 def _independence_chi2(block_id: np.ndarray, slice_id: np.ndarray, n_blocks: int, pieces: int) -> float:
@@ -197,9 +229,9 @@ def scene_motion(events: np.ndarray, shape: tuple, t_start_us: int, duration_us:
     for k in range(int(shifts)):
         shifted = (t + rng.integers(0, duration_us, size=n_pix)[pix]) % duration_us
         null[k] = _independence_chi2(blk, shifted * pieces // duration_us, n_blocks, pieces)
-    return _result("scene_motion", observed, null, lambda mean, sd, ratio: (
-        f"block x time chi-square of {block}x{block} blocks in {pieces} slices x{ratio:.3g} that of the pixels' "
-        f"streams shifted in time ({int(shifts)} circular shifts)"))
+    return _result("scene_motion", observed, null, lambda mean, sd: (
+        f"block x time chi-square of {block}x{block} blocks in {pieces} slices {_times(observed, mean)} that of "
+        f"the pixels' streams shifted in time ({int(shifts)} circular shifts)"))
 
 
 def window_checks(events: np.ndarray, counts: np.ndarray, t_start_us: int, duration_us: int, *,
@@ -214,4 +246,4 @@ def window_checks(events: np.ndarray, counts: np.ndarray, t_start_us: int, durat
 
 def failed_checks(checks: list, *, p: float = CHECK_P) -> list:
     """The assumption checks (not the information ones) whose p-value is below ``p``."""
-    return [c for c in checks if c["assumption"] and c["p_value"] < p]
+    return [c for c in checks if c["assumption"] and c.get("testable", True) and c["p_value"] < p]

@@ -4,6 +4,7 @@ a preset simulated against a recording. Re-exported by :mod:`evnoise.calibration
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -60,10 +61,13 @@ def _goodness(v, model, groups, n_fitted):
                 expected = pmf * n_pix
                 expected[-1] += max(n_pix - expected.sum(), 0.0)  # the tail beyond kmax
                 obs, exp = _pool(observed, expected)
-                dof = max(1, len(obs) - 1 - n_fitted)
-                stat = float(np.sum((obs - exp) ** 2 / exp)) if len(obs) > 1 else 0.0
+                # one bin left after pooling (a handful of events) is no test at all: p is NaN and the summary
+                # says "not testable", where it said "p = 1"
+                testable = len(obs) > 1
+                dof = max(1, len(obs) - 1 - n_fitted) if testable else 0
+                stat = float(np.sum((obs - exp) ** 2 / exp)) if testable else 0.0
                 out.append({"window": w.describe(), "polarity": name, "chi2": stat, "dof": dof,
-                            "p_value": float(chi2.sf(stat, dof)) if len(obs) > 1 else 1.0, "bins": len(obs),
+                            "p_value": float(chi2.sf(stat, dof)) if testable else math.nan, "bins": len(obs),
                             "pooled": len(obs) < kmax + 1, "max_count": kmax, "events": int(w.counts[pol].sum()),
                             "expected_events": float(np.dot(np.arange(kmax + 1), pmf) * n_pix)})
     return out

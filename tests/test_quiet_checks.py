@@ -180,3 +180,51 @@ def test_real_recordings():
     assert c["polarity_pairs"]["p_value"] < P_FAIL
     assert c["polarity_pairs"]["statistic"] > 2 * c["polarity_pairs"]["null_mean"]
     assert c["scene_motion"]["p_value"] < P_FAIL
+
+
+# -- issue 29 #9: verdicts with their threshold, shifts and counts in words ---------------------------------------
+def test_a_verdict_states_the_threshold():
+    base = {"check": "scene_motion", "assumption": True, "p_value": 0.00124}
+    assert qc.check_verdict(base) == "passed (p = 0.00124 >= 0.001)"
+    assert qc.check_verdict({**base, "p_value": 8e-5}) == "FAILED (p = 8e-05 < 0.001)"
+    assert qc.check_verdict({**base, "assumption": False}).startswith("information (p = 0.00124")
+    assert qc.check_verdict({**base, "testable": False}) == "not testable"
+
+
+def test_a_one_second_window_names_one_shift_and_no_x0():
+    rng = np.random.default_rng(4)
+    n = 300
+    t = np.sort(rng.integers(0, 1_000_000, n))
+    events = _events(t, rng.integers(0, 8, n), rng.integers(0, 6, n), rng.integers(0, 2, n))
+    c = qc.polarity_pairs(events, (6, 8), 0, 1_000_000, shifts=20)
+    assert "0.5-0.5" not in c["detail"] and "x0" not in c["detail"]
+    assert "shifted by 0.5 s either way (half the window" in c["detail"], c["detail"]
+
+
+def test_a_window_without_off_events_cannot_test_pairs():
+    rng = np.random.default_rng(5)
+    n = 200
+    events = _events(np.sort(rng.integers(0, 4_000_000, n)), rng.integers(0, 8, n), rng.integers(0, 6, n),
+                     np.ones(n, dtype=int))
+    c = qc.polarity_pairs(events, (6, 8), 0, 4_000_000, shifts=20)
+    assert c["testable"] is False and "0 OFF and 200 ON events" in c["detail"]
+    assert qc.failed_checks([c], p=2.0) == []  # neither passed nor failed
+
+
+def test_quiet_summary_shows_thresholds_and_no_p_of_one_on_one_bin(tmp_path):
+    from evnoise.calibration import quiet as q
+
+    # ON noise only: the OFF histogram is one bin (all zero), which no chi-square can test
+    rng = np.random.default_rng(6)
+    n = 3000
+    events = _events(np.sort(rng.integers(0, 5_000_000, n)), rng.integers(0, 40, n), rng.integers(0, 30, n),
+                     np.ones(n, dtype=int))
+    path = ev.write_events(tmp_path / "on_only.h5", events, (30, 40), t_end_us=5_000_000)
+    window = q.quiet_window(path, 0.0, 5.0, checks=True)
+    fit = q.fit_quiet([window], base="dvs128", spread="off", hot="off", regularity="off")
+    text = fit.summary()
+    off = next(line for line in text.splitlines() if line.startswith("  fit ") and " OFF:" in line)
+    assert "p = 1 " not in off and "not testable" in off, text
+    for line in text.splitlines():
+        if line.startswith("  check ") and "stationarity" in line:
+            assert ">= 0.001)" in line or "< 0.001)" in line, line

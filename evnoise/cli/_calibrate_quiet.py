@@ -17,6 +17,9 @@ from . import _options as opt
 
 log = logging.getLogger(__name__)
 
+#: goodness-of-fit p-value below which the fit is said not to describe a window
+GOODNESS_P = 1e-3
+
 
 #: What to do when a window fails a check of :mod:`evnoise.calibration.quiet_checks`.
 _ADVICE = {
@@ -83,7 +86,7 @@ def run(args, recordings) -> int:
 
     from evnoise.calibration.preset import write_text_atomic
     from evnoise.calibration.quiet import fit_quiet, preset_toml, quiet_window
-    from evnoise.calibration.quiet_checks import failed_checks
+    from evnoise.calibration.quiet_checks import check_verdict, failed_checks
 
     from ..io import open_output_path
     from ._paths import refuse_writing_inputs
@@ -125,12 +128,12 @@ def run(args, recordings) -> int:
     print(f"wrote {out}")
     for w in windows:
         for c in failed_checks(w.checks):
-            log.warning("%s is not pure stationary noise (%s, p = %.2g): %s; %s", w.describe(), c["check"],
-                        c["p_value"], c["detail"], _ADVICE[c["check"]])
-    worst = min(g["p_value"] for g in fit.goodness)
-    if worst < 1e-3:
-        log.warning("the fitted model does not describe every window (lowest goodness-of-fit p = %.2g): the scene "
-                    "may not be still, or its noise not stationary", worst)
+            log.warning("%s is not pure stationary noise (%s %s): %s; %s", w.describe(), c["check"],
+                        check_verdict(c), c["detail"], _ADVICE[c["check"]])
+    tested = [g["p_value"] for g in fit.goodness if math.isfinite(g["p_value"])]
+    if tested and min(tested) < GOODNESS_P:
+        log.warning("the fitted model does not describe every window (lowest goodness-of-fit p = %.2g < %g): the "
+                    "scene may not be still, or its noise not stationary", min(tested), GOODNESS_P)
     if args.plot:
         fit.plot(args.plot, params=params)
         print(f"wrote {args.plot}")
