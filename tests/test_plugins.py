@@ -364,7 +364,8 @@ def test_v2e_merging_keeps_the_signal_events_intact():
         n_noise += n_noise_here
     assert n_signal > 100 and n_noise > 10
     assert wrapper.signal_count == n_signal and wrapper.noise_count == n_noise
-    assert wrapper.num_events_total == n_signal  # other attributes are the emulator's
+    # other attributes are the emulator's; its counts (what v2e prints) include the noise
+    assert wrapper.num_events_total == wrapper.emulator.num_events_total == n_signal + n_noise
 
 
 def test_merge_rows_keeps_an_unsorted_signal_in_its_order():
@@ -462,3 +463,17 @@ def test_readme_v2e_snippet_runs_against_the_stand_in(monkeypatch):
     namespace = {}
     exec(compile(_readme_snippet("Use inside v2e"), "README:v2e", "exec"), namespace)
     assert namespace["events"] is not None and namespace["events"].shape[1] == 4
+
+
+def test_v2e_setting_an_emulator_attribute_reaches_the_emulator():
+    """v2e.py sets ``emulator.output_width`` on what it takes for the emulator: the wrapper passes such
+    assignments on, and keeps its own attributes."""
+    emulator = StandInEmulator()
+    wrapper = v2e_plugin.PhotonNoise(emulator, PARAMS, 10.0, rng=0)
+    wrapper.t_previous = 0.5
+    wrapper.pos_thres = 0.3
+    assert emulator.t_previous == 0.5 and emulator.pos_thres == 0.3 and "pos_thres" not in vars(wrapper)
+    wrapper.log_input = True  # the wrapper's own (the emulator has one too)
+    assert wrapper.log_input is True and emulator.log_input is False
+    wrapper.new_name = 1  # not the emulator's: stays on the wrapper
+    assert wrapper.new_name == 1 and not hasattr(emulator, "new_name")

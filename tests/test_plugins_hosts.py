@@ -266,3 +266,302 @@ def test_evnoise_io_is_an_attribute_and_import_stays_light():
     """)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout.split() == ["[]", "True", "True", "evnoise.plugins", "True"]
+
+
+# --------------------------------------------------------------------------------------
+# v2e: its own files and counts
+# --------------------------------------------------------------------------------------
+def _bar_frames(n, height, width):
+    for k in range(n):
+        frame = np.full((height, width), 40.0)
+        frame[:, 6 * k:6 * k + 20] = 200.0  # a bright bar moving right
+        yield frame, k / 100
+
+
+def _signal_mask(signal, rows):
+    """Positions of ``signal``'s rows inside ``rows`` (in order, identical); asserts they are all there."""
+    mask = np.zeros(rows.shape[0], dtype=bool)
+    j = 0
+    for i in range(rows.shape[0]):
+        if j < signal.shape[0] and np.array_equal(rows[i], signal[j]):
+            mask[i] = True
+            j += 1
+    assert j == signal.shape[0], f"only {j} of v2e's {signal.shape[0]} rows are in the output, in order"
+    return mask
+
+
+class FakeV2eWriter:
+    """v2e's ``appendEvents`` writers' interface (AEDAT 2, AEDAT 4, text): rows ``[t_s, x, y, +-1]``, optional
+    signal(1)/noise(0) labels; keeps microseconds as v2e's AEDAT writers truncate them (``int(t * 1e6)``), and
+    the seconds as its text writer prints them (as float64)."""
+
+    def __init__(self):
+        self.t, self.us, self.xyp, self.labels = [], [], [], []
+
+    def appendEvents(self, events, signnoise_label=None):  # noqa: N802 - v2e's name
+        self.t.append(events[:, 0].astype(np.float64))
+        self.us.append((1e6 * events[:, 0]).astype(np.int64))
+        self.xyp.append(np.asarray(events[:, 1:], dtype=np.int64))
+        self.labels.append(None if signnoise_label is None else np.asarray(signnoise_label, dtype=bool))
+
+
+class FakeV2eEmulator:
+    """v2e's ``EventEmulator`` as far as its outputs go: ``generate_events`` makes float32 rows (a threshold
+    rule on the frame difference) and, before returning them, writes them itself as v2e does: converted to
+    uint32 ``[t_us, x, y, p 0/1]`` into the ``dvs_h5_dataset`` (h5py, resized then ``[-n:] =``), handed to
+    ``dvs_aedat2`` / ``dvs_aedat4`` / ``dvs_text`` through ``appendEvents`` (with ``signnoise_label`` when
+    ``label_signal_noise``), ``frame_ev_idx_dataset[frame_counter - 1]`` set to the dataset's length, and
+    ``num_events_total`` / ``_on`` / ``_off`` counted."""
+
+    def __init__(self, h5_path, label_signal_noise=False):
+        import h5py
+
+        self.shot_noise_rate_hz = self.leak_rate_hz = 0.0
+        self.label_signal_noise = label_signal_noise
+        self.dvs_h5 = h5py.File(h5_path, "w")
+        self.dvs_h5_dataset = self.dvs_h5.create_dataset("events", shape=(0, 4), maxshape=(None, 4), dtype="uint32")
+        self.frame_ev_idx_dataset = self.dvs_h5.create_dataset("frame_idx", shape=(50,), dtype="uint64")
+        self.dvs_aedat2, self.dvs_aedat4, self.dvs_text = FakeV2eWriter(), None, FakeV2eWriter()
+        self.num_events_total = self.num_events_on = self.num_events_off = 0
+        self.frame_counter = 0
+        self.base = None
+        self.t_previous = 0.0
+
+    def generate_events(self, new_frame, t_frame):
+        self.frame_counter += 1
+        log = np.log(np.maximum(np.asarray(new_frame, np.float64), 20.0))
+        events = np.zeros((0, 4), dtype=np.float32)
+        if self.base is None:
+            self.base = log
+        else:
+            diff = log - self.base
+            rows = []
+            for sign in (1, -1):
+                ys, xs = np.nonzero(sign * diff > 0.2)
+                ts = self.t_previous + (t_frame - self.t_previous) * (np.arange(ys.size) + 1) / (ys.size + 1)
+                rows.append(np.stack([ts, xs, ys, np.full(ys.size, sign)], axis=1))
+            events = np.concatenate(rows).astype(np.float32)
+            events = events[np.argsort(events[:, 0], kind="stable")]
+            self.base = np.where(np.abs(diff) > 0.2, log, self.base)
+            on = int(np.count_nonzero(events[:, 3] > 0))
+            self.num_events_on += on
+            self.num_events_off += events.shape[0] - on
+            self.num_events_total += events.shape[0]
+        if len(events) > 0:
+            label = np.ones(events.shape[0], dtype=bool) if self.label_signal_noise else None
+            temp = np.array(events, dtype=np.float32)
+            temp[:, 0] = temp[:, 0] * 1e6
+            temp[temp[:, 3] == -1, 3] = 0
+            temp = temp.astype(np.uint32)
+            self.dvs_h5_dataset.resize(self.dvs_h5_dataset.shape[0] + temp.shape[0], axis=0)
+            self.dvs_h5_dataset[-temp.shape[0]:] = temp
+            for writer in (self.dvs_aedat2, self.dvs_aedat4, self.dvs_text):
+                if writer is not None:
+                    if self.label_signal_noise:
+                        writer.appendEvents(events, signnoise_label=label)
+                    else:
+                        writer.appendEvents(events)
+        self.frame_ev_idx_dataset[self.frame_counter - 1] = self.dvs_h5_dataset.shape[0]
+        self.t_previous = t_frame
+        return events if len(events) > 0 else None
+
+
+def _check_v2e_outputs(rows, plain_rows, h5_events, frame_idx, n_noise):
+    """What the wrapper returned (``rows``) is what the h5 holds; v2e's rows (``plain_rows``) are unchanged."""
+    assert h5_events.shape == rows.shape and rows.shape[0] == plain_rows.shape[0] + n_noise and n_noise > 100
+    mask = _signal_mask(plain_rows.astype(np.float64), rows)
+    assert np.array_equal(h5_events[:, 1:3], rows[:, 1:3].astype(np.uint32))
+    assert np.array_equal(h5_events[:, 3], (rows[:, 3] > 0).astype(np.uint32))
+    # v2e's rows as v2e converts them (float32 t * 1e6, truncated); the noise at its exact microsecond
+    v2e_us = (plain_rows[:, 0].astype(np.float32) * np.float32(1e6)).astype(np.uint32)
+    assert np.array_equal(h5_events[mask, 0], v2e_us)
+    assert np.array_equal(h5_events[~mask, 0], np.round(rows[~mask, 0] * 1e6).astype(np.uint32))
+    assert np.all(np.diff(h5_events[:, 0].astype(np.int64)) >= 0)
+    assert frame_idx[-1] == rows.shape[0]
+    return mask
+
+
+@pytest.mark.parametrize("labelled", [False, True])
+def test_v2e_writers_get_the_noise_with_a_faithful_fake_emulator(tmp_path, labelled):
+    """v2e writes its files inside generate_events: the wrapper hands v2e's writers the rows it returns."""
+    h5py = pytest.importorskip("h5py")
+    from evnoise.plugins.v2e import PhotonNoise
+
+    frames = list(_bar_frames(12, 60, 90))
+    plain = FakeV2eEmulator(tmp_path / "plain.h5")
+    plain_rows = np.concatenate([r for r in (plain.generate_events(f, t) for f, t in frames) if r is not None])
+    emulator = FakeV2eEmulator(tmp_path / "noisy.h5", label_signal_noise=labelled)
+    wrapper = PhotonNoise(emulator, "evk3-hd", white_lux=10.0, rng=1)
+    rows = np.concatenate([r for r in (wrapper.generate_events(f, t) for f, t in frames) if r is not None])
+    emulator.dvs_h5.close()
+    plain.dvs_h5.close()
+    with h5py.File(tmp_path / "noisy.h5") as f:
+        h5_events, frame_idx = f["events"][:], f["frame_idx"][: len(frames)]
+    mask = _check_v2e_outputs(rows, plain_rows, h5_events, frame_idx, wrapper.noise_count)
+    # the counts v2e prints
+    assert emulator.num_events_total == rows.shape[0]
+    assert emulator.num_events_on == int(np.count_nonzero(rows[:, 3] > 0))
+    assert emulator.num_events_off == int(np.count_nonzero(rows[:, 3] < 0))
+    # AEDAT writers (truncating t * 1e6) get the same microseconds as the h5; labels mark evnoise's rows as noise
+    assert np.array_equal(np.concatenate(emulator.dvs_aedat2.us), h5_events[:, 0].astype(np.int64))
+    assert np.array_equal(np.concatenate(emulator.dvs_text.t), rows[:, 0])  # the text writer prints the seconds
+    for writer in (emulator.dvs_aedat2, emulator.dvs_text):
+        xyp = np.concatenate(writer.xyp)
+        assert np.array_equal(xyp[:, :2], h5_events[:, 1:3]) and np.array_equal(xyp[:, 2] > 0, h5_events[:, 3] == 1)
+        if labelled:
+            assert np.array_equal(np.concatenate(writer.labels), mask)
+        else:
+            assert all(lab is None for lab in writer.labels)
+
+
+def test_v2e_frames_without_v2e_events_still_write_the_noise(tmp_path):
+    """An interval where v2e has no event (it writes nothing) still gets its noise into v2e's files."""
+    h5py = pytest.importorskip("h5py")
+    from evnoise.plugins.v2e import PhotonNoise
+
+    emulator = FakeV2eEmulator(tmp_path / "still.h5")
+    wrapper = PhotonNoise(emulator, "evk3-hd", white_lux=10.0, rng=2)
+    still = np.full((40, 50), 90.0)
+    rows = [wrapper.generate_events(still, k / 10) for k in range(5)]
+    assert rows[0] is None and all(r is not None for r in rows[1:])
+    emulator.dvs_h5.close()
+    with h5py.File(tmp_path / "still.h5") as f:
+        assert f["events"].shape[0] == sum(r.shape[0] for r in rows[1:]) == wrapper.noise_count
+        assert list(f["frame_idx"][:5]) == list(np.cumsum([0] + [r.shape[0] for r in rows[1:]]))
+    assert np.concatenate(emulator.dvs_aedat2.us).size == wrapper.noise_count == emulator.num_events_total
+
+
+def _real_v2e():
+    pytest.importorskip("v2ecore.emulator", reason="v2e is installed from https://github.com/SensorsINI/v2e")
+    pytest.importorskip("h5py")
+    from v2ecore.emulator import EventEmulator
+
+    return EventEmulator
+
+
+def _real_v2e_run(tmp_path, name, wrap):
+    EventEmulator = _real_v2e()
+    from evnoise.plugins.v2e import PhotonNoise
+
+    emulator = EventEmulator(pos_thres=0.2, neg_thres=0.2, sigma_thres=0.03, cutoff_hz=0, shot_noise_rate_hz=0,
+                             leak_rate_hz=0, seed=5, device="cpu", output_folder=str(tmp_path), dvs_h5=f"{name}.h5",
+                             dvs_aedat2=f"{name}.aedat", dvs_aedat4=f"{name}.aedat4", output_width=240,
+                             output_height=180)
+    driver = PhotonNoise(emulator, "evk3-hd", white_lux=18.0, rng=0) if wrap else emulator
+    frames = list(_bar_frames(8, 180, 240))
+    emulator.prepare_storage(len(frames), [t for _, t in frames])
+    rows = np.concatenate([r for r in (driver.generate_events(f, t) for f, t in frames) if r is not None])
+    emulator.cleanup()
+    return rows, emulator, driver
+
+
+def _read_v2e_aedat2(path):
+    data = Path(path).read_bytes()
+    pos = 0
+    while data.startswith(b"#", pos):
+        pos = data.index(b"\r\n", pos) + 2
+    words = np.frombuffer(data[pos:], dtype=">i4").reshape(-1, 2)
+    return words[:, 0], words[:, 1]  # address, timestamp
+
+
+def test_v2e_event_emulator_files_hold_the_noise(tmp_path):
+    """The real EventEmulator writing its dvs_h5, AEDAT 2 and AEDAT 4 files: each holds the rows the wrapper
+    returns (v2e's own rows unchanged), and v2e's counts include the noise."""
+    import h5py
+
+    plain_rows, _, _ = _real_v2e_run(tmp_path, "plain", wrap=False)
+    rows, emulator, wrapper = _real_v2e_run(tmp_path, "noisy", wrap=True)
+    with h5py.File(tmp_path / "noisy.h5") as f:
+        h5_events, frame_idx = f["events"][:], f["frame_idx"][:]
+    _check_v2e_outputs(rows, plain_rows, h5_events, frame_idx, wrapper.noise_count)
+    assert emulator.num_events_total == rows.shape[0] == emulator.num_events_on + emulator.num_events_off
+    address, timestamp = _read_v2e_aedat2(tmp_path / "noisy.aedat")
+    assert np.array_equal(timestamp, h5_events[:, 0].astype(np.int64))
+    dv = pytest.importorskip("dv_processing")
+    recording = dv.io.MonoCameraRecording(str(tmp_path / "noisy.aedat4"))
+    got = []
+    while recording.isRunning():
+        batch = recording.getNextEventBatch()
+        if batch is not None and batch.size():
+            got.append(batch.numpy())
+    got = np.concatenate(got)
+    assert np.array_equal(got["timestamp"], h5_events[:, 0].astype(np.int64))
+    assert np.array_equal(got["x"], h5_events[:, 1]) and np.array_equal(got["y"], h5_events[:, 2])
+
+
+V2E_SCRIPT = '''
+"""A stand-in for v2e's v2e.py: what it does with the EventEmulator (imported by name, created with its
+noise options, its output size set as attributes, driven frame by frame, cleaned up, its counts printed)."""
+import argparse
+import sys
+
+import numpy as np
+from v2ecore.emulator import EventEmulator
+
+parser = argparse.ArgumentParser()
+parser.add_argument("--shot_noise_rate_hz", type=float, default=0.001)  # v2e's defaults: its own noise on
+parser.add_argument("--leak_rate_hz", type=float, default=0.01)
+parser.add_argument("--output_folder")
+parser.add_argument("--dvs_h5")
+args = parser.parse_args()
+emulator = EventEmulator(pos_thres=0.2, neg_thres=0.2, sigma_thres=0.03, cutoff_hz=0, seed=5, device="cpu",
+                         shot_noise_rate_hz=args.shot_noise_rate_hz, leak_rate_hz=args.leak_rate_hz,
+                         output_folder=args.output_folder, dvs_h5=args.dvs_h5, output_width=240, output_height=180)
+emulator.output_width, emulator.output_height = 240, 180
+for k in range(8):
+    frame = np.full((180, 240), 40.0)
+    frame[:, 6 * k:6 * k + 20] = 200.0
+    emulator.generate_events(frame, k / 100)
+emulator.cleanup()
+print(f"generated total {emulator.num_events_total} events")
+sys.exit(0)
+'''
+
+
+class FakeV2eModuleEmulator(FakeV2eEmulator):
+    """:class:`FakeV2eEmulator` with the constructor of v2e's EventEmulator (for a stand-in ``v2ecore.emulator``)."""
+
+    def __init__(self, output_folder=None, dvs_h5=None, shot_noise_rate_hz=0.0, leak_rate_hz=0.0, output_width=None,
+                 output_height=None, **options):
+        super().__init__(Path(output_folder) / dvs_h5)
+        self.shot_noise_rate_hz, self.leak_rate_hz = shot_noise_rate_hz, leak_rate_hz
+        self.output_width, self.output_height = output_width, output_height
+
+    def cleanup(self):
+        self.dvs_h5.close()
+
+
+@pytest.mark.parametrize("host", ["stand-in", "v2e"])
+def test_v2e_entry_point_runs_v2e_script_with_the_noise(tmp_path, monkeypatch, capsys, host):
+    """``python -m evnoise.plugins.v2e --params ... --white-lux ... -- <v2e.py args>``: v2e.py's own emulator
+    is wrapped, v2e's noise is off, and its dvs_h5 and printed total hold the noise."""
+    h5py = pytest.importorskip("h5py")
+    from evnoise.plugins import v2e as plugin
+
+    if host == "v2e":
+        _real_v2e()
+    else:
+        fake = type(sys)("v2ecore.emulator")
+        fake.EventEmulator = FakeV2eModuleEmulator
+        monkeypatch.setitem(sys.modules, "v2ecore", type(sys)("v2ecore"))
+        monkeypatch.setitem(sys.modules, "v2ecore.emulator", fake)
+    import importlib
+
+    original = importlib.import_module("v2ecore.emulator").EventEmulator
+    script = tmp_path / "v2e.py"
+    script.write_text(V2E_SCRIPT, encoding="utf-8")
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        status = plugin.main(["--params", "evk3-hd", "--white-lux", "18", "--seed", "0", "--v2e-script", str(script),
+                              "--", "--output_folder", str(tmp_path), "--dvs_h5", "events.h5"])
+    assert status == 0
+    assert not [w for w in caught if "adds its own noise" in str(w.message)]
+    out = capsys.readouterr()
+    total = int(out.out.split("generated total ")[1].split()[0])
+    added = int(out.err.split("evnoise: added ")[1].split()[0])
+    with h5py.File(tmp_path / "events.h5") as f:
+        assert f["events"].shape[0] == total
+    assert added > 100 and total > added
+    assert sys.modules["v2ecore.emulator"].EventEmulator is original  # restored after the run

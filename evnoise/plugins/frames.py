@@ -21,7 +21,7 @@ from .._checks import as_generator, check_lux, check_params
 from ..errors import InputError, ParameterError
 from ..events import EVENT_DTYPE
 
-__all__ = ["EmulatorNoise", "noise_rows", "merge_rows"]
+__all__ = ["EmulatorNoise", "noise_rows", "merge_rows", "merge_with_positions", "interleave"]
 
 
 def _seconds_to_us(t_s, name: str = "t_frame") -> int:
@@ -52,22 +52,36 @@ def merge_rows(signal, noise):
     signal row's time, is ``<=`` its own. When the signal rows are sorted by time, so is the
     result. Returns a float64 ``N x 4`` array, or ``None`` when both are empty.
     """
+    return merge_with_positions(signal, noise)[0]
+
+
+def merge_with_positions(signal, noise):
+    """:func:`merge_rows` and the positions of the noise rows in the result (``(rows, positions)``), so that
+    other per-row data (an emulator's own conversion of its rows, labels) can be interleaved the same way
+    with :func:`interleave`."""
     noise = np.asarray(noise, dtype=np.float64).reshape(-1, 4)
-    if signal is None:
-        return noise if noise.shape[0] else None
-    signal = np.asarray(signal)
-    if signal.ndim != 2 or signal.shape[1] != 4:
-        raise InputError(f"the emulator returned events of shape {signal.shape}; expected N x 4 [t, x, y, p]")
-    if signal.shape[0] == 0:
-        return noise if noise.shape[0] else None
-    n_s, n_n = signal.shape[0], noise.shape[0]
-    out = np.empty((n_s + n_n, 4), dtype=np.float64)
+    n_n = noise.shape[0]
+    if signal is not None:
+        signal = np.asarray(signal)
+        if signal.ndim != 2 or signal.shape[1] != 4:
+            raise InputError(f"the emulator returned events of shape {signal.shape}; expected N x 4 [t, x, y, p]")
+    if signal is None or signal.shape[0] == 0:
+        return (noise if n_n else None), np.arange(n_n)
     running_max = np.maximum.accumulate(signal[:, 0].astype(np.float64))
     pos = np.searchsorted(running_max, noise[:, 0], side="right") + np.arange(n_n)
-    is_signal = np.ones(n_s + n_n, dtype=bool)
-    is_signal[pos] = False
+    return interleave(signal, noise, pos, np.float64), pos
+
+
+def interleave(signal, noise, positions, dtype=None):
+    """Rows of ``signal`` in their order with the rows of ``noise`` at ``positions`` of the result
+    (first axis; the other axes must agree)."""
+    signal, noise = np.asarray(signal), np.asarray(noise)
+    n = signal.shape[0] + noise.shape[0]
+    out = np.empty((n, *signal.shape[1:]), dtype=dtype or np.result_type(signal, noise))
+    is_signal = np.ones(n, dtype=bool)
+    is_signal[positions] = False
     out[is_signal] = signal
-    out[pos] = noise
+    out[positions] = noise
     return out
 
 
@@ -96,7 +110,8 @@ class EmulatorNoise:
     The noise of the interval between two frames is simulated under the illuminance of the
     *earlier* frame (sample-and-hold, exact for piecewise-constant light); timestamps are
     integer microseconds, returned in seconds. Attribute access the wrapper does not define
-    (``reset`` excepted) goes to the wrapped emulator.
+    (``reset`` excepted) goes to the wrapped emulator, and so does setting an attribute the
+    emulator has (other than the wrapper's :attr:`OWN_ATTRIBUTES` and private names).
     """
 
     def __init__(self, emulator, params, frame_to_lux=None, rng=None, *, threads: int | None = None):
@@ -118,6 +133,18 @@ class EmulatorNoise:
         if name == "emulator":
             raise AttributeError(name)
         return getattr(self.emulator, name)
+
+    #: public attributes of the wrapper itself; others that the emulator has are set on the emulator
+    OWN_ATTRIBUTES = frozenset({"emulator", "params", "signal_count", "noise_count"})
+
+    def __setattr__(self, name, value):
+        # v2e.py sets ``emulator.output_width`` on what it believes is the emulator
+        emulator = self.__dict__.get("emulator")
+        if (emulator is not None and not name.startswith("_") and name not in self.OWN_ATTRIBUTES
+                and not hasattr(type(self), name) and hasattr(emulator, name)):
+            setattr(emulator, name, value)
+        else:
+            object.__setattr__(self, name, value)
 
     def frame_lux(self, frame) -> np.ndarray:
         """The illuminance (lux, float64 ``(H, W)``) that the wrapper uses for ``frame``."""
@@ -159,7 +186,7 @@ class EmulatorNoise:
             if t_us < stream.t_us:
                 raise ParameterError(f"t_frame={t_frame!r} s is before the previous frame's time "
                                      f"{stream.t_us * 1e-6!r} s")
-        signal = self.emulator.generate_events(new_frame, t_frame)
+        signal = self._emulate(new_frame, t_frame)
         if stream is None:
             self._stream = NoiseStream(lux.shape, self.params, rng=self._gen, t_start_us=t_us, threads=self._threads)
             noise = np.empty(0, dtype=EVENT_DTYPE)
@@ -169,4 +196,12 @@ class EmulatorNoise:
         if signal is not None:
             self.signal_count += int(np.shape(signal)[0])
         self.noise_count += int(noise.size)
+        return self._merge(signal, noise)
+
+    def _emulate(self, new_frame, t_frame):
+        """The emulator's events of the frame (a hook: the v2e wrapper watches v2e's file writers here)."""
+        return self.emulator.generate_events(new_frame, t_frame)
+
+    def _merge(self, signal, noise):
+        """The rows :meth:`generate_events` returns: the emulator's rows with ``noise`` (evnoise events) merged in."""
         return merge_rows(signal, noise_rows(noise))

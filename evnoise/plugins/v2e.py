@@ -18,19 +18,44 @@ With v2e's ``--hdr`` input (frames already ``ln`` of the grey level, white = ``l
 
 Turn v2e's own noise off (``shot_noise_rate_hz=0``, ``leak_rate_hz=0``; the wrapper warns when
 they are not): evnoise's calibrated model replaces the hand-set rates.
+
+v2e's own outputs
+-----------------
+v2e writes its files (``dvs_h5``, ``dvs_aedat2``, ``dvs_aedat4``, ``dvs_text``) and counts its
+events (``num_events_total``, ``num_events_on``, ``num_events_off``) inside ``generate_events``.
+During that call the wrapper stands in for the emulator's writers (the attributes ``dvs_h5_dataset``,
+``dvs_aedat2``, ``dvs_aedat4``, ``dvs_text``), takes what v2e hands them, and then writes to the real
+writers the rows it returns: v2e's rows (in v2e's own conversion) with the noise rows merged in, the
+noise labelled as noise when v2e labels signal and noise (``label_signal_noise``). The counts include
+the noise, and ``dvs_h5``'s ``frame_idx`` counts the merged rows.
+
+From the command line, ``python -m evnoise.plugins.v2e --params evk3-hd --white-lux 18 -- <v2e.py
+arguments>`` runs v2e's own ``v2e.py`` with every ``EventEmulator`` it creates wrapped (v2e's own
+noise defaults to 0 there; ``--shot_noise_rate_hz`` / ``--leak_rate_hz`` given after ``--`` win).
 """
 
 from __future__ import annotations
 
+import argparse
+import contextlib
+import runpy
+import shutil
+import sys
 import warnings
+from pathlib import Path
 
 import numpy as np
 
 from .._checks import check_positive
-from ..errors import InputError
-from .frames import EmulatorNoise
+from ..errors import InputError, ParameterError
+from .frames import EmulatorNoise, interleave, merge_with_positions, noise_rows
 
-__all__ = ["PhotonNoise", "grey_to_lux"]
+__all__ = ["PhotonNoise", "grey_to_lux", "noisy_emulators", "main"]
+
+#: v2e's writers that take float rows ``[t_s, x, y, +-1]`` through ``appendEvents``; all but the text
+#: writer truncate ``t * 1e6`` to integer microseconds
+_ROW_WRITERS = ("dvs_aedat2", "dvs_aedat4", "dvs_text")
+_TRUNCATING = ("dvs_aedat2", "dvs_aedat4")
 
 WHITE_GREY = 255.0
 
@@ -56,6 +81,129 @@ def grey_to_lux(frame, white_lux: float, *, log_input: bool = False) -> np.ndarr
     elif arr.size and arr.min() < 0:
         raise InputError(f"grey levels must be >= 0, got {arr.min():g}")
     return arr * (white_lux / WHITE_GREY)
+
+
+
+class _RowRecorder:
+    """Stands in for one of v2e's ``appendEvents`` writers during the emulator's call."""
+
+    def __init__(self):
+        self.rows, self.labels = [], []
+
+    def appendEvents(self, events, signnoise_label=None):  # noqa: N802 - v2e's name
+        self.rows.append(np.array(events, copy=True))
+        self.labels.append(None if signnoise_label is None else np.array(signnoise_label, dtype=bool))
+
+
+class _DatasetRecorder:
+    """Stands in for v2e's ``dvs_h5`` ``events`` dataset (``resize`` then ``dataset[-n:] = rows``)."""
+
+    def __init__(self, dataset):
+        self.size = int(dataset.shape[0])
+        self.rows = []
+
+    @property
+    def shape(self):
+        return (self.size, 4)
+
+    def resize(self, size, axis=0):
+        self.size = int(size)
+
+    def __setitem__(self, key, value):
+        self.rows.append(np.array(value, copy=True))
+
+
+def _v2e_microseconds(t_s) -> np.ndarray:
+    """Microseconds as v2e's writers make them from its rows: ``t * 1e6`` in the rows' own float type, truncated."""
+    t_s = np.asarray(t_s)
+    return (t_s * t_s.dtype.type(1e6)).astype(np.int64)
+
+
+class _Outputs:
+    """v2e's file writers of one emulator, watched during ``generate_events`` and then given the merged rows."""
+
+    def __init__(self, emulator):
+        self.emulator = emulator
+        self.saved = {}
+
+    def __enter__(self):
+        em = self.emulator
+        if getattr(em, "dvs_h5", None) is not None and getattr(em, "dvs_h5_dataset", None) is not None:
+            self.saved["dvs_h5_dataset"] = em.dvs_h5_dataset
+            em.dvs_h5_dataset = _DatasetRecorder(em.dvs_h5_dataset)
+        for name in _ROW_WRITERS:
+            if getattr(em, name, None) is not None:
+                self.saved[name] = getattr(em, name)
+                setattr(em, name, _RowRecorder())
+        return self
+
+    def __exit__(self, *exc):
+        self.recorded = {name: getattr(self.emulator, name) for name in self.saved}
+        for name, writer in self.saved.items():
+            setattr(self.emulator, name, writer)
+        return False
+
+    def write(self, signal, noise, positions, rows):
+        """Write v2e's recorded rows with ``noise`` (evnoise events) at ``positions`` to the real writers."""
+        em = self.emulator
+        if noise.size == 0:  # nothing to add: what v2e handed its writers goes through unchanged
+            self._replay()
+            return
+        labelled = bool(getattr(em, "label_signal_noise", False))
+        n_signal = 0 if signal is None else int(np.shape(signal)[0])
+        for name, writer in self.saved.items():
+            rec = self.recorded[name]
+            if name == "dvs_h5_dataset":
+                own = np.concatenate(rec.rows) if rec.rows else np.zeros((0, 4), dtype=np.uint32)
+                if own.shape[0] != n_signal:
+                    raise InputError(f"v2e wrote {own.shape[0]} rows to dvs_h5 for {n_signal} events")
+                extra = np.stack([noise["t"], noise["x"], noise["y"], noise["p"]], axis=1).astype(own.dtype)
+                merged = interleave(own, extra, positions)
+                writer.resize(writer.shape[0] + merged.shape[0], axis=0)
+                writer[-merged.shape[0]:] = merged
+                continue
+            own_labels = [lab for lab in rec.labels if lab is not None]
+            label = None
+            if own_labels or labelled:  # v2e labels signal (True) and noise (False)
+                own = np.concatenate(own_labels) if own_labels else np.ones(n_signal, dtype=bool)
+                label = interleave(own, np.zeros(noise.size, dtype=bool), positions, bool)
+            out = rows
+            if name in _TRUNCATING:
+                # these writers truncate t * 1e6: hand them each row's microseconds plus half of one, so that
+                # v2e's rows come out as v2e alone writes them and evnoise's at their exact microsecond
+                us_signal = _v2e_microseconds(signal[:, 0]) if n_signal else np.zeros(0, dtype=np.int64)
+                us = interleave(us_signal, noise["t"].astype(np.int64), positions, np.int64)
+                out = rows.copy()
+                out[:, 0] = (us + 0.5) * 1e-6
+            if label is None:
+                writer.appendEvents(out)
+            else:
+                writer.appendEvents(out, signnoise_label=label)
+        if getattr(em, "frame_ev_idx_dataset", None) is not None and "dvs_h5_dataset" in self.saved:
+            em.frame_ev_idx_dataset[em.frame_counter - 1] = self.saved["dvs_h5_dataset"].shape[0]
+        on = int(np.count_nonzero(noise["p"] == 1))
+        for name, add in (("num_events_total", noise.size), ("num_events_on", on), ("num_events_off", noise.size - on)):
+            value = getattr(em, name, None)
+            if isinstance(value, (int, np.integer)):
+                setattr(em, name, value + add)
+
+    def _replay(self):
+        for name, writer in self.saved.items():
+            rec = self.recorded[name]
+            if name == "dvs_h5_dataset":
+                if rec.rows:
+                    own = np.concatenate(rec.rows)
+                    writer.resize(writer.shape[0] + own.shape[0], axis=0)
+                    writer[-own.shape[0]:] = own
+                continue
+            for rows, label in zip(rec.rows, rec.labels):
+                if label is None:
+                    writer.appendEvents(rows)
+                else:
+                    writer.appendEvents(rows, signnoise_label=label)
+        if getattr(self.emulator, "frame_ev_idx_dataset", None) is not None and "dvs_h5_dataset" in self.saved:
+            self.emulator.frame_ev_idx_dataset[self.emulator.frame_counter - 1] = \
+                self.saved["dvs_h5_dataset"].shape[0]
 
 
 class PhotonNoise(EmulatorNoise):
@@ -85,7 +233,15 @@ class PhotonNoise(EmulatorNoise):
     timestamps' microseconds), or ``None`` when there are no events. The noise of an interval
     uses the earlier frame's illuminance; it does not interact with v2e's pixel state. Other
     attributes (``num_events_total``, ``cleanup``, ...) are the emulator's.
+
+    v2e's own outputs get the same rows: its ``dvs_h5`` ``events`` dataset (v2e's rows as v2e
+    converts them, the noise rows at their exact microsecond, ``p`` 1 ON / 0 OFF), its AEDAT 2 /
+    AEDAT 4 and text writers (noise labelled as noise when v2e has ``label_signal_noise``), the
+    ``frame_idx`` of its ``dvs_h5`` and its counts ``num_events_total``, ``num_events_on`` and
+    ``num_events_off``.
     """
+
+    OWN_ATTRIBUTES = EmulatorNoise.OWN_ATTRIBUTES | {"white_lux", "log_input"}
 
     def __init__(self, emulator, params, white_lux, rng=None, *, log_input: bool | None = None,
                  threads: int | None = None):
@@ -103,3 +259,90 @@ class PhotonNoise(EmulatorNoise):
 
     def _to_lux(self, frame):
         return grey_to_lux(frame, self.white_lux, log_input=self.log_input)
+
+    def _emulate(self, new_frame, t_frame):
+        self._outputs = _Outputs(self.emulator)
+        with self._outputs:
+            return self.emulator.generate_events(new_frame, t_frame)
+
+    def _merge(self, signal, noise):
+        rows, positions = merge_with_positions(signal, noise_rows(noise))
+        outputs, self._outputs = self._outputs, None
+        outputs.write(None if signal is None else np.asarray(signal), noise, positions, rows)
+        return rows
+
+
+@contextlib.contextmanager
+def noisy_emulators(params, white_lux, rng=None, **kwargs):
+    """Within the block, v2e's ``EventEmulator`` (``v2ecore.emulator.EventEmulator``) makes emulators wrapped in
+    :class:`PhotonNoise` (``params``, ``white_lux``, ``rng`` and ``kwargs`` as there); yields the list of the
+    wrappers made. Code that imports the name inside the block, as ``v2e.py`` does, gets the wrapping factory."""
+    import v2ecore.emulator as emulator_module
+
+    original = emulator_module.EventEmulator
+    made = []
+
+    def EventEmulator(*args, **emulator_kwargs):  # noqa: N802 - v2e's name
+        wrapped = PhotonNoise(original(*args, **emulator_kwargs), params, white_lux, rng, **kwargs)
+        made.append(wrapped)
+        return wrapped
+
+    EventEmulator.MODEL_STATES = getattr(original, "MODEL_STATES", {})
+    emulator_module.EventEmulator = EventEmulator
+    try:
+        yield made
+    finally:
+        emulator_module.EventEmulator = original
+
+
+def _find_v2e_script(given):
+    if given:
+        path = Path(given)
+    else:
+        found = shutil.which("v2e.py") or shutil.which("v2e.py", path=str(Path(sys.executable).parent))
+        path = Path(found) if found else None
+    if path is None or not path.is_file():
+        raise ParameterError("cannot find v2e's v2e.py" + (f" at {path}" if path else " on PATH") +
+                             ": install v2e from https://github.com/SensorsINI/v2e or pass --v2e-script")
+    return path
+
+
+def main(argv=None) -> int:
+    """``python -m evnoise.plugins.v2e [options] -- <v2e.py arguments>``: v2e.py with evnoise's photon noise."""
+    parser = argparse.ArgumentParser(
+        prog="python -m evnoise.plugins.v2e",
+        description="Run v2e's v2e.py with evnoise's photon noise added to every EventEmulator it creates "
+                    "(its files and counts include the noise). Arguments after -- go to v2e.py.")
+    parser.add_argument("--params", required=True, help="noise preset name or parameter file (e.g. evk3-hd)")
+    parser.add_argument("--white-lux", type=float, required=True, help="illuminance at the sensor of grey 255, lux")
+    parser.add_argument("--seed", type=int, default=None, help="seed of the noise (default: fresh randomness)")
+    parser.add_argument("--v2e-script", default=None, help="path of v2e.py (default: v2e.py on PATH)")
+    parser.add_argument("v2e_args", nargs=argparse.REMAINDER, help="-- then v2e.py's arguments")
+    args = parser.parse_args(argv)
+    v2e_args = list(args.v2e_args)
+    if v2e_args[:1] == ["--"]:
+        v2e_args = v2e_args[1:]
+    try:
+        script = _find_v2e_script(args.v2e_script)
+    except ParameterError as exc:
+        parser.error(str(exc))
+    # v2e's own noise off unless asked for after -- (argparse keeps the last value given)
+    argv_v2e = [str(script), "--shot_noise_rate_hz", "0", "--leak_rate_hz", "0", *v2e_args]
+    saved_argv = sys.argv
+    status = 0
+    with noisy_emulators(args.params, args.white_lux, rng=args.seed) as made:
+        sys.argv = argv_v2e
+        try:
+            runpy.run_path(str(script), run_name="__main__")
+        except SystemExit as exc:
+            status = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+        finally:
+            sys.argv = saved_argv
+            added = sum(w.noise_count for w in made)
+            print(f"evnoise: added {added} photon-noise events ({args.params}, grey 255 = {args.white_lux:g} lux) "
+                  "to v2e's events, files and counts", file=sys.stderr)
+    return status
+
+
+if __name__ == "__main__":
+    sys.exit(main())
