@@ -17,7 +17,35 @@ import tomllib
 
 from .errors import ParameterError
 
-__all__ = ["NoiseParams", "load_preset", "list_presets", "preset_info"]
+__all__ = ["NoiseParams", "load_preset", "list_presets", "preset_info", "PARAM_LIMITS"]
+
+#: Largest value each parameter may take: where the physics of a pixel ends (and with it what the
+#: kernels are verified for). A threshold of 20 asks the light to change by a factor e^20 ~ 5e8
+#: (170 dB, beyond any sensor's dynamic range); a photoreceptor sees at most 1e12 photons or 1e6
+#: lux-equivalent of offset per trial; background rates (leak, hot pixel) stay below 1e9/s (a thousand
+#: per microsecond, evnoise's time resolution; the model caps them at one event per trial); dead times and time constants stay within an hour; a log-normal
+#: spread of 10 already spans a factor e^20 between pixels one sigma apart.
+PARAM_LIMITS = {
+    "eps_pos": 20.0,
+    "eps_neg": 20.0,
+    "eps_sigma": 20.0,
+    "bias_pr": 1e12,
+    "photons_per_lux": 1e12,
+    "dark_lux": 1e6,
+    "trial_rate_hz": 1e6,
+    "refractory_s": 3600.0,
+    "leak_on_hz": 1e9,
+    "leak_off_hz": 1e9,
+    "leak_on_hz_per_lux": 1e9,
+    "leak_off_hz_per_lux": 1e9,
+    "leak_sigma": 10.0,
+    "hot_pixel_fraction": 1.0,
+    "hot_pixel_rate_hz": 1e9,
+    "hot_pixel_sigma": 10.0,
+    "hot_pixel_on_fraction": 1.0,
+    "leak_regularity": 1.0,
+    "pr_tau_s_at_1lux": 3600.0,
+}
 
 
 @dataclass(frozen=True)
@@ -78,6 +106,10 @@ class NoiseParams:
         a pixel compares follows the scene through this first-order low-pass filter; 0 (default)
         means an infinitely fast photoreceptor. Static pixels are not affected.
 
+    Every field also has an upper limit, where the physics of a pixel ends (:data:`PARAM_LIMITS`:
+    thresholds up to 20, photon counts up to 1e12 per trial, background rates up to 1e9/s, times up to
+    an hour); a value beyond it raises :class:`~evnoise.ParameterError` naming the limit.
+
     All the terms after ``eps_sigma`` default to zero (no background, no hot pixels, no
     photoreceptor lag); with all of them zero the simulators' output is what it was without them.
     """
@@ -135,14 +167,10 @@ class NoiseParams:
             if not math.isfinite(value) or value < 0 or (value == 0 and not zero_ok):
                 raise ParameterError(f"NoiseParams.{name} must be finite and {text}, got {value!r}")
             object.__setattr__(self, name, value)
-        for name in ("hot_pixel_fraction", "hot_pixel_on_fraction", "leak_regularity"):
-            if getattr(self, name) > 1:
-                raise ParameterError(f"NoiseParams.{name} must be <= 1, got {getattr(self, name)!r}")
-        if self.trial_rate_hz > 1e6:
-            raise ParameterError(
-                f"NoiseParams.trial_rate_hz must be <= 1e6 (one trial per microsecond at most), "
-                f"got {self.trial_rate_hz!r}"
-            )
+        for name, limit in PARAM_LIMITS.items():
+            if getattr(self, name) > limit:
+                why = " (one trial per microsecond at most)" if name == "trial_rate_hz" else ""
+                raise ParameterError(f"NoiseParams.{name} must be <= {limit:g}{why}, got {getattr(self, name)!r}")
 
     # -- derived quantities -------------------------------------------------------------
     def photons_per_trial(self, lux):

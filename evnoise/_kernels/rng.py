@@ -91,6 +91,9 @@ def geometric(s, log1m_p):
     return np.floor(math.log(uniform_pos(s)) / log1m_p) + 1.0  # np.floor: a float (math.floor's int64 overflows)
 
 
+POISSON_NORMAL_LAM = 2.0**52  # from here on poisson draws the normal limit (see poisson_emlam)
+
+
 @kernel
 def poisson(s, lam):
     """Poisson variate (as a float): inversion below 10, Hormann's PTRS above."""
@@ -102,6 +105,11 @@ def poisson_emlam(s, lam, emlam):
     """:func:`poisson` with ``emlam = exp(-lam)`` precomputed (used only when ``lam < 10``)."""
     if lam <= 0.0:
         return 0.0
+    if lam >= POISSON_NORMAL_LAM:
+        # beyond 2^52 a count no longer has unit resolution in a double and PTRS's acceptance test
+        # cancels to noise (it could reject forever): the normal limit, exact to ~1/sqrt(lam)
+        z = math.sqrt(-2.0 * math.log(uniform_pos(s))) * math.cos(2.0 * math.pi * uniform(s))
+        return max(np.floor(lam + math.sqrt(lam) * z + 0.5), 0.0)
     if lam < 10.0:
         u = uniform(s)
         p = emlam
@@ -125,7 +133,7 @@ def poisson_emlam(s, lam, emlam):
         u = uniform(s) - 0.5
         v = uniform(s)
         us = 0.5 - abs(u)
-        k = math.floor((2.0 * a / us + b) * u + lam + 0.43)
+        k = np.floor((2.0 * a / us + b) * u + lam + 0.43)  # a float: math.floor's int64 wraps for lam > 2^63
         if us >= 0.07 and v <= v_r:
             return k
         if k < 0.0 or (us < 0.013 and v > us):

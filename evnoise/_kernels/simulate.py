@@ -23,7 +23,7 @@ from numba import prange
 
 from ._jit import kernel
 from .background import draw_timer, draw_timer_stationary, timer_shape
-from .poisson import log_event_probability_exact
+from .poisson import _threshold, log_event_probability_exact
 from .rng import geometric, poisson_emlam, seed_state, uniform
 
 NO_EVENT = math.nan
@@ -39,7 +39,7 @@ def seed_streams(key, pix, states):
 @kernel
 def _first_eligible(last_trial, tau, refr_us, dt):
     """First trial ``j > last_trial`` whose start ``j dt`` is at or after ``tau + refr_us``."""
-    j = math.ceil((tau + refr_us) / dt)
+    j = np.ceil((tau + refr_us) / dt)  # a float: math.ceil is an int64 in Numba and wraps for huge values
     while j * dt < tau + refr_us:
         j += 1.0
     while j > last_trial + 1.0 and (j - 1.0) * dt >= tau + refr_us:
@@ -516,9 +516,9 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
                 n_sig = poisson_emlam(s, lam, em_c)
                 n_ref = poisson_emlam(s, ref, emr_c)
                 pol = -1
-                if n_sig > n_ref + math.floor(thr[0, k] * (n_ref + b)):
+                if n_sig > _threshold(n_ref, thr[0, k], b):  # a float: no int64 wrap for large thresholds
                     pol = 1
-                elif n_ref > n_sig + math.floor(thr[1, k] * (n_sig + b)):
+                elif n_ref > _threshold(n_sig, thr[1, k], b):
                     pol = 0
                 elif has_bg:
                     lux_j = max(lam_in * lux_per_photon - dark_lux, 0.0)
@@ -537,7 +537,7 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
                             fstate[k, BG_L] = l_all
                         elif l_all != fstate[k, BG_L] and fstate[k, BG_L] > 0.0 and fstate[k, BG_NEXT] > j:
                             if l_all > 0.0:
-                                fstate[k, BG_NEXT] = j + math.floor((fstate[k, BG_NEXT] - j)
+                                fstate[k, BG_NEXT] = j + np.floor((fstate[k, BG_NEXT] - j)
                                                                     * (fstate[k, BG_L] / l_all))
                             else:
                                 fstate[k, BG_NEXT] = math.inf
