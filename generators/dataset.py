@@ -45,6 +45,7 @@ from .folder import (
     PROGRESS_DIR,
     SHARDS_DIR,
     FolderLock,
+    dataset_member,
     discard_empty,
     existing_records,
     prepare_folder,
@@ -598,4 +599,9 @@ def load_manifest(path) -> tuple:
     if int(data.get("format_version", 0)) > FORMAT_VERSION:
         raise InputError(f"{manifest_path} has format version {data.get('format_version')}; this evnoise "
                          f"reads up to {FORMAT_VERSION} (upgrade evnoise)")
+    shards = data.get("shards")
+    if not isinstance(shards, list) or not all(isinstance(s, dict) for s in shards):
+        raise InputError(f"{manifest_path} is damaged: its 'shards' entry is not a list of records")
+    for entry in shards:  # every file a manifest names is read only from inside the dataset folder
+        dataset_member(root, entry.get("file"))
     return root, data

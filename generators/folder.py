@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 from evnoise._atomic import write_text_atomic
 from evnoise._version import __version__
-from evnoise.errors import OutputError
+from evnoise.errors import InputError, OutputError
 
 from .shards import file_sha256
 
@@ -24,7 +24,8 @@ if TYPE_CHECKING:
     from .dataset import Plan
 
 __all__ = ["MANIFEST", "PREVIEW", "SHARDS_DIR", "PROGRESS_DIR", "write_json", "read_json", "FolderLock",
-           "prepare_folder", "discard_empty", "stored_seed", "existing_records", "shard_verified"]
+           "prepare_folder", "check_own_parts", "dataset_member", "discard_empty", "stored_seed", "existing_records",
+           "shard_verified"]
 
 MANIFEST = "manifest.json"
 #: a picture of a few pairs, written by ``evnoise make-dataset`` (not part of the data, not verified)
@@ -59,7 +60,8 @@ class FolderLock:
         except ImportError:  # pragma: no cover - not POSIX
             return self
         try:
-            self.fh = open(self.path, "a+")
+            # O_NOFOLLOW: a link planted as the lock file must not make us create a file elsewhere
+            self.fh = os.fdopen(os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_APPEND | os.O_NOFOLLOW, 0o644), "a+")
             fcntl.flock(self.fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             self.fh.close()
@@ -88,6 +90,7 @@ def prepare_folder(root: Path, overwrite: bool) -> None:
             raise OutputError(f"cannot create output folder {root}: {exc.strerror or exc}") from None
     if not os.access(root, os.W_OK | os.X_OK):
         raise OutputError(f"output folder {root} is not writable")
+    check_own_parts(root)
     ours = {MANIFEST, SHARDS_DIR, PROGRESS_DIR, PREVIEW}
     others = [p.name for p in root.iterdir() if p.name not in ours]
     has_dataset = (root / MANIFEST).exists() or (root / PROGRESS_DIR).exists()
@@ -97,6 +100,57 @@ def prepare_folder(root: Path, overwrite: bool) -> None:
                           "choose a new or empty folder")
     if overwrite and has_dataset:
         _clear(root)
+
+
+def dataset_member(root, name) -> Path:
+    """The path of file ``name`` (as a manifest or progress record states it) inside dataset folder ``root``.
+
+    The one check of every file name a dataset names: a relative path with no ``..`` part that, with
+    any links resolved, stays inside ``root``. A manifest from someone else could otherwise make
+    ``evnoise info`` or ``train`` read any local file (``"../x.h5"``, ``"/etc/..."``). Raises
+    :class:`~evnoise.InputError`.
+    """
+    root = Path(root)
+    if not isinstance(name, str) or not name or "\x00" in name:
+        raise InputError(f"dataset {root} names a shard file {name!r}, which is not a file name")
+    rel = Path(name)
+    if rel.is_absolute() or ".." in rel.parts or rel.drive:
+        raise InputError(f"dataset {root} names the shard file {name!r}, outside the dataset folder; "
+                         "only files inside it are read")
+    path = root / rel
+    try:
+        inside = path.resolve().is_relative_to(root.resolve())
+    except (OSError, RuntimeError, ValueError):
+        inside = False
+    if not inside:
+        raise InputError(f"dataset {root} names the shard file {name!r}, which leads outside the dataset "
+                         "folder (a symbolic link); only files inside it are read")
+    return path
+
+
+def check_own_parts(root: Path) -> None:
+    """Refuse a dataset folder whose own parts (``manifest.json``, ``shards/``, the progress folder,
+    ``preview.png``, or anything inside ``shards/`` and the progress folder) are symbolic links, or
+    whose ``shards/`` or progress folder is not a folder: a run deletes and writes there, and must
+    never do so outside the folder it was named (a link would lead it anywhere)."""
+    for name in (MANIFEST, SHARDS_DIR, PROGRESS_DIR, PREVIEW):
+        part = root / name
+        if part.is_symlink():
+            raise OutputError(f"{part} is a symbolic link; evnoise writes and deletes only inside the output "
+                              f"folder and follows no link there: remove it, or choose another folder")
+    for name in (SHARDS_DIR, PROGRESS_DIR):
+        part = root / name
+        if not part.exists():
+            continue
+        if not part.is_dir():
+            raise OutputError(f"{part} exists and is not a folder; remove it, or choose another folder")
+        try:
+            links = [p for p in part.iterdir() if p.is_symlink()]
+        except OSError as exc:
+            raise OutputError(f"cannot list {part}: {exc.strerror or exc}") from None
+        if links:
+            raise OutputError(f"{links[0]} is a symbolic link; evnoise writes and deletes only inside the output "
+                              f"folder and follows no link there: remove it, or choose another folder")
 
 
 def discard_empty(root: Path, created: bool) -> None:
@@ -176,7 +230,10 @@ def _mismatch(root: Path, state, plan: Plan) -> str:
 
 def shard_verified(root: Path, rec: dict) -> bool:
     """Whether the shard file of record ``rec`` exists with the recorded size and SHA-256."""
-    path = root / rec["file"]
+    try:
+        path = dataset_member(root, rec["file"])
+    except (InputError, KeyError, TypeError):
+        return False
     try:
         if not path.is_file() or path.stat().st_size != rec["bytes"]:
             return False
