@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import secrets
 from contextlib import contextmanager
 from pathlib import Path
@@ -17,6 +18,18 @@ from pathlib import Path
 from .errors import EvnoiseError, OutputError
 
 log = logging.getLogger(__name__)
+
+
+def os_error_text(exc: BaseException) -> str:
+    """An OS error in one line: the ``strerror`` of its errno, also when only the text names it (h5py's
+    texts span lines, name the temporary file and sometimes come as RuntimeError), else the text squeezed."""
+    errno = getattr(exc, "errno", None)
+    if not errno:
+        m = re.search(r"errno = (\d+)", str(exc))
+        errno = int(m.group(1)) if m else None
+    if errno:
+        return os.strerror(errno)
+    return " ".join(str(exc).split()) or type(exc).__name__
 
 
 def temporary_name(path: Path, *, suffix: str = ".tmp") -> Path:
@@ -83,8 +96,8 @@ class AtomicFile:
             raise
         except catch as exc:
             abort()
-            if isinstance(exc, OSError) and exc.errno:  # h5py's texts span lines and name the temporary file
-                text = exc.strerror or os.strerror(exc.errno)
+            if isinstance(exc, OSError) or re.search(r"errno = \d+", str(exc)):
+                text = os_error_text(exc)  # h5py's texts span lines and name the temporary file
             else:
                 text = " ".join(str(exc).split()) if one_line else str(exc)
             raise OutputError(f"cannot finish {self.what} {self.path}: {text}") from None
@@ -148,3 +161,41 @@ def write_text_atomic(path, text: str, *, overwrite: bool = True, what: str = "f
     with atomic_output(path, overwrite=overwrite, what=what) as tmp:
         tmp.write_text(text, encoding="utf-8")
     return Path(path)
+
+
+def close_h5_discarding(file, out: AtomicFile | None = None, datasets=()) -> None:
+    """Close an h5py file being thrown away (its temporary file ``out`` is discarded next), even on a full disk.
+
+    HDF5 flushes its cached chunks and metadata when a file closes. On a full disk that flush fails, and
+    a file whose close failed stays half-closed inside HDF5 (a second close fails too), which flushes it
+    again when the interpreter exits and crashed the process there (exit 139, after the error line).
+    So the close must succeed the first time: the resizable ``datasets`` are cut to nothing (no chunk
+    left to flush), the space written is freed (:meth:`AtomicFile.release`), and the file's descriptor
+    is pointed at an anonymous file in memory (Linux ``memfd``) before the close, so that HDF5's last
+    writes land there whatever the disk holds. Nothing here raises.
+    """
+    for ds in datasets:
+        if ds is not None:
+            try:
+                ds.resize((0,) + tuple(ds.shape[1:]))
+            except Exception:  # noqa: BLE001 - best effort; the file is discarded
+                pass
+    if out is not None:
+        out.release()
+    try:
+        fd = file.id.get_vfd_handle()
+    except Exception:  # noqa: BLE001 - not a POSIX driver, or already closed
+        fd = None
+    if isinstance(fd, int) and hasattr(os, "memfd_create"):
+        try:
+            spare = os.memfd_create("evnoise-discarded")
+            try:
+                os.dup2(spare, fd)
+            finally:
+                os.close(spare)
+        except OSError:
+            pass
+    try:
+        file.close()
+    except Exception:  # noqa: BLE001 - nothing more to do
+        pass

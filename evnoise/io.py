@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._atomic import AtomicFile
+from ._atomic import AtomicFile, close_h5_discarding, os_error_text
 from ._h5 import READ_BLOCK, event_datasets, first_index, h5_metadata, open_h5
 from ._version import __version__
 from .errors import EvnoiseError, InputError, OutputError, ParameterError
@@ -77,56 +77,6 @@ def open_output_path(path, *, overwrite: bool = False, what: str = "output") -> 
     if not os.access(parent, os.W_OK | os.X_OK):
         raise OutputError(f"cannot write {what} {path}: directory {parent} is not writable")
     return path
-
-
-def _close_h5_discarding(file) -> None:
-    """Close an h5py file whose content is being thrown away, even when its disk refuses writes.
-
-    If HDF5's last flush fails (no space left), the file descriptor is pointed at an anonymous file
-    in memory (Linux ``memfd``) and the close tried again: the flush then lands there and HDF5 holds
-    no half-closed file (one it would flush again, and crash on, when the interpreter exits).
-    """
-    try:
-        fd = file.id.get_vfd_handle()
-    except Exception:  # noqa: BLE001 - not a POSIX driver, or already closed
-        fd = None
-    try:
-        file.close()
-        return
-    except Exception:  # noqa: BLE001
-        if not isinstance(fd, int) or not hasattr(os, "memfd_create"):
-            return
-    try:
-        spare = os.memfd_create("evnoise-discarded")
-        try:
-            os.dup2(spare, fd)
-        finally:
-            os.close(spare)
-        file.close()
-    except Exception:  # noqa: BLE001 - nothing more to do; the temporary file is removed next
-        pass
-
-
-def _as_os_error(exc: Exception) -> OSError:
-    """h5py's RuntimeError for a failed write, as an OSError with the errno that its text names."""
-    import re
-
-    m = re.search(r"errno = (\d+)", str(exc))
-    if m:
-        return OSError(int(m.group(1)), os.strerror(int(m.group(1))))
-    return OSError(_one_line(str(exc)))
-
-
-def _one_line(text: str) -> str:
-    return " ".join(text.split())
-
-
-def _os_error_text(exc: OSError) -> str:
-    """An OS error in one line: its ``strerror`` when it has an errno (h5py's texts span lines and
-    name the temporary file), else its text with the whitespace squeezed."""
-    if exc.errno:
-        return os.strerror(exc.errno)
-    return _one_line(str(exc))
 
 
 def _check_us(value, name: str) -> int | None:
@@ -264,7 +214,7 @@ class EventWriter(_AtomicWriter):
             self._file = h5py.File(self._tmp, "w")
         except OSError as exc:
             self._remove_tmp()
-            raise OutputError(f"cannot write event file {self.path}: {_os_error_text(exc)}") from None
+            raise OutputError(f"cannot write event file {self.path}: {os_error_text(exc)}") from None
         try:
             f = self._file
             height, width = self.shape
@@ -346,7 +296,7 @@ class EventWriter(_AtomicWriter):
                 ks = np.arange(lo, min(lo + _MS_BLOCK, last_ms + 1), dtype=np.int64)
                 self._append_ms(base + np.searchsorted(t, ks * 1000, side="left"))
         except OSError as exc:
-            raise OutputError(f"writing event file {self.path} failed: {_os_error_text(exc)}") from None
+            raise OutputError(f"writing event file {self.path} failed: {os_error_text(exc)}") from None
         self.n_events = base + n
         self._last_t = int(t[-1])
 
@@ -401,7 +351,7 @@ class EventWriter(_AtomicWriter):
                 self._file.flush()
                 self._file.close()
             except RuntimeError as exc:  # h5py raises some write failures as RuntimeError
-                raise _as_os_error(exc) from None
+                raise OSError(os_error_text(exc)) from None
 
         self._out.finish(close, self.abort)
         self._closed = True
@@ -414,19 +364,9 @@ class EventWriter(_AtomicWriter):
             self._gzip.close()
         file, self._file = getattr(self, "_file", None), None
         if file is not None:
-            # A full disk: HDF5 flushes its cached chunks and metadata on close, and a close that fails
-            # leaves a handle that HDF5 flushes again when the interpreter exits, which crashed the
-            # process (exit 139). Cut the datasets to nothing (no chunk left to flush) and free the
-            # space written (AtomicFile.release), so that the close succeeds.
-            for ds in [*getattr(self, "_dsets", {}).values(), getattr(self, "_ms", None)]:
-                if ds is not None:
-                    try:
-                        ds.resize((0,))
-                    except Exception:  # noqa: BLE001 - best effort; the file is discarded
-                        pass
-            if getattr(self, "_out", None) is not None:
-                self._out.release()
-            _close_h5_discarding(file)
+            # a full disk: see close_h5_discarding (a failed close crashed the process at exit, 139)
+            close_h5_discarding(file, getattr(self, "_out", None),
+                                [*getattr(self, "_dsets", {}).values(), getattr(self, "_ms", None)])
         self._remove_tmp()
 
     def _remove_tmp(self):

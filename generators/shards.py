@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from evnoise._atomic import AtomicFile
+from evnoise._atomic import AtomicFile, close_h5_discarding, os_error_text
 from evnoise.errors import InputError, OutputError
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "ShardWriter", "file_sha256", "META_COLUMNS", "read_meta"]
@@ -134,7 +134,7 @@ class ShardWriter:
             self._image[m] = image
         except OSError as exc:
             self.abort()
-            raise OutputError(f"writing shard {self.path} failed: {exc}") from None
+            raise OutputError(f"writing shard {self.path} failed: {os_error_text(exc)}") from None
         self.n_images = m + 1
         return m
 
@@ -148,7 +148,7 @@ class ShardWriter:
             self._counts[i] = counts
         except OSError as exc:
             self.abort()
-            raise OutputError(f"writing shard {self.path} failed: {exc}") from None
+            raise OutputError(f"writing shard {self.path} failed: {os_error_text(exc)}") from None
         for key in META_COLUMNS:
             self._meta[key].append(meta[key])
         self._boxes.append(tuple(int(v) for v in crop_box))
@@ -171,6 +171,7 @@ class ShardWriter:
                 else:
                     f.create_dataset(key, data=np.asarray(values, dtype=dtype).reshape(len(values)))
             f.create_dataset("crop_box", data=np.asarray(self._boxes, dtype=np.int32).reshape(len(self._boxes), 4))
+            f.flush()  # a failure (a full disk) leaves the file open for abort() to discard cleanly
             f.close()
 
         self._out.finish(close, self.abort)
@@ -179,10 +180,9 @@ class ShardWriter:
 
     def abort(self) -> None:
         self._closed = True
-        try:
-            self._file.close()
-        except Exception:
-            pass
+        file, self._file = getattr(self, "_file", None), None
+        if file is not None:  # a full disk: a failed close crashed the process at exit (close_h5_discarding)
+            close_h5_discarding(file, self._out, [getattr(self, "_counts", None), getattr(self, "_image", None)])
         self._out.discard()
 
 

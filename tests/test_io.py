@@ -567,3 +567,68 @@ def test_a_disk_that_refuses_writes_is_one_error_line(tmp_path, compression):
     assert proc.stderr == "" and proc.stdout.count("\n") == 1, proc.stdout + proc.stderr
     assert proc.stdout.startswith("evnoise: error: writing event file") and "File too large" in proc.stdout
     assert leftovers(tmp_path) == []
+
+
+_SMALL_DISK = """
+import sys
+import numpy as np
+from evnoise.errors import EvnoiseError
+from evnoise.events import make_events
+from evnoise.io import write_events
+folder, what, compression = sys.argv[1], sys.argv[2], sys.argv[3]
+rng = np.random.default_rng(0)
+try:
+    if what == "events":
+        n = 3_000_000
+        events = make_events(np.sort(rng.integers(0, 10_000_000, n)), rng.integers(0, 1280, n),
+                             rng.integers(0, 720, n), rng.integers(0, 2, n))
+        write_events(folder + "/big.h5", events, (720, 1280),
+                     compression=None if compression == "none" else compression)
+    else:
+        from generators.shards import META_COLUMNS, ShardWriter
+        with ShardWriter(folder + "/shard.h5", (128, 128), None if compression == "none" else compression, {}) as w:
+            for i in range(1000):
+                m = w.add_image(rng.random((128, 128), dtype=np.float32))
+                meta = {k: ("x" if k == "source" else 0) for k in META_COLUMNS}
+                meta["image_index"] = m
+                w.append(rng.integers(0, 60000, (2, 128, 128)).astype(np.uint16), (0, 0, 128, 128), **meta)
+            w.close()
+except EvnoiseError as exc:
+    print("evnoise: error:", exc)
+    sys.exit(2)
+"""
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 6 MiB tmpfs, four fifths full of another file (root only; skipped where it cannot be mounted)."""
+    import shutil
+    import subprocess
+
+    if sys.platform != "linux" or os.geteuid() != 0 or shutil.which("mount") is None:
+        pytest.skip("mounting a small tmpfs needs root on Linux")
+    folder = tmp_path / "small"
+    folder.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=6m", "tmpfs", str(folder)], capture_output=True).returncode:
+        pytest.skip("cannot mount a tmpfs here")
+    try:
+        (folder / "other").write_bytes(bytes(5 << 20))  # others' data: freeing our own file is not enough
+        yield folder
+    finally:
+        subprocess.run(["umount", "-l", str(folder)], capture_output=True)
+
+
+@pytest.mark.parametrize("what,compression", [("events", "gzip"), ("events", "lzf"), ("events", "none"),
+                                              ("shard", "lzf"), ("shard", "none")])
+def test_a_full_disk_is_one_error_line(small_disk, what, compression):
+    """ENOSPC while writing or at the final flush: one line, exit 2, nothing left behind (was: exit 139)."""
+    import subprocess
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    proc = subprocess.run([sys.executable, "-c", _SMALL_DISK, str(small_disk), what, compression], cwd=repo,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2, (proc.returncode, proc.stdout[-2000:], proc.stderr[-2000:])
+    assert proc.stderr == "" and proc.stdout.count("\n") == 1, proc.stdout + proc.stderr
+    assert "No space left on device" in proc.stdout
+    assert leftovers(small_disk) == ["other"]
