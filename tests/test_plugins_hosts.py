@@ -498,6 +498,8 @@ import sys
 import numpy as np
 from v2ecore.emulator import EventEmulator
 
+# v2e's argument help reads class attributes of EventEmulator (v2e_args.py)
+states = f"{EventEmulator.MODEL_STATES.keys()} {EventEmulator.SINGLE_PIXEL_STATES_FILENAME}"
 parser = argparse.ArgumentParser()
 parser.add_argument("--shot_noise_rate_hz", type=float, default=0.001)  # v2e's defaults: its own noise on
 parser.add_argument("--leak_rate_hz", type=float, default=0.01)
@@ -519,7 +521,11 @@ sys.exit(0)
 
 
 class FakeV2eModuleEmulator(FakeV2eEmulator):
-    """:class:`FakeV2eEmulator` with the constructor of v2e's EventEmulator (for a stand-in ``v2ecore.emulator``)."""
+    """:class:`FakeV2eEmulator` with the constructor and class attributes of v2e's EventEmulator (for a stand-in
+    ``v2ecore.emulator``)."""
+
+    MODEL_STATES = {"new_frame": (0, 255)}
+    SINGLE_PIXEL_STATES_FILENAME = "pixel-states.dat"
 
     def __init__(self, output_folder=None, dvs_h5=None, shot_noise_rate_hz=0.0, leak_rate_hz=0.0, output_width=None,
                  output_height=None, **options):

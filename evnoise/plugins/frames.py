@@ -155,6 +155,10 @@ class EmulatorNoise:
         """Reset the emulator (when it has ``reset()``) and start a new noise stream at the next frame."""
         if callable(getattr(self.emulator, "reset", None)):
             self.emulator.reset()
+        self.restart_noise()
+
+    def restart_noise(self):
+        """Start a new noise stream at the next frame (the emulator is left as it is)."""
         self._stream = None
         self._lux = None
 
@@ -198,9 +202,14 @@ class EmulatorNoise:
         self.noise_count += int(noise.size)
         return self._merge(signal, noise)
 
+    #: what :meth:`generate_events` calls for the emulator's events: None for ``emulator.generate_events``, or a
+    #: function ``(frame, t_s) -> rows`` (an emulator subclass that adds the noise itself calls its base method)
+    _generate = None
+
     def _emulate(self, new_frame, t_frame):
         """The emulator's events of the frame (a hook: the v2e wrapper watches v2e's file writers here)."""
-        return self.emulator.generate_events(new_frame, t_frame)
+        generate = self._generate if self._generate is not None else self.emulator.generate_events
+        return generate(new_frame, t_frame)
 
     def _merge(self, signal, noise):
         """The rows :meth:`generate_events` returns: the emulator's rows with ``noise`` (evnoise events) merged in."""

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import runpy
 import shutil
 import sys
@@ -50,7 +51,7 @@ from .._checks import check_positive
 from ..errors import InputError, ParameterError
 from .frames import EmulatorNoise, interleave, merge_with_positions, noise_rows
 
-__all__ = ["PhotonNoise", "grey_to_lux", "noisy_emulators", "main"]
+__all__ = ["PhotonNoise", "grey_to_lux", "noisy_emulator_class", "noisy_emulators", "main"]
 
 #: v2e's writers that take float rows ``[t_s, x, y, +-1]`` through ``appendEvents``; all but the text
 #: writer truncate ``t * 1e6`` to integer microseconds
@@ -263,7 +264,7 @@ class PhotonNoise(EmulatorNoise):
     def _emulate(self, new_frame, t_frame):
         self._outputs = _Outputs(self.emulator)
         with self._outputs:
-            return self.emulator.generate_events(new_frame, t_frame)
+            return super()._emulate(new_frame, t_frame)
 
     def _merge(self, signal, noise):
         rows, positions = merge_with_positions(signal, noise_rows(noise))
@@ -272,25 +273,55 @@ class PhotonNoise(EmulatorNoise):
         return rows
 
 
+def noisy_emulator_class(base, params, white_lux, rng=None, **kwargs):
+    """A subclass of v2e's ``EventEmulator`` class ``base`` whose instances add evnoise's photon noise.
+
+    Each instance wraps itself in a :class:`PhotonNoise` (``params``, ``white_lux``, ``rng`` and
+    ``kwargs`` as there; ``rng`` an int seed gives every instance the same noise) that calls ``base``'s
+    own ``generate_events``: v2e's code that creates ``EventEmulator(...)`` and uses its attributes
+    (``v2e.py``) runs unchanged, with the noise in its events, files and counts. The class keeps the
+    wrappers it made in ``made``.
+    """
+
+    class NoisyEventEmulator(base):
+        made = []
+
+        def __init__(self, *args, **emulator_kwargs):
+            super().__init__(*args, **emulator_kwargs)
+            noise = PhotonNoise(self, params, white_lux, rng, **kwargs)
+            noise._generate = functools.partial(base.generate_events, self)
+            self._evnoise = noise
+            NoisyEventEmulator.made.append(noise)
+
+        @property
+        def evnoise(self):
+            """The :class:`PhotonNoise` that adds the noise (``noise_count``, ``signal_count``)."""
+            return self._evnoise
+
+        def generate_events(self, new_frame, t_frame):
+            return self._evnoise.generate_events(new_frame, t_frame)
+
+        def reset(self):
+            super().reset()
+            if getattr(self, "_evnoise", None) is not None:  # v2e's __init__ calls reset() too
+                self._evnoise.restart_noise()
+
+    NoisyEventEmulator.__name__ = NoisyEventEmulator.__qualname__ = f"Noisy{base.__name__}"
+    return NoisyEventEmulator
+
+
 @contextlib.contextmanager
 def noisy_emulators(params, white_lux, rng=None, **kwargs):
-    """Within the block, v2e's ``EventEmulator`` (``v2ecore.emulator.EventEmulator``) makes emulators wrapped in
-    :class:`PhotonNoise` (``params``, ``white_lux``, ``rng`` and ``kwargs`` as there); yields the list of the
-    wrappers made. Code that imports the name inside the block, as ``v2e.py`` does, gets the wrapping factory."""
+    """Within the block, ``v2ecore.emulator.EventEmulator`` is :func:`noisy_emulator_class` of v2e's class, so code
+    that imports the name inside the block, as ``v2e.py`` does, creates emulators that add evnoise's photon noise.
+    Yields the list of the :class:`PhotonNoise` wrappers made."""
     import v2ecore.emulator as emulator_module
 
     original = emulator_module.EventEmulator
-    made = []
-
-    def EventEmulator(*args, **emulator_kwargs):  # noqa: N802 - v2e's name
-        wrapped = PhotonNoise(original(*args, **emulator_kwargs), params, white_lux, rng, **kwargs)
-        made.append(wrapped)
-        return wrapped
-
-    EventEmulator.MODEL_STATES = getattr(original, "MODEL_STATES", {})
-    emulator_module.EventEmulator = EventEmulator
+    noisy = noisy_emulator_class(original, params, white_lux, rng, **kwargs)
+    emulator_module.EventEmulator = noisy
     try:
-        yield made
+        yield noisy.made
     finally:
         emulator_module.EventEmulator = original
 
