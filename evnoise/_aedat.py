@@ -11,7 +11,6 @@ import numpy as np
 from ._version import __version__
 from .params import NoiseParams
 
-
 #: the event stream's node (as DV's recorder names it)
 TRACK_PATH = "/mainloop/Recorder/outInfo/0/"
 #: name of the node holding evnoise's attributes, a child of the stream's node (the readers search the tree)
