@@ -229,3 +229,38 @@ def test_comma_csv_without_header_still_needs_the_order(tmp_path):
     path.write_text("3,4,1,1000\n")
     with pytest.raises(InputError, match="--csv-columns"):
         read_events(path)
+
+
+# --------------------------------------------------------------------------------------
+# AEDAT 4: the data table ends the file (issue 35 §3: appended garbage was accepted 8 of 8)
+# --------------------------------------------------------------------------------------
+@pytest.mark.parametrize("change", ["+3", "+5000", "-1", "-100"])
+def test_real_aedat4_cut_or_extended(tmp_path, capsys, change):
+    data = _real("aestream/davis.aedat4").read_bytes()
+    n = int(change[1:])
+    damaged = data + bytes(range(256)) * 20 if n == 5000 else (data + b"abc" if change[0] == "+" else data[:-n])
+    (tmp_path / "d.aedat4").write_bytes(damaged)
+    match = "stray bytes after its data table" if change[0] == "+" else "ends inside its data table"
+    with pytest.raises(InputError, match=match):
+        read_events(tmp_path / "d.aedat4")
+    _one_line(capsys, tmp_path / "d.aedat4")
+
+
+@pytest.mark.parametrize("compression", [("lz4", 1), ("zstd", 1)])
+def test_aedat4_tables_of_both_compressions_are_checked(tmp_path, compression):
+    faery = pytest.importorskip("faery")
+    from faery.extension import aedat
+
+    from evnoise._aedat import aedat_description
+
+    path = tmp_path / "z.aedat4"
+    with aedat.Encoder(path, aedat_description(aedat, 64, 48, {}), compression) as enc:
+        arr = np.zeros(5000, dtype=faery.EVENTS_DTYPE)
+        arr["t"], arr["x"], arr["y"] = np.arange(5000) * 7, np.arange(5000) % 64, np.arange(5000) % 48
+        enc.write(0, arr)
+    data = path.read_bytes()
+    assert read_events(path)[0].size == 5000
+    with pytest.raises(InputError, match="stray bytes"):
+        read_events_bytes(tmp_path, "plus.aedat4", data + b"\x00")
+    with pytest.raises(InputError, match="ends inside its data table"):
+        read_events_bytes(tmp_path, "minus.aedat4", data[:-1])

@@ -2,7 +2,9 @@
 
 AEDAT 4 (``.aedat4``): the first event track; the sensor size comes from its description. A file
 written by evnoise also carries evnoise's parameters, seed and version in the description
-(node ``evnoise``), reported in ``meta``.
+(node ``evnoise``), reported in ``meta``. The data table at the file's end (``dataTablePosition``
+in the IO header, an LZ4 or Zstandard frame) must end exactly at the end of the file: a cut or
+bytes appended are errors (:func:`check_aedat4_end`).
 
 AEDAT 2.0 (jAER ``.aedat``): ``#`` header lines (the ``AEChip`` names the camera), then
 big-endian pairs of 32-bit address and 32-bit timestamp (µs). The records have a fixed size, so
@@ -62,6 +64,125 @@ def _description_attrs(nodes) -> dict:
     return {}
 
 
+def _u32(fh, pos: int) -> int | None:
+    fh.seek(pos)
+    raw = fh.read(4)
+    return int.from_bytes(raw, "little") if len(raw) == 4 else None
+
+
+def _aedat4_io_header(path) -> tuple[int, int]:
+    """``(compression, dataTablePosition)`` from an AEDAT 4 file's IOHeader (a FlatBuffers table after the
+    14-byte magic and a 32-bit size: field 0 compression (int32, default 0 = none), field 1
+    dataTablePosition (int64, default -1 = no table))."""
+    import struct
+
+    with open(path, "rb") as fh:
+        fh.seek(14)
+        raw = fh.read(4)
+        size = int.from_bytes(raw, "little") if len(raw) == 4 else 0
+        buf = fh.read(min(size, 1 << 20))
+    try:
+        if len(buf) < size:
+            raise struct.error("short")
+        root = struct.unpack_from("<I", buf, 0)[0]
+        vtable = root - struct.unpack_from("<i", buf, root)[0]
+        vsize = struct.unpack_from("<H", buf, vtable)[0]
+        fields = [struct.unpack_from("<H", buf, vtable + 4 + 2 * i)[0] for i in range(max(0, (vsize - 4) // 2))]
+        compression = struct.unpack_from("<i", buf, root + fields[0])[0] if fields and fields[0] else 0
+        position = struct.unpack_from("<q", buf, root + fields[1])[0] if len(fields) > 1 and fields[1] else -1
+    except (struct.error, IndexError):
+        raise InputError(f"cannot read {path} as AEDAT 4: its IO header is cut or damaged (truncated file?)") from None
+    return compression, position
+
+
+def _lz4_frame_end(fh, pos: int, size: int) -> int | None:
+    """End of the LZ4 frame at ``pos`` (after its end mark and checksum), from its block headers; ``None``
+    when the file ends inside it (the LZ4 frame format: magic, FLG, BD, [content size], [dict id], HC,
+    blocks of a 32-bit size (high bit: stored), [block checksum], end mark 0, [content checksum])."""
+    fh.seek(pos)
+    head = fh.read(6)
+    if len(head) < 6:
+        return None
+    flg = head[4]
+    i = pos + 6 + (8 if flg & 0x08 else 0) + (4 if flg & 0x01 else 0) + 1
+    while True:
+        block = _u32(fh, i)
+        if block is None:
+            return None
+        i += 4
+        if block == 0:
+            break
+        i += (block & 0x7FFFFFFF) + (4 if flg & 0x10 else 0)
+        if i > size:
+            return None
+    i += 4 if flg & 0x04 else 0
+    return i if i <= size else None
+
+
+def _zstd_frame_end(fh, pos: int, size: int) -> int | None:
+    """End of the Zstandard frame at ``pos``, from its header and block headers (RFC 8878); ``None`` when
+    the file ends inside it."""
+    fh.seek(pos + 4)
+    raw = fh.read(1)
+    if not raw:
+        return None
+    fhd = raw[0]
+    single = (fhd >> 5) & 1
+    fcs = {0: 1 if single else 0, 1: 2, 2: 4, 3: 8}[fhd >> 6]
+    i = pos + 5 + (0 if single else 1) + (0, 1, 2, 4)[fhd & 3] + fcs
+    while True:
+        fh.seek(i)
+        raw = fh.read(3)
+        if len(raw) < 3:
+            return None
+        h = int.from_bytes(raw, "little")
+        i += 3 + (1 if (h >> 1) & 3 == 1 else h >> 3)
+        if i > size:
+            return None
+        if h & 1:
+            break
+    i += 4 if (fhd >> 2) & 1 else 0
+    return i if i <= size else None
+
+
+_LZ4_MAGIC = b"\x04\x22\x4d\x18"
+_ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
+
+
+def check_aedat4_end(path) -> None:
+    """A cut or an appended tail of an AEDAT 4 file: its data table runs from ``dataTablePosition`` to the
+    end of the file, so a table that ends before the file (stray bytes) or after it (a cut) is an error.
+    A file without a table (a recording that was not closed) gets a warning; an uncompressed table,
+    which does not say where it ends, is not checked."""
+    compression, position = _aedat4_io_header(path)
+    size = path.stat().st_size
+    if position < 0:
+        log.warning("%s: the AEDAT 4 file has no data table (a recording that was not closed properly, or cut); "
+                    "its packets are read in order", path)
+        return
+    if position >= size:
+        raise InputError(f"cannot read {path} as AEDAT 4: its data table starts at byte {position} but the file has "
+                         f"{size} bytes; it was cut (truncated file)")
+    with open(path, "rb") as fh:
+        fh.seek(position)
+        magic = fh.read(4)
+        if compression in (1, 2) and magic == _LZ4_MAGIC:
+            end = _lz4_frame_end(fh, position, size)
+        elif compression in (3, 4) and magic == _ZSTD_MAGIC:
+            end = _zstd_frame_end(fh, position, size)
+        elif compression in (0,):
+            return
+        else:
+            raise InputError(f"cannot read {path} as AEDAT 4: no compressed data table at byte {position} "
+                             f"(a damaged file)")
+    if end is None:
+        raise InputError(f"cannot read {path} as AEDAT 4: the file ends inside its data table; it was cut "
+                         f"(truncated file)")
+    if end < size:
+        raise InputError(f"cannot read {path} as AEDAT 4: {size - end} stray bytes after its data table (bytes "
+                         f"appended to the file, or a damaged one)")
+
+
 class Aedat4Source(EventSource):
     """AEDAT 4 (the first event track)."""
 
@@ -71,6 +192,8 @@ class Aedat4Source(EventSource):
         super().__init__(path, sensor=sensor)
         require("faery", "AEDAT 4 files")
         from faery.extension import aedat
+
+        check_aedat4_end(self.path)
 
         try:
             with aedat.Decoder(self.path) as dec:
