@@ -481,6 +481,12 @@ class EventFileWriter(_AtomicWriter):
     ``t,x,y,on``) through faery's encoders. Every format is written under a temporary name in the
     target folder and renamed on :meth:`close`; an error (or :meth:`abort`) removes it.
 
+    Times are written as they are: ``.aedat4`` and ``.csv`` hold any clock; ``.raw`` and ``.dat`` hold
+    the camera's clock from its start (no ``% t0`` line, so faery, expelliarmus and OpenEB-style
+    decoders read the same times), and a clock they cannot hold (EVT 3.0 from 2**24 µs, DAT from
+    2**32 µs: a Unix clock) is written less the first event's whole second, :attr:`time_shift_us`,
+    with a warning.
+
     Parameters
     ----------
     path : str or os.PathLike
