@@ -74,7 +74,11 @@ DATALOADER_SCRIPT = """
     # a call in the main process first (looking at a sample): the simulator's set-up has run here
     parent = [np.stack([seeded(sample(i))[f] for f in "xytp"]).tobytes().hex() for i in range(N)]
     drawn(sample(0))
-    out = {"parent": parent, "seeded": [epoch(seeded, False), epoch(seeded, False)]}
+    # dvs128: threshold mismatch, hot pixels and the regular background timer (another kernel path)
+    timer = PhotonNoise((34, 34, 2), "dvs128", 2.0, rng=7)
+    parent_timer = [np.stack([timer(sample(i))[f] for f in "xytp"]).tobytes().hex() for i in range(N)]
+    out = {"parent": parent, "seeded": [epoch(seeded, False), epoch(seeded, False)],
+           "parent_timer": parent_timer, "timer": epoch(timer, False)}
     torch.manual_seed(11)
     out["drawn"] = [epoch(drawn, True), epoch(drawn, True)]
     torch.manual_seed(11)
@@ -101,6 +105,7 @@ def test_tonic_transform_runs_in_forked_dataloader_workers_after_a_call_in_the_p
     assert len(set(parent)) == len(parent)
     for epoch in dataloader_run["seeded"]:
         assert epoch == parent
+    assert dataloader_run["timer"] == dataloader_run["parent_timer"]
 
 
 def test_tonic_generator_never_repeats_across_workers_and_epochs(dataloader_run):
