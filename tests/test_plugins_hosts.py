@@ -576,3 +576,18 @@ def test_v2e_entry_point_runs_v2e_script_with_the_noise(tmp_path, monkeypatch, c
         assert f["events"].shape[0] == total
     assert added > 100 and total > added
     assert sys.modules["v2ecore.emulator"].EventEmulator is original  # restored after the run
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--params", "nope", "--white-lux", "18"], "unknown preset 'nope'"),
+    (["--params", "evk3-hd", "--white-lux", "-1"], "--white-lux must be finite and > 0"),
+    (["--params", "evk3-hd", "--white-lux", "18", "--v2e-script", "/no/such/v2e.py"], "cannot find v2e's v2e.py"),
+])
+def test_v2e_entry_point_bad_input_is_one_error_line(argv, message, capsys):
+    from evnoise.plugins import v2e as plugin
+
+    with pytest.raises(SystemExit) as exc:
+        plugin.main([*argv, "--", "-i", "video.mp4"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err

@@ -39,6 +39,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import functools
+import importlib
 import runpy
 import shutil
 import sys
@@ -47,8 +48,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .._checks import check_positive
-from ..errors import InputError, ParameterError
+from .._checks import check_params, check_positive
+from ..errors import EvnoiseError, InputError, ParameterError
 from .frames import EmulatorNoise, interleave, merge_with_positions, noise_rows
 
 __all__ = ["PhotonNoise", "grey_to_lux", "noisy_emulator_class", "noisy_emulators", "main"]
@@ -354,14 +355,19 @@ def main(argv=None) -> int:
     if v2e_args[:1] == ["--"]:
         v2e_args = v2e_args[1:]
     try:
+        params = check_params(args.params)
+        check_positive(args.white_lux, "--white-lux", "lux")
         script = _find_v2e_script(args.v2e_script)
-    except ParameterError as exc:
+        importlib.import_module("v2ecore.emulator")
+    except EvnoiseError as exc:
         parser.error(str(exc))
+    except ImportError as exc:
+        parser.error(f"v2e's v2ecore cannot be imported ({exc}): install v2e from https://github.com/SensorsINI/v2e")
     # v2e's own noise off unless asked for after -- (argparse keeps the last value given)
     argv_v2e = [str(script), "--shot_noise_rate_hz", "0", "--leak_rate_hz", "0", *v2e_args]
     saved_argv = sys.argv
     status = 0
-    with noisy_emulators(args.params, args.white_lux, rng=args.seed) as made:
+    with noisy_emulators(params, args.white_lux, rng=args.seed) as made:
         sys.argv = argv_v2e
         try:
             runpy.run_path(str(script), run_name="__main__")
