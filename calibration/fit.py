@@ -90,6 +90,7 @@ from ._likelihood import (
     _nb_log_shape_se,  # noqa: F401
     _Problem,  # noqa: F401
 )
+from ._progress import Phases
 from ._search import (
     _comparable_loglik,
     _continuation,  # noqa: F401
@@ -192,7 +193,8 @@ def calibrate(measurements: Measurements, *, method: str = "poisson", distributi
         ``{name: (low, high)}`` in natural units, replacing the default bounds of those
         parameters (see :data:`BOUNDS`); a parameter that ends on one is flagged.
     progress : bool
-        Show a progress bar over the starts.
+        Show progress: a line naming the running phase (search, profile, uncertainties, refits) with its
+        elapsed time, and a bar over the starts of each search.
 
     Returns
     -------
@@ -240,27 +242,44 @@ def calibrate(measurements: Measurements, *, method: str = "poisson", distributi
                and values["eps_sigma"] == TABLE_SIGMA)
     fit_args = dict(gen=gen, n_starts=n_starts, n_seeds=n_seeds, progress=progress, have_initial=initial is not None,
                     dispersion=dispersion, bounds=bounds)
-    problem, theta = _fit(meas, method, distribution, free, values, assumed=assumed, **fit_args)
     want_profile = meas.kind == "table" and "photons_per_lux" in free and len(free) >= 2
+    # every phase shows on the progress line (the search has its own bar over the starts below it): after the
+    # search a profile and the uncertainties ran for up to 18 minutes without a sign of life (issue 29)
+    with Phases("calibrate", 2 + want_profile, enabled=progress) as phases:
+        return _calibrate_phases(phases, meas, method, distribution, free, fixed, values, initial, assumed,
+                                 want_profile, fit_args, n_starts, max_rel_se, unidentified, dispersion, bounds, gen)
+
+
+def _calibrate_phases(phases, meas, method, distribution, free, fixed, values, initial, assumed, want_profile,
+                      fit_args, n_starts, max_rel_se, unidentified, dispersion, bounds, gen) -> CalibrationResult:
+    """The phases of :func:`calibrate` after its checks, each shown on ``phases``."""
+    with phases.phase("search"):
+        problem, theta = _fit(meas, method, distribution, free, values, assumed=assumed, **fit_args)
     profile = sigma_note = None
     if assumed and TABLE_SIGMA > 0 and _rejected(problem, theta):
         # The assumed mismatch changes the shape of the mean curve where photons are many (its
         # bright tail no longer falls as fast), and the data reject it: fit without mismatch as
         # well and keep that when the data clearly prefer it (twice the log-likelihood ratio above 4).
-        problem0, theta0 = _fit(meas, method, distribution, free, dict(values, eps_sigma=0.0), assumed=True,
-                                **fit_args)
+        phases.add(1 + want_profile)
+        with phases.phase("search without mismatch"):
+            problem0, theta0 = _fit(meas, method, distribution, free, dict(values, eps_sigma=0.0), assumed=True,
+                                    **fit_args)
         profile0 = None
         if want_profile:
-            theta0, profile0 = _profile(problem0, theta0, "photons_per_lux")
+            with phases.phase("profile of photons_per_lux (without mismatch)"):
+                theta0, profile0 = _profile(problem0, theta0, "photons_per_lux")
         ll_a, ll_0 = _comparable_loglik(problem, theta), _comparable_loglik(problem0, theta0)
         if 2.0 * (ll_0 - ll_a) > 4.0:
             problem, theta, profile = problem0, theta0, profile0
         sigma_note = (f"the fit with the assumed {TABLE_SIGMA:g} is rejected; of it and 0 the data prefer "
                       f"{problem.values['eps_sigma']:g} (twice the log-likelihood ratio {2.0 * (ll_0 - ll_a):+.3g} "
                       f"for 0; 0 is kept when above 4)")
-    if want_profile and profile is None:
-        theta, profile = _profile(problem, theta, "photons_per_lux")
-    result = _finish(problem, theta, max_rel_se, profile=profile, sigma_note=sigma_note)
+    if want_profile:
+        with phases.phase("profile of photons_per_lux"):
+            if profile is None:
+                theta, profile = _profile(problem, theta, "photons_per_lux")
+    with phases.phase("uncertainties and goodness of fit"):
+        result = _finish(problem, theta, max_rel_se, profile=profile, sigma_note=sigma_note)
     if unidentified == "fix":
         flagged = [n for n in result.free if result.status[n] == "not identified"]
         if flagged:
@@ -271,10 +290,12 @@ def calibrate(measurements: Measurements, *, method: str = "poisson", distributi
             rest = [n for n in free if n not in flagged]
             if rest:
                 init2 = result.params.replace(**{n: new_fixed[n] for n in flagged})
-                result2 = calibrate(meas, method=method, distribution=distribution, free=rest, fixed=new_fixed,
-                                    initial=init2, n_starts=1, n_seeds=max(n_starts, 1), rng=gen,
-                                    unidentified="report", max_rel_se=max_rel_se, dispersion=dispersion,
-                                    bounds=bounds, progress=False)
+                phases.add(1)
+                with phases.phase(f"refit without {', '.join(flagged)} (not identified)"):
+                    result2 = calibrate(meas, method=method, distribution=distribution, free=rest, fixed=new_fixed,
+                                        initial=init2, n_starts=1, n_seeds=max(n_starts, 1), rng=gen,
+                                        unidentified="report", max_rel_se=max_rel_se, dispersion=dispersion,
+                                        bounds=bounds, progress=False)
                 for n in flagged:
                     result2.status[n] = "fixed (not identified)"
                 result2.identifiability = result.identifiability + [

@@ -47,6 +47,7 @@ import numpy as np
 from evnoise._clock import seconds_text
 from evnoise.errors import InputError, ParameterError
 
+from ._progress import Phases
 from .quiet_checks import check_verdict
 
 # The model's parts live in one module per job; their names are re-exported here, where the tests, the
@@ -128,13 +129,13 @@ class QuietWindow:
 
 
 def quiet_window(path, t_start_s: float, t_end_s: float, *, lux: float | None = None, sensor=None,
-                 csv_columns=None, checks: bool = False, seed: int = 0) -> QuietWindow:
+                 csv_columns=None, checks: bool = False, seed: int = 0, progress: bool = False) -> QuietWindow:
     """The counts of a recording's window ``[t_start_s, t_end_s)`` (seconds on the file's clock).
 
     Any file :func:`evnoise.read_events` opens. The sensor size is the file's (or ``sensor``). With
     ``checks``, the window's events are also checked for what the fit assumes (polarity pairs,
     stationarity, scene motion; :func:`evnoise.calibration.quiet_checks.window_checks`, resampled
-    with ``seed``), into ``QuietWindow.checks``.
+    with ``seed``), into ``QuietWindow.checks``; ``progress`` shows a bar over their resamples.
     """
     from evnoise.events import count_events
     from evnoise.io import read_events
@@ -155,7 +156,8 @@ def quiet_window(path, t_start_s: float, t_end_s: float, *, lux: float | None = 
         from .quiet_checks import window_checks
 
         t0_us, t1_us = round(t_start_s * 1e6), round(t_end_s * 1e6)  # as read_events cuts the window
-        found = window_checks(events, counts, t0_us, t1_us - t0_us, seed=seed)
+        found = window_checks(events, counts, t0_us, t1_us - t0_us, seed=seed, progress=progress,
+                              desc=f"checks of {Path(str(path)).name}")
     return QuietWindow(counts, float(t_end_s - t_start_s), str(path), str(path), float(t_start_s), float(t_end_s),
                        None if lux is None else float(lux), found)
 
@@ -386,7 +388,8 @@ def _starts(model: _Model, previous: dict, hot_guess):
 OPTIONS = ("auto", "on", "off")
 
 
-def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", regularity: str = "auto") -> QuietFit:
+def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", regularity: str = "auto",
+              progress: bool = False) -> QuietFit:
     """Fit background rates, their regularity and spread, and hot pixels to quiet windows (module doc).
 
     Parameters
@@ -399,6 +402,9 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
         Fit the per-pixel spread / the hot pixels / the regularity of the arrivals: ``"auto"`` adds
         them one at a time (regularity, spread, hot pixels) and keeps each only where a likelihood-
         ratio test at :data:`LR_P` says the data carry it.
+    progress : bool
+        Show a progress line naming the running phase (the full model, each likelihood-ratio test, the
+        standard errors, the goodness of fit) with its elapsed time.
     """
     from scipy.stats import chi2
 
@@ -436,27 +442,40 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
 
     # backward selection: the full model first, then each term dropped in turn (likelihood-ratio test)
     full = {t: option != "off" for t, option in options.items()}
-    model = model_of(full)
-    res = _maximise(model, groups, _starts(model, values0, hot_guess))
-    values = dict(values0, **_unpack(res.x, model))
-    tests = {}
-    dofs = {"regular": 1, "spread": 1, "hot": 4}
-    names = {"regular": "regularity", "spread": "spread", "hot": "hot_pixels"}
-    keep = dict(full)
-    for term in ("regular", "spread", "hot"):
-        if not full[term]:
-            continue
-        reduced = model_of(dict(full, **{term: False}))
-        red_values = dict(values, **({"hot_fraction": 0.0} if term == "hot" else {}))
-        red_res = _maximise(reduced, groups, [_theta(red_values, reduced)])
-        stat = max(0.0, 2.0 * (red_res.fun - res.fun))
-        tests[names[term]] = {"lr": stat, "p_value": float(chi2.sf(stat, dofs[term])), "dof": dofs[term]}
-        if options[term] == "auto" and tests[names[term]]["p_value"] >= LR_P:
-            keep[term] = False
-    if keep != full:
-        model = model_of(keep)
-        kept_values = dict(values, **({} if keep["hot"] else {"hot_fraction": 0.0}))
-        res = _maximise(model, groups, [_theta(kept_values, model)] + _starts(model, values0, hot_guess)[:1])
+    with Phases("quiet fit", 3 + sum(full.values()), enabled=progress) as phases:
+        with phases.phase("full model"):
+            model = model_of(full)
+            res = _maximise(model, groups, _starts(model, values0, hot_guess))
+        values = dict(values0, **_unpack(res.x, model))
+        tests = {}
+        dofs = {"regular": 1, "spread": 1, "hot": 4}
+        names = {"regular": "regularity", "spread": "spread", "hot": "hot_pixels"}
+        keep = dict(full)
+        for term in ("regular", "spread", "hot"):
+            if not full[term]:
+                continue
+            with phases.phase(f"test of {names[term]}"):
+                reduced = model_of(dict(full, **{term: False}))
+                red_values = dict(values, **({"hot_fraction": 0.0} if term == "hot" else {}))
+                red_res = _maximise(reduced, groups, [_theta(red_values, reduced)])
+            stat = max(0.0, 2.0 * (red_res.fun - res.fun))
+            tests[names[term]] = {"lr": stat, "p_value": float(chi2.sf(stat, dofs[term])), "dof": dofs[term]}
+            if options[term] == "auto" and tests[names[term]]["p_value"] >= LR_P:
+                keep[term] = False
+        with phases.phase("refit of the terms kept"):
+            if keep != full:
+                model = model_of(keep)
+                kept_values = dict(values, **({} if keep["hot"] else {"hot_fraction": 0.0}))
+                res = _maximise(model, groups, [_theta(kept_values, model)] + _starts(model, values0, hot_guess)[:1])
+        with phases.phase("standard errors"):
+            se, notes = _standard_errors(model, groups, res)
+        with phases.phase("goodness of fit"):
+            goodness = _goodness(_unpack(res.x, model), model, groups, len(res.x))
+    return _quiet_fit(model, res, se, notes, tests, goodness, windows, base, spread, hot, regularity, lux_levels)
+
+
+def _standard_errors(model: _Model, groups, res):
+    """``(se, notes)``: standard errors of the fitted values (observed information, delta method)."""
     v = _unpack(res.x, model)
 
     # standard errors: observed information in the fitted coordinates, delta method
@@ -501,6 +520,12 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
                              "the 1-sigma point below it (one-sided)")
     else:
         notes.append("the observed information is not positive definite: no standard errors")
+    return se, notes
+
+
+def _quiet_fit(model, res, se, notes, tests, goodness, windows, base, spread, hot, regularity, lux_levels) -> QuietFit:
+    """The :class:`QuietFit` of a finished fit: statuses and notes."""
+    v = _unpack(res.x, model)
     status = {n: "fitted" for n in NAMES}
     if not model.spread:
         status["sigma"] = "not identified (likelihood-ratio test)" if spread == "auto" else "fixed"
@@ -515,7 +540,6 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
     if not lux_levels:
         notes.append("illuminance unknown: the rates are the totals at the recording's light (shot noise and "
                      "background together); the shot-noise parameters are not identified")
-    goodness = _goodness(v, model, groups, len(res.x))
     return QuietFit(v, se, status, -float(res.fun), tests, goodness, windows, base, notes)
 
 

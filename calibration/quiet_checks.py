@@ -106,9 +106,14 @@ def _pairs_within(off_key: np.ndarray, on_key: np.ndarray, gap: int) -> int:
     return int(np.sum(hi - lo))
 
 
+def _no_tick() -> None:
+    pass
+
+
 def polarity_pairs(events: np.ndarray, shape: tuple, t_start_us: int, duration_us: int, *,
-                   pair_gap_s: float = PAIR_GAP_S, shifts: int = 200, seed: int = 0) -> dict:
-    """OFF/ON pairs of a pixel closer than ``pair_gap_s`` against circularly shifted ON streams (module doc)."""
+                   pair_gap_s: float = PAIR_GAP_S, shifts: int = 200, seed: int = 0, tick=_no_tick) -> dict:
+    """OFF/ON pairs of a pixel closer than ``pair_gap_s`` against circularly shifted ON streams (module doc);
+    ``tick()`` is called after each resample (progress)."""
     width = int(shape[1])
     gap = max(1, int(round(pair_gap_s * 1e6)))
     duration_us = max(int(duration_us), 1)
@@ -129,6 +134,7 @@ def polarity_pairs(events: np.ndarray, shape: tuple, t_start_us: int, duration_u
         offset = rng.integers(lo_shift, hi_shift + 1, size=n_pix) * rng.choice(np.array([-1, 1]), size=n_pix)
         shifted = (on_t + offset[on_pix]) % duration_us
         null[k] = _pairs_within(off_key, np.sort(on_pix * stride + shifted), gap)
+        tick()
     if lo_shift == hi_shift:
         by = f"{lo_shift / 1e6:.3g} s either way"
         if hi_shift < 40 * gap:  # the window (at most 20 gaps) leaves no room for the usual range
@@ -185,7 +191,8 @@ def _block_variance(total: np.ndarray, index: np.ndarray, n_blocks: int) -> floa
     return float(sums.var())
 
 
-def spatial_structure(counts: np.ndarray, *, block: int = 16, shifts: int = 200, seed: int = 0) -> dict:
+def spatial_structure(counts: np.ndarray, *, block: int = 16, shifts: int = 200, seed: int = 0,
+                      tick=_no_tick) -> dict:
     """Variance of ``block`` x ``block`` mean counts against permutations of the pixels (module doc)."""
     total = np.asarray(counts).sum(axis=0).astype(np.float64)
     block = _block_size(total.shape, block)
@@ -193,7 +200,10 @@ def spatial_structure(counts: np.ndarray, *, block: int = 16, shifts: int = 200,
     flat = total.ravel()
     observed = _block_variance(flat, index, n_blocks)
     rng = np.random.default_rng(seed)
-    null = np.array([_block_variance(rng.permutation(flat), index, n_blocks) for _ in range(int(shifts))])
+    null = np.empty(int(shifts))
+    for k in range(int(shifts)):
+        null[k] = _block_variance(rng.permutation(flat), index, n_blocks)
+        tick()
     return _result("spatial_structure", observed, null, lambda mean, sd: (
         f"variance of {block}x{block}-block counts {_times(observed, mean)} that of pixels placed at random "
         f"({int(shifts)} permutations; the noise follows the scene or the optics)"), assumption=False)
@@ -211,7 +221,7 @@ def _independence_chi2(block_id: np.ndarray, slice_id: np.ndarray, n_blocks: int
 
 
 def scene_motion(events: np.ndarray, shape: tuple, t_start_us: int, duration_us: int, *, block: int = 16,
-                 pieces: int = 4, shifts: int = 200, seed: int = 0) -> dict:
+                 pieces: int = 4, shifts: int = 200, seed: int = 0, tick=_no_tick) -> dict:
     """Block x time-slice independence against per-pixel circular time shifts (module doc)."""
     block = _block_size(shape, block)
     index, n_blocks = _block_index(shape, block)
@@ -229,19 +239,34 @@ def scene_motion(events: np.ndarray, shape: tuple, t_start_us: int, duration_us:
     for k in range(int(shifts)):
         shifted = (t + rng.integers(0, duration_us, size=n_pix)[pix]) % duration_us
         null[k] = _independence_chi2(blk, shifted * pieces // duration_us, n_blocks, pieces)
+        tick()
     return _result("scene_motion", observed, null, lambda mean, sd: (
         f"block x time chi-square of {block}x{block} blocks in {pieces} slices {_times(observed, mean)} that of "
         f"the pixels' streams shifted in time ({int(shifts)} circular shifts)"))
 
 
 def window_checks(events: np.ndarray, counts: np.ndarray, t_start_us: int, duration_us: int, *,
-                  shifts: int = 200, seed: int = 0) -> list:
-    """The checks of one window (module doc): polarity pairs, stationarity, scene motion, spatial structure."""
+                  shifts: int = 200, seed: int = 0, progress: bool = False, desc: str = "quiet checks") -> list:
+    """The checks of one window (module doc): polarity pairs, stationarity, scene motion, spatial structure.
+
+    ``progress``: a bar over the resamples of the three resampled checks (about 15 s per million events).
+    """
     shape = counts.shape[1:]
-    return [polarity_pairs(events, shape, t_start_us, duration_us, shifts=shifts, seed=seed),
-            stationarity(events, t_start_us, duration_us),
-            scene_motion(events, shape, t_start_us, duration_us, shifts=shifts, seed=seed),
-            spatial_structure(counts, shifts=shifts, seed=seed)]
+    bar = None
+    tick = _no_tick
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=3 * int(shifts), desc=desc, unit="resample", leave=False)
+        tick = bar.update
+    try:
+        return [polarity_pairs(events, shape, t_start_us, duration_us, shifts=shifts, seed=seed, tick=tick),
+                stationarity(events, t_start_us, duration_us),
+                scene_motion(events, shape, t_start_us, duration_us, shifts=shifts, seed=seed, tick=tick),
+                spatial_structure(counts, shifts=shifts, seed=seed, tick=tick)]
+    finally:
+        if bar is not None:
+            bar.close()
 
 
 def failed_checks(checks: list, *, p: float = CHECK_P) -> list:

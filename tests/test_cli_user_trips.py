@@ -302,3 +302,73 @@ def test_quiet_window_names_unix_clock_times_to_the_microsecond(tmp_path):
     path = unix_clock_file(tmp_path / "unix.h5")
     w = quiet_window(path, 1643240000.0, 1643240000.9)
     assert w.describe() == "unix.h5 1643240000-1643240000.9 s"
+
+
+# --------------------------------------------------------------------------------------
+# item 8: every long phase shows progress
+# --------------------------------------------------------------------------------------
+def test_calibrate_shows_each_phase_after_the_search(capsys, monkeypatch):
+    from importlib import resources
+
+    from evnoise.calibration import fit as F
+    from evnoise.calibration import read_measurements
+
+    ran = []
+
+    def phase(name, value):
+        def run(*args, **kwargs):
+            ran.append(name)
+            return value
+        return run
+
+    # the phases themselves are stand-ins: this test is about what the user sees while they run
+    monkeypatch.setattr(F, "_fit", phase("search", ("problem", "theta")))
+    monkeypatch.setattr(F, "_rejected", lambda problem, theta: False)
+    monkeypatch.setattr(F, "_profile", phase("profile", ("theta", "profile")))
+    monkeypatch.setattr(F, "_finish", phase("finish", "result"))
+    meas = read_measurements(str(resources.files("evnoise.data") / "rates-example.csv"))
+    capsys.readouterr()
+    assert F.calibrate(meas, rng=0, progress=True) == "result"
+    err = capsys.readouterr().err
+    assert ran == ["search", "profile", "finish"]
+    for name in ("calibrate: search", "calibrate: profile of photons_per_lux",
+                 "calibrate: uncertainties and goodness of fit"):
+        assert name in err, err
+    assert "2/3 phases" in err  # three phases planned and counted (the last redraw may be throttled)
+    assert F.calibrate(meas, rng=0, progress=False) == "result"
+    assert capsys.readouterr().err == ""  # progress=False (-q): nothing
+
+
+def test_a_phase_line_keeps_its_clock_running(monkeypatch, capsys):
+    import time
+
+    from evnoise.calibration import _progress
+
+    monkeypatch.setattr(_progress, "REFRESH_S", 0.01)
+    with _progress.Phases("fit", 1) as phases, phases.phase("a long phase"):
+        give_up = time.monotonic() + 120  # a guard against a hang, not a timing: any redraw rate passes
+        while phases.redraws < 3 and time.monotonic() < give_up:
+            time.sleep(0.01)
+        assert phases.redraws >= 3  # redrawn although the phase never advanced
+    assert "fit: a long phase" in capsys.readouterr().err
+
+
+def test_quiet_fit_and_checks_show_progress(tmp_path, capsys):
+    from evnoise.calibration.quiet import fit_quiet, quiet_window
+
+    rng = np.random.default_rng(7)
+    n = 3000
+    t = np.sort(rng.integers(0, 4_000_000, n))
+    events = ev.events.make_events(t, rng.integers(0, 40, n), rng.integers(0, 30, n), rng.integers(0, 2, n))
+    path = ev.write_events(tmp_path / "quiet.h5", events, (30, 40), t_end_us=4_000_000)
+    capsys.readouterr()
+    window = quiet_window(path, 0.0, 4.0, checks=True, progress=True)
+    err = capsys.readouterr().err
+    assert "checks of quiet.h5" in err and "/600" in err  # 3 checks x 200 resamples
+    fit_quiet([window], base="dvs128", hot="off", progress=True)
+    err = capsys.readouterr().err
+    for name in ("quiet fit: full model", "quiet fit: test of regularity", "quiet fit: test of spread",
+                 "quiet fit: standard errors", "quiet fit: goodness of fit"):
+        assert name in err, err
+    fit_quiet([window], base="dvs128", hot="off")
+    assert capsys.readouterr().err == ""

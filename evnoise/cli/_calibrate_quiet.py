@@ -104,11 +104,12 @@ def run(args, recordings) -> int:
     for rec in recordings:
         for a, b, lux in spans:
             w = quiet_window(rec, a, b, lux=lux, sensor=args.sensor, csv_columns=args.csv_columns,
-                             checks=args.checks)
+                             checks=args.checks, progress=not args.quiet)
             windows.append(w)
             log.info("%s: %d events in %d pixels over %.3g s", w.describe(), int(w.counts.sum()),
                      int(w.counts[0].size), w.duration_s)
-    fit = fit_quiet(windows, base=base, spread=args.spread, hot=args.hot, regularity=args.regularity)
+    fit = fit_quiet(windows, base=base, spread=args.spread, hot=args.hot, regularity=args.regularity,
+                    progress=not args.quiet)
     print(fit.summary())
     params = fit.to_params(base)
     height, width = windows[0].shape

@@ -1,4 +1,5 @@
-"""``evnoise simulate INPUT --out events.h5``: an image or a folder of frames to an event file.
+"""``evnoise simulate INPUT --out events.h5``: an image or a folder of frames to an event file (any format
+evnoise writes: the ``--out`` suffix decides).
 
 An image is a static scene simulated for ``--duration`` seconds (renewal tier, O(events));
 a folder of frames is a video at ``--fps`` frames per second, frames sorted naturally by
@@ -29,7 +30,8 @@ def register(subparsers) -> None:
         "simulate",
         help="simulate the events of an image (static scene) or a folder of frames (video)",
         description="Simulate event-camera events of an image (a static scene, for --duration seconds) "
-        "or of a folder of frames (a video at --fps) and write them to an events.h5 file (DSEC layout).",
+        "or of a folder of frames (a video at --fps) and write them to an event file: events.h5 (DSEC layout) or "
+        "another format, as the --out suffix says.",
         epilog="example: evnoise simulate --example --duration 10 --out example.h5 --png example.png "
         "(-q: no progress bar and no summary)",
     )
