@@ -158,6 +158,21 @@ def test_tonic_noise_is_exactly_simulate_events_for_the_sample_span(preset):
     assert np.array_equal(noise["p"] == 1, expected["p"] == 1)
 
 
+def test_tonic_unsorted_sample_comes_out_sorted_with_the_same_noise():
+    """A sample not sorted by t gets the noise it would get anyway, merged by one stable sort (input events first
+    at equal times, in their input order)."""
+    from evnoise.plugins.tonic import PhotonNoise
+
+    sample = _sample(np.dtype([("x", int), ("y", int), ("t", int), ("p", int)]))
+    sample["t"] = sample["t"] // 1000 * 1000  # many equal times
+    shuffled = sample[np.random.default_rng(0).permutation(sample.size)]
+    transform = PhotonNoise((34, 34, 2), "evk3-hd", 2.0, rng=3)
+    out = transform(shuffled)
+    merged = np.concatenate([shuffled, transform.noise(shuffled)])
+    assert np.array_equal(out, merged[np.argsort(merged["t"], kind="stable")])
+    assert out.size > sample.size and np.all(np.diff(out["t"]) >= 0)
+
+
 @pytest.mark.parametrize("dtype", [ev.EVENT_DTYPE, np.dtype([("x", int), ("y", int), ("t", int), ("p", int)])])
 def test_tonic_transforms_accept_the_output(dtype):
     """tonic's ToFrame, ToVoxelGrid, ToTimesurface and Denoise after PhotonNoise, also on evnoise's own event
@@ -167,8 +182,15 @@ def test_tonic_transforms_accept_the_output(dtype):
 
     sensor_size = (34, 34, 2)
     sample = _sample(dtype)
-    out = PhotonNoise(sensor_size, "evk3-hd", 2.0, rng=0)(sample)
+    transform = PhotonNoise(sensor_size, "evk3-hd", 2.0, rng=0)
+    out = transform(sample)
     assert out.dtype.names == dtype.names and out["p"].dtype.kind == "i"
+    added = out[np.argsort(out["t"], kind="stable")]
+    noise = transform.noise(sample)
+    assert noise.dtype == out.dtype and out.size == sample.size + noise.size
+    # the call adds exactly the noise that noise() gives, input events first at equal times
+    merged = np.concatenate([sample.astype(out.dtype), noise])
+    assert np.array_equal(out, merged[np.argsort(merged["t"], kind="stable")]) and np.array_equal(added, out)
     assert out["p"].dtype.itemsize == dtype["p"].itemsize
     T = tonic.transforms
     frames = T.ToFrame(sensor_size, n_time_bins=3)(out)

@@ -239,15 +239,18 @@ class PhotonNoise:
             out["p"] = np.where(on, 1, off)
         return out
 
+    def _noise(self, events, dtype):
+        t, x, y, on = self._draw(events)
+        order = np.argsort(t, kind="stable")
+        return self._as_events(events, t[order], x[order], y[order], on[order], dtype)
+
     def noise(self, events) -> np.ndarray:
         """The noise events alone that :meth:`__call__` adds to ``events`` (the output's dtype, sorted by t)."""
         events = self._check_events(events)
         dtype = _signed_p(events.dtype)
         if events.size == 0:
             return np.empty(0, dtype=dtype)
-        t, x, y, on = self._draw(events)
-        order = np.argsort(t, kind="stable")
-        return self._as_events(events, t[order], x[order], y[order], on[order], dtype)
+        return self._noise(events, dtype)
 
     def __call__(self, events):
         """``events`` with photon-noise events added, sorted by ``t``, in the input's dtype (``p`` signed)."""
@@ -255,7 +258,18 @@ class PhotonNoise:
         dtype = _signed_p(events.dtype)
         if events.size == 0:
             return events.astype(dtype, copy=False)
-        noise = self._as_events(events, *self._draw(events), dtype)
-        out = np.concatenate([events.astype(dtype, copy=False), noise])
-        # stable: input events first at equal times, the noise in the order the sorted noise alone has
-        return out[np.argsort(out["t"], kind="stable")]
+        noise = self._noise(events, dtype)  # drawn for the sample as given (an int seed hashes its bytes)
+        events = events.astype(dtype, copy=False)
+        t = events["t"]
+        if not np.all(t[1:] >= t[:-1]):
+            # stable: input events first at equal times, then the noise in its own (sorted) order
+            out = np.concatenate([events, noise])
+            return out[np.argsort(out["t"], kind="stable")]
+        # a sorted sample (the usual case): the same order, by inserting the noise (no sort of the whole)
+        pos = np.searchsorted(t, noise["t"], side="right") + np.arange(noise.size)
+        out = np.empty(events.size + noise.size, dtype=dtype)
+        is_input = np.ones(out.size, dtype=bool)
+        is_input[pos] = False
+        out[is_input] = events
+        out[pos] = noise
+        return out
