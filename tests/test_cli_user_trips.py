@@ -372,3 +372,15 @@ def test_quiet_fit_and_checks_show_progress(tmp_path, capsys):
         assert name in err, err
     fit_quiet([window], base="dvs128", hot="off")
     assert capsys.readouterr().err == ""
+
+
+def test_reconstruct_asks_for_the_sensor_size_before_anything_else(tmp_path, capsys):
+    pytest.importorskip("torch")
+    csv = tmp_path / "rec.csv"
+    rng = np.random.default_rng(8)
+    t = np.sort(rng.integers(0, 200_000, 50))
+    csv.write_text("t,x,y,p\n" + "".join(f"{a},{b},{c},{d}\n" for a, b, c, d in
+                                         zip(t, rng.integers(0, 30, 50), rng.integers(0, 20, 50),
+                                             rng.integers(0, 2, 50), strict=True)))
+    code, _, err = run_cli(capsys, "reconstruct", csv, "-o", tmp_path / "r.png")
+    one_error_line(code, err, "gives no sensor size; add --sensor WxH")  # no model warnings before it

@@ -111,12 +111,16 @@ def run(args) -> int:
         start_us, duration = 0, h5_duration_s(args.events)  # checks the events file first: cheap, clear errors
     if args.t_start is None:
         args.t_start = start_us * 1e-6
-    rec = Reconstructor(model_path, threads=args.threads)
-    _warn_mismatch(args.events, rec)
-    if camera:  # a real camera's noise is not the model's simulated preset: say so, do not fail
+    meta = None
+    if camera:
         from ..io import read_metadata
 
         meta = read_metadata(args.events, sensor=args.sensor, csv_columns=args.csv_columns)
+        if not meta.get("shape"):  # before the model is loaded and its warnings are printed
+            raise InputError(f"{args.events}: the header gives no sensor size; add --sensor WxH")
+    rec = Reconstructor(model_path, threads=args.threads)
+    _warn_mismatch(args.events, rec)
+    if camera:  # a real camera's noise is not the model's simulated preset: say so, do not fail
         card = rec.doc.get("card") or {}
         size = f"{meta['shape'][1]}x{meta['shape'][0]}" if meta.get("shape") else "unknown size"
         log.warning("%s carries no evnoise model parameters (%s, %s: a camera's recording?), the model was "
@@ -144,7 +148,8 @@ def run(args) -> int:
             starts.append(t)
             t += args.step
         if not starts:
-            raise ParameterError(f"the stream ({duration:.3g} s) is shorter than one window of {window:g} s")
+            raise ParameterError(f"the stream from t = {seconds_text(args.t_start)} s to its end at "
+                                 f"{seconds_text(duration)} s is shorter than one window of {window:g} s")
     if args.step is None:
         targets = [out]
     else:
