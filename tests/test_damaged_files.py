@@ -264,3 +264,76 @@ def test_aedat4_tables_of_both_compressions_are_checked(tmp_path, compression):
         read_events_bytes(tmp_path, "plus.aedat4", data + b"\x00")
     with pytest.raises(InputError, match="ends inside its data table"):
         read_events_bytes(tmp_path, "minus.aedat4", data[:-1])
+
+
+# --------------------------------------------------------------------------------------
+# seeded mutation fuzz (issue 35 §3): a clean error, a warning or events, never a traceback
+# --------------------------------------------------------------------------------------
+_FUZZ_SUFFIXES = (".raw", ".dat", ".es", ".aedat4", ".csv", ".h5")
+
+
+def _mutations(data: bytes, rng, n: int):
+    """``n`` damaged copies of ``data``: cuts, appended bytes, flipped bytes, a zeroed run."""
+    size = len(data)
+    for k in range(n):
+        kind = k % 4
+        if kind == 0:
+            yield "cut", data[:int(rng.integers(0, size))]
+        elif kind == 1:
+            yield "append", data + rng.integers(0, 256, int(rng.integers(1, 64)), dtype=np.uint8).tobytes()
+        elif kind == 2:
+            buf = bytearray(data)
+            for i in rng.integers(0, size, int(rng.integers(1, 8))):
+                buf[i] ^= int(rng.integers(1, 256))
+            yield "flip", bytes(buf)
+        else:
+            buf = bytearray(data)
+            a = int(rng.integers(0, size))
+            buf[a:a + int(rng.integers(1, 256))] = bytes(min(255, size - a))
+            yield "zero", bytes(buf)
+
+
+def _fuzz(tmp_path, suffix, n, seed):
+    from evnoise.errors import EvnoiseError
+
+    data = _written(tmp_path, suffix)
+    rng = np.random.default_rng(seed)
+    for i, (kind, damaged) in enumerate(_mutations(data, rng, n)):
+        path = tmp_path / f"m{i}{suffix}"
+        path.write_bytes(damaged)
+        try:
+            events, _ = read_events(path)
+        except EvnoiseError as exc:
+            assert "\n" not in str(exc), (kind, str(exc))
+        except Exception as exc:  # noqa: BLE001 - what the test is about
+            pytest.fail(f"{suffix} {kind} #{i}: {type(exc).__name__}: {exc}")
+        else:
+            assert events.dtype == ev.EVENT_DTYPE
+        path.unlink()
+
+
+@pytest.mark.parametrize("suffix", _FUZZ_SUFFIXES)
+def test_mutated_files_never_give_a_traceback(tmp_path, suffix):
+    _fuzz(tmp_path, suffix, 24, seed=35)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("suffix", _FUZZ_SUFFIXES)
+def test_mutated_files_never_give_a_traceback_many(tmp_path, suffix):
+    _fuzz(tmp_path, suffix, 400, seed=3535)
+
+
+def test_aedat4_description_not_utf8_is_an_error_not_an_abort(tmp_path):
+    """faery 0.7.1 panics in a destructor on it and the whole process aborts (found by the fuzz above)."""
+    import subprocess
+    import sys
+
+    data = bytearray(_written(tmp_path, ".aedat4"))
+    data[data.index(b"<dv") + 20] = 0xFF
+    path = tmp_path / "bad.aedat4"
+    path.write_bytes(bytes(data))
+    code = ("import sys\nfrom evnoise.errors import InputError\nfrom evnoise.readers import read_events\n"
+            "try:\n    read_events(sys.argv[1])\nexcept InputError as exc:\n    print(exc)\n")
+    proc = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-1500:]
+    assert "not UTF-8" in proc.stdout

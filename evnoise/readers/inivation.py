@@ -90,8 +90,20 @@ def _aedat4_io_header(path) -> tuple[int, int]:
         fields = [struct.unpack_from("<H", buf, vtable + 4 + 2 * i)[0] for i in range(max(0, (vsize - 4) // 2))]
         compression = struct.unpack_from("<i", buf, root + fields[0])[0] if fields and fields[0] else 0
         position = struct.unpack_from("<q", buf, root + fields[1])[0] if len(fields) > 1 and fields[1] else -1
+        if len(fields) > 2 and fields[2]:  # field 2, infoNode: the description (XML text)
+            at = root + fields[2]
+            at += struct.unpack_from("<I", buf, at)[0]
+            length = struct.unpack_from("<I", buf, at)[0]
+            text = buf[at + 4:at + 4 + length]
+            if len(text) < length:
+                raise struct.error("short")
+            # faery 0.7.1 aborts the whole process (a panic in a destructor) on a description that is not UTF-8
+            text.decode("utf-8")
     except (struct.error, IndexError):
         raise InputError(f"cannot read {path} as AEDAT 4: its IO header is cut or damaged (truncated file?)") from None
+    except UnicodeDecodeError as exc:
+        raise InputError(f"cannot read {path} as AEDAT 4: its description is not UTF-8 text (byte {exc.start}: a "
+                         f"damaged file)") from None
     return compression, position
 
 
