@@ -337,3 +337,28 @@ def test_aedat4_description_not_utf8_is_an_error_not_an_abort(tmp_path):
     proc = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-1500:]
     assert "not UTF-8" in proc.stdout
+
+
+_REAL_FUZZ = {"faery/evt2.raw": "640x480", "expelliarmus/evt3_sample.raw": "1280x720",
+              "loris/NCARS_obj_004397_td.dat": "304x240", "tonic/sample.aedat4": None,
+              "tonic/sample_nmnist.bin": None, "jaer_colleenpamchen/DVS128-2017-03-21-short.aedat": None,
+              "loris/test.es": None, "evcammoke/Feedback/feedback-sorted.csv": "640x480"}
+
+
+@pytest.mark.parametrize("name", sorted(_REAL_FUZZ))
+def test_mutated_real_files_never_give_a_traceback(tmp_path, name):
+    from evnoise.errors import EvnoiseError
+
+    data = _real(name).read_bytes()
+    extra = {"csv_columns": "x,y,p,t"} if name.endswith(".csv") else {}
+    rng = np.random.default_rng(7)
+    for i, (kind, damaged) in enumerate(_mutations(data, rng, 8)):
+        path = tmp_path / f"m{i}{Path(name).suffix}"
+        path.write_bytes(damaged)
+        try:
+            read_events(path, sensor=_REAL_FUZZ[name], **extra)
+        except EvnoiseError as exc:
+            assert "\n" not in str(exc), (kind, str(exc))
+        except Exception as exc:  # noqa: BLE001 - what the test is about
+            pytest.fail(f"{name} {kind} #{i}: {type(exc).__name__}: {exc}")
+        path.unlink()
