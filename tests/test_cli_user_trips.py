@@ -118,6 +118,10 @@ def no_simulation(monkeypatch):
     (["calibrate", "EVENTS", "--window", "0:1e308"], "at most"),
     (["make-dataset", "IMAGE", "--window", "1e308"], "--window must be at most"),
     (["make-dataset", "IMAGE", "--seed", str(2**64)], "--seed must be at most"),
+    # 1e308 lux overflowed to NaN (simulate: a traceback; make-dataset: a worker that ignored SIGTERM for minutes)
+    (["simulate", "IMAGE", "--max-lux", "1e308"], "--max-lux must be at most 1e+09 lux"),
+    (["make-dataset", "IMAGE", "--max-lux", "6:1e308"], "--max-lux must be finite, > 0 and at most 1e+09 lux"),
+    (["make-dataset", "--procedural", "dead-leaves", "--count", str(10**23)], "--count must be <= 1000000"),
 ])
 def test_absurd_numbers_are_one_line_before_any_work(tmp_path, capsys, no_simulation, argv, expect):
     image = grey_image(tmp_path / "g.png")

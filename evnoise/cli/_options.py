@@ -23,6 +23,8 @@ MAX_SECONDS = (2**63 - 1) // 1_000_000
 MAX_HZ = 1e6
 #: seeds are stored as int64 attributes of the event file
 MAX_SEED = 2**63 - 1
+#: the largest illuminance (and lux per unit) an option may give: 10,000 times full sunlight; 1e308 overflowed
+MAX_LUX = 1e9
 
 
 # --------------------------------------------------------------------------------------
@@ -72,15 +74,19 @@ def frequency(flag: str, unit: str = "frames per second"):
     return parse
 
 
-def positive_number(flag: str, unit: str = ""):
-    """argparse type of a finite number > 0 (e.g. ``--max-lux``)."""
+def positive_number(flag: str, unit: str = "", *, maximum: float | None = None):
+    """argparse type of a finite number > 0 (e.g. ``--max-lux``), at most ``maximum`` if given."""
 
     def parse(text):
         value = _number(text, flag)
         try:
-            return positive(value, flag, unit)
+            value = positive(value, flag, unit)
         except ParameterError as exc:
             raise argparse.ArgumentTypeError(str(exc)) from None
+        if maximum is not None and value > maximum:
+            raise argparse.ArgumentTypeError(f"{flag} must be at most {maximum:g}{' ' + unit if unit else ''}, "
+                                             f"got {text}")
+        return value
 
     parse.__name__ = "number"
     return parse
@@ -134,6 +140,19 @@ def positive(value, flag: str, unit: str = "") -> float | None:
     if not math.isfinite(value) or value <= 0:
         raise ParameterError(f"{flag} must be finite and > 0{' ' + unit if unit else ''}, got {value:g}")
     return value
+
+
+def check_range_text(text, flag: str, unit: str = "", maximum: float = MAX_LUX) -> None:
+    """``LUX`` or ``LO:HI`` (make-dataset's ranges): :class:`~evnoise.ParameterError` for a number that is not
+    finite and > 0 or above ``maximum``; text that is no number is left to the range parser to report."""
+    for part in str(text).split(":"):
+        try:
+            value = float(part)
+        except ValueError:
+            continue
+        if not (math.isfinite(value) and 0 < value <= maximum):
+            raise ParameterError(f"{flag} must be finite, > 0 and at most {maximum:g}{' ' + unit if unit else ''}, "
+                                 f"got {text}")
 
 
 def parse_wxh(text, flag: str = "--sensor", example: str = "1280x720", maximum: int = 65536):
@@ -216,5 +235,5 @@ def add_seed(p, *, help: str, default=None):
 
 
 __all__ = ["seconds", "frequency", "positive_number", "seed", "count", "positive", "parse_wxh", "load_preset_arg",
-           "check_text_file", "event_input_help", "add_out", "add_overwrite", "add_sensor", "add_csv_columns",
-           "add_threads", "add_seed", "MAX_SECONDS", "MAX_HZ", "MAX_SEED"]
+           "check_text_file", "check_range_text", "event_input_help", "add_out", "add_overwrite", "add_sensor",
+           "add_csv_columns", "add_threads", "add_seed", "MAX_SECONDS", "MAX_HZ", "MAX_SEED", "MAX_LUX"]

@@ -31,7 +31,7 @@ def register(subparsers):
     p.add_argument("--split", default="test", choices=("train", "val", "test"),
                    help="dataset split (default: test; a .npz file has one)")
     p.add_argument("--preset", help="noise preset of the ML baseline (default: the dataset's parameters)")
-    p.add_argument("--max-lux", type=float, metavar="LUX",
+    p.add_argument("--max-lux", type=opt.positive_number("--max-lux", "lux", maximum=opt.MAX_LUX), metavar="LUX",
                    help="white level of the ML baseline in lux (default: the dataset's)")
     p.add_argument("--ml-sigma", type=float, action="append", metavar="S",
                    help="Gaussian smoothing of the ML baseline, binned pixels (repeatable: one row each; "

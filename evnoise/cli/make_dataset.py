@@ -44,7 +44,8 @@ def register(subparsers) -> None:
     opt.add_out(p, required=True, metavar="DIR", help="output folder (new, empty, or this job's)")
     src = p.add_argument_group("procedural and packaged scenes")
     src.add_argument("--procedural", choices=("dead-leaves",), help="add procedural images (needs --count)")
-    src.add_argument("--count", type=int, metavar="N", help="number of procedural images")
+    src.add_argument("--count", type=opt.count("--count", maximum=1_000_000), metavar="N",
+                     help="number of procedural images (at most 1,000,000)")
     src.add_argument("--source", action="append", choices=("package-photos",), default=[],
                      help="add the natural photos that installed packages ship (scikit-image, matplotlib, "
                      "scikit-learn, PyWavelets); nothing is downloaded")
@@ -74,7 +75,8 @@ def register(subparsers) -> None:
     sim.add_argument("--contrast", default="1", metavar="G|LO:HI",
                      help="exponent applied to linear luminance, Y -> Y^G; LO:HI draws one per crop "
                      "(contrast augmentation) (default: %(default)s)")
-    sim.add_argument("--white-lux", type=float, metavar="LUX",
+    sim.add_argument("--white-lux", type=opt.positive_number("--white-lux", "lux", maximum=opt.MAX_LUX),
+                     metavar="LUX",
                      help="lux shown as white in the stored images (default: the top of --max-lux)")
     sim.add_argument("--encoding", choices=("srgb", "gamma2.2", "linear"), default="srgb",
                      help="transfer function of 8/16-bit images (default: %(default)s)")
@@ -120,6 +122,8 @@ def build_config(args):
     from ._options import check_text_file
 
     check_text_file(args.preset)
+    opt.check_range_text(args.max_lux, "--max-lux", "lux")
+    opt.check_range_text(args.lux_scale, "--lux-scale", "lux per unit")
     for text in args.window or []:
         for part in filter(str.strip, str(text).split(",")):
             try:

@@ -55,10 +55,11 @@ def register(subparsers) -> None:
     p.add_argument("--fit", choices=FIT_MODES, default="cover",
                    help="how to bring images to --sensor: cover (scale keeping the aspect ratio, crop the "
                    "centre), crop (centre crop, no scaling), resize (stretch) (default: %(default)s)")
-    p.add_argument("--max-lux", type=opt.positive_number("--max-lux", "lux"), metavar="LUX",
+    p.add_argument("--max-lux", type=opt.positive_number("--max-lux", "lux", maximum=opt.MAX_LUX), metavar="LUX",
                    help=f"illuminance of full-scale white of 8/16-bit images (default {DEFAULT_MAX_LUX:g} lux, "
                    "the Noise2Image monitor at grey 255)")
-    p.add_argument("--lux-scale", type=opt.positive_number("--lux-scale", "lux per unit"), metavar="K",
+    p.add_argument("--lux-scale", type=opt.positive_number("--lux-scale", "lux per unit", maximum=opt.MAX_LUX),
+                   metavar="K",
                    help="lux per unit of linear images (OpenEXR, float TIFF) (default 1)")
     p.add_argument("--encoding", choices=ENCODINGS, default="srgb",
                    help="transfer function of 8/16-bit images (default: %(default)s)")
