@@ -5,15 +5,14 @@ declare an option the same way in every command that has it (``-o`` is always ``
 argparse types ``seconds``, ``frequency``, ``seed`` and ``count`` check a value when it is parsed,
 so that an absurd one (``--duration 1e308``, ``--seed 2**64``) is one error line before any work,
 never a traceback after it. :func:`positive` is the one positive-number check of values that
-arrive some other way, :func:`parse_wxh` the one ``WxH`` parser, :func:`load_preset_arg` the one
-way a command loads a ``--preset`` (a name or a TOML file).
+arrive some other way, :func:`load_preset_arg` the one way a command loads a ``--preset`` (a name or
+a TOML file). ``--sensor WxH`` is parsed by :func:`evnoise.readers.parse_sensor`, for every command.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
-import re
 
 from ..errors import ParameterError
 
@@ -155,16 +154,6 @@ def check_range_text(text, flag: str, unit: str = "", maximum: float = MAX_LUX) 
                                  f"got {text}")
 
 
-def parse_wxh(text, flag: str = "--sensor", example: str = "1280x720", maximum: int = 65536):
-    """``"1280x720"`` -> ``(720, 1280)`` (H, W); ``None`` stays ``None``."""
-    if text is None:
-        return None
-    m = re.fullmatch(r"\s*(\d+)\s*[xX*,]\s*(\d+)\s*", str(text))
-    if not m or min(int(m.group(1)), int(m.group(2))) < 1 or max(int(m.group(1)), int(m.group(2))) > maximum:
-        raise ParameterError(f"{flag} must be WIDTHxHEIGHT, e.g. {example} (1 .. {maximum} each), got {text!r}")
-    return int(m.group(2)), int(m.group(1))
-
-
 def check_text_file(value, flag: str = "--preset", what: str = "a preset is a TOML file") -> None:
     """If ``value`` names an existing file, :class:`~evnoise.ParameterError` unless it is UTF-8 text (a binary
     file, or one saved in another encoding, would otherwise be a ``UnicodeDecodeError`` traceback)."""
@@ -234,6 +223,6 @@ def add_seed(p, *, help: str, default=None):
     return p.add_argument("--seed", type=seed(), default=default, metavar="N", help=help)
 
 
-__all__ = ["seconds", "frequency", "positive_number", "seed", "count", "positive", "parse_wxh", "load_preset_arg",
+__all__ = ["seconds", "frequency", "positive_number", "seed", "count", "positive", "load_preset_arg",
            "check_text_file", "check_range_text", "event_input_help", "add_out", "add_overwrite", "add_sensor",
            "add_csv_columns", "add_threads", "add_seed", "MAX_SECONDS", "MAX_HZ", "MAX_SEED", "MAX_LUX"]

@@ -81,8 +81,11 @@ def register(subparsers) -> None:
 # argument checks
 # --------------------------------------------------------------------------------------
 def parse_sensor(text):
-    """``"1280x720"`` -> ``(720, 1280)`` (H, W); ``None`` stays ``None``."""
-    return opt.parse_wxh(text)
+    """``"1280x720"`` -> ``(720, 1280)`` (H, W); ``None`` stays ``None`` (the readers' parser: one for every
+    command)."""
+    from ..readers import parse_sensor as parse
+
+    return parse(text)
 
 
 class LuxFrames:
