@@ -28,45 +28,212 @@ def decode_attr(value):
     return value
 
 
+#: Most objects (groups, datasets, links) looked at in one file before it is refused: an events.h5 file
+#: has about ten; the limit only bounds the check below on a file built to be slow to walk.
+MAX_H5_OBJECTS = 10_000
+#: Largest ``|t_offset|`` (µs) accepted: about 146,000 years, so that ``t + t_offset`` cannot wrap.
+MAX_T_OFFSET = 1 << 62
+
+
 def open_h5(path):
-    """Open an events.h5 file read-only (``InputError`` with one clean line if it is missing or not HDF5)."""
+    """Open an events.h5 file read-only (``InputError`` with one clean line if it is missing or not HDF5).
+
+    The one place where evnoise opens an HDF5 file to read its data: a file that keeps any dataset's
+    data outside itself is refused here, before anything is read (see :func:`check_stored_inside`).
+    """
     import h5py
 
     path = check_input_file(path, missing="event file", kind="an event file")
     try:
-        return h5py.File(path, "r")
+        f = h5py.File(path, "r")
     except OSError as exc:
         raise InputError(f"cannot open {path}: not an HDF5 events file ({exc})") from None
+    try:
+        check_stored_inside(f, path)
+    except BaseException:
+        f.close()
+        raise
+    return f
+
+
+def _outside(obj, path) -> str | None:
+    """Why dataset ``obj`` reads data from outside the file ``path``, or None."""
+    try:
+        if obj.is_virtual:
+            files = sorted({m.file_name for m in obj.virtual_sources()})
+            return f"is a virtual dataset whose data live in {', '.join(files[:2]) or 'other files'}"
+        external = obj.external
+    except (OSError, RuntimeError, ValueError) as exc:
+        return f"has a storage layout that cannot be read ({exc})"
+    if external:
+        return f"keeps its data in the external file {decode_attr(external[0][0])!r}"
+    return None
+
+
+def check_stored_inside(f, path) -> None:
+    """Refuse a file that would make a read touch anything but the file itself: a dataset with
+    external storage (raw bytes of any local file, ``create_dataset(..., external=...)``), a virtual
+    dataset (data mapped from other files), or an external link (an object of another HDF5 file).
+    ``InputError`` naming the object; at most :data:`MAX_H5_OBJECTS` objects are looked at."""
+    import h5py
+
+    seen = set()
+    stack = [f]
+    count = 0
+    try:
+        while stack:
+            group = stack.pop()
+            for name in group:
+                count += 1
+                if count > MAX_H5_OBJECTS:
+                    raise InputError(f"{path} holds more than {MAX_H5_OBJECTS:,} HDF5 objects; an events.h5 file "
+                                     "has a handful (refused rather than walked)")
+                link = group.get(name, getlink=True)
+                where = f"{group.name.rstrip('/')}/{name}"
+                if isinstance(link, h5py.ExternalLink):
+                    raise InputError(f"{path}: {where} links to another file ({link.filename!r}); evnoise reads "
+                                     "only data stored inside the file it is given")
+                if isinstance(link, h5py.SoftLink):
+                    continue  # points inside the file: its target is checked where it is
+                obj = group.get(name)
+                if isinstance(obj, h5py.Dataset):
+                    why = _outside(obj, path)
+                    if why:
+                        raise InputError(f"{path}: dataset {where} {why}; evnoise reads only data stored inside "
+                                         "the file it is given")
+                elif isinstance(obj, h5py.Group):
+                    if obj.id not in seen:  # ObjectIDs compare (and hash) by the object they name
+                        seen.add(obj.id)
+                        stack.append(obj)
+    except InputError:
+        raise
+    except (OSError, RuntimeError, ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"cannot read {path}: its HDF5 structure is damaged ({exc})") from None
+
+
+def _check_present(ds, path, what: str, file_size: int) -> None:
+    """Refuse a dataset whose declared length is not backed by data in the file: a chunked one with
+    chunks never written (they would read as fill-value zeros: a header declaring 1e11 events made the
+    readers count through 1e11 invented events), or a contiguous one that is unallocated or ends past
+    the end of the file (truncated)."""
+    import h5py
+
+    n = int(ds.shape[0])
+    if n == 0:
+        return
+    try:
+        layout = ds.id.get_create_plist().get_layout()
+        if layout == h5py.h5d.CHUNKED:
+            chunk = int(ds.chunks[0])
+            needed = -(-n // chunk)
+            have = int(ds.id.get_num_chunks())
+            if have < needed:
+                raise InputError(f"{path}: {what} declares {n:,} events but stores only {have:,} of the "
+                                 f"{needed:,} blocks that hold them (unwritten or damaged data)")
+        elif layout == h5py.h5d.CONTIGUOUS:
+            offset = ds.id.get_offset()
+            end = None if offset is None else int(offset) + n * ds.dtype.itemsize
+            if end is None or end > file_size:
+                raise InputError(f"{path}: {what} declares {n:,} events but the file "
+                                 f"{'stores none of them' if end is None else 'ends before them (truncated)'}")
+    except InputError:
+        raise
+    except (OSError, RuntimeError, ValueError, TypeError) as exc:
+        raise InputError(f"cannot read {path}: {what} is damaged ({exc})") from None
 
 
 def event_datasets(f, path) -> dict:
-    """The ``/events/x, y, t, p`` datasets of an open file, checked (1-D, equal length)."""
-    group = f.get("events")
+    """The ``/events/x, y, t, p`` datasets of an open file, checked (1-D, equal length, integers, and
+    every declared event actually stored in the file)."""
+    import os
+
     import h5py
 
-    if not isinstance(group, h5py.Group) or not all(isinstance(group.get(k), h5py.Dataset) for k in "xytp"):
+    try:
+        group = f.get("events")
+        found = isinstance(group, h5py.Group) and all(isinstance(group.get(k), h5py.Dataset) for k in "xytp")
+    except (OSError, RuntimeError, ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"cannot read {path}: its HDF5 structure is damaged ({exc})") from None
+    if not found:
         raise InputError(f"{path} is not an events.h5 file (no /events/x, y, t, p datasets)")
     ds = {k: group[k] for k in "xytp"}
     sizes = {ds[k].shape for k in "xytp"}
     if len(sizes) != 1 or len(next(iter(sizes))) != 1:
         raise InputError(f"{path}: /events/x, y, t, p must be 1-D and of equal length, got {sorted(sizes)}")
+    for k in "xytp":
+        kind = ds[k].dtype.kind
+        if kind not in "iub":
+            raise InputError(f"{path}: /events/{k} must hold integers, got {ds[k].dtype}")
+    try:
+        file_size = os.path.getsize(f.filename)
+    except OSError:
+        file_size = 1 << 62
+    for k in "xytp":
+        _check_present(ds[k], path, f"/events/{k}", file_size)
     return ds
 
 
+def _int_attr(value, what: str, path):
+    """``value`` as an int, or InputError naming ``what`` (a string, a fraction, an array)."""
+    if isinstance(value, np.ndarray) and value.size == 1:
+        value = value.reshape(()).item()
+    if isinstance(value, (bool, np.bool_)):
+        value = None
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)) and np.isfinite(value) and float(value).is_integer():
+        return int(value)
+    raise InputError(f"{path}: {what} must be an integer, got {value!r}"[:300])
+
+
 def h5_metadata(f, ds) -> dict:
-    """Root attributes decoded (JSON ones to dicts) plus ``shape``, ``n_events`` and ``t_offset``."""
-    meta = {k: decode_attr(v) for k, v in f.attrs.items()}
+    """Root attributes decoded (JSON ones to dicts) plus ``shape``, ``n_events`` and ``t_offset``.
+
+    ``InputError`` (one line) for metadata that evnoise relies on and that is damaged: ``json_attrs``
+    that is not a JSON list of names, a width or height that is not a positive integer (or only one
+    of them), a ``/t_offset`` that is not one integer within :data:`MAX_T_OFFSET`.
+    """
+    path = f.filename
+    try:
+        meta = {k: decode_attr(v) for k, v in f.attrs.items()}
+    except (OSError, RuntimeError, ValueError, TypeError, KeyError) as exc:
+        raise InputError(f"cannot read the attributes of {path} ({exc})") from None
     json_keys = meta.pop("json_attrs", None)
-    if json_keys:
-        for key in json.loads(json_keys):
+    if json_keys is not None:
+        try:
+            keys = json.loads(json_keys)
+        except (TypeError, ValueError):
+            keys = None
+        if not isinstance(keys, list) or not all(isinstance(k, str) for k in keys):
+            raise InputError(f"{path}: its json_attrs attribute is not a JSON list of attribute names")
+        for key in keys:
             if key in meta:
                 try:
                     meta[key] = json.loads(meta[key])
                 except (TypeError, ValueError):
                     pass
-    meta["shape"] = (int(meta["height"]), int(meta["width"])) if "height" in meta and "width" in meta else None
+    if "height" in meta and "width" in meta:
+        height = _int_attr(meta["height"], "the height attribute", path)
+        width = _int_attr(meta["width"], "the width attribute", path)
+        if height <= 0 or width <= 0 or height > 65536 or width > 65536:
+            raise InputError(f"{path} has an invalid sensor size {width}x{height} (1 .. 65536 each)")
+        meta["shape"] = (height, width)
+    elif "height" in meta or "width" in meta:
+        raise InputError(f"{path} has only one of the width and height attributes")
+    else:
+        meta["shape"] = None
     meta["n_events"] = int(ds["t"].shape[0])
-    meta["t_offset"] = int(f["t_offset"][()]) if "t_offset" in f else 0
+    offset = 0
+    if "t_offset" in f:
+        try:
+            node = f["t_offset"]
+            value = node[()] if hasattr(node, "shape") and node.shape is not None else None
+        except (OSError, RuntimeError, ValueError, TypeError, KeyError) as exc:
+            raise InputError(f"cannot read /t_offset of {path} ({exc})") from None
+        offset = _int_attr(value, "/t_offset", path)
+        if abs(offset) > MAX_T_OFFSET:
+            raise InputError(f"{path}: /t_offset {offset} is beyond +-2^62 µs")
+    meta["t_offset"] = offset
     return meta
 
 

@@ -30,8 +30,16 @@ class H5Source(EventSource):
             meta = h5_metadata(f, ds)
             n = meta["n_events"]
             self.t_offset_us = int(meta["t_offset"])
-            self.t_first_us = int(ds["t"][0]) + self.t_offset_us if n else None
-            self.t_last_us = int(ds["t"][n - 1]) + self.t_offset_us if n else None
+            try:
+                first = int(ds["t"][0]) if n else None
+                last = int(ds["t"][n - 1]) if n else None
+            except (OSError, RuntimeError, ValueError, TypeError) as exc:
+                raise InputError(f"cannot read events from {self.path}: {exc}") from None
+        for t in (first, last):
+            if t is not None and not -(1 << 63) <= t + self.t_offset_us < (1 << 63):
+                raise InputError(f"{self.path}: /t_offset {self.t_offset_us} puts event times past the int64 range")
+        self.t_first_us = None if first is None else first + self.t_offset_us
+        self.t_last_us = None if last is None else last + self.t_offset_us
         self.n_events = n
         self.meta = {k: v for k, v in meta.items() if k != "shape"}
         self._set_shape(meta["shape"])
@@ -47,9 +55,9 @@ class H5Source(EventSource):
             for a in range(lo, hi, CHUNK_EVENTS):
                 b = min(a + CHUNK_EVENTS, hi)
                 try:
-                    t = ds["t"][a:b]
+                    t = ds["t"][a:b].astype(np.int64, copy=False)
                     events = make_events(t + off if off else t, ds["x"][a:b], ds["y"][a:b], ds["p"][a:b])
-                except OSError as exc:
+                except (OSError, RuntimeError, ValueError, TypeError) as exc:
                     raise InputError(f"cannot read events from {self.path}: {exc}") from None
                 if events.size and int(events["p"].max()) > 1:
                     events["p"] = events["p"] != 0
