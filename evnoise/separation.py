@@ -477,7 +477,9 @@ def separate_file(path, signal_out=None, noise_out=None, method="density", *, ov
                 writers["noise"].write(done[~labels])
 
         if n:
-            for chunk, b in recording_blocks(path, t_begin, t_end, FILE_BLOCK_US, shape, csv_columns=csv_columns):
+            blocks = recording_blocks(path, t_begin, t_end, FILE_BLOCK_US, shape, csv_columns=csv_columns,
+                                      skip_empty=True)  # long gaps cost nothing
+            for chunk, b in blocks:
                 emit(*sep.push(chunk, t_complete_us=b))
                 if bar is not None:
                     bar.update((min(b, t_end) - t_begin) * 1e-6 - bar.n)
