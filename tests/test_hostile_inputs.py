@@ -248,3 +248,241 @@ def test_manifest_naming_a_file_outside_the_dataset_is_refused(tmp_path, capsys,
 
     with pytest.raises(ev.InputError, match="outside the dataset folder"):
         open_pairs(ds, split=shard["split"])
+
+
+# --------------------------------------------------------------------------------------
+# 3. events.h5 from strangers: nothing read from outside the file, declared sizes backed by data
+# --------------------------------------------------------------------------------------
+def _events_h5(path, n=500, shape=(24, 32), seed=0):
+    from evnoise.events import make_events
+
+    rng = np.random.default_rng(seed)
+    t = np.sort(rng.integers(0, 1_000_000, n))
+    ev.write_events(path, make_events(t, rng.integers(0, shape[1], n), rng.integers(0, shape[0], n),
+                                      rng.integers(0, 2, n)), shape=shape)
+    return path
+
+
+def _rewrite(path, column, make):
+    """Replace ``/events/<column>`` by what ``make(f, name, old_values)`` creates."""
+    h5py = pytest.importorskip("h5py")
+    with h5py.File(path, "r+") as f:
+        old = f["events"][column][()]
+        del f["events"][column]
+        make(f, f"events/{column}", old)
+
+
+def _read_everywhere(capsys, path, tmp_path, expect):
+    """read_events, the chunked reader, `info` and `separate` all refuse ``path`` with ``expect``."""
+    with pytest.raises(ev.InputError, match=expect):
+        ev.read_events(path)
+    with pytest.raises(ev.InputError, match=expect):
+        list(ev.open_events(path).chunks(None, None))
+    code, _, err = run_cli(capsys, "info", path)
+    one_error_line(code, err, expect)
+    code, _, err = run_cli(capsys, "separate", path, "--out", tmp_path / "sep.h5")
+    one_error_line(code, err, expect)
+    assert not (tmp_path / "sep.h5").exists()
+
+
+def test_external_storage_is_not_read(tmp_path, capsys):
+    secret = tmp_path / "secret.bin"
+    secret.write_bytes(np.arange(500, dtype=np.int64).tobytes())  # stands for /etc/passwd
+    path = _events_h5(tmp_path / "ext.h5")
+    _rewrite(path, "t", lambda f, name, old: f.create_dataset(name, shape=old.shape, dtype=np.int64,
+                                                              external=[(str(secret), 0, old.size * 8)]))
+    _read_everywhere(capsys, path, tmp_path, "external file")
+
+
+def test_virtual_datasets_and_external_links_are_not_followed(tmp_path, capsys):
+    h5py = pytest.importorskip("h5py")
+    other = _events_h5(tmp_path / "other.h5", seed=1)
+    path = _events_h5(tmp_path / "virtual.h5")
+
+    def virtual(f, name, old):
+        layout = h5py.VirtualLayout(shape=old.shape, dtype=old.dtype)
+        layout[:] = h5py.VirtualSource(str(other), "events/x", shape=old.shape)
+        f.create_virtual_dataset(name, layout)
+
+    _rewrite(path, "x", virtual)
+    _read_everywhere(capsys, path, tmp_path, "virtual dataset")
+    linked = _events_h5(tmp_path / "linked.h5")
+    _rewrite(linked, "y", lambda f, name, old: f.__setitem__(name, h5py.ExternalLink(str(other), "events/y")))
+    _read_everywhere(capsys, linked, tmp_path, "links to another file")
+
+
+def test_declared_but_unwritten_events_are_refused_not_invented(tmp_path, capsys):
+    # a 1e11-event header with no data read as 1e11 zeros (hours); now: checked against the stored chunks
+    h5py = pytest.importorskip("h5py")
+    path = _events_h5(tmp_path / "huge.h5")
+    with h5py.File(path, "r+") as f:
+        for k in "xytp":
+            dtype = f["events"][k].dtype
+            del f["events"][k]
+            f["events"].create_dataset(k, shape=(10**11,), dtype=dtype, chunks=(1 << 16,))
+    # first in a fresh interpreter: before the fix this read ran for hours (limit_s only guards the suite)
+    proc = run_python(f"import evnoise as ev; ev.read_events({str(path)!r})", limit_s=120)
+    assert proc.returncode != 0 and "declares 100,000,000,000 events" in proc.stderr, proc.stderr[-2000:]
+    _read_everywhere(capsys, path, tmp_path, "declares 100,000,000,000 events")
+    contiguous = _events_h5(tmp_path / "contiguous.h5")
+    _rewrite(contiguous, "p", lambda f, name, old: f.create_dataset(name, shape=(old.size,), dtype=old.dtype))
+    _read_everywhere(capsys, contiguous, tmp_path, "stores none of them")
+
+
+@pytest.mark.parametrize("damage, expect", [
+    (lambda f: f.attrs.__setitem__("width", "abc"), "width attribute must be an integer"),
+    (lambda f: f.attrs.__setitem__("height", 2.5), "height attribute must be an integer"),
+    (lambda f: f.attrs.__setitem__("width", -3), "invalid sensor size"),
+    (lambda f: f.attrs.__delitem__("height"), "only one of the width and height"),
+    (lambda f: f.attrs.__setitem__("json_attrs", "{not json"), "json_attrs attribute is not a JSON list"),
+    (lambda f: f.attrs.__setitem__("json_attrs", "7"), "json_attrs attribute is not a JSON list"),
+    (lambda f: f.__setitem__("t_offset", "soon"), "/t_offset must be an integer"),
+    (lambda f: f.__setitem__("t_offset", np.arange(3)), "/t_offset must be an integer"),
+    (lambda f: f.__setitem__("t_offset", 2**63 - 1), "beyond"),
+])
+def test_damaged_metadata_gives_one_clean_error(tmp_path, capsys, damage, expect):
+    h5py = pytest.importorskip("h5py")
+    path = _events_h5(tmp_path / "meta.h5")
+    with h5py.File(path, "r+") as f:
+        if "t_offset" in f:
+            del f["t_offset"]
+        damage(f)
+    with pytest.raises(ev.InputError, match=re.escape(expect)):
+        ev.read_events(path)
+    code, _, err = run_cli(capsys, "info", path)
+    one_error_line(code, err, expect)
+
+
+def test_unreadable_first_time_is_an_input_error(tmp_path):
+    # readers/hdf5.py read t[0] outside its OSError handler: a damaged chunk gave a traceback
+    h5py = pytest.importorskip("h5py")
+    path = _events_h5(tmp_path / "chunk.h5", n=5000)
+    with h5py.File(path, "r") as f:
+        t = f["events/t"]
+        assert t.chunks is not None
+        info = t.id.get_chunk_info(0)
+    raw = bytearray(path.read_bytes())
+    raw[info.byte_offset:info.byte_offset + info.size] = b"\xff" * info.size  # the first block of t, garbled
+    path.write_bytes(bytes(raw))
+    with pytest.raises(ev.InputError, match="cannot read events"):
+        ev.open_events(path)
+
+
+# --------------------------------------------------------------------------------------
+# 5. separate / reconstruct of a file whose clock is a camera's (t_offset 1.6e15 µs)
+# --------------------------------------------------------------------------------------
+CAMERA_T0 = 1_633_953_690_000_000
+
+
+def _offset_h5(path, t_offset=CAMERA_T0, gap_us=0):
+    """An events.h5 whose events lie at ``t_offset + t`` (as ``separate`` writes from a camera file), the
+    second half of them ``gap_us`` later."""
+    h5py = pytest.importorskip("h5py")
+    _events_h5(path, n=400)
+    with h5py.File(path, "r+") as f:
+        if gap_us:
+            t = f["events/t"][()]
+            t[200:] += gap_us
+            f["events/t"][...] = t
+            del f["ms_to_idx"]
+        if "t_offset" in f:
+            del f["t_offset"]
+        f["t_offset"] = np.int64(t_offset)
+        if "t_end_us" in f.attrs:
+            f.attrs["t_end_us"] = int(f["events/t"][-1]) + 1
+    return path
+
+
+def test_a_recording_with_a_camera_clock_starts_at_its_offset(tmp_path):
+    from evnoise._recordings import recording_start_us
+
+    path = _offset_h5(tmp_path / "cam.h5")
+    assert recording_start_us(path, None) == CAMERA_T0
+    assert recording_start_us(_events_h5(tmp_path / "own.h5"), 5) == 0  # evnoise's own clock starts at 0
+
+
+def test_separate_of_a_camera_clock_file_finishes(tmp_path):
+    # stepped 1 ms blocks from 0 to 1.6e15 µs before: it never ended. limit_s only guards the suite.
+    path = _offset_h5(tmp_path / "cam.h5")
+    code = (f"from evnoise.separation import separate_file; r = separate_file({str(path)!r}, "
+            f"{str(tmp_path / 's.h5')!r}, {str(tmp_path / 'n.h5')!r}); print(r['n_events'])")
+    proc = run_python(code)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert int(proc.stdout.split()[-1]) == 400
+    noise = ev.open_events(tmp_path / "n.h5")
+    assert noise.t_offset_us == CAMERA_T0  # the outputs keep the camera's clock
+    proc = run_python(f"from evnoise.separation import separate_file; separate_file({str(tmp_path / 'n.h5')!r}, "
+                      f"{str(tmp_path / 's2.h5')!r})")  # evnoise's own output, separated again
+    assert proc.returncode == 0, proc.stderr[-2000:]
+
+
+@pytest.mark.parametrize("offset", [0, CAMERA_T0])
+def test_blocks_skip_long_empty_stretches(tmp_path, offset):
+    # 200 events, a gap of 1e12 µs (a million 1-s... blocks of 1 ms: 1e9 of them), 200 events
+    from evnoise._recordings import recording_blocks
+
+    path = _offset_h5(tmp_path / "gap.h5", t_offset=offset, gap_us=10**12)
+    start = offset
+    end = offset + 10**12 + 1_000_001
+    blocks = []
+    for events, b in recording_blocks(path, start, end, 1000, skip_empty=True):
+        blocks.append((events.size, b))
+        assert len(blocks) < 5000  # far fewer than the 1e9 blocks of the span
+    assert sum(n for n, _ in blocks) == 400
+    assert all((b - start) % 1000 == 0 for _, b in blocks)  # still the grid of [start + k 1000, ...)
+    # skipping yields exactly the non-empty blocks of the dense stream (every block, empty ones too)
+    dense = []
+    for events, b in recording_blocks(path, start, end, 1000):
+        if b > start + 1_000_000:
+            break
+        dense.append((events.size, b))
+    assert [x for x in dense if x[0]] == [x for x in blocks if x[1] <= start + 1_000_000]
+
+
+def test_reblock_skips_gaps_of_a_camera_stream():
+    from evnoise._recordings import _reblock
+    from evnoise.events import make_events
+
+    t = np.array([5, 7, 10**15 + 3, 10**15 + 4000], dtype=np.int64)
+    chunks = [make_events(t[:2], [0, 1], [0, 0], [1, 0]), make_events(t[2:], [2, 3], [0, 0], [1, 1])]
+    out = list(_reblock(iter(chunks), 0, 10**15 + 5000, 1000, skip_empty=True))
+    assert [(e.size, b) for e, b in out] == [(2, 1000), (1, 10**15 + 1000), (1, 10**15 + 5000)]
+
+
+# --------------------------------------------------------------------------------------
+# 6. a checkpoint's network size is bounded before anything is allocated
+# --------------------------------------------------------------------------------------
+@pytest.mark.parametrize("change, expect", [
+    (dict(base_channels=65536), "base_channels must be <= 4096"),
+    (dict(blocks_per_level=100_000), "blocks_per_level must be <= 64"),
+    (dict(base_channels=4096, channel_mults=[1, 2, 4, 8]), "parameters, more than"),
+    (dict(channel_mults=list(range(1, 40))), "at most 10 levels"),
+    (dict(channel_mults="1,2"), "channel_mults must be a sequence"),
+])
+def test_checkpoint_declaring_a_huge_network_is_refused(tmp_path, capsys, change, expect):
+    torch = pytest.importorskip("torch")
+    from evnoise.reconstruct.checkpoint import load_model, read_checkpoint
+    from evnoise.reconstruct.infer import default_model_path
+    from evnoise.reconstruct.unet import UNetConfig
+
+    doc = read_checkpoint(default_model_path())
+    doc["model"] = {**doc["model"], **change}
+    bad = tmp_path / "huge.pt"
+    torch.save(doc, bad)
+    with pytest.raises(ev.ParameterError, match=re.escape(expect)):  # first: this allocates nothing
+        UNetConfig.from_dict(doc["model"])
+    with pytest.raises(ev.InputError, match=re.escape(expect)):
+        load_model(bad)
+    events = _events_h5(tmp_path / "ev.h5")
+    code, _, err = run_cli(capsys, "reconstruct", events, "--model", bad, "-o", tmp_path / "out.png")
+    one_error_line(code, err, expect)
+
+
+def test_parameter_bound_is_an_upper_bound():
+    torch = pytest.importorskip("torch")  # noqa: F841 - the network is built
+    from evnoise.reconstruct.unet import UNet, UNetConfig
+
+    for kw in (dict(), dict(base_channels=8, channel_mults=(1, 2)), dict(stem=2, blocks_per_level=3),
+               dict(base_channels=32, channel_mults=(1, 2, 4, 8), blocks_per_level=2, in_channels=1)):
+        config = UNetConfig(**kw)
+        assert sum(p.numel() for p in UNet(config=config).parameters()) <= config.parameter_bound()

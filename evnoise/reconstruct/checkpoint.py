@@ -227,7 +227,7 @@ def load_model(path, *, which: str = "best"):
     try:
         config = UNetConfig.from_dict(dict(doc["model"]))
         spec = InputSpec.from_dict(dict(doc["input"]))
-    except (ParameterError, TypeError) as exc:
+    except (ParameterError, TypeError, ValueError) as exc:  # a size beyond UNetConfig's limits included
         raise InputError(f"{path} has an invalid model description: {exc}") from None
     model = UNet(config=config)
     if which == "best":

@@ -27,6 +27,16 @@ __all__ = ["UNetConfig", "UNet", "ConvNormAct", "ResBlock", "Downsample", "Upsam
 PADDING_MODES = ("replicate", "reflect", "zeros", "none")
 
 
+#: Largest value of each :class:`UNetConfig` setting read from a checkpoint or given by a user (far past
+#: any network evnoise trains: its default has 16 base channels, 3 levels and one block per level).
+UNET_LIMITS = {"in_channels": 64, "out_channels": 64, "base_channels": 4096, "blocks_per_level": 64,
+               "groups": 4096, "stem": 16, "mult": 256, "levels": 10}
+#: Most weights a :class:`UNetConfig` may describe, by :meth:`UNetConfig.parameter_bound` (at most 1 GB of
+#: float32; the default network has 0.36 M): a checkpoint declaring base_channels=65536 or 100,000 blocks
+#: per level would otherwise allocate without bound.
+MAX_PARAMETERS = 250_000_000
+
+
 @dataclass(frozen=True)
 class UNetConfig:
     """Hyper-parameters of :class:`UNet` (stored in checkpoints).
@@ -63,13 +73,30 @@ class UNetConfig:
     padding: str = "replicate"
 
     def __post_init__(self):
-        object.__setattr__(self, "channel_mults", tuple(int(m) for m in self.channel_mults))
+        mults = self.channel_mults
+        if isinstance(mults, (str, bytes)) or not hasattr(mults, "__iter__"):
+            raise ParameterError(f"UNetConfig.channel_mults must be a sequence of integers, got {mults!r}"[:200])
+        mults = list(mults)
+        if len(mults) > UNET_LIMITS["levels"]:
+            raise ParameterError(f"UNetConfig.channel_mults may have at most {UNET_LIMITS['levels']} levels, "
+                                 f"got {len(mults)}")
+        if any(isinstance(m, bool) or not isinstance(m, int) for m in mults):
+            raise ParameterError(f"UNetConfig.channel_mults must be integers >= 1, got {mults!r}"[:200])
+        object.__setattr__(self, "channel_mults", tuple(int(m) for m in mults))
         for name in ("in_channels", "out_channels", "base_channels", "blocks_per_level", "groups", "stem"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ParameterError(f"UNetConfig.{name} must be an integer >= 1, got {value!r}")
-        if not self.channel_mults or any(m < 1 for m in self.channel_mults):
-            raise ParameterError(f"UNetConfig.channel_mults must be integers >= 1, got {self.channel_mults!r}")
+            if value > UNET_LIMITS[name]:
+                raise ParameterError(f"UNetConfig.{name} must be <= {UNET_LIMITS[name]}, got {value!r}")
+        if not self.channel_mults or any(m < 1 or m > UNET_LIMITS["mult"] for m in self.channel_mults):
+            raise ParameterError(f"UNetConfig.channel_mults must be integers from 1 to {UNET_LIMITS['mult']}, "
+                                 f"got {self.channel_mults!r}")
+        n = self.parameter_bound()
+        if n > MAX_PARAMETERS:
+            raise ParameterError(f"UNetConfig describes a network of about {n:,} parameters, more than the "
+                                 f"{MAX_PARAMETERS:,} evnoise builds (base_channels {self.base_channels}, "
+                                 f"channel_mults {list(self.channel_mults)}, blocks_per_level {self.blocks_per_level})")
         for m in self.channel_mults:
             if (self.base_channels * m) % self.groups:
                 raise ParameterError(
@@ -78,6 +105,19 @@ class UNetConfig:
                 )
         if self.padding not in PADDING_MODES:
             raise ParameterError(f"UNetConfig.padding must be one of {PADDING_MODES}, got {self.padding!r}")
+
+    def parameter_bound(self) -> int:
+        """An upper bound on the number of weights of the :class:`UNet` this describes, from the
+        configuration alone (checked before anything is allocated): per level of ``c`` channels,
+        every 3x3 convolution of the blocks down and up (the ones up read ``2c``), their 1x1 skips,
+        the resampling convolutions and the norms, rounded up to ``(6 blocks + 6) 9 c^2 + 64 c``."""
+        chans = [self.base_channels * m for m in self.channel_mults]
+        c_stem = self.stem * self.stem
+        n = 9 * (self.in_channels * c_stem + 1) * chans[0] + 9 * (chans[0] + 1) * self.out_channels * c_stem
+        for i, c in enumerate(chans):
+            c_next = chans[i + 1] if i + 1 < len(chans) else c
+            n += (6 * self.blocks_per_level + 6) * 9 * max(c, c_next) ** 2 + 64 * max(c, c_next)
+        return n
 
     @property
     def multiple(self) -> int:
