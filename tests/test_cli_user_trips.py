@@ -388,3 +388,20 @@ def test_reconstruct_asks_for_the_sensor_size_before_anything_else(tmp_path, cap
                                              rng.integers(0, 2, 50), strict=True)))
     code, _, err = run_cli(capsys, "reconstruct", csv, "-o", tmp_path / "r.png")
     one_error_line(code, err, "gives no sensor size; add --sensor WxH")  # no model warnings before it
+
+
+@pytest.mark.parametrize("signal_exc, code, line", [("Terminated", 143, "evnoise: terminated"),
+                                                     ("KeyboardInterrupt", 130, "evnoise: interrupted")])
+def test_a_signal_inside_compiled_code_is_not_a_traceback(tmp_path, capsys, monkeypatch, signal_exc, code, line):
+    # SIGTERM (or Ctrl-C) handled while a Numba function runs comes back as a SystemError caused by it
+    import evnoise.cli as cli
+    from evnoise.cli import info
+
+    cause = cli.Terminated() if signal_exc == "Terminated" else KeyboardInterrupt()
+
+    def compiled_code_interrupted(args):
+        raise SystemError("CPUDispatcher(<function f>) returned a result with an exception set") from cause
+
+    monkeypatch.setattr(info, "run", compiled_code_interrupted)
+    got, _, err = run_cli(capsys, "info", small_events_file(tmp_path / "rec.h5"))
+    assert got == code and err.strip().splitlines() == [line], err

@@ -124,10 +124,14 @@ def main(argv=None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
     except Exception as exc:
+        _close_progress_bars()
+        stop = _interruption(exc)
+        if stop is not None:  # Ctrl-C or SIGTERM inside compiled code comes back wrapped in a SystemError
+            print("evnoise: terminated" if isinstance(stop, Terminated) else "evnoise: interrupted", file=sys.stderr)
+            return 143 if isinstance(stop, Terminated) else 130
         line = _known_failure(exc)
         if line is None:
             raise
-        _close_progress_bars()
         print(f"evnoise: error: {line}", file=sys.stderr)
         return 2
     finally:
@@ -145,6 +149,18 @@ def _tolerant_streams() -> None:
                 reconfigure(errors="backslashreplace")
             except (ValueError, OSError):  # pragma: no cover - a stream that cannot change now
                 pass
+
+
+def _interruption(exc: BaseException):
+    """The :class:`KeyboardInterrupt` (or :class:`Terminated`) that caused ``exc``, if any: a signal handled while
+    Numba-compiled code runs surfaces as ``SystemError: ... returned a result with an exception set``."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
 
 
 def _known_failure(exc: BaseException) -> str | None:
