@@ -2,8 +2,14 @@
 
 Each subcommand lives in ``evnoise/cli/<name>.py`` and defines ``register(subparsers)``, which
 adds its parser and sets ``func`` (called with the parsed arguments, returning an exit code).
-Registration must stay cheap: heavy imports happen inside ``func``. Errors that evnoise raises
-on purpose (:class:`evnoise.EvnoiseError`) print one line ``evnoise: error: ...`` and exit 2.
+Registration must stay cheap: heavy imports happen inside ``func``. Options that several commands
+share are declared by :mod:`evnoise.cli._options` (``-o/--out``, ``--overwrite``, ``--sensor``,
+``--seed``, ``--threads``; the argparse types that check numbers when they are parsed).
+
+Errors print one line ``evnoise: error: ...`` and exit 2: those evnoise raises on purpose
+(:class:`evnoise.EvnoiseError`), argparse's (bad or missing options; ``see evnoise CMD --help``), and
+failures with a known cause outside evnoise (a damaged Numba cache: the folder to delete). A signal
+that arrives inside compiled code is still "terminated" (143) or "interrupted" (130).
 """
 
 from __future__ import annotations
