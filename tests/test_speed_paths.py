@@ -156,6 +156,19 @@ def test_stored_input_is_the_pinned_scene(stored):
 
 
 @pytest.mark.parametrize("name", sorted(FLOAT_PINS))
+def test_pinned_zeros_are_far_from_where_p_becomes_0(name, stored):
+    """What makes the zero pattern exact on every machine: no pinned log p lies within 0.1 of the skip
+    threshold (-760) or of exp's underflow to 0 (log of the smallest subnormal, -744.44, rounded
+    down to 0 below -745.13)."""
+    rows, cols, eps, bias = FLOAT_PINS[name]
+    log_p = ev.log_event_probability(stored["lam"][rows, cols], eps, bias)
+    finite = log_p[np.isfinite(log_p)]
+    assert finite.size > 100
+    assert np.min(np.abs(finite + 760.0)) > 0.1 and np.min(np.abs(finite + 745.1332191019412)) > 0.1
+    assert np.array_equal(stored[name] == 0.0, ~(log_p >= -745.1332191019412))
+
+
+@pytest.mark.parametrize("name", sorted(FLOAT_PINS))
 def test_probabilities_match_code_before_issue16(name, stored):
     """event_probability on the stored lam gives the pre-issue-16 values within LOG_P_TOL."""
     rows, cols, eps, bias = FLOAT_PINS[name]
