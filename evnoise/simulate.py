@@ -19,11 +19,11 @@ of threads, the chunking of pixels, or the windows in which time is generated.
 from __future__ import annotations
 
 import math
-import os
 from typing import Iterator
 
 import numpy as np
 
+from ._budget import check_allocation, human_bytes
 from ._checks import as_generator, check_lux, check_params, duration_to_us, kernel_key, resolve_threads
 from ._engine import (
     Collector,
@@ -109,37 +109,15 @@ def _check_span(t_start_us: int, duration_us: int) -> None:
                              f"64-bit timestamp ({INT64_MAX} us, about 292,000 years)")
 
 
-def _available_memory() -> int | None:
-    """Bytes of memory available to a new allocation (Linux ``MemAvailable``), or None if unknown."""
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    try:
-        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):
-        return None
-
-
 def _check_memory(expected_events: float, what: str = "simulate_events") -> None:
     """Refuse to hold an event array that cannot fit in memory (before allocating it)."""
     need = (expected_events + 8.0 * math.sqrt(max(expected_events, 0.0))) * EVENT_DTYPE.itemsize
-    have = _available_memory()
-    if have is not None and need > have:
-        raise ParameterError(f"{what} would return about {expected_events:,.0f} events ({_human_bytes(need)} in "
-                             f"memory), more than the {_human_bytes(have)} available; shorten the duration, "
-                             f"stream the windows (iter_events, iter_video), or write a file (evnoise simulate --out)")
+    check_allocation(need, f"{what} would return about {expected_events:,.0f} events; they",
+                     hint="shorten the duration, stream the windows (iter_events, iter_video), or write a file "
+                          "(evnoise simulate --out)", error=ParameterError)
 
 
-def _human_bytes(n: float) -> str:
-    for unit in ("bytes", "kB", "MB", "GB", "TB", "PB"):
-        if abs(n) < 1000 or unit == "PB":
-            return f"{n:,.0f} {unit}" if unit == "bytes" else f"{n:,.1f} {unit}"
-        n /= 1000.0
-    return f"{n:.3g} PB"  # pragma: no cover
+_human_bytes = human_bytes  # the name the size messages below use
 
 
 # Bytes per event of each output format (measured on `simulate --example`, 1 M events in 2 s), and

@@ -460,11 +460,9 @@ def test_expected_events_match_a_run():
 
 
 def test_simulate_events_refuses_what_cannot_fit_in_memory(monkeypatch):
-    import evnoise.simulate as sim
-
     lux = np.full((16, 16), 2.0)
-    monkeypatch.setattr(sim, "_available_memory", lambda: 10_000)
-    with pytest.raises(ev.ParameterError, match=r"would return about [\d,]+ events .*iter_events"):
+    monkeypatch.setenv("EVNOISE_MAX_MEMORY", "10000")
+    with pytest.raises(ev.ParameterError, match=r"would return about [\d,]+ events.*iter_events"):
         ev.simulate_events(lux, PARAMS, 100.0, rng=1)
     with pytest.raises(ev.ParameterError, match="would return about"):
         ev.simulate_events(lux, PARAMS, 100.0, rng=1, method="trials")
@@ -527,11 +525,9 @@ def test_progress_steps_add_up_to_the_total_without_warnings(monkeypatch, method
 
 
 def test_simulate_video_refuses_what_cannot_fit_in_memory(monkeypatch):
-    import evnoise.simulate as sim
-
     frames = np.stack([np.full((16, 16), 2.0), np.full((16, 16), 3.0)])
-    monkeypatch.setattr(sim, "_available_memory", lambda: 10_000)
-    with pytest.raises(ev.ParameterError, match=r"simulate_video would return about [\d,]+ events .*iter_events"):
+    monkeypatch.setenv("EVNOISE_MAX_MEMORY", "10000")
+    with pytest.raises(ev.ParameterError, match=r"simulate_video would return about [\d,]+ events.*iter_events"):
         ev.simulate_video(frames, [0.0, 100.0], PARAMS, rng=1)
     monkeypatch.undo()
     with pytest.raises(ev.ParameterError, match="simulate_video would return about"):  # 1e12 s: not run

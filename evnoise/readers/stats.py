@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._budget import check_allocation
 from ..errors import InputError, ParameterError
 from ..events import polarity_index
 
@@ -23,15 +24,18 @@ QUANTILES = (0.5, 0.9, 0.99)
 def pixel_counts(chunks, shape=None):
     """ON/OFF counts ``(2, H, W)`` int64 and ``(n, t_first_us, t_last_us)`` from event chunks.
 
-    Without ``shape`` the maps grow to the events' extent.
+    Without ``shape`` the maps grow to the events' extent. The maps' size (which a file's header
+    declares) is checked against the memory budget before they are allocated.
     """
     height, width = shape if shape is not None else (1, 1)
+    _check_maps(height, width)
     counts = np.zeros((2, height, width), dtype=np.int64)
     n, t_first, t_last = 0, None, None
     for chunk in chunks:
         xm, ym = int(chunk["x"].max()), int(chunk["y"].max())
         if shape is None and (xm >= width or ym >= height):
             new_h, new_w = max(height, ym + 1), max(width, xm + 1)
+            _check_maps(new_h, new_w)
             grown = np.zeros((2, new_h, new_w), dtype=np.int64)
             grown[:, :height, :width] = counts
             counts, height, width = grown, new_h, new_w
@@ -42,6 +46,13 @@ def pixel_counts(chunks, shape=None):
             t_first = int(chunk["t"][0])
         t_last = int(chunk["t"][-1])
     return counts, (n, t_first, t_last)
+
+
+def _check_maps(height: int, width: int) -> None:
+    # the two int64 maps, plus one bincount of the same size while a chunk is added
+    check_allocation(3 * 2 * int(height) * int(width) * 8,
+                     f"ON/OFF count maps of a {width}x{height} sensor",
+                     hint="give the real size with --sensor WxH (sensor=(W, H)) or raise EVNOISE_MAX_MEMORY")
 
 
 def noise_stats(counts, duration_s: float, *, hot_threshold: float | None = None) -> dict:
