@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._budget import check_allocation
 from ._checks import check_input_file
 from .errors import InputError, ParameterError
 
@@ -607,6 +608,9 @@ def fit_to_sensor(image, shape, mode: str = "cover") -> np.ndarray:
     img = np.asarray(image, dtype=np.float64)
     if img.ndim != 2 or img.size == 0:
         raise InputError(f"fit_to_sensor needs a non-empty 2-D image, got shape {img.shape}")
+    # the float32 resampling planes and the float64 result, and a simulation's own per-pixel state after it
+    check_allocation(24.0 * height * width, f"an image brought to a {width}x{height} sensor",
+                     hint="choose a smaller sensor (--sensor WxH) or raise EVNOISE_MAX_MEMORY", error=ParameterError)
     h, w = img.shape
     if (h, w) == (height, width):
         return img

@@ -57,3 +57,10 @@ def test_info_stats_on_a_header_declaring_65535_squared_is_one_error_line(tmp_pa
     lines = [line for line in run.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith("evnoise: error:"), run.stderr
     assert "65535x65535" in lines[0] and "Traceback" not in run.stderr
+
+
+def test_a_sensor_beyond_the_budget_is_refused_before_the_image_is_resampled(monkeypatch):
+    monkeypatch.setenv("EVNOISE_MAX_MEMORY", "1G")
+    with pytest.raises(ev.ParameterError, match="65536x65536 sensor.*--sensor"):
+        ev.radiometry.fit_to_sensor(np.ones((4, 4)), (65536, 65536))
+    assert ev.radiometry.fit_to_sensor(np.ones((4, 4)), (8, 8)).shape == (8, 8)
