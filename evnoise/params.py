@@ -23,8 +23,9 @@ __all__ = ["NoiseParams", "load_preset", "list_presets", "preset_info", "PARAM_L
 #: kernels are verified for). A threshold of 20 asks the light to change by a factor e^20 ~ 5e8
 #: (170 dB, beyond any sensor's dynamic range); a photoreceptor sees at most 1e12 photons or 1e6
 #: lux-equivalent of offset per trial; background rates (leak, hot pixel) stay below 1e9/s (a thousand
-#: per microsecond, evnoise's time resolution; the model caps them at one event per trial); dead times and time constants stay within an hour; a log-normal
-#: spread of 10 already spans a factor e^20 between pixels one sigma apart.
+#: per microsecond, evnoise's time resolution; the model caps them at one event per trial); dead times
+#: and time constants stay within an hour; a log-normal spread of 10 already spans a factor e^20
+#: between pixels one sigma apart.
 PARAM_LIMITS = {
     "eps_pos": 20.0,
     "eps_neg": 20.0,
