@@ -50,6 +50,7 @@ from .folder import (
     existing_records,
     prepare_folder,
     read_json,
+    remove_stale_temporaries,
     shard_verified,
     stored_seed,
     write_json,
@@ -296,8 +297,23 @@ def generate_shard(job: _Job, on_sample=None) -> dict:
             "timings": timings}
 
 
+def record_file(root, name: str) -> Path:
+    """The progress record of shard ``name`` (written as soon as its file is complete)."""
+    return Path(root) / PROGRESS_DIR / f"{name}.done.json"
+
+
+def make_and_record_shard(job: _Job, on_sample=None) -> dict:
+    """The resume protocol, the same in every executor (in-process, a process pool, Dask): make the
+    shard (written under a temporary name, renamed when complete), then at once write its record
+    (name, size, SHA-256) into the progress folder. A run killed at any moment keeps every shard
+    whose record was written, and a re-run keeps exactly those whose file still matches it."""
+    rec = generate_shard(job, on_sample)
+    write_json(record_file(job.root, rec["name"]), {k: v for k, v in rec.items() if k != "timings"})
+    return rec
+
+
 def _run_job(job: _Job) -> dict:
-    return generate_shard(job)
+    return make_and_record_shard(job)
 
 
 # --------------------------------------------------------------------------------------
@@ -395,6 +411,8 @@ def make_dataset(sources, out_dir, config: PairConfig | None = None, *, workers:
     progress_dir = root / PROGRESS_DIR
     progress_dir.mkdir(exist_ok=True)
     with FolderLock(progress_dir / "lock"):
+        for path in remove_stale_temporaries(root):  # left by a killed run (we hold the lock)
+            log.info("removed %s, left by an interrupted run", path)
         records = existing_records(root, plan)
         (root / SHARDS_DIR).mkdir(exist_ok=True)
         valid, reused = {}, []
@@ -416,9 +434,6 @@ def make_dataset(sources, out_dir, config: PairConfig | None = None, *, workers:
         for name, rec in valid.items():  # a manifest's records become progress records
             if not (progress_dir / f"{name}.done.json").exists():
                 write_json(progress_dir / f"{name}.done.json", rec)
-        for p in (root / SHARDS_DIR).iterdir():
-            if p.name.startswith(".") and p.name.endswith(".tmp"):
-                p.unlink(missing_ok=True)  # left by an interrupted run (we hold the lock)
         if reused:
             log.info("resuming: %d shard(s) verified and kept, %d to make", len(reused), len(todo))
         bar = None
@@ -436,13 +451,14 @@ def make_dataset(sources, out_dir, config: PairConfig | None = None, *, workers:
                 log.warning("skipped %s: %s", s["source"], s["reason"])
             for key, value in rec.pop("timings", {}).items():
                 timings[key] = timings.get(key, 0.0) + value
-            write_json(progress_dir / f"{rec['name']}.done.json", rec)
-            valid[rec["name"]] = rec
+            valid[rec["name"]] = rec  # its record is on disk already (make_and_record_shard)
             if bar is not None and not in_process:
                 bar.update(len(plan_items[rec["name"]]) * config.samples_per_source)
 
         try:
-            if scheduler is not None:
+            if not todo:  # every shard recorded by an interrupted run: only the manifest is missing
+                n_workers = 0
+            elif scheduler is not None:
                 if workers is not None:
                     log.info("--workers is not used with a Dask scheduler")
                 n_workers = _run_dask(root, plan, todo, scheduler, threads or 1, finished)
@@ -451,13 +467,14 @@ def make_dataset(sources, out_dir, config: PairConfig | None = None, *, workers:
                 thr = threads or _default_threads(1)
                 step = bar.update if bar is not None else None
                 for task in todo:
-                    finished(generate_shard(_Job(os.fspath(root), plan.config, plan.sources, task, thr), step))
+                    finished(make_and_record_shard(_Job(os.fspath(root), plan.config, plan.sources, task, thr), step))
             else:
                 n_workers = min(workers or (os.cpu_count() or 1), len(todo))
                 _run_pool(root, plan, todo, n_workers, threads or _default_threads(n_workers), finished)
         finally:
             if bar is not None:
                 bar.close()
+        remove_stale_temporaries(root)  # a Dask worker lost while writing a shard left its temporary file
         manifest = _manifest(plan, valid)
         if manifest["totals"]["samples"] == 0 and manifest["skipped"]:
             discard_empty(root, created)
@@ -489,17 +506,52 @@ def _start_method() -> str:
     return "spawn"
 
 
+#: how often (seconds) a pool worker checks that the process that started it is still alive
+_PARENT_CHECK_S = 0.5
+
+
+def _die_with_parent(parent_pid: int) -> None:
+    """Pool worker initializer: end this worker when ``parent_pid`` (the process running
+    ``make_dataset``) dies, even by SIGKILL, which gives it no chance to stop its pool. Without
+    this the workers (and through them multiprocessing's resource tracker) ran on forever, holding
+    the caller's standard output. On Linux the kernel sends SIGKILL at the parent's death
+    (``prctl(PR_SET_PDEATHSIG)``); everywhere a daemon thread also checks ``os.getppid()``. The
+    shard being written is left as a temporary file, which the next run into the folder removes."""
+    import signal
+    import sys
+
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
+        except (OSError, AttributeError):  # pragma: no cover - no prctl: the thread below does it
+            pass
+    if os.getppid() != parent_pid:  # the parent died before the line above
+        os._exit(1)
+
+    def watch() -> None:
+        while True:
+            time.sleep(_PARENT_CHECK_S)
+            if os.getppid() != parent_pid:
+                os._exit(1)
+
+    threading.Thread(target=watch, name="evnoise-parent-watch", daemon=True).start()
+
+
 def _run_pool(root, plan, todo, n_workers, threads, finished) -> None:
     import multiprocessing
-    from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
     ctx = multiprocessing.get_context(_start_method())
     jobs = [_Job(os.fspath(root), plan.config, plan.sources, t, threads) for t in todo]
-    pool = ProcessPoolExecutor(max_workers=n_workers, mp_context=ctx)
+    pool = ProcessPoolExecutor(max_workers=n_workers, mp_context=ctx, initializer=_die_with_parent,
+                               initargs=(os.getpid(),))
     try:
         pending = {pool.submit(_run_job, job) for job in jobs}
-        while pending:
-            done, pending = wait(pending, return_when=FIRST_EXCEPTION)
+        while pending:  # each shard is taken in as soon as it is done (its record is on disk already)
+            done, pending = wait(pending, return_when=FIRST_COMPLETED)
             for fut in sorted(done, key=lambda f: f.exception() is not None):
                 finished(fut.result())  # re-raises a worker's exception
     except BaseException:

@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
+import stat
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -25,7 +27,7 @@ if TYPE_CHECKING:
 
 __all__ = ["MANIFEST", "PREVIEW", "SHARDS_DIR", "PROGRESS_DIR", "write_json", "read_json", "FolderLock",
            "prepare_folder", "check_own_parts", "dataset_member", "discard_empty", "stored_seed", "existing_records",
-           "shard_verified"]
+           "shard_verified", "remove_stale_temporaries"]
 
 MANIFEST = "manifest.json"
 #: a picture of a few pairs, written by ``evnoise make-dataset`` (not part of the data, not verified)
@@ -151,6 +153,57 @@ def check_own_parts(root: Path) -> None:
         if links:
             raise OutputError(f"{links[0]} is a symbolic link; evnoise writes and deletes only inside the output "
                               f"folder and follows no link there: remove it, or choose another folder")
+
+
+#: the temporary names evnoise's atomic writers use (``evnoise._atomic.temporary_name``):
+#: ``.<final name>.<pid>-<hex>.tmp`` (also ``.tmp.png``), and the older ``.<final name>.<pid>.tmp``
+_TEMPORARY = re.compile(r"\..+\.(\d+)(?:-[0-9a-f]+)?\.tmp(?:\.[a-z]+)?")
+
+
+def _pid_alive(pid: int) -> bool:
+    """Whether a process ``pid`` exists (a process of another user counts; so does this one)."""
+    if pid <= 0:
+        return True  # not a PID we can judge: keep the file
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # PermissionError: it exists; anything else: do not guess
+        return True
+    return True
+
+
+def remove_stale_temporaries(root: Path) -> list:
+    """Remove what killed runs left in dataset folder ``root``: temporary files of evnoise's own naming
+    (a shard, a record, the manifest or the preview being written) whose writer process is gone.
+
+    Only ``root`` itself, ``shards/`` and the progress folder are looked at (no recursion; a part that
+    is a link is skipped, see :func:`check_own_parts`); only regular files (never a link) whose name
+    matches the pattern are removed, and only when no process with the PID in the name is alive (a
+    writer still at work, such as a worker of a killed run that is ending, keeps its file). Returns
+    the paths removed."""
+    removed = []
+    for folder in (root, root / SHARDS_DIR, root / PROGRESS_DIR):
+        try:
+            if folder.is_symlink() or not folder.is_dir():
+                continue
+            entries = list(os.scandir(folder))
+        except OSError:
+            continue
+        for entry in entries:
+            m = _TEMPORARY.fullmatch(entry.name)
+            if m is None:
+                continue
+            try:
+                if not stat.S_ISREG(entry.stat(follow_symlinks=False).st_mode) or _pid_alive(int(m.group(1))):
+                    continue
+                os.unlink(entry.path)
+            except OSError:
+                continue
+            removed.append(Path(entry.path))
+    return removed
 
 
 def discard_empty(root: Path, created: bool) -> None:

@@ -262,7 +262,9 @@ def test_interrupted_run_resumes_to_identical_bytes(reference, tmp_path, monkeyp
         PairDataset(out)
     assert main(["info", os.fspath(out)]) == 2  # "incomplete ...; run the same command again"
     # a half-written temporary file of the interrupted shard must not survive either
-    (out / "shards" / ".val-00000.h5.123-abcd.tmp").write_bytes(b"partial")
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])  # the temporary's writer: a process that ended
+    gone.wait()
+    (out / "shards" / f".val-00000.h5.{gone.pid}-abcd.tmp").write_bytes(b"partial")
     monkeypatch.setattr(dataset, "generate_shard", real)
     # resume without giving the seed again: the interrupted run's seed is reused
     result = make_dataset(SMALL_SOURCES, out, SMALL.replace(seed=None), workers=1)
