@@ -174,3 +174,76 @@ def illuminance_levels(y, scale, gamma, inv_step, binning, codes, level_sums):
             codes[i, j] = np.int32(c)
             level_sums[bi, j // binning] += np.int64(c)
     return top
+
+
+#: hash-table size of :func:`lzf_compress` (log2)
+LZF_HLOG = 14
+_LZF_MAX_OFF = 1 << 13  # back references reach at most 8192 bytes back
+_LZF_MAX_REF = (1 << 8) + (1 << 3)  # and copy at most 264 bytes
+_LZF_MAX_LIT = 1 << 5  # a literal run holds at most 32 bytes
+
+
+@kernel
+def _lzf_literals(src, start, stop, dst, op):
+    """Write ``src[start:stop]`` as literal runs at ``dst[op:]``; the new ``op``, or -1 when it does not fit."""
+    while start < stop:
+        n = min(stop - start, _LZF_MAX_LIT)
+        if op + 1 + n > dst.size:
+            return -1
+        dst[op] = n - 1
+        op += 1
+        for k in range(n):
+            dst[op + k] = src[start + k]
+        op += n
+        start += n
+    return op
+
+
+@kernel
+def lzf_compress(src, dst):
+    """LZF-compress the bytes ``src`` (uint8) into ``dst`` (uint8); returns the size written, 0 if it does not fit.
+
+    Writes the stream format of liblzf, which h5py's LZF filter (HDF5 filter 32000) decodes. Unlike
+    the liblzf inside h5py, whose hash table is left uninitialised (its output then depends on what
+    was on the C stack, so two identical runs wrote different bytes now and then), the table starts
+    empty: the output depends only on ``src``. Greedy: at each position the most recent earlier
+    position with the same 3-byte hash is tried, and the longest match there is taken.
+    """
+    n = src.size
+    cap = dst.size
+    mask = (1 << LZF_HLOG) - 1
+    table = np.full(1 << LZF_HLOG, -1, dtype=np.int64)
+    ip = 0
+    lit = 0  # start of the bytes not yet written
+    op = 0
+    while ip + 2 < n:
+        v = (np.int64(src[ip]) << 16) | (np.int64(src[ip + 1]) << 8) | np.int64(src[ip + 2])
+        h = ((v * 2654435761) >> (24 - LZF_HLOG + 8)) & mask
+        ref = table[h]
+        table[h] = ip
+        if (ref >= 0 and ip - ref <= _LZF_MAX_OFF and src[ref] == src[ip] and src[ref + 1] == src[ip + 1]
+                and src[ref + 2] == src[ip + 2]):
+            longest = min(_LZF_MAX_REF, n - ip)
+            length = 3
+            while length < longest and src[ref + length] == src[ip + length]:
+                length += 1
+            op = _lzf_literals(src, lit, ip, dst, op)
+            if op < 0 or op + 3 > cap:
+                return 0
+            off = ip - ref - 1
+            code = length - 2
+            if code < 7:
+                dst[op] = (code << 5) | (off >> 8)
+                dst[op + 1] = off & 0xFF
+                op += 2
+            else:
+                dst[op] = (7 << 5) | (off >> 8)
+                dst[op + 1] = code - 7
+                dst[op + 2] = off & 0xFF
+                op += 3
+            ip += length
+            lit = ip
+        else:
+            ip += 1
+    op = _lzf_literals(src, lit, n, dst, op)
+    return max(op, 0)

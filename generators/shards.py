@@ -20,10 +20,13 @@ One shard file (``shards/<split>-<index>.h5``) holds ``n`` pairs::
                      binning, counts_order = "ON,OFF", image_encoding = "srgb", params (JSON)
 
 ``counts`` and ``image`` are chunked one item per chunk (random access costs one chunk read),
-compressed with the configured filter plus shuffle. Pairs are ordered by source (in the
-shard's listing order), then crop, then window. The writer writes to a temporary name and
-renames on success; the bytes depend only on the pairs (no timestamps), so a shard is
-bit-identical whoever writes it.
+compressed with the configured filter plus shuffle. LZF chunks are encoded here
+(:func:`lzf_chunk`, written with ``write_direct_chunk``): the LZF encoder inside h5py leaves its
+hash table uninitialised, so its output depended on leftovers in memory and two identical runs
+wrote different bytes now and then; h5py's LZF filter decodes these chunks as any other.
+Pairs are ordered by source (in the shard's listing order), then crop, then window. The
+writer writes to a temporary name and renames on success; the bytes depend only on the pairs
+(no timestamps), so a shard is bit-identical whoever writes it.
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ import numpy as np
 from evnoise._atomic import AtomicFile, close_h5_discarding, os_error_text
 from evnoise.errors import InputError, OutputError
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "ShardWriter", "file_sha256", "META_COLUMNS", "read_meta"]
+__all__ = ["FORMAT", "FORMAT_VERSION", "ShardWriter", "file_sha256", "META_COLUMNS", "read_meta", "lzf_chunk"]
 
 FORMAT = "evnoise-pairs"
 FORMAT_VERSION = 1
@@ -68,6 +71,32 @@ def file_sha256(path, block: int = 1 << 22) -> str:
                 break
             h.update(chunk)
     return h.hexdigest()
+
+
+#: HDF5's number of the LZF filter (h5py's)
+LZF_FILTER = 32000
+
+
+def lzf_chunk(data: np.ndarray) -> tuple:
+    """``(bytes, skipped)``: one chunk ``data`` as HDF5's shuffle + LZF pipeline stores it, deterministically.
+
+    The bytes are shuffled (byte ``j`` of every element together, as HDF5's shuffle filter does) and
+    LZF-compressed by :func:`~._kernels.lzf_compress`, whose output depends only on ``data``.
+    ``skipped`` is true when compression does not make the chunk smaller: then the shuffled bytes are
+    stored as they are, with the LZF filter marked as skipped (what HDF5 does for an optional filter
+    that fails, as h5py's LZF filter does on such a chunk).
+    """
+    from ._kernels import lzf_compress
+
+    flat = np.ascontiguousarray(data).reshape(-1)
+    size = flat.dtype.itemsize
+    shuffled = flat.view(np.uint8).reshape(-1, size).T.reshape(-1) if size > 1 else flat.view(np.uint8)
+    shuffled = np.ascontiguousarray(shuffled)
+    out = np.empty(shuffled.size, dtype=np.uint8)
+    n = int(lzf_compress(shuffled, out)) if shuffled.size else 0
+    if n == 0:
+        return shuffled.tobytes(), True
+    return out[:n].tobytes(), False
 
 
 class ShardWriter:
@@ -114,6 +143,11 @@ class ShardWriter:
                                             dtype=np.uint16, chunks=(1, 2, self.h, self.w), **filt)
             self._image = f.create_dataset("image", shape=(0, self.h, self.w), maxshape=(None, self.h, self.w),
                                            dtype=np.float32, chunks=(1, self.h, self.w), **filt)
+            self._lzf_mask = None  # with LZF: the filter-mask bit that marks LZF as skipped in a chunk
+            if compression == "lzf":
+                dcpl = self._counts.id.get_create_plist()
+                order = [dcpl.get_filter(k)[0] for k in range(dcpl.get_nfilters())]
+                self._lzf_mask = 1 << order.index(LZF_FILTER)
         except BaseException:
             self.abort()
             raise
@@ -126,12 +160,23 @@ class ShardWriter:
             self.abort()
         return False
 
+    def _put(self, ds, row: int, value) -> None:
+        """Store ``value`` as row ``row`` (one whole chunk) of ``ds``; LZF chunks are encoded by :func:`lzf_chunk`."""
+        if self._lzf_mask is None:
+            ds[row] = value
+            return
+        value = np.asarray(value, dtype=ds.dtype)
+        if value.shape != ds.chunks[1:]:
+            raise ValueError(f"a row of {ds.name} has shape {ds.chunks[1:]}, got {value.shape}")
+        data, skipped = lzf_chunk(value)
+        ds.id.write_direct_chunk((row,) + (0,) * value.ndim, data, self._lzf_mask if skipped else 0)
+
     def add_image(self, image: np.ndarray) -> int:
         """Store an image (float32 (h, w)); returns its row, to pass as ``image_index`` to :meth:`append`."""
         m = self.n_images
         try:
             self._image.resize((m + 1, self.h, self.w))
-            self._image[m] = image
+            self._put(self._image, m, image)
         except OSError as exc:
             self.abort()
             raise OutputError(f"writing shard {self.path} failed: {os_error_text(exc)}") from None
@@ -145,7 +190,7 @@ class ShardWriter:
         i = self.n
         try:
             self._counts.resize((i + 1, 2, self.h, self.w))
-            self._counts[i] = counts
+            self._put(self._counts, i, counts)
         except OSError as exc:
             self.abort()
             raise OutputError(f"writing shard {self.path} failed: {os_error_text(exc)}") from None

@@ -205,3 +205,64 @@ def test_stale_temporaries_are_removed_only_inside_out_and_only_of_dead_writers(
     finally:
         sleeper.kill()
         sleeper.wait()
+
+
+# --------------------------------------------------------------------------------------
+# LZF shards: the same bytes every time
+# --------------------------------------------------------------------------------------
+def test_lzf_shards_are_byte_identical_between_runs_and_encoded_deterministically(tmp_path):
+    """h5py's LZF encoder leaves its hash table uninitialised: now and then a shard (and so the manifest)
+    differed between two identical runs. Shards' LZF chunks are now encoded by evnoise (lzf_chunk), whose
+    output is a function of the chunk alone; h5py's filter decodes them."""
+    import h5py
+
+    from evnoise.generators.shards import lzf_chunk
+
+    config = SMALL.replace(compression="lzf")
+    assert PairConfig().compression == "lzf"  # the default
+    make_dataset(DeadLeaves(5), tmp_path / "a", config, workers=1)
+    make_dataset(DeadLeaves(5), tmp_path / "b", config, workers=2)
+    first = _hashes(tmp_path / "a")
+    assert _hashes(tmp_path / "b") == first
+    checked = 0
+    for shard in sorted((tmp_path / "a" / "shards").glob("*.h5")):
+        with h5py.File(shard, "r") as f:
+            for name in ("counts", "image"):
+                ds = f[name]
+                assert ds.compression == "lzf" and ds.shuffle
+                for row in range(ds.shape[0]):
+                    mask, stored = ds.id.read_direct_chunk((row,) + (0,) * (ds.ndim - 1))
+                    data, skipped = lzf_chunk(ds[row])  # decoded by h5py's filter, encoded again here
+                    assert (stored, bool(mask)) == (data, skipped), (shard.name, name, row)
+                    checked += 1
+    assert checked > 0
+
+
+def test_lzf_chunk_depends_on_the_data_alone_and_round_trips(tmp_path):
+    import threading
+
+    import h5py
+    import numpy as np
+
+    from evnoise.generators.shards import ShardWriter, lzf_chunk
+
+    rng = np.random.default_rng(3)
+    counts = rng.poisson(0.4, size=(2, 24, 32)).astype(np.uint16)
+    first = lzf_chunk(counts)
+    lzf_chunk(rng.poisson(0.4, size=(2, 24, 32)).astype(np.uint16))  # other data before: no trace of it
+    in_thread = []
+    thread = threading.Thread(target=lambda: in_thread.append(lzf_chunk(counts)))
+    thread.start()
+    thread.join()
+    assert lzf_chunk(counts) == first == in_thread[0] and not first[1]
+    noise = rng.integers(0, 1 << 32, size=(24, 32), dtype=np.uint32).view(np.float32)  # random bits: incompressible
+    assert lzf_chunk(noise)[1]
+    path = tmp_path / "s.h5"
+    with ShardWriter(path, (24, 32), "lzf", {}) as w:
+        index = w.add_image(noise)
+        w.append(counts, (0, 0, 48, 64), source="x", crop_index=0, window_s=1.0, window_us=1_000_000, lux_scale=1.0,
+                 max_lux=1.0, contrast_gamma=1.0, seed=1, saturated=0, image_index=index)
+        w.close()
+    with h5py.File(path, "r") as f:
+        assert np.array_equal(f["counts"][0], counts) and f["image"][0].tobytes() == noise.tobytes()
+        assert f["image"].id.read_direct_chunk((0, 0, 0))[0] != 0  # the LZF filter skipped for this chunk
