@@ -14,7 +14,21 @@ assumption fails, each with a p-value from a null distribution that does not dep
   pair gaps. An excess means the pixel's ON and OFF events come in close pairs (a transient that
   crosses the threshold and comes back), which the model cannot produce: its ON and OFF arrivals
   are independent but for the refractory period and the regular timer they share, which make close
-  pairs rarer, never commoner (the test is one-sided);
+  pairs rarer, never commoner (the test is one-sided). Windows shorter than 80 pair gaps (4 s) have
+  no room for that range: the offsets then run from ``max(2, D/2 - 30)`` gaps to half the window
+  ``D/2`` (a 1 s window: 0.1 to 0.5 s either way, i.e. every circular lag from 2 gaps to ``D`` - 2
+  gaps). Two gaps is the least lag after which a pair within one gap is at least a gap apart (also
+  across the wrap), and under stationary independent streams a circular shift of one stream by any
+  lag leaves the pair count's distribution unchanged, so every such lag is a valid resample. A
+  single lag (``D/2``, what a first version used on a 1 s window) gives a null without spread and a
+  check that could not fail (p stopped at ``1 / (1 + shifts)``). Where the lags span fewer than 4
+  gaps (windows shorter than 12 gaps, 0.6 s) the ON events of each pixel are instead placed
+  uniformly at random in the window, keeping the pixel's ON count: the exact conditional null of
+  stationary Poisson streams (given its count, a Poisson stream's times are independent and
+  uniform), and, as quiet pixels hold a few events at most in so short a window, close to that of
+  the model's regular or refractory streams, which again only make pairs rarer. A window no longer
+  than the pair gap cannot be tested (every OFF/ON pair of a pixel is within the gap: the pixels'
+  counts fix the statistic);
 - **stationarity**: the window's events in ``pieces`` equal time slices against equal shares
   (Pearson chi-square on ``pieces - 1`` degrees of freedom; the pixels' streams are independent, so
   the total over many pixels is close to Poisson: a rate that drifts shows up here);
@@ -110,43 +124,57 @@ def _no_tick() -> None:
     pass
 
 
+def _pair_lags(gap: int, duration_us: int) -> tuple:
+    """``(lo, hi)`` of the ON streams' circular shifts (module doc), or ``None`` where the window has no room
+    for lags spanning 4 gaps (the ON events are then placed at random)."""
+    hi = min(40 * gap, duration_us // 2)
+    lo = min(10 * gap, max(2 * gap, hi - 30 * gap))
+    return (lo, hi) if hi - lo >= 4 * gap else None
+
+
 def polarity_pairs(events: np.ndarray, shape: tuple, t_start_us: int, duration_us: int, *,
                    pair_gap_s: float = PAIR_GAP_S, shifts: int = 200, seed: int = 0, tick=_no_tick) -> dict:
-    """OFF/ON pairs of a pixel closer than ``pair_gap_s`` against circularly shifted ON streams (module doc);
-    ``tick()`` is called after each resample (progress)."""
+    """OFF/ON pairs of a pixel closer than ``pair_gap_s`` against circularly shifted ON streams, or ON events
+    placed at random in windows too short for the shifts (module doc); ``tick()`` is called after each
+    resample (progress)."""
     width = int(shape[1])
     gap = max(1, int(round(pair_gap_s * 1e6)))
     duration_us = max(int(duration_us), 1)
     stride = 2 * duration_us + 4 * gap + 1  # keys of different pixels never come within gap
-    # shift by 10 to 40 pair gaps either way, at most half the window
-    hi_shift = max(1, min(40 * gap, duration_us // 2))
-    lo_shift = min(10 * gap, hi_shift)
+    lags = _pair_lags(gap, duration_us)
     pix = events["y"].astype(np.int64) * width + events["x"].astype(np.int64)
     t = events["t"].astype(np.int64) - int(t_start_us)
     on = events["p"] == 1
     off_key = np.sort(pix[~on] * stride + t[~on])
     on_pix, on_t = pix[on], t[on]
     observed = _pairs_within(off_key, np.sort(on_pix * stride + on_t), gap)
+    n_on, n_off = int(on.sum()), int((~on).sum())
+    if duration_us <= gap:
+        return {"check": "polarity_pairs", "statistic": observed, "null_mean": float(observed), "null_sd": 0.0,
+                "p_value": float("nan"), "assumption": True, "testable": False,
+                "detail": (f"the window ({duration_us / 1e6:.3g} s) is no longer than the pair gap "
+                           f"({pair_gap_s * 1e3:g} ms): every OFF/ON pair of a pixel is within it, so the pixels' "
+                           f"counts fix the {observed} pairs ({n_off} OFF and {n_on} ON events)")}
     rng = np.random.default_rng(seed)
     n_pix = int(shape[0]) * width
     null = np.empty(int(shifts))
     for k in range(int(shifts)):
-        offset = rng.integers(lo_shift, hi_shift + 1, size=n_pix) * rng.choice(np.array([-1, 1]), size=n_pix)
-        shifted = (on_t + offset[on_pix]) % duration_us
+        if lags is None:
+            shifted = rng.integers(0, duration_us, size=on_t.size)
+        else:
+            offset = rng.integers(lags[0], lags[1] + 1, size=n_pix) * rng.choice(np.array([-1, 1]), size=n_pix)
+            shifted = (on_t + offset[on_pix]) % duration_us
         null[k] = _pairs_within(off_key, np.sort(on_pix * stride + shifted), gap)
         tick()
-    if lo_shift == hi_shift:
-        by = f"{lo_shift / 1e6:.3g} s either way"
-        if hi_shift < 40 * gap:  # the window (at most 20 gaps) leaves no room for the usual range
-            by += (f" (half the window, which is too short for the usual {10 * pair_gap_s:g} to "
-                   f"{40 * pair_gap_s:g} s)")
+    if lags is None:
+        how = (f"each pixel's ON events placed at random in the window (too short, {duration_us / 1e6:.3g} s, "
+               f"for circular shifts over {4 * pair_gap_s:g} s of lags)")
     else:
-        by = f"{lo_shift / 1e6:.3g} to {hi_shift / 1e6:.3g} s either way"
+        how = f"each pixel's ON stream shifted by {lags[0] / 1e6:.3g} to {lags[1] / 1e6:.3g} s either way"
     out = _result("polarity_pairs", observed, null, lambda mean, sd: (
-        f"{observed} OFF/ON pairs of one pixel within {pair_gap_s * 1e3:g} ms, {mean:.1f} +- {sd:.1f} with each "
-        f"pixel's ON stream shifted by {by} ({_times(observed, mean)} as many; {int(shifts)} shifts)"))
+        f"{observed} OFF/ON pairs of one pixel within {pair_gap_s * 1e3:g} ms, {mean:.1f} +- {sd:.1f} with "
+        f"{how} ({_times(observed, mean)} as many; {int(shifts)} resamples)"))
     if observed == 0 and not np.any(null):
-        n_on, n_off = int(on.sum()), int((~on).sum())
         out["testable"] = False
         out["detail"] = (f"no OFF/ON pairs of one pixel within {pair_gap_s * 1e3:g} ms, shifted or not "
                          f"({n_off} OFF and {n_on} ON events): nothing to compare")

@@ -1,0 +1,110 @@
+"""Calibration defects found while calibrating real quiet windows (issue 32 section 3), each with the test
+that failed before its fix: the pair check on short windows, parameters at a bound or without a standard
+error, a rejected quiet fit, the memory of the population rate, a background rate at the trial rate."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from evnoise.calibration import quiet_checks as qc
+from evnoise.events import EVENT_DTYPE, OFF, ON
+
+REALDATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "realdata"
+needs_realdata = pytest.mark.skipif(not (REALDATA / "quiet_segments.json").is_file(),
+                                    reason=f"real recordings not found at {REALDATA}")
+SHAPE = (64, 96)
+
+
+def _events(t, x, y, p):
+    out = np.zeros(len(t), dtype=EVENT_DTYPE)
+    out["t"], out["x"], out["y"], out["p"] = t, x, y, p
+    return np.sort(out, order="t", kind="stable")
+
+
+def _poisson_window(rng, duration_us, rate_on=0.6, rate_off=0.4):
+    """Independent homogeneous Poisson ON and OFF streams in every pixel of ``SHAPE``."""
+    n_pix = SHAPE[0] * SHAPE[1]
+    parts = []
+    for pol, rate in ((ON, rate_on), (OFF, rate_off)):
+        n = rng.poisson(rate * duration_us * 1e-6, n_pix)
+        pix = np.repeat(np.arange(n_pix), n)
+        parts.append((rng.integers(0, duration_us, pix.size), pix % SHAPE[1], pix // SHAPE[1],
+                      np.full(pix.size, pol)))
+    return _events(*(np.concatenate(c) for c in zip(*parts)))
+
+
+def _with_pairs(rng, events, duration_us, share):
+    """``share`` of the OFF events followed 5-30 ms later by an ON of the same pixel (a transient and back)."""
+    off = events[events["p"] == OFF]
+    extra = off[rng.random(off.size) < share].copy()
+    extra["t"] += rng.integers(5_000, 30_000, extra.size)
+    extra["p"] = ON
+    extra = extra[extra["t"] < duration_us]
+    return np.sort(np.concatenate([events, extra]), order="t", kind="stable")
+
+
+# -- 1. the polarity-pairs check can fail on windows of 1 s and shorter ---------------------------------------------
+@pytest.mark.parametrize("duration_us", [1_000_000, 400_000, 150_000])
+def test_pairs_in_a_short_window_fail_the_check(duration_us):
+    # before: a 1 s window shifted every ON stream by the same 0.5 s, the null had no spread and p stopped
+    # at 1 / (1 + shifts) = 0.005 > 1e-3 however many pairs there were (a real window with x17 "passed")
+    rng = np.random.default_rng(11)
+    events = _with_pairs(rng, _poisson_window(rng, duration_us), duration_us, 0.5)
+    c = qc.polarity_pairs(events, SHAPE, 0, duration_us, shifts=200, seed=1)
+    assert c["null_sd"] > 0, c
+    assert c["statistic"] > 1.5 * c["null_mean"], c
+    assert c["p_value"] < qc.CHECK_P, c
+    assert qc.failed_checks([c]) == [c]
+
+
+@pytest.mark.parametrize("duration_us", [1_000_000, 400_000, 150_000])
+def test_independent_streams_of_a_short_window_pass_as_often_as_they_should(duration_us):
+    # 60 windows of independent Poisson streams: the share of p-values <= 0.05 is at most 0.05 plus three
+    # binomial standard errors (a one-sided bound: a conservative test may fall short of it), and
+    # p-values are not stuck at one value (a null without spread gave every window the same p)
+    rng = np.random.default_rng(12)
+    n = 60
+    ps = np.array([qc.polarity_pairs(_poisson_window(rng, duration_us, 3.0, 2.0), SHAPE, 0, duration_us,
+                                     shifts=100, seed=k)["p_value"] for k in range(n)])
+    alpha = 0.05
+    assert np.mean(ps <= alpha) <= alpha + 3 * np.sqrt(alpha * (1 - alpha) / n), np.sort(ps)[:10]
+    assert np.count_nonzero(ps < qc.CHECK_P) <= 1
+    assert np.unique(ps).size > 10
+
+
+def test_a_one_second_window_shifts_over_a_range_of_lags():
+    rng = np.random.default_rng(4)
+    c = qc.polarity_pairs(_poisson_window(rng, 1_000_000, 3.0, 2.0), SHAPE, 0, 1_000_000, shifts=20)
+    assert "shifted by 0.1 to 0.5 s either way" in c["detail"], c["detail"]
+    assert c["null_sd"] > 0
+
+
+def test_a_very_short_window_places_the_on_events_at_random():
+    rng = np.random.default_rng(5)
+    c = qc.polarity_pairs(_poisson_window(rng, 150_000, 3.0, 2.0), SHAPE, 0, 150_000, shifts=20)
+    assert c.get("testable", True) and c["null_sd"] > 0
+    assert "placed at random" in c["detail"], c["detail"]
+
+
+def test_a_window_no_longer_than_the_pair_gap_cannot_test_pairs():
+    # every OFF/ON pair of a pixel is within the gap: the count is fixed by the pixels' counts
+    rng = np.random.default_rng(6)
+    c = qc.polarity_pairs(_poisson_window(rng, 50_000, 30.0, 20.0), SHAPE, 0, 50_000, shifts=20)
+    assert c["testable"] is False and "no longer than the pair gap" in c["detail"], c["detail"]
+    assert qc.failed_checks([c]) == []
+
+
+@needs_realdata
+def test_the_one_second_real_window_has_a_null_with_spread():
+    import evnoise as ev
+
+    segments = json.loads((REALDATA / "quiet_segments.json").read_text(encoding="utf-8"))["segments"]
+    rel, seg = next((rel, s) for rel, segs in segments.items() for s in segs if s["dur_s"] == 1.0)
+    a, b = seg["t_from_us"], seg["t_to_us"]
+    events, meta = ev.read_events(REALDATA / rel, t_start=a * 1e-6, t_end=b * 1e-6)
+    c = qc.polarity_pairs(events, tuple(meta["shape"]), a, b - a, shifts=200)
+    assert c["null_sd"] > 0 and "0.1 to 0.5 s" in c["detail"], c
