@@ -19,6 +19,12 @@ Resume. Running the same job again on the same folder keeps every shard whose re
 and SHA-256) matches the file, regenerates the others, and finishes the manifest. A
 complete dataset is verified the same way (a corrupt or missing shard is regenerated). A
 folder holding a dataset made with different options is refused (pass ``overwrite=True``).
+
+Killed runs. Each shard is recorded the moment its file is complete, by whoever made it
+(:func:`make_and_record_shard`, the same in-process, in a pool worker or on Dask), so a run
+killed by any signal, SIGKILL included, loses at most the shards being written. Pool workers
+end with the process that started them. A killed writer leaves its temporary file
+(``.<name>.<pid>-<hex>.tmp``); the next run into the folder removes those whose process is gone.
 """
 
 from __future__ import annotations
