@@ -447,7 +447,7 @@ def test_invalid_config(changes, match):
 def test_cli_errors_are_one_line(tmp_path, capsys, stripe_folder):
     out = os.fspath(tmp_path / "ds")
     assert main(["make-dataset", os.fspath(stripe_folder), "--out", out, "--window", "0.1,abc"]) == 2
-    assert "--window must be seconds" in capsys.readouterr().err
+    assert "--window must be a number, got 'abc'" in capsys.readouterr().err
     assert main(["make-dataset", "--out", out]) == 2
     assert "no scenes" in capsys.readouterr().err
     assert main(["make-dataset", "--procedural", "dead-leaves", "--out", out]) == 2
