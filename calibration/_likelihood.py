@@ -18,7 +18,7 @@ import math
 import numpy as np
 
 from evnoise.mismatch import LevelStats
-from evnoise.params import NoiseParams
+from evnoise.params import PARAM_LIMITS, NoiseParams
 
 from ._spec import FitSpec
 from .measurements import Measurements
@@ -107,7 +107,11 @@ class _Problem:
         if self.use_shape:
             self.k_obs, self.k_sd, self.quasi_shape = d.k_obs, d.k_sd, d.quasi_shape
         self.lo = np.log([spec.bounds[n][0] for n in spec.free])
-        self.hi = np.log([spec.bounds[n][1] for n in spec.free])
+        # the search stays below NoiseParams' limits (PARAM_LIMITS), by the largest finite-difference
+        # step taken there (_uncertainty._steps), so that no point it evaluates is out of range
+        margin = [0.02 if n in ("eps_pos", "eps_neg", "bias_pr") else 1e-3 for n in spec.free]
+        limit = np.log([PARAM_LIMITS.get(n, math.inf) for n in spec.free]) - margin
+        self.hi = np.minimum(np.log([spec.bounds[n][1] for n in spec.free]), limit)
         self._cache_key = None
         self._cache_val = None
 

@@ -414,6 +414,26 @@ def test_points_outside_the_domain_have_infinite_cost():
     assert f == math.inf and not problem.in_domain(got)
 
 
+def test_the_search_stays_within_the_parameter_limits():
+    """Bounds beyond NoiseParams' limits (PARAM_LIMITS; here dark_lux up to 1e7 lux, asked for) are cut to
+    them: the likelihood and its finite differences at the upper bound evaluate without ParameterError."""
+    from evnoise.calibration import _uncertainty
+    from evnoise.calibration import fit as F
+    from evnoise.params import PARAM_LIMITS
+
+    truth, problem = _round_trip_problem()
+    meas, free, values = problem.meas, list(problem.free), truth.to_dict()
+    wide = F._Problem(meas, "poisson", "binomial", free, values,
+                      F._bounds(meas, free, values, {"dark_lux": (1e-3, 1e7)}))
+    i = free.index("dark_lux")
+    theta = wide.theta(truth)
+    theta[i] = wide.hi[i]
+    assert math.isfinite(wide.loglik(theta))  # -1e300 at worst (no count possible), never an exception
+    info, _, _ = _uncertainty._information(wide, theta, _uncertainty._steps(wide), want_meat=False)
+    assert info.shape == (len(free), len(free))
+    assert math.exp(wide.hi[i]) < PARAM_LIMITS["dark_lux"] < wide.bounds["dark_lux"][1]
+
+
 def test_calibration_survives_a_non_finite_optimiser_step(monkeypatch, round_trip_fit):
     """A degenerate information matrix (as on a CPU whose last bits differ, where Fisher scoring
     proposed NaN for eps_pos and bias_pr) is forced on purpose: the NaN step is rejected, no
