@@ -163,7 +163,7 @@ def summarise_events(path, *, sensor=None, t_start=None, t_end=None, csv_columns
                      hot_threshold=None, png=None, overwrite: bool = False) -> dict:
     """Summary of an event file (any format :mod:`evnoise.readers` opens): plain JSON numbers, units in keys."""
     from ..readers import _window, open_events
-    from ..readers.stats import noise_stats, pixel_counts
+    from ..readers.stats import noise_stats, pixel_counts, stats_png
 
     path = Path(path)
     a_us, b_us = _window(t_start, t_end)
@@ -244,65 +244,6 @@ def summarise_events(path, *, sensor=None, t_start=None, t_end=None, csv_columns
         if header:
             out["header"] = header
     return out
-
-
-#: the colour of the fewest events (1) on the count maps: this far up the magma map (its bottom is black, the
-#: colour of "no events")
-_LOWEST_COLOUR = 0.25
-
-
-def count_colours(vmax: int):
-    """``(cmap, norm)`` of the count maps of ``info --stats --png``: log scale from 1 to ``vmax`` events, a pixel
-    with one event in a visible violet; pixels without events are masked and shown black (the axes' colour)."""
-    import numpy as np
-    from matplotlib import colormaps
-    from matplotlib.colors import ListedColormap, LogNorm
-
-    magma = colormaps["magma"]
-    cmap = ListedColormap(magma(np.linspace(_LOWEST_COLOUR, 1.0, 256)), name="magma_from_violet")
-    return cmap, LogNorm(vmin=1, vmax=max(int(vmax), 2))
-
-
-def stats_png(path, counts, *, title: str = "", overwrite: bool = False) -> None:
-    """ON and OFF count maps (log colour scale, black = no events) and the per-pixel count histogram (log y)."""
-    import numpy as np
-
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        raise InputError("--png needs matplotlib: pip install 'evnoise[plot]'") from None
-    from .._atomic import atomic_output
-
-    counts = np.asarray(counts)
-    total = counts.sum(axis=0)
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.6), gridspec_kw={"width_ratios": [1, 1, 1.1]})
-    cmap, norm = count_colours(int(counts.max()))
-    for ax, img, label in zip(axes[:2], counts, ("ON", "OFF"), strict=True):
-        im = ax.imshow(np.ma.masked_equal(img, 0), cmap=cmap, norm=norm, interpolation="nearest")
-        ax.set_facecolor("black")
-        ax.set_title(f"{label} events per pixel ({int(img.sum()):,} events)")
-        ax.set_xlabel("x (px)")
-        ax.set_ylabel("y (px)")
-        fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, label="events (black: none)")
-    ax = axes[2]
-    flat = total.ravel()
-    top = int(flat.max())
-    bins = np.arange(0, top + 2) - 0.5 if top < 200 else np.unique(np.round(np.logspace(0, np.log10(top + 1), 80)))
-    ax.hist(flat, bins=bins, color="0.3", log=True)
-    ax.set_xlabel("events per pixel")
-    ax.set_ylabel("pixels (log)")
-    ax.set_title("per-pixel count histogram")
-    if top >= 200:
-        ax.set_xscale("symlog", linthresh=1)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    with atomic_output(path, overwrite=overwrite, what="PNG file") as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
-    plt.close(fig)
 
 
 def _h5_details(path, meta, out):

@@ -103,30 +103,47 @@ def noise_stats(counts, duration_s: float, *, hot_threshold: float | None = None
     return out
 
 
+#: the colour of the fewest events (1) on the count maps: this far up the magma map (its bottom is black, the
+#: colour of "no events")
+_LOWEST_COLOUR = 0.25
+
+
+def count_colours(vmax: int):
+    """``(cmap, norm)`` of the count maps of ``info --stats --png``: log scale from 1 to ``vmax`` events, a pixel
+    with one event in a visible violet; pixels without events are masked and shown black (the axes' colour)."""
+    import numpy as np
+    from matplotlib import colormaps
+    from matplotlib.colors import ListedColormap, LogNorm
+
+    magma = colormaps["magma"]
+    cmap = ListedColormap(magma(np.linspace(_LOWEST_COLOUR, 1.0, 256)), name="magma_from_violet")
+    return cmap, LogNorm(vmin=1, vmax=max(int(vmax), 2))
+
+
 def stats_png(path, counts, *, title: str = "", overwrite: bool = False) -> None:
-    """ON and OFF count maps (log colour scale) and the per-pixel count histogram (log y), as a PNG."""
+    """ON and OFF count maps (log colour scale, black = no events) and the per-pixel count histogram (log y)."""
+    import numpy as np
+
     try:
         import matplotlib
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
-        from matplotlib.colors import LogNorm
     except ImportError:
-        raise InputError("--png needs matplotlib: pip install 'evnoise[plot]'") from None
+        raise InputError("the count-map PNG needs matplotlib: pip install 'evnoise[plot]'") from None
     from .._atomic import atomic_output
 
     counts = np.asarray(counts)
     total = counts.sum(axis=0)
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.6), gridspec_kw={"width_ratios": [1, 1, 1.1]})
-    vmax = max(int(counts.max()), 1)
+    cmap, norm = count_colours(int(counts.max()))
     for ax, img, label in zip(axes[:2], counts, ("ON", "OFF"), strict=True):
-        shown = np.ma.masked_equal(img, 0)
-        im = ax.imshow(shown, cmap="magma", norm=LogNorm(vmin=1, vmax=max(vmax, 2)), interpolation="nearest")
+        im = ax.imshow(np.ma.masked_equal(img, 0), cmap=cmap, norm=norm, interpolation="nearest")
         ax.set_facecolor("black")
         ax.set_title(f"{label} events per pixel ({int(img.sum()):,} events)")
         ax.set_xlabel("x (px)")
         ax.set_ylabel("y (px)")
-        fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, label="events")
+        fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, label="events (black: none)")
     ax = axes[2]
     flat = total.ravel()
     top = int(flat.max())
