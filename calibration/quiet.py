@@ -20,7 +20,13 @@ standard normal (``GRID`` points over +-7 sd) and is maximised over ``(log r_on,
 log r_hot, log sigma_hot, logit q)``. The spread and the hot pixels are kept only when a
 likelihood-ratio test says the data carry them (:data:`LR_P`); otherwise they are reported as
 *not identified* and set to 0. Standard errors come from the observed information (numerical
-Hessian in the fitted coordinates, delta method to natural units).
+Hessian in the fitted coordinates, delta method to natural units). A parameter whose maximum lies on
+a bound of its range (the hot fraction at :data:`HOT_MAX_FRACTION`, a hot rate at
+:data:`HOT_MIN_RATIO` times the ordinary one, a share or a regularity at 0 or 1, a spread below
+:data:`SIGMA_FLOOR`) is labelled *at upper / lower bound* and has no standard error (a regularity at
+1 keeps its one-sided profile-likelihood error); where such a coordinate makes the information
+singular it is held at the bound and the others' errors are conditional on it. A fitted parameter
+left without a standard error is labelled *fitted, no standard error*, never plain *fitted*.
 
 Goodness of fit, per window and polarity: the histogram of per-pixel counts against the model's
 (the same mixture), bins merged from the top until every expected count is at least 5; Pearson's
@@ -482,15 +488,35 @@ def _standard_errors(model: _Model, groups, res):
     def nll(t):
         return -_log_likelihood(t, model, groups)
 
+    def inverse_information(free):
+        def nll_free(t):
+            x = res.x.copy()
+            x[free] = t
+            return nll(x)
+
+        try:
+            cov = np.linalg.inv(_hessian(nll_free, res.x[free])) if free else np.zeros((0, 0))
+        except np.linalg.LinAlgError:
+            return None
+        return cov if np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0) else None
+
     se = {n: None for n in NAMES}
     notes = []
-    try:
-        cov = np.linalg.inv(_hessian(nll, res.x))
-        ok = np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0)
-    except np.linalg.LinAlgError:
-        ok = False
-    if ok:
-        d = np.sqrt(np.diag(cov))
+    coords = _coordinates(model)
+    free = list(range(len(coords)))
+    cov = inverse_information(free)
+    # a coordinate on a bound of its range (_at_bounds), running off to +-inf, can make the information
+    # singular: then it is held there and the others' errors are conditional on it
+    bound = _at_bounds(v, model)
+    if cov is None and bound:
+        free = [i for i, n in enumerate(coords) if n not in bound]
+        cov = inverse_information(free)
+        if cov is not None:
+            notes.append("on a bound of its range: " + ", ".join(bound) + " (held there for the others' standard "
+                         "errors)")
+    if cov is not None:
+        d = np.zeros(res.x.size)
+        d[free] = np.sqrt(np.diag(cov))
         se["rate_on_hz"] = v["rate_on_hz"] * d[0]
         se["rate_off_hz"] = v["rate_off_hz"] * d[1]
         i = 2
@@ -512,7 +538,7 @@ def _standard_errors(model: _Model, groups, res):
             i += 2
         if model.regular:
             se["regularity"] = v["regularity"] * (1 - v["regularity"]) * d[i]
-            if v["regularity"] + 2.0 * se["regularity"] > 1.0:
+            if v["regularity"] + 2.0 * se["regularity"] > 1.0 or "regularity" in bound:
                 # near r = 1 the delta method through the logit shrinks the error to nothing while the
                 # likelihood may be flat: the profile likelihood says how far r can move inwards
                 se["regularity"] = _profile_distance(nll, res.x, i, v["regularity"])
@@ -521,6 +547,47 @@ def _standard_errors(model: _Model, groups, res):
     else:
         notes.append("the observed information is not positive definite: no standard errors")
     return se, notes
+
+
+def _coordinates(model: _Model) -> list:
+    """The parameter behind each fitted coordinate, in the order of :func:`_unpack`."""
+    names = ["rate_on_hz", "rate_off_hz"] + ["sigma"] * model.spread
+    if model.hot:
+        names += ["hot_fraction", "hot_rate_hz", "hot_sigma", "hot_on_fraction"]
+    return names + ["growth_on", "growth_off"] * model.growth + ["regularity"] * model.regular
+
+
+#: A parameter held in an interval by its fitted coordinate (a logit, a log of the excess over a floor) counts as
+#: at that bound when it is within this fraction of the interval (the coordinate beyond about +-9.2).
+BOUND_TOL = 1e-4
+#: A log-normal spread (``sigma``, ``hot_sigma``, fitted as its log) below this is at its lower bound, 0.
+SIGMA_FLOOR = 1e-3
+
+
+def _at_bounds(v: dict, model: _Model) -> dict:
+    """``{name: "at upper bound (BOUND" | "at lower bound (BOUND"}`` (the caller closes the bracket) of the fitted
+    parameters on a bound of their range (:data:`BOUND_TOL`): the maximum is there, not inside, so the
+    observed information gives it no standard error."""
+    out = {}
+    if model.spread and v["sigma"] < SIGMA_FLOOR:
+        out["sigma"] = "at lower bound (0: no spread"
+    if model.hot:
+        if v["hot_sigma"] < SIGMA_FLOOR:
+            out["hot_sigma"] = "at lower bound (0: no spread"
+        if v["hot_fraction"] >= HOT_MAX_FRACTION * (1 - BOUND_TOL):
+            out["hot_fraction"] = f"at upper bound (HOT_MAX_FRACTION = {HOT_MAX_FRACTION:g}"
+        ordinary = v["rate_on_hz"] + v["rate_off_hz"]
+        if v["hot_rate_hz"] <= HOT_MIN_RATIO * ordinary * (1 + BOUND_TOL):
+            out["hot_rate_hz"] = f"at lower bound ({HOT_MIN_RATIO:g} times the ordinary rate"
+        for side, bound in (("lower", 0.0), ("upper", 1.0)):
+            if abs(v["hot_on_fraction"] - bound) <= BOUND_TOL:
+                out["hot_on_fraction"] = f"at {side} bound ({bound:g}"
+    if model.regular:
+        if v["regularity"] >= 1 - BOUND_TOL:
+            out["regularity"] = "at upper bound (1: periodic"
+        elif v["regularity"] <= BOUND_TOL:
+            out["regularity"] = "at lower bound (0: Poisson"
+    return out
 
 
 def _quiet_fit(model, res, se, notes, tests, goodness, windows, base, spread, hot, regularity, lux_levels) -> QuietFit:
@@ -537,6 +604,16 @@ def _quiet_fit(model, res, se, notes, tests, goodness, windows, base, spread, ho
     for n in ("hot_sigma", "hot_on_fraction"):
         if model.hot and v["hot_fraction"] * sum(np.prod(w.shape) for w in windows) < 5:
             status[n] = "weakly identified (fewer than 5 hot pixels)"
+    for n, side in _at_bounds(v, model).items():
+        if n == "regularity" and side.startswith("at upper") and se.get(n) is not None and math.isfinite(se[n]):
+            # near r = 1 the profile likelihood's one-sided error stands (_standard_errors)
+            status[n] = f"{side}; one-sided profile-likelihood error)"
+            continue
+        status[n] = f"{side}; no standard error)"
+        se[n] = None  # the delta method's error at a bound describes the coordinate, not the parameter
+    for n in NAMES:
+        if status[n] == "fitted" and (se.get(n) is None or not math.isfinite(se[n])):
+            status[n] = "fitted, no standard error"
     if not lux_levels:
         notes.append("illuminance unknown: the rates are the totals at the recording's light (shot noise and "
                      "background together); the shot-noise parameters are not identified")

@@ -108,3 +108,60 @@ def test_the_one_second_real_window_has_a_null_with_spread():
     events, meta = ev.read_events(REALDATA / rel, t_start=a * 1e-6, t_end=b * 1e-6)
     c = qc.polarity_pairs(events, tuple(meta["shape"]), a, b - a, shifts=200)
     assert c["null_sd"] > 0 and "0.1 to 0.5 s" in c["detail"], c
+
+
+# -- 2. a parameter at a bound or without a standard error is not "fitted" ------------------------------------------
+def _hot_window(hot_share, seed=3, shape=(48, 48), duration_s=4.0):
+    """Poisson counts: ordinary pixels at 0.3 + 0.1 Hz, a share ``hot_share`` of them at 12 Hz (70 % ON)."""
+    from evnoise.calibration import quiet as q
+
+    rng = np.random.default_rng(seed)
+    hot = rng.random(shape) < hot_share
+    on = np.where(hot, 12.0 * 0.7, 0.3) * duration_s
+    off = np.where(hot, 12.0 * 0.3, 0.1) * duration_s
+    return q.QuietWindow(np.stack([rng.poisson(on), rng.poisson(off)]), duration_s, source="simulated")
+
+
+def test_hot_fraction_at_its_cap_is_labelled_at_bound():
+    from evnoise.calibration import quiet as q
+
+    # 12 % hot pixels, more than the model allows (HOT_MAX_FRACTION 0.05): the fraction sits on its cap,
+    # where the delta method's standard error (+-3e-7 on a real window) means nothing
+    fit = q.fit_quiet([_hot_window(0.12)], spread="off", regularity="off", hot="on")
+    assert fit.values["hot_fraction"] == pytest.approx(q.HOT_MAX_FRACTION, rel=1e-3)
+    assert fit.status["hot_fraction"].startswith("at upper bound"), fit.status
+    assert fit.std_error["hot_fraction"] is None
+    assert "hot_fraction" not in fit.to_toml_tables()["std_error"]
+    assert "at upper bound" in fit.summary()
+    # an interior fit keeps its ordinary label
+    inside = q.fit_quiet([_hot_window(0.03)], spread="off", regularity="off", hot="on")
+    assert inside.status["hot_fraction"] == "fitted" and inside.std_error["hot_fraction"] > 0
+
+
+def test_a_spread_at_zero_is_at_bound_and_the_others_keep_their_errors():
+    from evnoise.calibration import quiet as q
+
+    # hot pixels all at one rate: hot_sigma runs to 0 (its log to -inf), the observed information was
+    # singular and every parameter "fitted" without a standard error
+    fit = q.fit_quiet([_hot_window(0.01)], spread="off", regularity="off", hot="on")
+    assert fit.values["hot_sigma"] < q.SIGMA_FLOOR
+    assert fit.status["hot_sigma"].startswith("at lower bound (0"), fit.status["hot_sigma"]
+    assert fit.std_error["hot_sigma"] is None
+    for name in ("rate_on_hz", "rate_off_hz", "hot_fraction", "hot_rate_hz", "hot_on_fraction"):
+        assert fit.status[name] == "fitted" and fit.std_error[name] > 0, (name, fit.status[name])
+    # the ordinary rates within four standard errors of the truth (0.3 and 0.1 Hz)
+    assert abs(fit.values["rate_on_hz"] - 0.3) < 4 * fit.std_error["rate_on_hz"]
+    assert abs(fit.values["rate_off_hz"] - 0.1) < 4 * fit.std_error["rate_off_hz"]
+
+
+def test_a_fit_without_standard_errors_says_so(monkeypatch):
+    from evnoise.calibration import quiet as q
+
+    # a singular observed information (a real fit: sigma 11.05, regularity 1) leaves no standard errors:
+    # those parameters were labelled "fitted" all the same
+    monkeypatch.setattr(q, "_hessian", lambda nll, x: np.zeros((x.size, x.size)))
+    fit = q.fit_quiet([_hot_window(0.0)], spread="on", regularity="off", hot="off")
+    assert any("no standard errors" in n for n in fit.notes)
+    for name in ("rate_on_hz", "rate_off_hz", "sigma"):
+        assert fit.std_error[name] is None
+        assert fit.status[name] == "fitted, no standard error", (name, fit.status[name])

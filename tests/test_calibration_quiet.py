@@ -120,7 +120,10 @@ def test_fit_recovers_known_background_within_its_uncertainty():
     truth = {"rate_on_hz": 0.2, "rate_off_hz": 0.05, "sigma": 0.6, "regularity": 0.9, "hot_fraction": 0.003,
              "hot_on_fraction": (6.0 * 0.7 + 0.2) / 6.25}
     for name, value in truth.items():
-        assert fit.status[name] == "fitted", (name, fit.status[name])
+        # a regularity fitted at 1 (its logit far out: 0.99999 with this seed) is labelled so (issue 32); its
+        # error is the profile likelihood's, one-sided
+        ok = "fitted" if name != "regularity" or fit.values[name] < 0.9999 else "at upper bound (1: periodic; one-sided"
+        assert fit.status[name].startswith(ok), (name, fit.status[name])
         se = fit.std_error[name]
         assert se is not None and se > 0
         assert abs(fit.values[name] - value) < K * se, (name, fit.values[name], value, se)
