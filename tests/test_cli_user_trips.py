@@ -405,3 +405,21 @@ def test_a_signal_inside_compiled_code_is_not_a_traceback(tmp_path, capsys, monk
     monkeypatch.setattr(info, "run", compiled_code_interrupted)
     got, _, err = run_cli(capsys, "info", small_events_file(tmp_path / "rec.h5"))
     assert got == code and err.strip().splitlines() == [line], err
+
+
+def test_info_states_each_formats_time_convention(tmp_path, capsys):
+    """issue 31: the clock a format's owner uses is stated by info (.raw/.dat: the camera's clock as stored)."""
+    import json
+
+    events = np.zeros(50, dtype=ev.EVENT_DTYPE)
+    events["t"] = 5_000_000 + np.arange(50) * 100
+    events["x"], events["y"], events["p"] = np.arange(50) % 8, np.arange(50) % 6, np.arange(50) % 2
+    for suffix, needle in ((".raw", "Prophesee's convention"), (".dat", "Prophesee's convention"),
+                           (".h5", "/t_offset"), (".es", "Event Stream counts from 0")):
+        path = tmp_path / f"rec{suffix}"
+        ev.write_events(path, events, (6, 8))
+        assert main(["info", str(path), "--json"]) == 0
+        out = json.loads(capsys.readouterr().out)
+        assert needle in out["clock"], (suffix, out["clock"])
+        if suffix in (".raw", ".dat"):
+            assert out["t_first_us"] == 5_000_000  # the clock itself, no offset
