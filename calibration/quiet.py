@@ -30,7 +30,10 @@ left without a standard error is labelled *fitted, no standard error*, never pla
 
 Goodness of fit, per window and polarity: the histogram of per-pixel counts against the model's
 (the same mixture), bins merged from the top until every expected count is at least 5; Pearson's
-chi-square with ``bins - 1`` degrees of freedom minus the fitted parameters (at least 1).
+chi-square with ``bins - 1`` degrees of freedom minus the fitted parameters (at least 1). The fit as a
+whole is *rejected* (``QuietFit.fit_status``, with its reasons in ``rejections``) when a histogram's
+p-value is below :data:`GOODNESS_P` or a window fails one of the checks that it is pure stationary
+noise (:mod:`.quiet_checks`: no preset reproduces such a window); otherwise *accepted*.
 
 With ``lux`` given for the windows, the shot noise of a base preset at that illuminance is part
 of the model (fixed, not fitted) and the fitted rates are its background on top; with two or more
@@ -54,7 +57,7 @@ from evnoise._clock import seconds_text
 from evnoise.errors import InputError, ParameterError
 
 from ._progress import Phases
-from .quiet_checks import check_verdict
+from .quiet_checks import check_verdict, failed_checks
 
 # The model's parts live in one module per job; their names are re-exported here, where the tests, the
 # command line and the scripts look for them: the renewal count distribution, the goodness of fit (the
@@ -89,10 +92,12 @@ from .quiet_likelihood import (  # noqa: F401
     _unpack,
 )
 
-__all__ = ["QuietWindow", "quiet_window", "fit_quiet", "QuietFit", "GRID", "LR_P"]
+__all__ = ["QuietWindow", "quiet_window", "fit_quiet", "QuietFit", "GRID", "LR_P", "GOODNESS_P"]
 
 #: Likelihood-ratio p-value below which the spread / the hot pixels count as identified.
 LR_P = 1e-3
+#: Goodness-of-fit p-value (a window's ON or OFF count histogram) below which the fit is rejected.
+GOODNESS_P = 1e-3
 NAMES = ("rate_on_hz", "rate_off_hz", "regularity", "sigma", "hot_fraction", "hot_rate_hz", "hot_sigma",
          "hot_on_fraction")
 
@@ -184,6 +189,9 @@ class QuietFit:
     windows: list
     base: object = None
     notes: list = field(default_factory=list)
+    #: ``"accepted"`` or ``"rejected"`` (module doc), and why it was rejected
+    fit_status: str = "accepted"
+    rejections: list = field(default_factory=list)
 
     def to_params(self, base=None):
         """NoiseParams whose nominal rates at 0 lux (or the windows' lux) reproduce the fitted ones.
@@ -209,7 +217,9 @@ class QuietFit:
     def summary(self) -> str:
         lines = [f"quiet-scene calibration from {len(self.windows)} window(s), "
                  f"{sum(int(np.prod(w.shape)) for w in self.windows)} pixel-windows; log-likelihood "
-                 f"{self.log_likelihood:.2f}"]
+                 f"{self.log_likelihood:.2f}",
+                 f"  fit status: {self.fit_status.upper()}"]
+        lines += [f"  rejected: {r}" for r in self.rejections]
         for name in NAMES:
             val, se, st = self.values[name], self.std_error.get(name), self.status[name]
             err = "" if se is None or not math.isfinite(se) else f" +- {se:.3g}"
@@ -235,6 +245,8 @@ class QuietFit:
         return {
             "method": "quiet-scene maximum likelihood (evnoise.calibration.quiet)",
             "log_likelihood": round(self.log_likelihood, 3),
+            "fit_status": self.fit_status,
+            "rejections": list(self.rejections),
             "status": dict(self.status),
             "values": {k: float(v) for k, v in self.values.items() if k in NAMES},
             "std_error": {k: float(v) for k, v in self.std_error.items() if v is not None and math.isfinite(v)},
@@ -617,7 +629,20 @@ def _quiet_fit(model, res, se, notes, tests, goodness, windows, base, spread, ho
     if not lux_levels:
         notes.append("illuminance unknown: the rates are the totals at the recording's light (shot noise and "
                      "background together); the shot-noise parameters are not identified")
-    return QuietFit(v, se, status, -float(res.fun), tests, goodness, windows, base, notes)
+    rejections = _rejections(goodness, windows)
+    return QuietFit(v, se, status, -float(res.fun), tests, goodness, windows, base, notes,
+                    "rejected" if rejections else "accepted", rejections)
+
+
+def _rejections(goodness, windows) -> list:
+    """Why the fit is rejected (module doc): histograms the model does not describe, windows that are not noise."""
+    out = [f"{g['window']} {g['polarity']}: the count histogram does not match the model (chi2 {g['chi2']:.3g} on "
+           f"{g['dof']} dof, p = {g['p_value']:.3g} < {GOODNESS_P:g})"
+           for g in goodness if math.isfinite(g["p_value"]) and g["p_value"] < GOODNESS_P]
+    for w in windows:
+        out += [f"{w.describe()} is not pure stationary noise: {c['check']} {check_verdict(c)}"
+                for c in failed_checks(w.checks)]
+    return out
 
 
 # --------------------------------------------------------------------------------------
@@ -635,7 +660,8 @@ def preset_toml(params, *, sensor: tuple, header: str, provenance: dict, fit: Qu
     lines += _table("provenance", provenance) + [""]
     if fit is not None:
         tables = fit.to_toml_tables()
-        lines += _table("fit", {"method": tables["method"], "log_likelihood": tables["log_likelihood"]}) + [""]
+        lines += _table("fit", {"method": tables["method"], "log_likelihood": tables["log_likelihood"],
+                                "fit_status": tables["fit_status"], "rejections": tables["rejections"]}) + [""]
         lines += _table("fit.status", tables["status"]) + [""]
         lines += _table("fit.values", tables["values"]) + [""]
         lines += _table("fit.std_error", tables["std_error"]) + [""]

@@ -165,3 +165,64 @@ def test_a_fit_without_standard_errors_says_so(monkeypatch):
     for name in ("rate_on_hz", "rate_off_hz", "sigma"):
         assert fit.std_error[name] is None
         assert fit.status[name] == "fitted, no standard error", (name, fit.status[name])
+
+
+# -- 3. a rejected quiet fit has an overall status, exits non-zero and writes no preset unless accepted ------------
+def _spread_recording(tmp_path):
+    """A still scene whose rates spread over pixels (leak_sigma 1.2): a fit without spread must be rejected."""
+    import evnoise as ev
+
+    params = ev.NoiseParams(eps_pos=5, eps_neg=5, bias_pr=2, trial_rate_hz=1000, photons_per_lux=1, leak_on_hz=0.8,
+                            leak_off_hz=0.4, leak_sigma=1.2)
+    events = ev.simulate_events(np.zeros((40, 50)), params, 6.0, rng=5, t_start_us=2_000_000)
+    path = tmp_path / "spread.h5"
+    ev.write_events(path, events, (40, 50))
+    return path
+
+
+def test_a_quiet_fit_has_an_overall_status(tmp_path):
+    from evnoise.calibration import quiet as q
+
+    window = q.quiet_window(_spread_recording(tmp_path), 2.0, 8.0)
+    rejected = q.fit_quiet([window], spread="off", hot="off", regularity="off")
+    assert min(g["p_value"] for g in rejected.goodness) < q.GOODNESS_P
+    assert rejected.fit_status == "rejected" and rejected.rejections, rejected.summary()
+    assert "fit status: REJECTED" in rejected.summary()
+    assert rejected.to_toml_tables()["fit_status"] == "rejected"
+    accepted = q.fit_quiet([window], spread="on", hot="off", regularity="off")
+    assert min(g["p_value"] for g in accepted.goodness) > q.GOODNESS_P
+    assert accepted.fit_status == "accepted" and accepted.rejections == []
+    assert "fit status: ACCEPTED" in accepted.summary()
+
+
+def test_a_window_failing_a_check_rejects_the_fit():
+    from evnoise.calibration import quiet as q
+
+    counts = np.ones((2, 4, 4), dtype=np.int64)
+    failed = {"check": "polarity_pairs", "statistic": 50, "null_mean": 3.0, "null_sd": 1.0, "p_value": 1e-9,
+              "assumption": True, "detail": "50 OFF/ON pairs"}
+    w = q.QuietWindow(counts, 2.0, source="w", checks=[failed])
+    fit = q.fit_quiet([w], spread="off", hot="off", regularity="off")
+    assert fit.fit_status == "rejected"
+    assert any("polarity_pairs" in r for r in fit.rejections), fit.rejections
+
+
+def test_cli_does_not_write_a_rejected_quiet_fit_unless_asked(tmp_path, capsys):
+    import evnoise as ev
+    from evnoise.cli import main
+
+    rec = _spread_recording(tmp_path)
+    out = tmp_path / "cam.toml"
+    argv = ["calibrate", str(rec), "--t-start", "2", "--t-end", "8", "--out", str(out), "--spread", "off", "--hot",
+            "off", "--regularity", "off", "--no-checks", "-q"]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert "rejected" in err and "--accept-rejected" in err and not out.exists(), err
+    assert main(argv + ["--accept-rejected"]) == 0
+    doc = ev.params.load_preset_document(out)
+    assert doc["fit"]["fit_status"] == "rejected" and doc["fit"]["rejections"]
+    # an accepted fit says so in its [fit] table and exits 0
+    good = tmp_path / "good.toml"
+    assert main(["calibrate", str(rec), "--t-start", "2", "--t-end", "8", "--out", str(good), "--hot", "off",
+                 "--regularity", "off", "--no-checks", "-q"]) == 0
+    assert ev.params.load_preset_document(good)["fit"]["fit_status"] == "accepted"

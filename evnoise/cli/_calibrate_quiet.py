@@ -5,6 +5,11 @@ entries combine) holds a still scene, so its per-pixel counts are pure noise. Fi
 :mod:`evnoise.calibration.quiet`: the ON/OFF background rates, their regularity, their spread and
 the hot pixels, each only where the data carry it. Without ``--lux`` the illuminance is unknown and
 the rates are the totals at the recording's light (the preset reproduces them at 0 lux).
+
+A *rejected* fit (a window's count histogram not described at ``GOODNESS_P``, or a window failing a
+check that it is pure stationary noise; ``fit status`` in the report, ``fit_status`` in ``[fit]``)
+writes no preset and exits 1, unless ``--accept-rejected``: then the preset is written, its ``[fit]``
+table says ``fit_status = "rejected"`` with the reasons, and the exit code is 0.
 """
 
 from __future__ import annotations
@@ -16,9 +21,6 @@ from ..errors import InputError, ParameterError
 from . import _options as opt
 
 log = logging.getLogger(__name__)
-
-#: goodness-of-fit p-value below which the fit is said not to describe a window
-GOODNESS_P = 1e-3
 
 
 #: What to do when a window fails a check of :mod:`evnoise.calibration.quiet_checks`.
@@ -48,6 +50,9 @@ def add_arguments(p) -> None:
     g.add_argument("--hot", choices=("auto", "on", "off"), default="auto", help="hot pixels (default: auto)")
     g.add_argument("--regularity", choices=("auto", "on", "off"), default="auto",
                    help="regular (near-periodic) arrivals (default: auto)")
+    g.add_argument("--accept-rejected", action="store_true",
+                   help="write the preset even when the fit is rejected (its [fit] table then says fit_status = "
+                        "\"rejected\"); without it a rejected fit writes no preset and exits 1")
     g.add_argument("--no-checks", dest="checks", action="store_false",
                    help="skip the checks that each window is pure stationary noise (OFF/ON pairs, drift, a changing "
                         "pattern; about 15 s per million events)")
@@ -85,7 +90,7 @@ def run(args, recordings) -> int:
     from pathlib import Path
 
     from evnoise.calibration.preset import write_text_atomic
-    from evnoise.calibration.quiet import fit_quiet, preset_toml, quiet_window
+    from evnoise.calibration.quiet import GOODNESS_P, fit_quiet, preset_toml, quiet_window
     from evnoise.calibration.quiet_checks import check_verdict, failed_checks
 
     from ..io import open_output_path
@@ -123,10 +128,14 @@ def run(args, recordings) -> int:
                 "simulate at lux 0 to reproduce them") if all(w.lux is None for w in windows) else
                "windows at " + ", ".join(f"{w.lux:g}" for w in windows) + " lux",
     }
+    if fit.fit_status == "rejected":
+        provenance["fit_status"] = ("REJECTED, written with --accept-rejected: " + "; ".join(fit.rejections))
     text = preset_toml(params, sensor=(width, height, "calibrated camera"), header="Calibrated from a quiet "
                        "recording by evnoise calibrate; see [provenance] and [fit].", provenance=provenance, fit=fit)
-    write_text_atomic(out, text, overwrite=True)
-    print(f"wrote {out}")
+    written = fit.fit_status != "rejected" or args.accept_rejected
+    if written:
+        write_text_atomic(out, text, overwrite=True)
+        print(f"wrote {out}")
     for w in windows:
         for c in failed_checks(w.checks):
             log.warning("%s is not pure stationary noise (%s %s): %s; %s", w.describe(), c["check"],
@@ -135,7 +144,15 @@ def run(args, recordings) -> int:
     if tested and min(tested) < GOODNESS_P:
         log.warning("the fitted model does not describe every window (lowest goodness-of-fit p = %.2g < %g): the "
                     "scene may not be still, or its noise not stationary", min(tested), GOODNESS_P)
-    if args.plot:
+    if args.plot:  # a rejected fit's figure too: it shows where the model misses
         fit.plot(args.plot, params=params)
         print(f"wrote {args.plot}")
+    if fit.fit_status == "rejected":
+        more = len(fit.rejections) - 1
+        reasons = fit.rejections[0] + (f"; and {more} more in the report's 'rejected:' lines" if more else "")
+        if not written:
+            log.error("the fit is rejected (%s): no preset written to %s; --accept-rejected writes it anyway",
+                      reasons, out)
+            return 1
+        log.warning("the fit is rejected (%s); written to %s as asked (--accept-rejected)", reasons, out)
     return 0
