@@ -216,10 +216,18 @@ def sorted_window(parts, t_lo: int, t_hi: int, labels: bool = False, sink: Colle
 
 
 def renewal_inputs(p_on: np.ndarray, p_off: np.ndarray):
-    p = p_on + p_off
+    """``(log(1 - p), ON share)`` of the per-trial event probability ``p = p_on + p_off``, capped at 1.
+
+    ``p`` reaches 1 when a rate reaches the trial rate (a background of 1e6 Hz at 1000 trials/s:
+    ``1 - exp(-1000)`` is 1.0 in floating point): ``log(1 - p)`` is then ``-inf``, explicitly, and the
+    renewal kernel's geometric gap ``floor(log(u) / log(1 - p))`` is 0: an event at every trial.
+    """
+    p = np.minimum(p_on + p_off, 1.0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        q_on = np.where(p > 0, p_on / np.where(p > 0, p, 1.0), 0.5)
-    return np.log1p(-np.minimum(p, 1.0)), q_on
+        q_on = np.where(p > 0, p_on / np.where(p > 0, p_on + p_off, 1.0), 0.5)
+    sure = p >= 1.0
+    log1m_p = np.log1p(-np.where(sure, 0.0, p))
+    return np.where(sure, -np.inf, log1m_p), q_on
 
 
 def timer_arrays(lam, params: NoiseParams, bg):

@@ -226,3 +226,17 @@ def test_cli_does_not_write_a_rejected_quiet_fit_unless_asked(tmp_path, capsys):
     assert main(["calibrate", str(rec), "--t-start", "2", "--t-end", "8", "--out", str(good), "--hot", "off",
                  "--regularity", "off", "--no-checks", "-q"]) == 0
     assert ev.params.load_preset_document(good)["fit"]["fit_status"] == "accepted"
+
+
+# -- 5. a background rate at the trial rate: an event every trial, no warning -------------------------------------
+def test_a_background_at_the_trial_rate_fires_every_trial_without_warnings():
+    import evnoise as ev
+
+    # leak_on_hz 1e6 at 1000 trials/s: the per-trial probability 1 - exp(-1000) is 1.0 in floating point and
+    # log1p(-1) warned "divide by zero" (a DVXplorer calibration); the limit is an event at every trial
+    params = ev.NoiseParams(eps_pos=5, eps_neg=5, bias_pr=2, trial_rate_hz=1000, photons_per_lux=1, leak_on_hz=1e6)
+    counts = ev.sample_counts(np.zeros((4, 5)), params, 0.02, rng=1)
+    np.testing.assert_array_equal(counts[0], 20)
+    np.testing.assert_array_equal(counts[1], 0)
+    events = ev.simulate_events(np.zeros((4, 5)), params, 0.02, rng=1)
+    assert events.size == 4 * 5 * 20 and np.all(events["p"] == ON)
