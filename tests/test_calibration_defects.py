@@ -240,3 +240,58 @@ def test_a_background_at_the_trial_rate_fires_every_trial_without_warnings():
     np.testing.assert_array_equal(counts[1], 0)
     events = ev.simulate_events(np.zeros((4, 5)), params, 0.02, rng=1)
     assert events.size == 4 * 5 * 20 and np.all(events["p"] == ON)
+
+
+# -- 4. the population mean rate at high light in bounded memory, same values --------------------------------------
+_PEAK_CODE = """
+import resource, sys
+import numpy as np
+import evnoise as ev
+from evnoise._kernels.mismatch import threshold_atoms
+p = ev.load_preset("evk4")
+def atoms(lux):
+    lam = float(p.photons_per_trial(np.array([lux]))[0])
+    return threshold_atoms(lam, float(p.bias_pr), float(p.eps_pos), float(p.eps_sigma), 0.01)
+atoms(1.0)  # compiled, imports done
+before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+out = atoms(float(sys.argv[1]))
+print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before, out[2])
+"""
+
+
+def _peak_kib(lux):
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, "-c", _PEAK_CODE, str(lux)], capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    grown, log_m1 = run.stdout.split()
+    return int(grown), float(log_m1)
+
+
+def test_threshold_atoms_at_high_light_in_bounded_memory():
+    # evk4 at 1000 lux (2e4 photons per trial): every pair (n, m) of photon counts was stored before being
+    # binned, 264 MiB more here, 2.1 GB at 3000 lux (MemoryError at 10,000); now they are visited twice
+    grown, log_m1 = _peak_kib(1000.0)
+    assert grown < 100_000, f"peak memory grew by {grown / 1024:.0f} MiB"
+    assert np.isfinite(log_m1)
+
+
+@pytest.mark.slow
+def test_expected_rate_of_evk4_at_10000_lux():
+    import evnoise as ev
+
+    grown, _ = _peak_kib(10_000.0)
+    assert grown < 100_000, f"peak memory grew by {grown / 1024:.0f} MiB"
+    rate = ev.expected_rate(np.array([10_000.0]), ev.load_preset("evk4"), mismatch="mean")
+    assert np.all(np.isfinite(rate)) and np.all(rate > 0)
+
+
+def test_population_rate_values_unchanged_by_the_bounded_memory():
+    import evnoise as ev
+
+    # bit for bit the values of the version that stored every pair (both of its paths: few steps, binned steps)
+    p = ev.load_preset("evk4")
+    got = ev.expected_rate(np.array([20.0, 300.0]), p, mismatch="mean")
+    np.testing.assert_allclose(got, [[0.026130830590251317, 0.009564556377305897],
+                                     [0.0733975852912396, 0.03177731922517592]], rtol=1e-15, atol=0)
