@@ -173,7 +173,8 @@ def test_every_dvs128_quiet_window_is_described_by_its_own_fit(index):
     assert int(window.counts.sum()) == seg["n"]
     fit = q.fit_quiet([window])
     for g in fit.goodness:
-        assert g["p_value"] > 1e-3, g
+        # a histogram that pools into one bin cannot test anything: its p is NaN ("not testable"), never a pass
+        assert g["p_value"] > 1e-3 or (np.isnan(g["p_value"]) and g.get("dof", 0) == 0), g
     # the fitted model, simulated, is consistent with the recording (two-sample test, 10 simulated sensors)
     params = fit.to_params(ev.NoiseParams(eps_pos=5, eps_neg=5, bias_pr=2, trial_rate_hz=1000, photons_per_lux=1))
     for row in q.compare_to_recording(params, window, replicas=10, seed=index):
