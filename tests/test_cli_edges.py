@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import evnoise as ev
-from evnoise.cli import main
+from _cli_helpers import one_error_line, run_cli, small_events_file
 
 PIL_Image = pytest.importorskip("PIL.Image")
 h5py = pytest.importorskip("h5py")
@@ -31,25 +31,10 @@ def grey_image(path, shape=(24, 32), seed=0):
     return path
 
 
-def run_cli(capsys, *args):
-    code = main([*map(str, args)])
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
-def one_error_line(code, err, expect):
-    lines = err.strip().splitlines()
-    assert code == 2, err
-    assert len(lines) == 1 and lines[0].startswith("evnoise: error: "), err
-    assert expect in lines[0], lines[0]
 
 
-def small_events_file(path, shape=(16, 20), n=400, seed=0, duration_us=1_000_000):
-    rng = np.random.default_rng(seed)
-    t = np.sort(rng.integers(0, duration_us, n))
-    events = ev.events.make_events(t, rng.integers(0, shape[1], n), rng.integers(0, shape[0], n),
-                                   rng.integers(0, 2, n))
-    return ev.write_events(path, events, shape, t_end_us=duration_us)
 
 
 # --------------------------------------------------------------------------------------

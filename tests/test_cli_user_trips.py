@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 import evnoise as ev
+from _cli_helpers import small_events_file
 from evnoise.cli import build_parser, main
 
 PIL_Image = pytest.importorskip("PIL.Image")
@@ -40,12 +41,6 @@ def grey_image(path, shape=(24, 32), value=128):
     return path
 
 
-def small_events_file(path, shape=(16, 20), n=400, seed=0, duration_us=1_000_000):
-    rng = np.random.default_rng(seed)
-    t = np.sort(rng.integers(0, duration_us, n))
-    events = ev.events.make_events(t, rng.integers(0, shape[1], n), rng.integers(0, shape[0], n),
-                                   rng.integers(0, 2, n))
-    return ev.write_events(path, events, shape, t_end_us=duration_us)
 
 
 def subparsers():

@@ -16,23 +16,15 @@ import numpy as np
 import pytest
 
 import evnoise as ev
+from _cli_helpers import one_error_line, run_cli
 from evnoise.cli import main
 
 REPO = Path(__file__).resolve().parents[1]
 GOOD = dict(eps_pos=0.2, eps_neg=0.2, bias_pr=1.7, trial_rate_hz=1000.0, photons_per_lux=1.0)
 
 
-def run_cli(capsys, *args):
-    code = main([*map(str, args)])
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
-def one_error_line(code, err, expect):
-    lines = err.strip().splitlines()
-    assert code == 2, err
-    assert len(lines) == 1 and lines[0].startswith("evnoise: error: "), err
-    assert expect in lines[0], lines[0]
 
 
 def run_python(code: str, limit_s: float = 300.0) -> subprocess.CompletedProcess:
