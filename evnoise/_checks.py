@@ -163,3 +163,9 @@ def check_thresholds(thresholds, shape) -> np.ndarray:
     if not (np.isfinite(arr).all() and (arr > 0).all()):
         raise InputError("thresholds must be finite and > 0")
     return arr
+
+
+def path_text(path) -> str:
+    """``path`` as text that can be stored (HDF5 attributes, JSON) and printed: bytes of a file name that are
+    not UTF-8 (which Python keeps as surrogates) are written as ``\\xNN``."""
+    return str(path).encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")

@@ -45,7 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._checks import check_int
+from ._checks import check_int, path_text
 from ._recordings import recording_blocks, recording_info, recording_start_us
 from .errors import InputError, ParameterError
 from .events import check_events, check_shape, empty_events
@@ -452,7 +452,7 @@ def separate_file(path, signal_out=None, noise_out=None, method="density", *, ov
     t_begin = min(t_begin, t_first) if n else t_begin
     t_offset = t_begin // 1_000_000 * 1_000_000  # whole seconds: a camera clock that reads 1.6e15 us
     sep = Separator(shape, flt)
-    attrs = {"source": str(path), "separator": {"name": type(flt).__name__, **dataclasses.asdict(flt)}}
+    attrs = {"source": path_text(path), "separator": {"name": type(flt).__name__, **dataclasses.asdict(flt)}}
     counts = {"n_events": 0, "n_signal": 0, "n_noise": 0}
     bar = None
     if progress:

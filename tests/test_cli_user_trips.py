@@ -165,6 +165,17 @@ def test_a_file_name_that_is_not_utf8_is_simulated_and_described(tmp_path, capsy
     assert "events.h5" in text
 
 
+def test_separate_takes_a_file_name_that_is_not_utf8(tmp_path, capsys):
+    """issue 35 §4: a recording whose name is not UTF-8 is separated; its name is stored with the byte escaped."""
+    rec = small_events_file(tmp_path / os.fsdecode(b"r\xe9c.h5"))
+    out = tmp_path / os.fsdecode(b"s\xe9p.h5")
+    code, _, err = run_cli(capsys, "separate", rec, "-o", out, "-q")
+    assert code == 0, err
+    from evnoise.io import read_metadata
+
+    assert read_metadata(out)["source"].endswith("r\\xe9c.h5")
+
+
 def test_a_damaged_numba_cache_is_one_line_naming_the_folder_to_delete(tmp_path):
     pytest.importorskip("numba")
     (tmp_path / "tinymod.py").write_text(textwrap.dedent("""

@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 from typing import Iterator, NamedTuple
 
+from .._checks import path_text
 from ..errors import InputError, OutputError, ParameterError
 from . import _options as opt
 
@@ -161,7 +162,7 @@ def run(args) -> int:
     if args.seed is None:
         log.info("no --seed given; using seed %d (stored in the file)", seed)
     attrs = {
-        "source": source_label, "preset": text_of(args.preset), "params": params, "seed": int(seed),
+        "source": source_label, "preset": path_text(args.preset), "params": params, "seed": int(seed),
         "method": args.method, "encoding": args.encoding, "max_lux": args.max_lux, "lux_scale": args.lux_scale,
         "fit": args.fit if sensor else None,
     }
@@ -194,13 +195,7 @@ def _source(args):
     source = Path(args.input)
     if not source.exists():
         raise InputError(f"input not found: {source}")
-    return source, text_of(source)
-
-
-def text_of(path) -> str:
-    """``path`` as text that can be stored and printed: bytes of a name that are not UTF-8 (which Python keeps
-    as surrogates) written as ``\\xNN``."""
-    return str(path).encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+    return source, path_text(source)
 
 
 def _timing(args, source, is_video):

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._aedat import EVNOISE_NODE
 from ..errors import InputError
 from ._base import (
     EventSource,
@@ -36,13 +37,10 @@ from ._base import (
     warn_no_data,
 )
 
+
 # --------------------------------------------------------------------------------------
 # AEDAT 4
 # --------------------------------------------------------------------------------------
-#: Name of the description node where evnoise stores its attributes in AEDAT 4 files.
-EVNOISE_NODE = "evnoise"
-
-
 def _description_attrs(nodes) -> dict:
     """evnoise's attributes from an AEDAT 4 description (``{}`` if none)."""
     for node in nodes:
