@@ -59,22 +59,12 @@ def seconds(flag: str, *, positive: bool = False, minimum: float | None = None):
 
 def frequency(flag: str, unit: str = "frames per second"):
     """argparse type of a rate (``--fps``): finite, > 0 and at most :data:`MAX_HZ` (one step per µs)."""
-
-    def parse(text):
-        value = _number(text, flag)
-        if not (math.isfinite(value) and value > 0):
-            raise argparse.ArgumentTypeError(f"{flag} must be finite and > 0 {unit}, got {text}")
-        if value > MAX_HZ:
-            raise argparse.ArgumentTypeError(f"{flag} must be at most {MAX_HZ:g} {unit} (one per microsecond, "
-                                             f"the clock's resolution), got {text}")
-        return value
-
-    parse.__name__ = "frequency"
-    return parse
+    return positive_number(flag, unit, maximum=MAX_HZ, why="one per microsecond, the clock's resolution")
 
 
-def positive_number(flag: str, unit: str = "", *, maximum: float | None = None):
-    """argparse type of a finite number > 0 (e.g. ``--max-lux``), at most ``maximum`` if given."""
+def positive_number(flag: str, unit: str = "", *, maximum: float | None = None, why: str = ""):
+    """argparse type of a finite number > 0 (e.g. ``--max-lux``), at most ``maximum`` if given (``why``: the
+    reason for that limit, shown in the error)."""
 
     def parse(text):
         value = _number(text, flag)
@@ -83,8 +73,8 @@ def positive_number(flag: str, unit: str = "", *, maximum: float | None = None):
         except ParameterError as exc:
             raise argparse.ArgumentTypeError(str(exc)) from None
         if maximum is not None and value > maximum:
-            raise argparse.ArgumentTypeError(f"{flag} must be at most {maximum:g}{' ' + unit if unit else ''}, "
-                                             f"got {text}")
+            raise argparse.ArgumentTypeError(f"{flag} must be at most {maximum:g}{' ' + unit if unit else ''}"
+                                             f"{f' ({why})' if why else ''}, got {text}")
         return value
 
     parse.__name__ = "number"
