@@ -362,3 +362,36 @@ def test_mutated_real_files_never_give_a_traceback(tmp_path, name):
         except Exception as exc:  # noqa: BLE001 - what the test is about
             pytest.fail(f"{name} {kind} #{i}: {type(exc).__name__}: {exc}")
         path.unlink()
+
+
+def test_a_text_file_without_line_ends_is_refused_after_one_block(tmp_path, monkeypatch):
+    """A 'text' file with no newline must not be gathered whole into memory before it is judged."""
+    import evnoise.readers.text as text_reader
+
+    monkeypatch.setattr(text_reader, "BLOCK_BYTES", 1 << 12)
+    monkeypatch.setattr(text_reader, "MAX_LINE_BYTES", 1 << 14)
+    path = tmp_path / "events.txt"
+    path.write_bytes(b"# t x y p\n" + b"1 " * (1 << 16))
+    reads = []
+    real_open = open
+
+    def counting_open(*args, **kwargs):
+        fh = real_open(*args, **kwargs)
+        if str(args[0]) == str(path):
+            real_read = fh.read
+            fh.read = lambda n=-1: reads.append(n) or real_read(n)
+        return fh
+
+    monkeypatch.setattr("builtins.open", counting_open)
+    with pytest.raises(ev.InputError, match="longer than 16,384 bytes"):
+        ev.read_events(path, sensor=(4, 4))
+    assert len(reads) <= 1 + (1 << 14) // (1 << 12) + 2  # the header read and a few blocks, not the whole file
+
+
+def test_a_header_comment_that_is_not_utf8_keeps_the_data_offset(tmp_path):
+    """The data start is counted in the file's bytes: a Latin-1 comment (1 byte, 3 as a replacement character)
+    must not move it into the middle of the first event line."""
+    path = tmp_path / "events.txt"
+    path.write_bytes(b"# cam\xe9ra \xe9\xe9\xe9\xe9\n# t x y p\n10 1 2 1\n20 3 0 0\n")
+    events, _ = ev.read_events(path, sensor=(4, 4))
+    assert events["t"].tolist() == [10, 20] and events["x"].tolist() == [1, 3] and events["p"].tolist() == [1, 0]

@@ -42,6 +42,8 @@ _ALIASES = {
 }
 
 #: Bytes parsed at a time (memory stays at a few times this).
+#: Longest line accepted (an event line has a few dozen bytes).
+MAX_LINE_BYTES = 1 << 20
 BLOCK_BYTES = 1 << 23
 #: Bytes looked at for the header.
 _HEAD_BYTES = 1 << 16
@@ -85,8 +87,9 @@ class CsvSource(EventSource):
         cols = parse_columns(csv_columns) if csv_columns is not None else None
         with open(self.path, "rb") as fh:
             head = fh.read(_HEAD_BYTES)
-        text = head.decode("utf-8", "replace")
-        lines = text.split("\n")
+        # split as bytes, so that the data's offset counts the file's own bytes (a comment that is not UTF-8
+        # decodes to other lengths)
+        lines = head.split(b"\n")
         if len(head) == _HEAD_BYTES:
             lines = lines[:-1]  # the last one may be cut by the read
         offset = 0
@@ -95,10 +98,11 @@ class CsvSource(EventSource):
         size_line = None
         names_line = None
         first = None
-        for raw in lines:
-            line = raw.strip()
+        for raw_bytes in lines:
+            step = len(raw_bytes) + 1
+            line = raw_bytes.decode("utf-8", "replace").strip()
             if not line:
-                offset += len(raw.encode("utf-8", "replace")) + 1
+                offset += step
                 line_no += 1
                 continue
             if line.startswith("#"):
@@ -108,7 +112,7 @@ class CsvSource(EventSource):
                         comment_names = parse_columns(body) if body else None
                     except ParameterError:
                         comment_names = None
-                offset += len(raw.encode("utf-8", "replace")) + 1
+                offset += step
                 line_no += 1
                 continue
             comma = "," in line
@@ -122,7 +126,7 @@ class CsvSource(EventSource):
             else:
                 first = (line, comma, tokens)
                 break
-            offset += len(raw.encode("utf-8", "replace")) + 1
+            offset += step
             line_no += 1
         if first is None and names_line is None and size_line is None and comment_names is None:
             raise InputError(f"{self.path}: empty text event file (no events, no header)")
@@ -270,6 +274,9 @@ class CsvSource(EventSource):
                 else:
                     cut = block.rfind(b"\n")
                     if cut < 0:
+                        if len(block) > MAX_LINE_BYTES:  # a file without line ends must not be gathered whole
+                            raise InputError(f"{self.path}: line {line0} is longer than {MAX_LINE_BYTES:,} bytes; "
+                                             "not a text file of one event per line")
                         rest = block
                         continue
                     block, rest = block[:cut + 1], block[cut + 1:]
