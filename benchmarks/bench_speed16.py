@@ -175,8 +175,8 @@ def main(argv=None) -> int:
         _bench_events(ev, args, params, lux, th)
     if "dataset" in which:
         sys.path.insert(0, str(Path(ev.__file__).parent.parent))
-        from generators.config import PairConfig
-        from generators.pairs import CountSampler
+        from evnoise.generators.config import PairConfig
+        from evnoise.generators.pairs import CountSampler
 
         codes = np.minimum((lux / 18.0 * 16383).astype(np.int64), 16383)
         for sigma in (0.0, args.sigma):

@@ -587,7 +587,7 @@ try:
         write_events(folder + "/big.h5", events, (720, 1280),
                      compression=None if compression == "none" else compression)
     else:
-        from generators.shards import META_COLUMNS, ShardWriter
+        from evnoise.generators.shards import META_COLUMNS, ShardWriter
         with ShardWriter(folder + "/shard.h5", (128, 128), None if compression == "none" else compression, {}) as w:
             for i in range(1000):
                 m = w.add_image(rng.random((128, 128), dtype=np.float32))

@@ -2,9 +2,9 @@
 
 import numpy as np
 import pytest
-from generators import pairs
 
 from evnoise import radiometry
+from evnoise.generators import pairs
 from evnoise.reconstruct import imaging
 
 
@@ -105,3 +105,19 @@ def test_exact_log_probability_over_arrays_is_one_kernel():
     log_event_probability_exact_array(lam, c, b, parallel)
     np.testing.assert_array_equal(serial.view(np.int64), parallel.view(np.int64))
     assert np.count_nonzero(np.isfinite(serial)) > n - 10
+
+
+def test_generators_and_calibration_are_imported_under_one_name():
+    """``generators/`` and ``calibration/`` are ``evnoise.generators`` and ``evnoise.calibration``. Imported as
+    top-level ``generators`` too (the repository root is on sys.path in tests), a module has two names, and
+    Numba's cache of its kernels (keyed by the file) then records the one a later process cannot import."""
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    pattern = re.compile(r"^\s*(from|import)\s+(generators|calibration)\b", re.M)
+    offenders = [f"{path.relative_to(root)}: {m.group(0).strip()}"
+                 for folder in ("tests", "benchmarks", "evnoise", "generators", "calibration")
+                 for path in sorted((root / folder).rglob("*.py"))
+                 for m in pattern.finditer(path.read_text(encoding="utf-8"))]
+    assert not offenders, offenders

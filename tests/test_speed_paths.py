@@ -65,8 +65,8 @@ def _pinned_outputs() -> dict:
     mism = PRESET.replace(eps_sigma=0.03)
     out["simulate_mismatch"] = _digest(ev.simulate_events(lux, mism, 0.2, rng=7))
     out["counts_mismatch"] = _digest(ev.sample_counts(lux, mism, 2.0, rng=8))
-    from generators.config import PairConfig
-    from generators.pairs import CountSampler
+    from evnoise.generators.config import PairConfig
+    from evnoise.generators.pairs import CountSampler
 
     codes = np.minimum((np.sqrt(lux / 1e4) * 16383).astype(np.int64), 16383)
     sampler = CountSampler(PairConfig(binning=2, max_lux=18.0, params=PRESET))
