@@ -46,6 +46,11 @@ _LAZY = {
     "quiet_window": ".quiet",
     "fit_quiet": ".quiet",
     "compare_to_recording": ".quiet",
+    "preset_toml": ".quiet",
+    "GOODNESS_P": ".quiet",
+    "check_verdict": ".quiet_checks",
+    "failed_checks": ".quiet_checks",
+    "write_text_atomic": ".preset",
 }
 
 __all__ = sorted(_LAZY)

@@ -89,9 +89,15 @@ def _windows(args):
 def run(args, recordings) -> int:
     from pathlib import Path
 
-    from evnoise.calibration.preset import write_text_atomic
-    from evnoise.calibration.quiet import GOODNESS_P, fit_quiet, preset_toml, quiet_window
-    from evnoise.calibration.quiet_checks import check_verdict, failed_checks
+    from evnoise.calibration import (
+        GOODNESS_P,
+        check_verdict,
+        failed_checks,
+        fit_quiet,
+        preset_toml,
+        quiet_window,
+        write_text_atomic,
+    )
 
     from ..io import open_output_path
     from ._paths import refuse_writing_inputs
