@@ -31,8 +31,9 @@ from ._version import __version__
 from .errors import EvnoiseError, InputError, OutputError, ParameterError
 from .events import ON, check_events, check_shape, make_events
 
-__all__ = ["EventWriter", "EventFileWriter", "open_event_writer", "output_format", "OUTPUT_FORMATS", "write_events",
-           "read_events", "read_metadata", "write_aedat4", "open_output_path"]
+__all__ = ["EventWriter", "EventFileWriter", "Aedat4FileWriter", "Evt3FileWriter", "DatFileWriter",  # noqa: F822
+           "EsFileWriter", "CsvFileWriter", "open_event_writer", "import_faery", "output_format", "OUTPUT_FORMATS",
+           "write_events", "read_events", "read_metadata", "write_aedat4", "open_output_path"]
 
 log = logging.getLogger(__name__)
 
@@ -411,13 +412,25 @@ def write_events(path, events, shape, attrs=None, *, overwrite: bool = False, co
 # --------------------------------------------------------------------------------------
 # AEDAT4 (through the optional faery package)
 # --------------------------------------------------------------------------------------
-def _import_faery():
+def import_faery():
+    """The optional ``faery`` package, which the writers of every format but events.h5 use.
+
+    Raises :class:`~evnoise.OutputError` naming the formats that need it and the extra that
+    installs it when it is missing.
+    """
     try:
         import faery
     except ImportError:
-        raise OutputError("writing .aedat4, .raw, .dat, .es or .csv needs the faery package: "
-                          "pip install 'evnoise[readers]'") from None
+        from .formats import FORMATS
+
+        suffixes = [s for f in FORMATS if f.extra for s in f.written_suffixes]
+        listed = ", ".join(suffixes[:-1]) + f" or {suffixes[-1]}" if len(suffixes) > 1 else "".join(suffixes)
+        raise OutputError(f"writing {listed} needs the faery package: pip install 'evnoise[readers]'") from None
     return faery
+
+
+#: Former private name of :func:`import_faery`, kept while callers move to the public one.
+_import_faery = import_faery
 
 
 def write_aedat4(path, chunks, shape, *, overwrite: bool = False, attrs=None) -> Path:
@@ -452,34 +465,45 @@ def write_aedat4(path, chunks, shape, *, overwrite: bool = False, attrs=None) ->
     return out.path
 
 
-#: Output suffix -> format written (the suffix decides; anything else is an error).
-OUTPUT_FORMATS = {".h5": "h5", ".hdf5": "h5", ".aedat4": "aedat4", ".raw": "evt3", ".dat": "dat", ".es": "es",
-                  ".csv": "csv"}
+def __getattr__(name):
+    if name == "OUTPUT_FORMATS":
+        # Output suffix -> format written (the suffix decides; anything else is an error), derived from
+        # evnoise.formats.FORMATS on each use so that a format registered at run time shows
+        from .formats import output_formats
+
+        return output_formats()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-def output_format(path, *, flag: str = "--out") -> str:
+def output_format(path, *, flag: str = "out") -> str:
     """The format an event output is written in, from its suffix (see :data:`OUTPUT_FORMATS`).
 
-    A folder (an existing one, or a name ending in ``/``) or an unknown suffix is an error.
+    A folder (an existing one, or a name ending in ``/``) or an unknown suffix is an error;
+    ``flag`` names the argument in the message (the caller's parameter name).
     """
+    from .formats import output_formats
+
+    table = output_formats()
     text = os.fspath(path)
-    known = ", ".join(OUTPUT_FORMATS)
+    known = ", ".join(table)
     if text.endswith(("/", os.sep)) or Path(text).is_dir():
         raise OutputError(f"{flag} {text} is a folder; give an event file name ending in {known}")
     suffix = Path(text).suffix.lower()
-    if suffix not in OUTPUT_FORMATS:
+    if suffix not in table:
         raise ParameterError(f"{flag} {text}: unknown event file suffix {suffix or '(none)'!r}; the suffix decides "
                              f"the format: {known}")
-    return OUTPUT_FORMATS[suffix]
+    return table[suffix]
 
 
 class EventFileWriter(_AtomicWriter):
     """Write an event file of any output format chunk by chunk, atomically (a context manager).
 
-    ``.h5`` goes through :class:`EventWriter`; ``.aedat4``, ``.raw`` (EVT 3.0), ``.dat``
-    (Prophesee DAT 2, CD events), ``.es`` (Event Stream, DVS) and ``.csv`` (header
-    ``t,x,y,on``) through faery's encoders. Every format is written under a temporary name in the
-    target folder and renamed on :meth:`close`; an error (or :meth:`abort`) removes it.
+    ``EventFileWriter(path, ...)`` returns the writer that :data:`evnoise.formats.FORMATS` names
+    for the format: :class:`EventWriter` for ``.h5``; for ``.aedat4``, ``.raw`` (EVT 3.0),
+    ``.dat`` (Prophesee DAT 2, CD events), ``.es`` (Event Stream, DVS) and ``.csv`` (header
+    ``t,x,y,on``) one of its subclasses below, through faery's encoders. Every format is written
+    under a temporary name in the target folder and renamed on :meth:`close`; an error (or
+    :meth:`abort`) removes it.
 
     Times are written as they are: ``.aedat4`` and ``.csv`` hold any clock; ``.raw`` and ``.dat`` hold
     the camera's clock from its start (no ``% t0`` line, so faery, expelliarmus and OpenEB-style
@@ -500,22 +524,45 @@ class EventFileWriter(_AtomicWriter):
         As in :class:`EventWriter` (``compression`` applies to ``.h5`` only).
     file_format : str, optional
         Force a format (one of :data:`OUTPUT_FORMATS`' values) instead of the suffix.
+
+    Notes
+    -----
+    A subclass for a faery encoder sets :attr:`format` and :attr:`what` and implements
+    :meth:`_open_encoder` and :meth:`_encode`.
     """
+
+    #: Name of the written format (an :data:`OUTPUT_FORMATS` value).
+    format = "?"
+    #: What the messages call the file.
+    what = "event file"
+    #: First time (µs) that is written as it is; a later first event shifts the clock (see
+    #: :meth:`_check_time_base`). ``None``: every clock is written as it is.
+    absolute_below_us = None
+    #: The format's name in the warning about a shifted clock.
+    _clock_name = ""
 
     def __new__(cls, path, shape, attrs=None, *, overwrite: bool = False, compression: str | None = "gzip",
                 t_end_us: int | None = None, file_format: str | None = None, t_offset_us: int | None = None):
+        if cls is not EventFileWriter:
+            return super().__new__(cls)
+        from .formats import writer_for
+
         fmt = file_format or output_format(path)
-        if fmt == "h5":
-            return EventWriter(path, shape, attrs, overwrite=overwrite, compression=compression, t_end_us=t_end_us,
-                               t_offset_us=t_offset_us)
-        return super().__new__(cls)
+        try:
+            writer = writer_for(fmt)
+        except KeyError:
+            from .formats import output_format_names
+
+            raise ParameterError(f"file_format must be one of {', '.join(output_format_names())}, "
+                                 f"got {fmt!r}") from None
+        if isinstance(writer, type) and issubclass(writer, EventFileWriter):
+            return super().__new__(writer)  # Python then runs writer.__init__ with these arguments
+        return writer(path, shape, attrs, overwrite=overwrite, compression=compression, t_end_us=t_end_us,
+                      t_offset_us=t_offset_us)
 
     def __init__(self, path, shape, attrs=None, *, overwrite: bool = False, compression: str | None = "gzip",
                  t_end_us: int | None = None, file_format: str | None = None, t_offset_us: int | None = None):
-        self.format = file_format or output_format(path)
-        what = {"aedat4": "AEDAT4 file", "evt3": "RAW file", "dat": "DAT file", "es": "Event Stream file",
-                "csv": "CSV file"}[self.format]
-        self.what = what
+        what = self.what
         self.shape = check_shape(shape)
         self.t_end_us = t_end_us
         self.overwrite = overwrite
@@ -526,37 +573,29 @@ class EventFileWriter(_AtomicWriter):
         self.time_shift_us = 0
         self._closed = False
         self._encoder = None
-        faery = _import_faery()
-        from faery.extension import aedat, csv, dat, es, evt
-
-        from ._aedat import aedat_description
+        faery = import_faery()
+        from faery import extension
 
         self.path = open_output_path(path, overwrite=overwrite, what=what)
         self._out = AtomicFile(self.path, overwrite=overwrite, what=what)
         self._tmp = self._out.tmp
         self._out.create()
-        height, width = self.shape
         self._faery_dtype = faery.EVENTS_DTYPE
         try:
-            if self.format == "aedat4":
-                enc = aedat.Encoder(self._tmp, aedat_description(aedat, width, height, dict(attrs or {})),
-                                    ("lz4", 1))
-            elif self.format == "evt3":
-                # no zero_t0: the words hold the clock itself (less time_shift_us), as Prophesee's cameras
-                # write it, with no "% t0" line that only faery reads (see _check_time_base)
-                enc = evt.Encoder(self._tmp, "evt3", False, (width, height), True)
-            elif self.format == "dat":
-                enc = dat.Encoder(self._tmp, "dat2", "cd", False, (width, height))
-            elif self.format == "es":
-                enc = es.Encoder(self._tmp, "dvs", False, (width, height))
-            else:
-                enc = csv.Encoder(self._tmp, ord(","), True, (width, height), True)
-            self._encoder = enc.__enter__()
+            self._encoder = self._open_encoder(extension, dict(attrs or {})).__enter__()
         except BaseException as exc:  # faery's Rust encoders raise PanicException (a BaseException)
             self.abort()
             if not isinstance(exc, (EvnoiseError, KeyboardInterrupt, SystemExit, GeneratorExit)):
                 raise OutputError(f"cannot write {what} {self.path}: {' '.join(str(exc).split())}") from None
             raise
+
+    def _open_encoder(self, extension, attrs: dict):  # pragma: no cover - abstract
+        """faery's encoder for :attr:`_tmp` (``extension`` is ``faery.extension``), not yet entered."""
+        raise NotImplementedError
+
+    def _encode(self, out: np.ndarray, events: np.ndarray, t: np.ndarray) -> None:
+        """Write one chunk: ``out`` in faery's dtype (times less the shift), ``events`` as given, ``t`` shifted."""
+        self._encoder.write(out)
 
     def write(self, events) -> None:
         """Append a chunk of events, sorted by time and not earlier than the previous chunk."""
@@ -589,73 +628,29 @@ class EventFileWriter(_AtomicWriter):
         out["x"] = events["x"]
         out["y"] = events["y"]
         out["on"] = events["p"] == ON
-        if self.format == "aedat4":
-            self._encoder.write(0, out)
-        elif self.format == "evt3":
-            self._encoder.write({"events": out})
-        elif self.format == "dat":
-            rec = np.empty(events.size, dtype=[("t", "<u8"), ("x", "<u2"), ("y", "<u2"), ("payload", "u1")])
-            rec["t"], rec["x"], rec["y"], rec["payload"] = t, events["x"], events["y"], events["p"]
-            self._encoder.write(rec)
-        elif self.format == "es":
-            out["y"] = (self.shape[0] - 1) - out["y"].astype(np.int64)  # Event Stream counts rows from the bottom
-            self._encoder.write(out)
-        else:
-            self._encoder.write(out)
+        self._encode(out, events, t)
         self.n_events += int(events.size)
         self._last_t = int(t[-1])
 
-    #: EVT 3.0 time base: 12-bit TIME_HIGH of 4096 µs, wrapping every 2**24 µs
-    _EVT3_WRAP_US = 1 << 24
-    #: First times that ``.raw`` (EVT 3.0) and ``.dat`` hold as they are: every decoder (faery,
-    #: expelliarmus for DAT, one written from Prophesee's description) then reads the same clock. EVT 3.0
-    #: counts time modulo 2**24 µs from the first TIME_HIGH word, DAT in 32 bits.
-    _ABSOLUTE_BELOW_US = {"evt3": 1 << 24, "dat": 1 << 32}
-
     def _check_time_base(self, t):
         """Choose the time shift at the first event, and refuse what the format cannot hold (before
-        anything of the chunk is written).
+        anything of the chunk is written). Returns the times as written (``t - time_shift_us``).
 
         ``.raw`` and ``.dat`` count time from the camera's start. A clock whose first event is before
-        :data:`_ABSOLUTE_BELOW_US` (every simulated stream, most camera recordings) is written as it
+        :attr:`absolute_below_us` (every simulated stream, most camera recordings) is written as it
         is. A later one (a Unix clock from an AEDAT4 camera) cannot be: it is written from the first
         event's whole second, ``time_shift_us``, with a warning naming the shift; the file keeps no
         ``% t0`` line (only faery reads one), so every decoder reads the same, shifted, times.
         """
         if self._t0 is None:
             self._t0 = int(t[0])
-            if self.format == "es" and self._t0 >= 1 << 32:
-                raise OutputError(f"cannot write {self.what} {self.path}: Event Stream counts time from 0 and this "
-                                  f"recording's clock starts at {self._t0 * 1e-6:.6g} s; write .h5 or .aedat4")
-            limit = self._ABSOLUTE_BELOW_US.get(self.format)
+            limit = self.absolute_below_us
             if limit is not None and self._t0 >= limit:
                 self.time_shift_us = self._t0 // 1_000_000 * 1_000_000
                 log.warning("%s: %s counts time from the camera's start and cannot hold this clock (first event at "
                             "%d us); times are written minus %d us (add it back for the original clock; .h5 and "
-                            ".aedat4 keep it)", self.path, "EVT 3.0" if self.format == "evt3" else "DAT",
-                            self._t0, self.time_shift_us)
-        rel = t - self.time_shift_us
-        if self.format == "dat" and int(rel[-1]) >= 1 << 32:
-            raise OutputError(f"cannot write {self.what} {self.path}: DAT holds 32-bit timestamps (71.6 minutes "
-                              f"from the camera's start or the first event's second); write .h5 or .aedat4")
-        if self.format == "evt3":
-            # faery 0.7.1 decodes a TIME_HIGH wrap only when the words step 4095 -> 0: a stream
-            # without an event in the last and first 4096 us around a wrap would read back wrong
-            prev = np.empty(rel.size, dtype=np.int64)
-            prev[0] = rel[0] if self._last_t is None else self._last_t - self.time_shift_us
-            prev[1:] = rel[:-1]
-            crossed = (rel >> 24) != (prev >> 24)
-            if crossed.any():
-                ok = ((((prev >> 12) & 0xFFF) == 0xFFF) & (((rel >> 12) & 0xFFF) == 0)
-                      & ((rel >> 24) == (prev >> 24) + 1))
-                bad = np.flatnonzero(crossed & ~ok)
-                if bad.size:
-                    k = int(bad[0])
-                    raise OutputError(
-                        f"cannot write {self.what} {self.path} as EVT 3.0: the stream has no event near "
-                        f"{(self.time_shift_us + ((int(rel[k]) >> 24) << 24)) * 1e-6:.6g} s, where the EVT 3.0 time "
-                        f"base (16.8 s) wraps, and faery's decoder would misread every later time; write .h5, "
-                        f".aedat4 or .dat, or a shorter or denser stream")
+                            ".aedat4 keep it)", self.path, self._clock_name, self._t0, self.time_shift_us)
+        return t - self.time_shift_us
 
     def close(self) -> Path:
         """Finish the file and rename it to its final name; returns the path."""
@@ -683,6 +678,120 @@ class EventFileWriter(_AtomicWriter):
         out = getattr(self, "_out", None)
         if out is not None:
             out.discard()
+
+
+class Aedat4FileWriter(EventFileWriter):
+    """iniVation AEDAT 4 (``.aedat4``): any clock; evnoise's attributes in the description (node ``evnoise``)."""
+
+    format = "aedat4"
+    what = "AEDAT4 file"
+
+    def _open_encoder(self, extension, attrs):
+        from ._aedat import aedat_description
+
+        height, width = self.shape
+        return extension.aedat.Encoder(self._tmp, aedat_description(extension.aedat, width, height, attrs),
+                                       ("lz4", 1))
+
+    def _encode(self, out, events, t):
+        self._encoder.write(0, out)
+
+
+class Evt3FileWriter(EventFileWriter):
+    """Prophesee RAW EVT 3.0 (``.raw``): the camera's clock, shifted from 2**24 µs (see the base class)."""
+
+    format = "evt3"
+    what = "RAW file"
+    _clock_name = "EVT 3.0"
+    #: EVT 3.0 counts time modulo 2**24 µs (a 12-bit TIME_HIGH of 4096 µs) from the first TIME_HIGH word.
+    absolute_below_us = 1 << 24
+
+    def _open_encoder(self, extension, attrs):
+        # no zero_t0: the words hold the clock itself (less time_shift_us), as Prophesee's cameras
+        # write it, with no "% t0" line that only faery reads (see _check_time_base)
+        height, width = self.shape
+        return extension.evt.Encoder(self._tmp, "evt3", False, (width, height), True)
+
+    def _encode(self, out, events, t):
+        self._encoder.write({"events": out})
+
+    def _check_time_base(self, t):
+        rel = super()._check_time_base(t)
+        # faery 0.7.1 decodes a TIME_HIGH wrap only when the words step 4095 -> 0: a stream
+        # without an event in the last and first 4096 us around a wrap would read back wrong
+        prev = np.empty(rel.size, dtype=np.int64)
+        prev[0] = rel[0] if self._last_t is None else self._last_t - self.time_shift_us
+        prev[1:] = rel[:-1]
+        crossed = (rel >> 24) != (prev >> 24)
+        if crossed.any():
+            ok = ((((prev >> 12) & 0xFFF) == 0xFFF) & (((rel >> 12) & 0xFFF) == 0)
+                  & ((rel >> 24) == (prev >> 24) + 1))
+            bad = np.flatnonzero(crossed & ~ok)
+            if bad.size:
+                k = int(bad[0])
+                raise OutputError(
+                    f"cannot write {self.what} {self.path} as EVT 3.0: the stream has no event near "
+                    f"{(self.time_shift_us + ((int(rel[k]) >> 24) << 24)) * 1e-6:.6g} s, where the EVT 3.0 time "
+                    f"base (16.8 s) wraps, and faery's decoder would misread every later time; write .h5, "
+                    f".aedat4 or .dat, or a shorter or denser stream")
+        return rel
+
+
+class DatFileWriter(EventFileWriter):
+    """Prophesee DAT 2 (``.dat``, CD events): 32-bit times of the camera's clock, shifted from 2**32 µs."""
+
+    format = "dat"
+    what = "DAT file"
+    _clock_name = "DAT"
+    absolute_below_us = 1 << 32
+
+    def _open_encoder(self, extension, attrs):
+        height, width = self.shape
+        return extension.dat.Encoder(self._tmp, "dat2", "cd", False, (width, height))
+
+    def _encode(self, out, events, t):
+        rec = np.empty(events.size, dtype=[("t", "<u8"), ("x", "<u2"), ("y", "<u2"), ("payload", "u1")])
+        rec["t"], rec["x"], rec["y"], rec["payload"] = t, events["x"], events["y"], events["p"]
+        self._encoder.write(rec)
+
+    def _check_time_base(self, t):
+        rel = super()._check_time_base(t)
+        if int(rel[-1]) >= 1 << 32:
+            raise OutputError(f"cannot write {self.what} {self.path}: DAT holds 32-bit timestamps (71.6 minutes "
+                              f"from the camera's start or the first event's second); write .h5 or .aedat4")
+        return rel
+
+
+class EsFileWriter(EventFileWriter):
+    """Event Stream (``.es``, DVS): time from 0, rows counted from the bottom."""
+
+    format = "es"
+    what = "Event Stream file"
+
+    def _open_encoder(self, extension, attrs):
+        height, width = self.shape
+        return extension.es.Encoder(self._tmp, "dvs", False, (width, height))
+
+    def _encode(self, out, events, t):
+        out["y"] = (self.shape[0] - 1) - out["y"].astype(np.int64)  # Event Stream counts rows from the bottom
+        self._encoder.write(out)
+
+    def _check_time_base(self, t):
+        if self._t0 is None and int(t[0]) >= 1 << 32:
+            raise OutputError(f"cannot write {self.what} {self.path}: Event Stream counts time from 0 and this "
+                              f"recording's clock starts at {int(t[0]) * 1e-6:.6g} s; write .h5 or .aedat4")
+        return super()._check_time_base(t)
+
+
+class CsvFileWriter(EventFileWriter):
+    """CSV (``.csv``, header ``t,x,y,on``): any clock."""
+
+    format = "csv"
+    what = "CSV file"
+
+    def _open_encoder(self, extension, attrs):
+        height, width = self.shape
+        return extension.csv.Encoder(self._tmp, ord(","), True, (width, height), True)
 
 
 def open_event_writer(path, shape, attrs=None, *, overwrite: bool = False, compression: str | None = "gzip",
@@ -762,10 +871,10 @@ def read_events(path, t_start_us: int | None = None, t_end_us: int | None = None
     InputError
         Missing, unreadable, malformed or truncated file; an unknown suffix.
     """
-    from .readers import _window, detect_format
+    from .readers import detect_format, time_window
     from .readers import read_events as read_any
 
-    t_start_us, t_end_us = _window(t_start, t_end, t_start_us, t_end_us)
+    t_start_us, t_end_us = time_window(t_start, t_end, t_start_us, t_end_us)
     if sensor is not None or csv_columns is not None or detect_format(path) != "h5":
         return read_any(path, sensor=sensor, csv_columns=csv_columns, t_start_us=t_start_us, t_end_us=t_end_us)
     with open_h5(path) as f:

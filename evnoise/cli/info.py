@@ -154,39 +154,21 @@ def _is_event_file(path: Path) -> bool:
     return is_event_file(path)
 
 
-_FORMAT_NAMES = {"h5": "events.h5 (DSEC layout)", "evt2": "Prophesee RAW EVT 2.0", "evt2.1": "Prophesee RAW EVT 2.1",
-                 "evt3": "Prophesee RAW EVT 3.0", "dat": "Prophesee DAT", "aedat4": "iniVation AEDAT 4",
-                 "aedat2": "jAER AEDAT 2.0", "es": "Event Stream", "csv": "CSV", "nmnist": "N-MNIST .bin"}
-
-#: what each format's timestamps are, as ``info`` states them (the convention of the format's owner)
-_CLOCKS = {
-    "h5": "µs; absolute time = /events/t + /t_offset (DSEC)",
-    "evt2": "µs of the camera's clock as stored (Prophesee's convention: no offset line)",
-    "evt2.1": "µs of the camera's clock as stored (Prophesee's convention: no offset line)",
-    "evt3": "µs of the camera's clock as stored (Prophesee's convention: no offset line)",
-    "dat": "µs of the camera's clock as stored (Prophesee's convention: no offset line)",
-    "aedat4": "µs as DV stores them (usually since the Unix epoch)",
-    "aedat2": "µs of jAER's clock as stored",
-    "es": "µs from the start of the recording (Event Stream counts from 0)",
-    "csv": "µs as written in the file (seconds when written with a decimal point)",
-    "nmnist": "µs from the start of the sample",
-}
-
-
 def summarise_events(path, *, sensor=None, t_start=None, t_end=None, csv_columns=None, stats: bool = False,
                      hot_threshold=None, png=None, overwrite: bool = False) -> dict:
     """Summary of an event file (any format :mod:`evnoise.readers` opens): plain JSON numbers, units in keys."""
-    from ..readers import _window, open_events
+    from ..formats import clock_note, describe
+    from ..readers import open_events, time_window
     from ..readers.stats import noise_stats, pixel_counts, stats_png
 
     path = Path(path)
-    a_us, b_us = _window(t_start, t_end)
+    a_us, b_us = time_window(t_start, t_end)
     if png is not None:
         from ..io import open_output_path
 
         open_output_path(png, overwrite=overwrite, what="PNG file")
     src = open_events(path, sensor=sensor, csv_columns=csv_columns)
-    out: dict = {"format": _FORMAT_NAMES.get(src.format, src.format), "size_bytes": path.stat().st_size}
+    out: dict = {"format": describe(src.format), "size_bytes": path.stat().st_size}
     meta = dict(src.meta)
     with src:
         counts, (n, t_first, t_last) = pixel_counts(src.chunks(a_us, b_us), src.shape)
@@ -207,8 +189,9 @@ def summarise_events(path, *, sensor=None, t_start=None, t_end=None, csv_columns
     out["on_fraction"] = n_on / n if n else None
     out["t_first_us"] = t_first
     out["t_last_us"] = t_last
-    if src.format in _CLOCKS:
-        out["clock"] = _CLOCKS[src.format]
+    clock = clock_note(src.format)
+    if clock is not None:
+        out["clock"] = clock
     # evnoise's own clock starts at 0 and the file stores its end; a shifted (t_offset) or camera clock
     # has neither, and the recording spans first to last event
     t_end_attr = meta.get("t_end_us") if src.format == "h5" and not meta.get("t_offset") else None

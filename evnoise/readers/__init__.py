@@ -1,18 +1,10 @@
 """Camera files in, evnoise events out: one reader per format family and a dispatcher.
 
-========================  ===========================  ==========================================
-suffix                    format                       decoder
-========================  ===========================  ==========================================
-``.h5``, ``.hdf5``        events.h5 (DSEC layout)      h5py (evnoise's own; ``t_offset`` honoured)
-``.raw``, ``.evt``        Prophesee EVT 2.0/2.1/3.0    faery
-``.dat``                  Prophesee DAT (CD, Event2d)  faery (CD), expelliarmus (Event2d)
-``.aedat4``               iniVation AEDAT 4            faery
-``.aedat``                jAER AEDAT 2.0 (or 4)        tonic's container reader + address table
-``.es``                   Event Stream (DVS, ATIS)     faery
-``.csv``, ``.txt``        CSV / text event list        evnoise (comma or space separated; column order:
-                                                       header, ``csv_columns`` or ``t x y p``)
-``.bin``                  N-MNIST                      tonic
-========================  ===========================  ==========================================
+Each format is one entry of :data:`evnoise.formats.FORMATS` (suffixes, magic bytes, label,
+reader, writer, extra): events.h5 (``.h5``, ``.hdf5``; h5py), Prophesee RAW EVT 2.0/2.1/3.0
+(``.raw``, ``.evt``) and DAT (``.dat``), iniVation AEDAT 4 (``.aedat4``), jAER AEDAT 2.0
+(``.aedat``), Event Stream (``.es``), CSV / text event lists (``.csv``, ``.txt``; column order from
+the header, ``csv_columns`` or ``t x y p``) and N-MNIST (``.bin``).
 
 The format is told by the file's magic bytes where it has them (HDF5, ``#!AER-DAT``,
 ``Event Stream``) and by the suffix otherwise; a suffix that contradicts the content, or one
@@ -31,91 +23,29 @@ from typing import Iterator
 
 import numpy as np
 
-from .._checks import check_input_file
 from ..errors import InputError, ParameterError
 from ..events import EVENT_DTYPE
+from ..formats import FORMATS, detect_format, format_for_suffix, get_format, input_suffixes, reader_for, resolve
 from ._base import EventSource, parse_sensor, seconds_to_us
 
 __all__ = ["EventSource", "open_events", "read_events", "iter_event_chunks", "scan_events", "parse_sensor",
-           "detect_format", "SUFFIXES", "is_event_file"]
-
-#: suffix -> formats it may hold
-SUFFIXES = {
-    ".h5": ("h5",), ".hdf5": ("h5",),
-    ".raw": ("raw",), ".evt": ("raw",),
-    ".dat": ("dat",),
-    ".aedat4": ("aedat4",),
-    ".aedat": ("aedat2", "aedat4"),
-    ".es": ("es",),
-    ".csv": ("csv",), ".txt": ("csv",),
-    ".bin": ("nmnist",),
-}
-
-_NAMES = {"h5": "events.h5 (HDF5)", "raw": "Prophesee RAW", "dat": "Prophesee DAT", "aedat4": "AEDAT 4",
-          "aedat2": "jAER AEDAT 2.0", "es": "Event Stream", "csv": "CSV / text event list",
-          "nmnist": "N-MNIST .bin"}
+           "detect_format", "SUFFIXES", "is_event_file", "time_window", "source_meta", "recording_span_us",
+           "window_counts"]
 
 
-def _magic(head: bytes) -> str | None:
-    if head.startswith(b"\x89HDF\r\n\x1a\n"):
-        return "h5"
-    if head.startswith(b"#!AER-DAT4"):
-        return "aedat4"
-    if head.startswith(b"#!AER-DAT2"):
-        return "aedat2"
-    if head.startswith(b"#!AER-DAT"):
-        return "aedat?"
-    if head.startswith(b"Event Stream"):
-        return "es"
-    return None
-
-
-def detect_format(path) -> str:
-    """Format name of an event file (see the module table); :class:`~evnoise.InputError` if none fits."""
-    path = check_input_file(path, missing="event file", kind="an event file")
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(16)
-    except OSError as exc:
-        raise InputError(f"cannot read {path}: {exc.strerror or exc}") from None
-    suffix = path.suffix.lower()
-    allowed = SUFFIXES.get(suffix)
-    if not head:
-        raise InputError(f"{path} is empty (0 bytes): not an event file")
-    magic = _magic(head)
-    if magic == "aedat?":
-        raise InputError(f"{path}: AEDAT version {head[9:12].decode('latin-1', 'replace')!r} is not supported "
-                         f"(AEDAT 2.0 and 4.0 are)")
-    if allowed is None:
-        known = ", ".join(SUFFIXES)
-        hint = f" (its content looks like {_NAMES[magic]})" if magic else ""
-        raise InputError(f"{path}: unknown event file suffix {suffix or '(none)'!r}{hint}; evnoise reads {known}")
-    if magic is not None:
-        if magic not in allowed:
-            raise InputError(f"{path}: the content is {_NAMES[magic]} but the suffix {suffix} says "
-                             f"{' or '.join(_NAMES[a] for a in allowed)}; rename the file")
-        return magic
-    fmt = allowed[0]
-    if fmt in ("h5", "aedat4", "aedat2", "es"):
-        raise InputError(f"{path} is not a valid {_NAMES[fmt]} file (its first bytes do not match the format)")
-    return fmt
+def __getattr__(name):
+    if name == "SUFFIXES":  # derived from the registry on each use (a format registered at run time shows)
+        return input_suffixes()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def is_event_file(path) -> bool:
-    """Cheap check for ``evnoise info``: a file with an event suffix (an HDF5 file needs ``/events``)."""
+    """Cheap check for ``evnoise info``: a file with an event suffix (whose format's probe, if any, agrees)."""
     path = Path(path)
-    if not path.is_file() or path.suffix.lower() not in SUFFIXES:
+    fmt = format_for_suffix(path)
+    if not path.is_file() or fmt is None:
         return False
-    if SUFFIXES[path.suffix.lower()] == ("h5",):
-        try:
-            import h5py
-
-            with h5py.File(path, "r") as f:
-                group = f.get("events")
-                return isinstance(group, h5py.Group) and all(k in group for k in "xytp")
-        except OSError:
-            return True  # a corrupt .h5: let the reader say why
-    return True
+    return fmt.probe is None or bool(resolve(fmt.probe)(path))
 
 
 def open_events(path, *, sensor=None, csv_columns=None) -> EventSource:
@@ -141,43 +71,20 @@ def open_events(path, *, sensor=None, csv_columns=None) -> EventSource:
     """
     path = Path(path)
     parse_sensor(sensor)  # a malformed --sensor is reported before anything is read
-    fmt = detect_format(path)
-    if csv_columns is not None and fmt != "csv":
-        raise ParameterError(f"--csv-columns applies to CSV files only; {path} is {_NAMES[fmt]}")
-    if fmt == "h5":
-        from .hdf5 import H5Source
-
-        return H5Source(path, sensor=sensor)
-    if fmt == "raw":
-        from .prophesee import RawSource
-
-        return RawSource(path, sensor=sensor)
-    if fmt == "dat":
-        from .prophesee import DatSource
-
-        return DatSource(path, sensor=sensor)
-    if fmt == "aedat4":
-        from .inivation import Aedat4Source
-
-        return Aedat4Source(path, sensor=sensor)
-    if fmt == "aedat2":
-        from .inivation import Aedat2Source
-
-        return Aedat2Source(path, sensor=sensor)
-    if fmt == "es":
-        from .eventstream import EsSource
-
-        return EsSource(path, sensor=sensor)
-    if fmt == "csv":
-        from .text import CsvSource
-
-        return CsvSource(path, sensor=sensor, csv_columns=csv_columns)
-    from .nmnist import NmnistSource
-
-    return NmnistSource(path, sensor=sensor)
+    entry = get_format(detect_format(path))
+    options = {"csv_columns": csv_columns}
+    for key, value in options.items():
+        if value is not None and key not in entry.options:
+            raise ParameterError(f"{key} applies to {' and '.join(f.label for f in FORMATS if key in f.options)} "
+                                 f"files only; {path} is {entry.label}")
+    return reader_for(entry)(path, sensor=sensor, **{k: v for k, v in options.items() if k in entry.options})
 
 
-def _window(t_start, t_end, t_start_us=None, t_end_us=None):
+def time_window(t_start, t_end, t_start_us=None, t_end_us=None) -> tuple:
+    """``(t_start_us, t_end_us)`` of a window given in seconds or in integer microseconds (one form each).
+
+    Either bound may be ``None`` (open); an end before the start is a :class:`~evnoise.ParameterError`.
+    """
     if t_start is not None and t_start_us is not None:
         raise ParameterError("give t_start (seconds) or t_start_us (microseconds), not both")
     if t_end is not None and t_end_us is not None:
@@ -207,7 +114,7 @@ def iter_event_chunks(path, *, sensor=None, t_start=None, t_end=None, csv_column
     numpy.ndarray
         :data:`evnoise.EVENT_DTYPE` chunks, sorted by time.
     """
-    a, b = _window(t_start, t_end, t_start_us, t_end_us)
+    a, b = time_window(t_start, t_end, t_start_us, t_end_us)
     src = open_events(path, sensor=sensor, csv_columns=csv_columns)
     with src:
         yield from src.chunks(a, b)
@@ -236,7 +143,7 @@ def read_events(path, *, sensor=None, t_start=None, t_end=None, csv_columns=None
     ``shape_from``, ``t_offset`` and ``n_events`` (events returned).
     For files larger than memory use :func:`iter_event_chunks`.
     """
-    a, b = _window(t_start, t_end, t_start_us, t_end_us)
+    a, b = time_window(t_start, t_end, t_start_us, t_end_us)
     src = open_events(path, sensor=sensor, csv_columns=csv_columns)
     with src:
         parts = list(src.chunks(a, b))

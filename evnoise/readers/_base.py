@@ -10,6 +10,7 @@ window; a stream format stops decoding at the window's end).
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import logging
 import re
 from pathlib import Path
@@ -70,6 +71,18 @@ def require(module: str, what: str):
     except ImportError:
         package = module.split(".")[0]
         raise InputError(f"reading {what} needs the {package} package: pip install 'evnoise[{EXTRA}]'") from None
+
+
+def tonic_io():
+    """tonic's ``io`` module, loaded on its own (``import tonic`` would load its datasets, ~2 s)."""
+    spec = importlib.util.find_spec("tonic")
+    if spec is None or spec.origin is None:
+        require("tonic", "this file")  # raises the error naming the extra
+    path = Path(spec.origin).parent / "io.py"
+    mod_spec = importlib.util.spec_from_file_location("_evnoise_tonic_io", path)
+    module = importlib.util.module_from_spec(mod_spec)
+    mod_spec.loader.exec_module(module)
+    return module
 
 
 def decoder_error(path, what: str, exc: BaseException) -> InputError:

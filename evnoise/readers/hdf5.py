@@ -17,6 +17,21 @@ from ._base import EventSource
 CHUNK_EVENTS = 1 << 21
 
 
+def has_events(path) -> bool:
+    """Whether an HDF5 file holds ``/events/{x,y,t,p}`` (the format's probe for ``evnoise info``).
+
+    A file h5py cannot open counts as one (the reader then says why).
+    """
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            group = f.get("events")
+            return isinstance(group, h5py.Group) and all(k in group for k in "xytp")
+    except OSError:
+        return True
+
+
 class H5Source(EventSource):
     format = "h5"
     seekable = True

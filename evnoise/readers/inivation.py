@@ -15,10 +15,8 @@ does itself.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import re
-from pathlib import Path
 
 import numpy as np
 
@@ -34,6 +32,7 @@ from ._base import (
     packets_in_window,
     require,
     to_events,
+    tonic_io,
     warn_no_data,
 )
 
@@ -265,18 +264,6 @@ AEDAT2_CHIPS = [
 _AEDAT2_RECORD = np.dtype([("address", ">u4"), ("timeStamp", ">u4")])
 
 
-def _tonic_io():
-    """tonic's ``io`` module, loaded on its own (``import tonic`` would load its datasets, ~2 s)."""
-    spec = importlib.util.find_spec("tonic")
-    if spec is None or spec.origin is None:
-        require("tonic", "this file")  # raises the error naming the extra
-    path = Path(spec.origin).parent / "io.py"
-    mod_spec = importlib.util.spec_from_file_location("_evnoise_tonic_io", path)
-    module = importlib.util.module_from_spec(mod_spec)
-    mod_spec.loader.exec_module(module)
-    return module
-
-
 class Aedat2Source(EventSource):
     """jAER AEDAT 2.0."""
 
@@ -285,7 +272,7 @@ class Aedat2Source(EventSource):
 
     def __init__(self, path, *, sensor=None, chip: str | None = None):
         super().__init__(path, sensor=sensor)
-        tio = _tonic_io()
+        tio = tonic_io()
         try:
             version, _, created_ms = tio.read_aedat_header_from_file(str(self.path))
         except BaseException as exc:  # noqa: BLE001 - see decoder_error

@@ -11,8 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError
-from ._base import EventSource, decoder_error, to_events
-from .inivation import _tonic_io
+from ._base import EventSource, decoder_error, to_events, tonic_io
 
 #: Sensor of the N-MNIST recordings (W, H).
 NMNIST_SENSOR = (34, 34)
@@ -34,7 +33,7 @@ class NmnistSource(EventSource):
         self.meta.pop("header_sensor", None)
 
     def _chunks(self, t_start_us, t_end_us):
-        tio = _tonic_io()
+        tio = tonic_io()
         try:
             raw = tio.read_mnist_file(str(self.path), dtype=_DTYPE)
         except BaseException as exc:  # noqa: BLE001 - see decoder_error
