@@ -576,11 +576,3 @@ def overlay_rgb(image, mask, signal=None, *, alpha: float = 0.45) -> np.ndarray:
         rgb[on] = [1.0, 0.9, 0.1]
         rgb[off] = [0.1, 0.9, 1.0]
     return np.round(rgb * 255).astype(np.uint8)
-
-
-def __getattr__(name):  # evnoise.motion.reconstruct_video: kept for old imports, now in reconstruct.video
-    if name == "reconstruct_video":
-        from .reconstruct.video import reconstruct_video
-
-        return reconstruct_video
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

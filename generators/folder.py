@@ -14,19 +14,14 @@ import re
 import shutil
 import stat
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from evnoise._atomic import write_text_atomic
-from evnoise._version import __version__
 from evnoise.errors import InputError, OutputError
 
 from .shards import file_sha256
 
-if TYPE_CHECKING:
-    from .dataset import Plan
-
 __all__ = ["MANIFEST", "PREVIEW", "SHARDS_DIR", "PROGRESS_DIR", "write_json", "read_json", "FolderLock",
-           "prepare_folder", "check_own_parts", "dataset_member", "discard_empty", "stored_seed", "existing_records",
+           "prepare_folder", "check_own_parts", "dataset_member", "discard_empty", "stored_seed",
            "shard_verified", "remove_stale_temporaries"]
 
 MANIFEST = "manifest.json"
@@ -239,46 +234,6 @@ def stored_seed(root: Path):
         if isinstance(data, dict) and isinstance(data.get("config"), dict) and "seed" in data["config"]:
             return data["config"]["seed"]
     return None
-
-
-def existing_records(root: Path, plan: Plan) -> dict:
-    """Records of shards finished earlier (from the manifest or the progress folder), unverified."""
-    records = {}
-    manifest = read_json(root / MANIFEST) if (root / MANIFEST).exists() else None
-    progress = root / PROGRESS_DIR
-    plan_file = read_json(progress / "plan.json") if (progress / "plan.json").exists() else None
-    for state in (manifest, plan_file):
-        if state is None:
-            continue
-        if not isinstance(state, dict) or state.get("fingerprint") != plan.fingerprint:
-            raise OutputError(_mismatch(root, state, plan))
-    if manifest is not None:
-        for entry in manifest.get("shards", []):
-            records[entry["name"]] = {**entry, "skipped": [s for s in manifest.get("skipped", [])
-                                                          if s.get("shard") == entry["name"]]}
-    if progress.is_dir():
-        for p in sorted(progress.glob("*.done.json")):
-            rec = read_json(p)
-            if isinstance(rec, dict) and "name" in rec:
-                records[rec["name"]] = rec
-    return records
-
-
-def _mismatch(root: Path, state, plan: Plan) -> str:
-    what = "a different dataset"
-    if isinstance(state, dict) and isinstance(state.get("config"), dict):
-        new = plan.config.to_dict()
-        diff = sorted(k for k in set(new) | set(state["config"]) if new.get(k) != state["config"].get(k))
-        if state.get("evnoise_version") != __version__:
-            diff.append(f"evnoise version {state.get('evnoise_version')} -> {__version__}")
-        if state.get("sources") != [s.spec() for s in plan.sources]:
-            diff.append("sources")
-        if diff:
-            what = f"a dataset made with different options (differs in: {', '.join(diff)})"
-        else:
-            what = "a dataset of a different list of source images"
-    return (f"output folder {root} already holds {what}; pass --overwrite (overwrite=True) to replace it, "
-            "or choose another folder")
 
 
 def shard_verified(root: Path, rec: dict) -> bool:

@@ -2,7 +2,8 @@
 
 The layer above :mod:`evnoise.motion` (core, no torch): the moving windows and motion masks come
 from there, the reconstructor from :mod:`evnoise.reconstruct.infer`. ``evnoise.reconstruct_video``
-and ``evnoise.motion.reconstruct_video`` name the function here.
+and ``evnoise.reconstruct.reconstruct_video`` name the function here (``evnoise.motion`` no longer
+does: the core may not import the layer above it).
 """
 
 from __future__ import annotations
