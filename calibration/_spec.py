@@ -12,57 +12,39 @@ from types import MappingProxyType
 from typing import Mapping
 
 from evnoise.errors import InputError, ParameterError
-from evnoise.params import NoiseParams
+from evnoise.params import NoiseParams, fit_bounds, names_with_fit_role, parameter_names, parameter_specs
 
 from .measurements import Measurements
 
 #: Every parameter of :class:`NoiseParams`, in its order.
-FIT_NAMES = tuple(f.name for f in dataclasses.fields(NoiseParams))
-CORE = FIT_NAMES[:6]
+FIT_NAMES = parameter_names()
+#: Fitted by default (``fit_role == "core"`` in :func:`evnoise.params.parameter_specs`).
+CORE = names_with_fit_role("core")
 DISTRIBUTIONS = ("binomial", "poisson")
-#: Bounds of the fit (natural units). ``None`` entries are set from the data: ``trial_rate_hz``
-#: from the highest rate (p < 1/2), ``photons_per_lux`` so that the brightest level has 1e-3 to
-#: :data:`LAM_MAX` photons per trial (:data:`LAM_MAX_MISMATCH` with threshold mismatch),
-#: ``dark_lux`` from 1e-6 to 10 times the brightest level, ``refractory_s`` below half the
+#: Bounds of the fit (natural units), from :func:`evnoise.params.fit_bounds`. ``None`` entries are set
+#: from the data: ``trial_rate_hz`` from the highest rate (p < 1/2), ``photons_per_lux`` so that the
+#: brightest level has 1e-3 to :data:`LAM_MAX` photons per trial (:data:`LAM_MAX_MISMATCH` with threshold
+#: mismatch), ``dark_lux`` from 1e-6 to 10 times the brightest level, ``refractory_s`` below half the
 #: shortest mean interval between events. ``calibrate(bounds=...)`` overrides any of them.
-BOUNDS = {
-    "eps_pos": (1e-3, 5.0),
-    "eps_neg": (1e-3, 5.0),
-    "bias_pr": (1e-6, 1e4),
-    "trial_rate_hz": (None, 5e5),
-    "photons_per_lux": (None, None),
-    "dark_lux": (None, None),
-    "refractory_s": (1e-8, None),
-    "eps_sigma": (1e-3, 1.5),
-    "leak_on_hz": (None, None),
-    "leak_off_hz": (None, None),
-    "leak_on_hz_per_lux": (None, None),
-    "leak_off_hz_per_lux": (None, None),
-    "leak_sigma": (1e-3, 3.0),
-    "hot_pixel_fraction": (1e-6, 0.5),
-    "hot_pixel_rate_hz": (None, None),
-    "hot_pixel_sigma": (1e-3, 3.0),
-    "hot_pixel_on_fraction": (1e-3, 0.999),
-    "pr_tau_s_at_1lux": (1e-9, 1e3),
-}
+BOUNDS = MappingProxyType({n: fit_bounds(n) for n in FIT_NAMES if fit_bounds(n) is not None})
 #: Background floors: fitted by default when the data have a dark level (lux <= :data:`DARK_LUX`,
 #: which identifies them), else only when asked (a floor the data do not need ends on its lower
 #: bound, which stands for 0, and is reported as 0). Bounds from the data: ``1e-7`` to 10 times the
 #: highest measured rate (per lux of the brightest level for the growing terms).
-FLOORS = ("leak_on_hz", "leak_off_hz")
+FLOORS = names_with_fit_role("floor")
 #: Illuminance up to which a level counts as dark (the floors are then fitted by default): a level at 0 lux.
 DARK_LUX = 0.0
 #: Growth of the background with lux: fitted only when asked (``free=[...]``, ``--fit``).
-GROWTH = ("leak_on_hz_per_lux", "leak_off_hz_per_lux")
+GROWTH = names_with_fit_role("growth")
 #: Per-pixel spread of the background and hot pixels: only from flat fields (per-pixel counts),
-#: only when asked; the likelihood then mixes over them (``_likelihood``).
-SPREAD = ("leak_sigma", "hot_pixel_fraction", "hot_pixel_rate_hz", "hot_pixel_sigma", "hot_pixel_on_fraction")
+#: only when asked; the likelihood then mixes over them (:mod:`.likelihood`).
+SPREAD = names_with_fit_role("spread")
 #: The photoreceptor time constant only acts on changing scenes: static measurements do not
 #: identify it, it is never fitted and always reported as not identified.
-NEVER = ("pr_tau_s_at_1lux",)
+NEVER = names_with_fit_role("never")
 #: Terms whose lower bound stands for 0 and that are reported as 0 there (no warning: a sensor
 #: without a floor is an ordinary result).
-ZERO_AT_BOUND = FLOORS + GROWTH + ("leak_sigma", "hot_pixel_fraction", "hot_pixel_sigma")
+ZERO_AT_BOUND = tuple(s.name for s in parameter_specs() if s.fit_low == "zero")
 #: Most photons per trial at the brightest level that the fit explores without threshold
 #: mismatch: the range over which :mod:`evnoise.model`'s exact probability is verified (its cost
 #: grows like ``sqrt(lam)``: about 10 ms for a 15-level table at 1e4 photons per trial). Real
@@ -74,14 +56,11 @@ LAM_MAX = 1e6
 #: polarity (about 0.1 s at 3000 photons per trial, 30 s at 3e5), so the search stops here; the
 #: mismatch-free alternative of a mean-rate table (see :data:`TABLE_SIGMA`) is not limited by it.
 LAM_MAX_MISMATCH = 3000.0
-_DEFAULTS = {f.name: f.default for f in dataclasses.fields(NoiseParams)}  # every field, then the starting values
-_DEFAULTS.update(eps_pos=0.5, eps_neg=0.5, bias_pr=1.0, trial_rate_hz=100.0, photons_per_lux=1.0, dark_lux=0.1,
-                 refractory_s=0.0, eps_sigma=0.0, leak_on_hz=0.0, leak_off_hz=0.0, leak_on_hz_per_lux=0.0,
-                 leak_off_hz_per_lux=0.0, leak_sigma=0.0, hot_pixel_fraction=0.0, hot_pixel_rate_hz=0.0,
-                 hot_pixel_sigma=0.0, hot_pixel_on_fraction=0.5, pr_tau_s_at_1lux=0.0)
+#: Starting values of the search where nothing else gives one (every field).
+STARTS = MappingProxyType({s.name: s.fit_start for s in parameter_specs()})
 #: Terms the likelihood does not model: kept at their given values, never fitted (the count
 #: likelihood treats background arrivals as Poisson, ``leak_regularity = 0``).
-UNMODELLED = tuple(n for n in FIT_NAMES if n not in BOUNDS and n not in NEVER)
+UNMODELLED = names_with_fit_role("unmodelled")
 #: Threshold mismatch assumed when the measurements carry no dispersion (mean rates only), unless
 #: it is fixed explicitly or given by ``initial``: it is not determined by mean rates, mismatch
 #: is always present in real sensors, and without it the exact likelihood is a step function of
@@ -109,7 +88,8 @@ PROFILE_STOP = 9.0
 #: point counts as inside the interval when twice its log-likelihood is within 1 + this of the
 #: maximum, so that such jitter is not mistaken for information (it errs towards "not identified").
 PROFILE_ROUGH = 10.0
-_AT_BOUND_OK = ("bias_pr", "dark_lux", "eps_sigma", "refractory_s") + ZERO_AT_BOUND  # a lower bound standing for 0
+#: Terms for which ending on the lower bound is an ordinary result, not flagged (the bound stands for 0).
+AT_BOUND_OK = tuple(s.name for s in parameter_specs() if s.fit_low in ("ok", "zero"))
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -208,7 +188,7 @@ def _resolve(meas: Measurements, free, fixed, initial, fit_dispersion: bool = Tr
     if "eps_sigma" in free and not (meas.has_dispersion and fit_dispersion):
         raise InputError("eps_sigma cannot be fitted from mean rates alone: give per-pixel counts (flat fields) "
                          "or measured NB shapes (r_on, r_off columns), or fix it")
-    values = dict(_DEFAULTS)
+    values = dict(STARTS)
     if not (meas.has_dispersion and fit_dispersion) and "eps_sigma" not in fixed and initial is None:
         values["eps_sigma"] = TABLE_SIGMA
     if initial is not None:

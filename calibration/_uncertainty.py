@@ -11,7 +11,7 @@ import numpy as np
 
 from ._likelihood import _Problem
 from ._spec import (
-    _AT_BOUND_OK,
+    AT_BOUND_OK,
     DARK_LUX,
     FIT_NAMES,
     FLOORS,
@@ -186,7 +186,7 @@ def _finish(problem: _Problem, theta, max_rel_se, *, profile=None, sigma_note=No
             bound_side[n] = "lower"
         elif theta[i] >= problem.hi[i] - 1e-3:
             bound_side[n] = "upper"
-        if n in _AT_BOUND_OK and bound_side.get(n) == "lower":
+        if n in AT_BOUND_OK and bound_side.get(n) == "lower":
             status[n] = "at lower bound"
             at_bound.append(i)
         elif n in bound_side:

@@ -103,8 +103,7 @@ from ._search import (
     _with_fixed,  # noqa: F401
 )
 from ._spec import (
-    _AT_BOUND_OK,  # noqa: F401
-    _DEFAULTS,  # noqa: F401
+    AT_BOUND_OK,  # noqa: F401
     BOUNDS,  # noqa: F401
     CORE,  # noqa: F401
     DISTRIBUTIONS,
@@ -123,6 +122,7 @@ from ._spec import (
     REJECT_RMS,  # noqa: F401
     SMOOTHING,  # noqa: F401
     SPREAD,  # noqa: F401
+    STARTS,  # noqa: F401
     TABLE_SIGMA,
     UNMODELLED,  # noqa: F401
     ZERO_AT_BOUND,  # noqa: F401

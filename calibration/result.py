@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-from evnoise.params import NoiseParams
+from evnoise.params import NoiseParams, parameter_specs
 
 from ._spec import FIT_NAMES
 from .measurements import Measurements
@@ -126,7 +126,8 @@ class CalibrationResult:
             se_t = "" if not np.isfinite(se) else f"{se:11.4g}"
             rel_t = "" if not np.isfinite(rel) else f"{100 * rel:6.1f}%"
             lines.append(f"{n:<21} {v:13.6g} {se_t:>11} {rel_t:>7}  {self.status.get(n, 'fixed')}")
-        bg = [n for n in BACKGROUND if n in self.free or getattr(self.params, n) > 0]
+        bg = [s.name for s in parameter_specs()
+              if s.group == "background" and (s.name in self.free or getattr(self.params, s.name) != s.default)]
         if bg:
             parts = []
             for n in bg:
@@ -165,11 +166,6 @@ class CalibrationResult:
 
         return plot_fit(self, path, title=title, overwrite=overwrite, extra_curves=extra_curves,
                         extra_r_curves=extra_r_curves)
-
-
-#: Background terms named in the summary's background line (when fitted or non-zero).
-BACKGROUND = ("leak_on_hz", "leak_off_hz", "leak_on_hz_per_lux", "leak_off_hz_per_lux", "leak_sigma",
-              "hot_pixel_fraction", "hot_pixel_rate_hz")
 
 
 def _fmt(v):

@@ -7,46 +7,111 @@ Units are part of every field's name. Presets are TOML files shipped in
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
+from types import MappingProxyType
 
 import tomllib
 
 from .errors import ParameterError
 
-__all__ = ["NoiseParams", "load_preset", "list_presets", "preset_info", "PARAM_LIMITS"]
+__all__ = ["NoiseParams", "load_preset", "list_presets", "preset_info", "PARAM_LIMITS", "ParameterSpec",
+           "parameter_specs", "parameter_names", "parameter_spec", "names_in_group", "names_with_fit_role",
+           "fit_bounds", "GROUPS", "FIT_ROLES"]
 
-#: Largest value each parameter may take: where the physics of a pixel ends (and with it what the
-#: kernels are verified for). A threshold of 20 asks the light to change by a factor e^20 ~ 5e8
-#: (170 dB, beyond any sensor's dynamic range); a photoreceptor sees at most 1e12 photons or 1e6
-#: lux-equivalent of offset per trial; background rates (leak, hot pixel) stay below 1e9/s (a thousand
-#: per microsecond, evnoise's time resolution; the model caps them at one event per trial); dead times
-#: and time constants stay within an hour; a log-normal spread of 10 already spans a factor e^20
-#: between pixels one sigma apart.
-PARAM_LIMITS = {
-    "eps_pos": 20.0,
-    "eps_neg": 20.0,
-    "eps_sigma": 20.0,
-    "bias_pr": 1e12,
-    "photons_per_lux": 1e12,
-    "dark_lux": 1e6,
-    "trial_rate_hz": 1e6,
-    "refractory_s": 3600.0,
-    "leak_on_hz": 1e9,
-    "leak_off_hz": 1e9,
-    "leak_on_hz_per_lux": 1e9,
-    "leak_off_hz_per_lux": 1e9,
-    "leak_sigma": 10.0,
-    "hot_pixel_fraction": 1.0,
-    "hot_pixel_rate_hz": 1e9,
-    "hot_pixel_sigma": 10.0,
-    "hot_pixel_on_fraction": 1.0,
-    "leak_regularity": 1.0,
-    "pr_tau_s_at_1lux": 3600.0,
-}
+#: Groups of parameters (:attr:`ParameterSpec.group`), in order.
+GROUPS = ("threshold", "photoreceptor", "timing", "background")
+#: How calibration treats a parameter (:attr:`ParameterSpec.fit_role`): ``"core"`` fitted by default;
+#: ``"optional"`` fitted when asked (``eps_sigma`` also by default when the data carry dispersion);
+#: ``"floor"`` a background floor, fitted by default when the data have a dark level; ``"growth"`` the
+#: background's growth with lux, fitted only when asked; ``"spread"`` how the background differs between
+#: pixels, fitted only from flat fields and only when asked; ``"never"`` not identified by static data,
+#: never fitted; ``"unmodelled"`` not modelled by the calibration likelihood, never fitted.
+FIT_ROLES = ("core", "optional", "floor", "growth", "spread", "never", "unmodelled")
+
+
+@dataclass(frozen=True)
+class ParameterSpec:
+    """What evnoise knows about one field of :class:`NoiseParams` (its field metadata, read by
+    :func:`parameter_specs`).
+
+    Attributes
+    ----------
+    name : str
+        The field's name (units are part of it).
+    unit : str
+        Its unit: ``"1"`` (dimensionless), ``"photons/trial"``, ``"photons/trial/lux"``, ``"lux"``,
+        ``"Hz"``, ``"Hz/lux"`` or ``"s"``.
+    group : str
+        What part of the pixel it describes (one of :data:`GROUPS`).
+    default : float or None
+        The dataclass default (None for a required field).
+    low : float
+        Lower limit of a valid value.
+    low_inclusive : bool
+        Whether ``low`` itself is valid (``>= low``) or not (``> low``).
+    high : float
+        Largest valid value: where the physics of a pixel ends (:data:`PARAM_LIMITS`).
+    high_note : str
+        Why, where the limit needs saying (appended to the error message), else ``""``.
+    fit_role : str
+        How calibration treats it (one of :data:`FIT_ROLES`).
+    fit_bounds : tuple or None
+        ``(low, high)`` of the calibration search in natural units; ``None`` entries are set from the
+        data; ``None`` as a whole: never searched (``fit_role == "unmodelled"``).
+    fit_start : float
+        Starting value of the calibration search where nothing else gives one.
+    fit_low : str
+        What ending on the fit's lower bound means: ``"zero"`` the bound stands for 0 and the value is
+        reported as 0; ``"ok"`` an ordinary result, not flagged; ``"flag"`` flagged.
+    """
+
+    name: str
+    unit: str
+    group: str
+    default: float | None
+    low: float
+    low_inclusive: bool
+    high: float
+    high_note: str
+    fit_role: str
+    fit_bounds: tuple | None
+    fit_start: float
+    fit_low: str
+
+    @property
+    def low_text(self) -> str:
+        """The lower limit as the error message says it: ``"> 0"`` or ``">= 0"``."""
+        return f"{'>=' if self.low_inclusive else '>'} {self.low:g}"
+
+
+def _param(unit, group, *, high, positive=False, default=dataclasses.MISSING, high_note="", fit_role,
+           fit_bounds=None, fit_start=None, fit_low="flag"):
+    """A :class:`NoiseParams` field carrying its :class:`ParameterSpec` entries as metadata."""
+    meta = {"unit": unit, "group": group, "low": 0.0, "low_inclusive": not positive, "high": float(high),
+            "high_note": high_note, "fit_role": fit_role, "fit_bounds": fit_bounds,
+            "fit_start": fit_start, "fit_low": fit_low}
+    return dataclasses.field(default=default, metadata={"evnoise": meta})
+
+
+# The upper limits (``high``) are where the physics of a pixel ends (and with it what the kernels are
+# verified for). A threshold of 20 asks the light to change by a factor e^20 ~ 5e8 (170 dB, beyond any
+# sensor's dynamic range); a photoreceptor sees at most 1e12 photons or 1e6 lux-equivalent of offset per
+# trial; background rates (leak, hot pixel) stay below 1e9/s (a thousand per microsecond, evnoise's time
+# resolution; the model caps them at one event per trial); dead times and time constants stay within an
+# hour; a log-normal spread of 10 already spans a factor e^20 between pixels one sigma apart.
+# The fit bounds (natural units; None: set from the data by the calibration, see
+# evnoise.calibration.rates.spec): trial_rate_hz from the highest rate (p < 1/2), photons_per_lux so that
+# the brightest level has 1e-3 to LAM_MAX photons per trial, dark_lux from 1e-6 to 10 times the brightest
+# level, refractory_s below half the shortest mean interval between events, the background rates from the
+# highest measured rate.
+_RATE_HZ = 1e9
+_TIME_S = 3600.0
+_SPREAD = 10.0
 
 
 @dataclass(frozen=True)
@@ -115,63 +180,62 @@ class NoiseParams:
     photoreceptor lag); with all of them zero the simulators' output is what it was without them.
     """
 
-    eps_pos: float
-    eps_neg: float
-    bias_pr: float
-    trial_rate_hz: float
-    photons_per_lux: float
-    dark_lux: float = 0.0
-    refractory_s: float = 0.0
-    eps_sigma: float = 0.0
-    leak_on_hz: float = 0.0
-    leak_off_hz: float = 0.0
-    leak_on_hz_per_lux: float = 0.0
-    leak_off_hz_per_lux: float = 0.0
-    leak_sigma: float = 0.0
-    hot_pixel_fraction: float = 0.0
-    hot_pixel_rate_hz: float = 0.0
-    hot_pixel_sigma: float = 0.0
-    hot_pixel_on_fraction: float = 0.5
-    leak_regularity: float = 0.0
-    pr_tau_s_at_1lux: float = 0.0
+    eps_pos: float = _param("1", "threshold", high=20.0, positive=True, fit_role="core",
+                            fit_bounds=(1e-3, 5.0), fit_start=0.5)
+    eps_neg: float = _param("1", "threshold", high=20.0, positive=True, fit_role="core",
+                            fit_bounds=(1e-3, 5.0), fit_start=0.5)
+    bias_pr: float = _param("photons/trial", "photoreceptor", high=1e12, fit_role="core",
+                            fit_bounds=(1e-6, 1e4), fit_start=1.0, fit_low="ok")
+    trial_rate_hz: float = _param("Hz", "timing", high=1e6, positive=True, fit_role="core",
+                                  high_note=" (one trial per microsecond at most)",
+                                  fit_bounds=(None, 5e5), fit_start=100.0)
+    photons_per_lux: float = _param("photons/trial/lux", "photoreceptor", high=1e12, positive=True,
+                                    fit_role="core", fit_bounds=(None, None), fit_start=1.0)
+    dark_lux: float = _param("lux", "photoreceptor", high=1e6, default=0.0, fit_role="core",
+                             fit_bounds=(None, None), fit_start=0.1, fit_low="ok")
+    refractory_s: float = _param("s", "timing", high=_TIME_S, default=0.0, fit_role="optional",
+                                 fit_bounds=(1e-8, None), fit_low="ok")
+    eps_sigma: float = _param("1", "threshold", high=20.0, default=0.0, fit_role="optional",
+                              fit_bounds=(1e-3, 1.5), fit_low="ok")
+    leak_on_hz: float = _param("Hz", "background", high=_RATE_HZ, default=0.0, fit_role="floor",
+                               fit_bounds=(None, None), fit_low="zero")
+    leak_off_hz: float = _param("Hz", "background", high=_RATE_HZ, default=0.0, fit_role="floor",
+                                fit_bounds=(None, None), fit_low="zero")
+    leak_on_hz_per_lux: float = _param("Hz/lux", "background", high=_RATE_HZ, default=0.0, fit_role="growth",
+                                       fit_bounds=(None, None), fit_low="zero")
+    leak_off_hz_per_lux: float = _param("Hz/lux", "background", high=_RATE_HZ, default=0.0, fit_role="growth",
+                                        fit_bounds=(None, None), fit_low="zero")
+    leak_sigma: float = _param("1", "background", high=_SPREAD, default=0.0, fit_role="spread",
+                               fit_bounds=(1e-3, 3.0), fit_low="zero")
+    hot_pixel_fraction: float = _param("1", "background", high=1.0, default=0.0, fit_role="spread",
+                                       fit_bounds=(1e-6, 0.5), fit_low="zero")
+    hot_pixel_rate_hz: float = _param("Hz", "background", high=_RATE_HZ, default=0.0, fit_role="spread",
+                                      fit_bounds=(None, None))
+    hot_pixel_sigma: float = _param("1", "background", high=_SPREAD, default=0.0, fit_role="spread",
+                                    fit_bounds=(1e-3, 3.0), fit_low="zero")
+    hot_pixel_on_fraction: float = _param("1", "background", high=1.0, default=0.5, fit_role="spread",
+                                          fit_bounds=(1e-3, 0.999))
+    leak_regularity: float = _param("1", "background", high=1.0, default=0.0, fit_role="unmodelled")
+    pr_tau_s_at_1lux: float = _param("s", "photoreceptor", high=_TIME_S, default=0.0, fit_role="never",
+                                     fit_bounds=(1e-9, 1e3))
 
     def __post_init__(self):
-        rules = {
-            "eps_pos": (False, "> 0"),
-            "eps_neg": (False, "> 0"),
-            "bias_pr": (True, ">= 0"),
-            "trial_rate_hz": (False, "> 0"),
-            "photons_per_lux": (False, "> 0"),
-            "dark_lux": (True, ">= 0"),
-            "refractory_s": (True, ">= 0"),
-            "eps_sigma": (True, ">= 0"),
-            "leak_on_hz": (True, ">= 0"),
-            "leak_off_hz": (True, ">= 0"),
-            "leak_on_hz_per_lux": (True, ">= 0"),
-            "leak_off_hz_per_lux": (True, ">= 0"),
-            "leak_sigma": (True, ">= 0"),
-            "hot_pixel_fraction": (True, ">= 0"),
-            "hot_pixel_rate_hz": (True, ">= 0"),
-            "hot_pixel_sigma": (True, ">= 0"),
-            "hot_pixel_on_fraction": (True, ">= 0"),
-            "leak_regularity": (True, ">= 0"),
-            "pr_tau_s_at_1lux": (True, ">= 0"),
-        }
-        for name, (zero_ok, text) in rules.items():
-            value = getattr(self, name)
+        specs = parameter_specs()
+        for spec in specs:
+            name, value = spec.name, getattr(self, spec.name)
             if isinstance(value, bool) or not isinstance(value, (int, float)):
                 try:
                     value = float(value)
                 except (TypeError, ValueError):
                     raise ParameterError(f"NoiseParams.{name} must be a number, got {value!r}") from None
             value = float(value)
-            if not math.isfinite(value) or value < 0 or (value == 0 and not zero_ok):
-                raise ParameterError(f"NoiseParams.{name} must be finite and {text}, got {value!r}")
+            if not math.isfinite(value) or value < spec.low or (value == spec.low and not spec.low_inclusive):
+                raise ParameterError(f"NoiseParams.{name} must be finite and {spec.low_text}, got {value!r}")
             object.__setattr__(self, name, value)
-        for name, limit in PARAM_LIMITS.items():
-            if getattr(self, name) > limit:
-                why = " (one trial per microsecond at most)" if name == "trial_rate_hz" else ""
-                raise ParameterError(f"NoiseParams.{name} must be <= {limit:g}{why}, got {getattr(self, name)!r}")
+        for spec in specs:
+            if getattr(self, spec.name) > spec.high:
+                raise ParameterError(f"NoiseParams.{spec.name} must be <= {spec.high:g}{spec.high_note}, "
+                                     f"got {getattr(self, spec.name)!r}")
 
     # -- derived quantities -------------------------------------------------------------
     def photons_per_trial(self, lux):
@@ -219,6 +283,64 @@ class NoiseParams:
         if missing:
             raise ParameterError(f"missing noise parameter(s): {', '.join(sorted(missing))}")
         return cls(**data)
+
+
+@functools.cache
+def parameter_specs() -> tuple[ParameterSpec, ...]:
+    """Every parameter of :class:`NoiseParams` with its unit, limits, group and fit range, in field order.
+
+    Returns
+    -------
+    tuple of ParameterSpec
+        Frozen records read from the fields' metadata: the one home of these facts (validation,
+        :data:`PARAM_LIMITS`, calibration's bounds and the command line's lists derive from it).
+    """
+    out = []
+    for f in dataclasses.fields(NoiseParams):
+        meta = f.metadata["evnoise"]
+        default = None if f.default is dataclasses.MISSING else f.default
+        out.append(ParameterSpec(name=f.name, default=default,
+                                 **{k: v for k, v in meta.items() if k != "fit_start"},
+                                 fit_start=meta["fit_start"] if meta["fit_start"] is not None else default))
+    return tuple(out)
+
+
+def parameter_names() -> tuple[str, ...]:
+    """Names of the fields of :class:`NoiseParams`, in order."""
+    return tuple(s.name for s in parameter_specs())
+
+
+def parameter_spec(name: str) -> ParameterSpec:
+    """The :class:`ParameterSpec` of parameter ``name``; raises :class:`~evnoise.ParameterError` if unknown."""
+    for spec in parameter_specs():
+        if spec.name == name:
+            return spec
+    raise ParameterError(f"unknown noise parameter {name!r}; parameters: {', '.join(parameter_names())}")
+
+
+def names_in_group(group: str) -> tuple[str, ...]:
+    """Names of the parameters in ``group`` (one of :data:`GROUPS`), in field order."""
+    if group not in GROUPS:
+        raise ParameterError(f"unknown parameter group {group!r}; groups: {', '.join(GROUPS)}")
+    return tuple(s.name for s in parameter_specs() if s.group == group)
+
+
+def names_with_fit_role(*roles: str) -> tuple[str, ...]:
+    """Names of the parameters whose :attr:`ParameterSpec.fit_role` is one of ``roles``, in field order."""
+    for role in roles:
+        if role not in FIT_ROLES:
+            raise ParameterError(f"unknown fit role {role!r}; roles: {', '.join(FIT_ROLES)}")
+    return tuple(s.name for s in parameter_specs() if s.fit_role in roles)
+
+
+def fit_bounds(name: str) -> tuple | None:
+    """Bounds ``(low, high)`` of the calibration search for ``name`` (``None`` entries are set from the
+    data; ``None`` where the parameter is never searched)."""
+    return parameter_spec(name).fit_bounds
+
+
+#: Largest value each parameter may take (``name -> limit``; read-only, from :func:`parameter_specs`).
+PARAM_LIMITS = MappingProxyType({s.name: s.high for s in parameter_specs()})
 
 
 def list_presets() -> list[str]:

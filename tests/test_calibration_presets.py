@@ -51,7 +51,7 @@ def _check_recovery(result, truth, meas):
     # a bound only where it stands for 0 (a term the table does not need), and only for a truth at 0
     # or a floor too small for the table to see
     for n, side in result.at_bound.items():
-        assert side == "lower" and n in F._AT_BOUND_OK and result.status[n] == "at lower bound", result.summary()
+        assert side == "lower" and n in F.AT_BOUND_OK and result.status[n] == "at lower bound", result.summary()
         value = getattr(truth, n)
         invisible = n in F.FLOORS and _floor_invisible(value, meas, F.FLOORS.index(n))
         assert value == 0 or invisible, (n, result.summary())
@@ -192,7 +192,7 @@ def test_cli_warns_when_the_fit_is_rejected(tmp_path, capsys):
 def _tiny_problem(nb=False):
     kw = dict(r_on=[5.0, 5.0, 5.0], r_off=[5.0, 5.0, 5.0]) if nb else {}
     meas = cal.count_table([0.0, 1.0, 2.0], [0, 5, 3], [1, 2, 0], 100, 1.0, **kw)
-    values = dict(F._DEFAULTS)
+    values = dict(F.STARTS)
     return F._Problem(meas, "poisson", "binomial", ["eps_pos"], values, F._bounds(meas, ["eps_pos"], values))
 
 
@@ -205,7 +205,7 @@ def test_a_fit_problem_is_never_changed_after_construction():
 
     meas = cal.count_table([0.0, 1.0, 2.0, 4.0], [1, 5, 3, 2], [1, 2, 1, 4], 100, 1.0)
     free = ["eps_pos", "eps_neg", "bias_pr"]
-    values = dict(F._DEFAULTS)
+    values = dict(F.STARTS)
     problem = F._Problem(meas, "poisson", "binomial", free, values, F._bounds(meas, free, values))
     spec, lo = problem.spec, problem.lo.copy()
     sub, keep = F._with_fixed(problem, "eps_neg", 0.7)

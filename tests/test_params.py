@@ -2,6 +2,7 @@
 
 import dataclasses
 import math
+import re
 
 import pytest
 
@@ -83,3 +84,39 @@ def test_import_is_light():
             "print(','.join(m for m in ('torch', 'colour', 'numba', 'scipy', 'h5py') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert out == ""
+
+
+def test_parameter_metadata_is_the_one_home_of_units_limits_and_fit_ranges():
+    """Every field carries its spec; PARAM_LIMITS, calibration's tables and the groups derive from it."""
+    from evnoise import params as P
+
+    specs = P.parameter_specs()
+    assert tuple(s.name for s in specs) == tuple(f.name for f in dataclasses.fields(ev.NoiseParams))
+    assert P.parameter_names() == tuple(s.name for s in specs)
+    for s in specs:
+        assert s.group in P.GROUPS and s.fit_role in P.FIT_ROLES and s.unit
+        assert P.PARAM_LIMITS[s.name] == s.high and s.low == 0.0
+        assert (s.fit_bounds is None) == (s.fit_role == "unmodelled")
+        field = next(f for f in dataclasses.fields(ev.NoiseParams) if f.name == s.name)
+        assert s.default == (None if field.default is dataclasses.MISSING else field.default)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        specs[0].high = 1.0
+    assert P.parameter_spec("trial_rate_hz").unit == "Hz" and P.fit_bounds("eps_pos") == (1e-3, 5.0)
+    assert P.names_in_group("threshold") == ("eps_pos", "eps_neg", "eps_sigma")
+    assert P.names_with_fit_role("floor") == ("leak_on_hz", "leak_off_hz")
+    with pytest.raises(ev.ParameterError, match="unknown noise parameter 'nope'"):
+        P.parameter_spec("nope")
+    with pytest.raises(ev.ParameterError, match="unknown parameter group"):
+        P.names_in_group("nope")
+
+
+@pytest.mark.parametrize("name", [s.name for s in __import__("evnoise.params").params.parameter_specs()])
+def test_messages_name_the_value_and_the_allowed_range(name):
+    from evnoise.params import parameter_spec
+
+    s = parameter_spec(name)
+    with pytest.raises(ev.ParameterError, match=rf"NoiseParams\.{name} must be finite and {s.low_text}, got -1\.0"):
+        ev.NoiseParams(**dict(GOOD, **{name: -1.0}))
+    with pytest.raises(ev.ParameterError, match=rf"NoiseParams\.{name} must be <= {re.escape(f'{s.high:g}')}.*, got"):
+        ev.NoiseParams(**dict(GOOD, **{name: s.high * 2}))
+    ev.NoiseParams(**dict(GOOD, **{name: s.high}))  # the limit itself is valid
