@@ -3,8 +3,9 @@
 Each subcommand lives in ``evnoise/cli/<name>.py`` and defines ``register(subparsers)``, which
 adds its parser and sets ``func`` (called with the parsed arguments, returning an exit code).
 Registration must stay cheap: heavy imports happen inside ``func``. Options that several commands
-share are declared by :mod:`evnoise.cli._options` (``-o/--out``, ``--overwrite``, ``--sensor``,
-``--seed``, ``--threads``; the argparse types that check numbers when they are parsed).
+share are declared once, in :mod:`evnoise.cli._options` (declarations, parent parsers, the checkers of
+numbers and sizes); its :class:`~evnoise.cli._options.Parser` records each command's table of Python names
+to flags, with which an error of the library (which speaks Python names) is written in flags.
 
 Errors print one line ``evnoise: error: ...`` and exit 2: those evnoise raises on purpose
 (:class:`evnoise.EvnoiseError`), argparse's (bad or missing options; ``see evnoise CMD --help``), and
@@ -17,53 +18,30 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
-import re
 import sys
 
 from .._version import __version__
 from ..errors import EvnoiseError
+from ._options import ArgumentsError, Parser, add_verbosity, flag_names
 
 # subcommand modules, in the order they appear in --help
-COMMANDS = ["simulate", "make_dataset", "calibrate", "train", "evaluate", "reconstruct", "separate", "info", "presets"]
+COMMANDS = ["simulate", "make_dataset", "calibrate", "train", "pretrain", "evaluate", "reconstruct", "separate",
+            "info", "presets", "lpips"]
 
 log = logging.getLogger("evnoise")
 
 
-class ArgumentsError(Exception):
-    """A command line argparse refused; :func:`main` prints it as one line (argparse would print the usage
-    block and exit)."""
-
-    def __init__(self, prog: str, message: str):
-        super().__init__(message)
-        self.prog = prog
-        self.message = message
-
-    def line(self) -> str:
-        """``evnoise: error: ...`` without argparse's ``argument --x:`` when the message names the flag."""
-        message = self.message
-        m = re.match(r"argument ([^:]+): (.*)$", message, re.S)
-        if m and any(m.group(2).startswith(flag) for flag in m.group(1).split("/")):
-            message = m.group(2)
-        return f"evnoise: error: {message} (see {self.prog} --help)"
-
-
-class _Parser(argparse.ArgumentParser):
-    """argparse's parser whose errors are one line (:class:`ArgumentsError`); its subparsers are of this
-    class too."""
-
-    def error(self, message):
-        raise ArgumentsError(self.prog, message)
+_Parser = Parser  # the name earlier code and tests use
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(
+    parser = Parser(
         prog="evnoise",
         description="Photon noise of event cameras: simulate noise events, make datasets, "
         "calibrate the model, train and run a reconstructor.",
     )
     parser.add_argument("--version", action="version", version=f"evnoise {__version__}")
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
-    parser.add_argument("-q", "--quiet", action="store_true", help="only errors; no progress bars")
+    add_verbosity(parser)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
         try:
@@ -78,10 +56,8 @@ def build_parser() -> argparse.ArgumentParser:
         if id(subparser) in seen:
             continue
         seen.add(id(subparser))
-        subparser.add_argument("-v", "--verbose", dest="sub_verbose", action="count", default=0,
-                               help="more log output (-vv for debug)")
-        subparser.add_argument("-q", "--quiet", dest="sub_quiet", action="store_true",
-                               help="only errors; no progress bars")
+        add_verbosity(subparser, dest_prefix="sub_")
+        subparser.set_defaults(cli_flags=subparser.flags)  # the command's names -> flags, for error lines
     parser.set_defaults(subparsers_action=sub)
     return parser
 
@@ -100,6 +76,7 @@ def main(argv=None) -> int:
     except ArgumentsError as exc:
         print(exc.line(), file=sys.stderr)
         return 2
+    args.argv = list(sys.argv[1:] if argv is None else argv)  # the command as given (pretrain's recipe line)
     args.verbose = args.verbose + getattr(args, "sub_verbose", 0)
     args.quiet = bool(args.quiet or getattr(args, "sub_quiet", False))
     level = logging.ERROR if args.quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
@@ -317,39 +294,12 @@ def _close_progress_bars() -> None:
             pass
 
 
-# library parameter names whose flag is not simply the name with dashes
-_FLAG_ALIASES = {
-    "duration_s": "--duration", "window_s": "--window", "windows_s": "--window", "crop_shape": "--crop",
-    "sensor_shape": "--sensor", "t_start_s": "--t-start", "step_s": "--step", "radius_px": "--radius",
-    "n_starts": "--starts", "max_frames": "--frames", "fps_out": "--fps",
-}
-
-
 def _flag_names(message: str, args) -> str:
     """``message`` with the Python parameter names of the subcommand's options written as its flags
-    (``max_lux must be ...`` -> ``--max-lux must be ...``, ``clip_invalid=True`` -> ``--clip-invalid``)."""
-    import re
-
-    sub = getattr(args, "subparsers_action", None)
-    subparser = sub.choices.get(getattr(args, "command", None)) if sub is not None else None
-    if subparser is None:
-        return message
-    flags = {}
-    for action in subparser._actions:
-        longs = [o for o in action.option_strings if o.startswith("--")]
-        if longs:
-            flags[longs[0][2:].replace("-", "_")] = longs[0]
-            flags.setdefault(action.dest, longs[0])
-    known = set(flags.values())
-    for name, flag in _FLAG_ALIASES.items():
-        if flag in known:
-            flags.setdefault(name, flag)
-    for name, flag in sorted(flags.items(), key=lambda kv: -len(kv[0])):
-        if "_" not in name:
-            continue  # a plain word (``seed``, ``fps``) is as likely prose as a parameter
-        message = re.sub(rf"(?<![\w./-]){re.escape(name)}(=True)?(?![\w/]|\.\w)", flag, message)
-    # "(clip_invalid=True, --clip-invalid)" and "window_s (--window)" now say the flag twice
-    return re.sub(r"(--[\w-]+)(?:, \1(?![\w-])| \(\1\))", r"\1", message)
+    (``max_lux must be ...`` -> ``--max-lux must be ...``), by the table its parser recorded while its options
+    were declared (:class:`evnoise.cli._options.Parser`)."""
+    flags = getattr(args, "cli_flags", None)
+    return flag_names(message, flags) if flags else message
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -25,7 +25,7 @@ EXAMPLE = "example.png"
 
 
 def register(subparsers) -> None:
-    from ..radiometry import DEFAULT_MAX_LUX, ENCODINGS, FIT_MODES
+    from ..radiometry import DEFAULT_MAX_LUX
 
     p = subparsers.add_parser(
         "simulate",
@@ -35,46 +35,34 @@ def register(subparsers) -> None:
         "another format, as the --out suffix says.",
         epilog="example: evnoise simulate --example --duration 10 --out example.h5 --png example.png "
         "(-q: no progress bar and no summary)",
+        parents=[
+            opt.output(required=True, metavar="FILE", event_formats=True,
+                       help="output event file; the suffix decides the format: .h5 (events.h5, DSEC layout, with "
+                       "parameters and seed), .aedat4 (parameters and seed in its description), .raw (Prophesee EVT "
+                       "3.0), .dat (Prophesee DAT), .es (Event Stream), .csv (t,x,y,on)"),
+            opt.image_input(
+                sensor_help="sensor size, e.g. 1280x720 (default: the image's size)",
+                fit_help="how to bring images to --sensor: cover (scale keeping the aspect ratio, crop the "
+                "centre), crop (centre crop, no scaling), resize (stretch) (default: %(default)s)",
+                max_lux_help=f"illuminance of full-scale white of 8/16-bit images (default {DEFAULT_MAX_LUX:g} lux, "
+                "the Noise2Image monitor at grey 255)",
+                lux_scale_help="lux per unit of linear images (OpenEXR, float TIFF) (default 1)",
+                clip_invalid_help="clip NaN, Inf and negative pixel values (with a warning) instead of failing"),
+            opt.run_options(seed_help="random seed, 0 .. 2**63-1 (default: a fresh one, printed and stored in the "
+                            "file)", threads_help="worker threads (default: all CPUs)"),
+        ],
     )
     p.add_argument("input", nargs="?", metavar="INPUT",
                    help="an image (PNG, JPEG, TIFF, OpenEXR) or a folder of frames")
-    p.add_argument("--example", action="store_true", help="use the bundled 1280x720 example image as INPUT")
-    opt.add_out(p, required=True, metavar="FILE",
-                help="output event file; the suffix decides the format: .h5 (events.h5, DSEC layout, with "
-                "parameters and seed), .aedat4 (parameters and seed in its description), .raw (Prophesee EVT 3.0), "
-                ".dat (Prophesee DAT), .es (Event Stream), .csv (t,x,y,on)")
+    opt.add_example(p, help="use the bundled 1280x720 example image as INPUT")
     p.add_argument("--duration", type=opt.seconds("--duration", positive=True), metavar="S",
                    help="length of a static scene in seconds (default 1); not used for a folder")
-    p.add_argument("--fps", type=opt.frequency("--fps"), metavar="F",
-                   help="frame rate of a folder of frames (required for a folder)")
-    p.add_argument("--preset", default="evk3-hd", metavar="NAME|TOML",
-                   help="noise-model preset name or parameter TOML file (default: %(default)s)")
-    opt.add_seed(p, help="random seed, 0 .. 2**63-1 (default: a fresh one, printed and stored in the file)")
+    opt.add_fps(p, help="frame rate of a folder of frames (required for a folder)")
+    opt.add_preset(p)
     p.add_argument("--method", choices=("auto", "renewal", "trials"), default="auto",
                    help="simulation tier (default: %(default)s)")
-    opt.add_sensor(p, help="sensor size, e.g. 1280x720 (default: the image's size)")
-    p.add_argument("--fit", choices=FIT_MODES, default="cover",
-                   help="how to bring images to --sensor: cover (scale keeping the aspect ratio, crop the "
-                   "centre), crop (centre crop, no scaling), resize (stretch) (default: %(default)s)")
-    p.add_argument("--max-lux", type=opt.positive_number("--max-lux", "lux", maximum=opt.MAX_LUX), metavar="LUX",
-                   help=f"illuminance of full-scale white of 8/16-bit images (default {DEFAULT_MAX_LUX:g} lux, "
-                   "the Noise2Image monitor at grey 255)")
-    p.add_argument("--lux-scale", type=opt.positive_number("--lux-scale", "lux per unit", maximum=opt.MAX_LUX),
-                   metavar="K",
-                   help="lux per unit of linear images (OpenEXR, float TIFF) (default 1)")
-    p.add_argument("--encoding", choices=ENCODINGS, default="srgb",
-                   help="transfer function of 8/16-bit images (default: %(default)s)")
-    p.add_argument("--clip-invalid", action="store_true",
-                   help="clip NaN, Inf and negative pixel values (with a warning) instead of failing")
-    opt.add_threads(p, help="worker threads (default: all CPUs)")
-    p.add_argument("--format", choices=("h5", "aedat4", "evt3", "dat", "es", "csv"),
-                   help="check the output format: the --out suffix decides it, and this must agree "
-                   "(formats other than h5 need the faery package)")
-    p.add_argument("--compression", choices=("gzip", "lzf", "none"), default="gzip",
-                   help="HDF5 compression of the events (default: %(default)s)")
-    p.add_argument("--png", metavar="FILE",
-                   help="also write a PNG of the scene beside its ON/OFF event-rate maps (log scales, colour bars)")
-    opt.add_overwrite(p)
+    opt.add_compression(p, default="gzip", help="HDF5 compression of the events (default: %(default)s)")
+    opt.add_png(p, help="also write a PNG of the scene beside its ON/OFF event-rate maps (log scales, colour bars)")
     p.set_defaults(func=run)
 
 

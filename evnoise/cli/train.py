@@ -7,6 +7,12 @@ import logging
 log = logging.getLogger("evnoise")
 
 
+#: --seed and --threads of train and pretrain (one declaration, the same help)
+SEED_HELP = "seed of everything random (default 0)"
+THREADS_HELP = ("torch CPU threads (default 1: on a busy 2-core machine one thread was 3-10x faster per step than "
+                "two; raise it on an idle machine)")
+
+
 def register(subparsers):
     from . import _options as opt
 
@@ -16,39 +22,18 @@ def register(subparsers):
         description="Train the noise-events-to-image U-Net on a dataset from `evnoise make-dataset` "
         "(or a .npz pairs file). Writes a resumable checkpoint after every epoch and a PNG of the "
         "loss curves next to it.",
+        parents=[opt.output(required=True, metavar="MODEL.pt", help="checkpoint to write (e.g. model.pt)",
+                            overwrite_help="replace an existing --out"),
+                 opt.training(),
+                 opt.run_options(seed_help=SEED_HELP, seed_default=0, threads_help=THREADS_HELP, threads_default=1)],
     )
     p.add_argument("dataset", help="make-dataset folder or .npz pairs file")
-    opt.add_out(p, required=True, metavar="MODEL.pt", help="checkpoint to write (e.g. model.pt)")
     p.add_argument("--val", help="separate validation dataset (default: the dataset's 'val' split, "
                                   "else a share of its source images)")
     p.add_argument("--val-fraction", type=float, default=0.15, help="share of source images held out (default 0.15)")
-    p.add_argument("--epochs", type=int, default=60, help="maximum epochs (default 60)")
-    p.add_argument("--steps-per-epoch", type=int, default=50, help="batches per epoch (default 50)")
-    p.add_argument("--batch-size", type=int, default=16, help="crops per batch (default 16)")
-    p.add_argument("--crop", type=int, default=None,
-                   help="training crop side in binned pixels, i.e. make-dataset's sensor-pixel --crop divided by "
-                   "its --binning (default: 64, or the largest size that fits the pairs)")
-    p.add_argument("--lr", type=float, default=2e-3, help="AdamW learning rate (default 2e-3)")
-    p.add_argument("--ssim-weight", type=float, default=0.2, help="weight of the 1 - SSIM loss term (default 0.2)")
-    p.add_argument("--pixel-loss", choices=("l1", "mse"), default="l1",
-                   help="pixel term of the loss: l1 (sharp) or mse (the mean, what PSNR scores; default l1)")
     p.add_argument("--patience", type=int, default=12, help="early stopping after N epochs without improvement "
                                                                "(default 12; 0 disables)")
-    p.add_argument("--max-minutes", type=float, default=None, help="wall-clock budget in minutes (default: none)")
     p.add_argument("--polarities", choices=("both", "on", "off"), default="both", help="count channels used")
-    p.add_argument("--base-channels", type=int, default=None, help="U-Net width (default 16)")
-    p.add_argument("--transform", choices=("rate", "anscombe"), default="rate",
-                   help="input transform of the counts: rate, or the variance-stabilising Anscombe square root "
-                   "(default rate)")
-    p.add_argument("--ml-sigma", type=float, default=None, metavar="S",
-                   help="add the closed-form ML estimate (counts smoothed with a Gaussian of S binned pixels) as "
-                   "an input channel")
-    opt.add_seed(p, default=0, help="seed of everything random (default 0)")
-    opt.add_threads(p, default=1,
-                    help="torch CPU threads (default 1: on a busy 2-core machine one thread was 3-10x faster "
-                        "per step than two; raise it on an idle machine)")
-    p.add_argument("--resume", action="store_true", help="continue the run stored in --out")
-    opt.add_overwrite(p, help="replace an existing --out")
     p.add_argument("--no-plot", action="store_true", help="do not write the loss-curve PNG")
     p.set_defaults(func=run)
 

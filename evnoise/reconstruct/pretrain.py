@@ -1,11 +1,11 @@
 """Train the reconstructor that evnoise ships (``evnoise/models/evk3-hd.pt``), reproducibly.
 
-Usage::
+Usage (``python -m evnoise.reconstruct.pretrain`` is the same command as ``evnoise pretrain``)::
 
-    python -m evnoise.reconstruct.pretrain --out evk3-hd-run.pt --max-minutes 55     # train
-    python -m evnoise.reconstruct.pretrain --make-test-sets heldout/                  # test sets
+    evnoise pretrain --out evk3-hd-run.pt --max-minutes 55                            # train
+    evnoise pretrain --make-test-sets heldout/                                         # test sets
     evnoise evaluate heldout/dead-leaves --model evk3-hd-run.pt --json id.json        # scores
-    python -m evnoise.reconstruct.pretrain --ship evk3-hd-run.pt --scores id.json ood.json \\
+    evnoise pretrain --ship evk3-hd-run.pt --scores dead-leaves=id.json photos=ood.json \\
         --out evnoise/models/evk3-hd.pt                                                # package it
 
 Training data (nothing is downloaded):
@@ -31,16 +31,13 @@ model on the same software.
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import EvnoiseError, InputError, ParameterError
+from ..errors import InputError
 
 __all__ = ["SceneCrops", "build_training_data", "make_test_sets", "ship", "main", "HELD_OUT_PHOTOS"]
 
@@ -293,100 +290,11 @@ def ship(checkpoint, out, *, scores=None) -> Path:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m evnoise.reconstruct.pretrain", description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", help="checkpoint to write (training) or the shipped file (--ship)")
-    ap.add_argument("--make-test-sets", metavar="DIR", help="write the held-out test sets to DIR and stop")
-    ap.add_argument("--ship", metavar="CHECKPOINT", help="strip CHECKPOINT's training state, add --scores, write --out")
-    ap.add_argument("--scores", nargs="*", default=[], metavar="NAME=JSON",
-                    help="with --ship: held-out scores, e.g. dead-leaves=id.json photos=ood.json "
-                    "(from evnoise evaluate --json)")
-    ap.add_argument("--max-minutes", type=float, default=55.0, help="wall-clock budget (default 55)")
-    ap.add_argument("--epochs", type=int, default=90, help="epochs of --steps-per-epoch steps (default 90)")
-    ap.add_argument("--steps-per-epoch", type=int, default=100)
-    ap.add_argument("--batch-size", type=int, default=16)
-    ap.add_argument("--crop", type=int, default=64, help="training crop side, binned pixels (default 64)")
-    ap.add_argument("--lr", type=float, default=2e-3)
-    ap.add_argument("--ssim-weight", type=float, default=0.2)
-    ap.add_argument("--pixel-loss", choices=("l1", "mse"), default="l1",
-                    help="pixel term of the loss (default l1; mse favours PSNR)")
-    ap.add_argument("--transform", choices=("rate", "anscombe"), default="anscombe")
-    ap.add_argument("--ml-sigma", type=float, default=None,
-                    help="add the closed-form ML estimate (counts smoothed with this sigma) as an input channel")
-    ap.add_argument("--base-channels", type=int, default=16)
-    ap.add_argument("--channel-mults", default="1,2,4,4", help="U-Net levels (default 1,2,4,4)")
-    ap.add_argument("--mismatch-sigma", type=float, default=0.0,
-                    help="threshold-mismatch augmentation: eps_sigma of the training counts (default 0; slow)")
-    ap.add_argument("--dead-leaves", type=int, default=120, help="procedural training scenes (default 120)")
-    ap.add_argument("--white-range", default=f"{WHITE_RANGE_LUX[0]:g}:{WHITE_RANGE_LUX[1]:g}", metavar="LO:HI",
-                    help="scene white level in lux, log-uniform per crop (brightness augmentation; default "
-                    "%(default)s; one number: no augmentation)")
-    ap.add_argument("--no-photos", action="store_true", help="train on dead leaves only")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
-    ap.add_argument("--resume", action="store_true")
-    ap.add_argument("--overwrite", action="store_true")
-    ap.add_argument("-q", "--quiet", action="store_true")
-    args = ap.parse_args(argv)
-    import logging
+    """``python -m evnoise.reconstruct.pretrain ARGS``: the same as ``evnoise pretrain ARGS`` (one declaration of
+    its options, in :mod:`evnoise.cli.pretrain`)."""
+    from ..cli import main as cli
 
-    logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO,
-                        format="%(asctime)s %(levelname)s: %(message)s")
-    try:
-        if args.make_test_sets:
-            made = make_test_sets(args.make_test_sets, progress=not args.quiet)
-            print("wrote " + ", ".join(str(p) for p in made.values()))
-            return 0
-        if not args.out:
-            raise ParameterError("--out is required")
-        if args.ship:
-            scores = {}
-            for item in args.scores:
-                name, _, path = item.partition("=")
-                if not path:
-                    raise ParameterError(f"--scores takes NAME=JSON, got {item!r}")
-                try:
-                    scores[name] = json.loads(Path(path).read_text())
-                except (OSError, ValueError) as exc:
-                    raise InputError(f"cannot read scores {path}: {exc}") from None
-            path = ship(args.ship, args.out, scores=scores)
-            print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
-            return 0
-        from .train import TrainConfig, train
-
-        try:
-            white = [float(v) for v in args.white_range.split(":")]
-        except ValueError:
-            raise ParameterError(f"--white-range must be LO:HI lux, got {args.white_range!r}") from None
-        white = white * 2 if len(white) == 1 else white
-        if len(white) != 2 or not 0 < white[0] <= white[1] or not all(math.isfinite(v) for v in white):
-            raise ParameterError(f"--white-range must be LO:HI lux with 0 < LO <= HI, got {args.white_range!r}")
-        t0 = time.perf_counter()
-        data, val, description = build_training_data(seed=args.seed, n_dead_leaves=args.dead_leaves,
-                                                      mismatch_sigma=args.mismatch_sigma, photos=not args.no_photos,
-                                                      progress=not args.quiet, white_range_lux=white)
-        logging.getLogger("evnoise").info("training data ready in %.0f s", time.perf_counter() - t0)
-        config = TrainConfig(epochs=args.epochs, steps_per_epoch=args.steps_per_epoch, batch_size=args.batch_size,
-                             crop=args.crop, lr=args.lr, ssim_weight=args.ssim_weight, patience=None,
-                             max_minutes=args.max_minutes, val_crop=128, seed=args.seed, transform=args.transform,
-                             ml_sigma=args.ml_sigma, pixel_loss=args.pixel_loss)
-        model = {"base_channels": args.base_channels,
-                 "channel_mults": tuple(int(m) for m in args.channel_mults.split(","))}
-        card = {"preset": PRESET, "sensor": "Prophesee EVK3-HD (IMX636), 1280x720 (the preset's camera)",
-                "white_lux_range": list(white), "display_white_lux": DISPLAY_WHITE_LUX,
-                "contrast_range": list(CONTRAST_RANGE), "mismatch_eps_sigma": args.mismatch_sigma,
-                "training_data": description, "held_out_photos": list(HELD_OUT_PHOTOS),
-                "recipe": "python -m evnoise.reconstruct.pretrain " + " ".join(sys.argv[1:] if argv is None else argv)}
-        result = train(data, args.out, val_data=val, config=config, model=model, resume=args.resume,
-                       overwrite=args.overwrite, progress=not args.quiet, threads=args.threads,
-                       data_description=description, card=card)
-        print(f"trained {result['epochs']} epochs ({result['steps']} steps, {result['elapsed_s'] / 60:.1f} min, "
-              f"stopped by {result['stopped']}); validation PSNR {result['val_psnr']:.2f} dB, SSIM "
-              f"{result['val_ssim']:.3f} (epoch {result['best_epoch']}); wrote {result['out']}")
-    except EvnoiseError as exc:
-        print(f"evnoise: error: {exc}", file=sys.stderr)
-        return 2
-    return 0
+    return cli(["pretrain", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":  # pragma: no cover
