@@ -239,7 +239,7 @@ def output_formats_help() -> str:
     for f in FORMATS:
         if f.writer is None:
             continue
-        parts.append(f"{f.written_as} ({', '.join(f.written_suffixes)}: {f.written_label})")
+        parts.append(f"{f.written_as} ({' or '.join(f.written_suffixes)}): {f.written_label}")
         if f.extra:
             extras.setdefault(f.extra, []).append(f.written_as)
     text = "the file's suffix decides the format: " + "; ".join(parts)
