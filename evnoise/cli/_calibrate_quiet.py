@@ -34,9 +34,8 @@ _ADVICE = {
 
 def add_arguments(p) -> None:
     g = p.add_argument_group("quiet recording (calibrate from a camera file of a still scene)")
-    g.add_argument("--t-start", type=opt.seconds("--t-start"), metavar="S",
-                   help="start of the still window in seconds on the file's clock (switches to this mode)")
-    g.add_argument("--t-end", type=opt.seconds("--t-end"), metavar="S", help="end of the still window in seconds")
+    opt.add_t_start(g, help="start of the still window in seconds on the file's clock (switches to this mode)")
+    opt.add_t_end(g, help="end of the still window in seconds")
     g.add_argument("--window", action="append", default=[], metavar="A:B[@LUX]",
                    help="another still window of the same file(s), seconds (repeatable; optional lux)")
     g.add_argument("--lux", type=float, metavar="LUX",

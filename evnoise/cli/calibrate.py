@@ -27,6 +27,8 @@ PARAMETERS = ("eps_pos", "eps_neg", "bias_pr", "trial_rate_hz", "photons_per_lux
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "calibrate",
+        parents=[opt.output(required=True, metavar="TOML", help="preset file to write"),
+                 opt.run_options(seed_help="seed of the starting points (default 0)", seed_default=0)],
         help="fit the noise model to measured rates or flat-field recordings; write a preset",
         description="Fit evnoise's noise model to measurements by maximum likelihood (exact closed form, "
         "threshold mismatch, multi-start) and write the parameters as a preset TOML with uncertainties, "
@@ -40,11 +42,9 @@ def register(subparsers) -> None:
     p.add_argument("measurements", metavar="MEASUREMENTS", nargs="*",
                    help="rate table (CSV) or flat-field listing (TOML, or CSV with a 'file' column); with "
                    "--t-start/--t-end or --window: recording(s) of a still scene (any camera file)")
-    p.add_argument("--example", action="store_true",
-                   help=f"use the bundled example rate table ({EXAMPLE}, simulated from the evk3-hd preset) "
-                   "as MEASUREMENTS")
-    opt.add_out(p, required=True, metavar="TOML", help="preset file to write")
-    p.add_argument("--plot", metavar="PNG", help="also write a figure of the data and the fitted curves")
+    opt.add_example(p, help=f"use the bundled example rate table ({EXAMPLE}, simulated from the evk3-hd preset) "
+                    "as MEASUREMENTS")
+    opt.add_plot(p, help="also write a figure of the data and the fitted curves")
     p.add_argument("--monitor", metavar="CSV", help="grey -> lux table of a monitor (columns grey, lux)")
     p.add_argument("--monitor-model", choices=("interp", "gamma"), default="interp",
                    help="grey -> lux: interpolation in grey^2.2, or a straight-line fit in grey^2.2 "
@@ -65,11 +65,9 @@ def register(subparsers) -> None:
     p.add_argument("--starts", type=opt.count("--starts"), default=6, metavar="N",
                    help="strata of starting points (2 each are screened; more is slower and safer) "
                    "(default: %(default)s)")
-    opt.add_seed(p, default=0, help="seed of the starting points (default 0)")
     p.add_argument("--unidentified", choices=("report", "fix"), default="report",
                    help="parameters the data do not constrain: report them, or fix them and refit the rest "
                    "(default: %(default)s)")
-    opt.add_overwrite(p)
     from . import _calibrate_quiet
 
     _calibrate_quiet.add_arguments(p)

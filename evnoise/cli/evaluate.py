@@ -12,6 +12,9 @@ import logging
 
 log = logging.getLogger("evnoise")
 
+#: --threads of the commands that run the U-Net (evaluate, reconstruct)
+TORCH_THREADS_HELP = "torch CPU threads (default 1)"
+
 
 def register(subparsers):
     from . import _options as opt
@@ -24,27 +27,24 @@ def register(subparsers):
         "and LPIPS (AlexNet, offline weights), mean and standard error over the pairs.",
         epilog="example: evnoise evaluate heldout/photos --ml-sigma 0.7 --ml-sigma 2 --ml-sigma 4 "
         "--out table.md --json results.json --figure examples.png",
+        parents=[opt.output(metavar="TABLE.md", help="write the markdown table here"),
+                 opt.run_options(threads_help=TORCH_THREADS_HELP, threads_default=1)],
     )
     p.add_argument("dataset", help="make-dataset folder or .npz pairs file")
-    p.add_argument("--model", default=None,
-                   help="checkpoint written by `evnoise train` (default: the shipped evk3-hd model)")
+    opt.add_model(p)
     p.add_argument("--split", default="test", choices=("train", "val", "test"),
                    help="dataset split (default: test; a .npz file has one)")
-    p.add_argument("--preset", help="noise preset of the ML baseline (default: the dataset's parameters)")
-    p.add_argument("--max-lux", type=opt.positive_number("--max-lux", "lux", maximum=opt.MAX_LUX), metavar="LUX",
-                   help="white level of the ML baseline in lux (default: the dataset's)")
+    opt.add_preset(p, default=None, help="noise preset of the ML baseline (default: the dataset's parameters)")
+    opt.add_max_lux(p, help="white level of the ML baseline in lux (default: the dataset's)")
     p.add_argument("--ml-sigma", type=float, action="append", metavar="S",
                    help="Gaussian smoothing of the ML baseline, binned pixels (repeatable: one row each; "
                    "default 0.7)")
     p.add_argument("--no-lpips", action="store_true", help="skip LPIPS (faster)")
     p.add_argument("--max-items", type=int, metavar="N", help="score only the first N pairs")
     p.add_argument("--title", help="title line of the table (default: the dataset and split)")
-    opt.add_out(p, metavar="TABLE.md", help="write the markdown table here")
     p.add_argument("--json", metavar="RESULTS.json", help="write every number (per pair too) here")
     p.add_argument("--figure", metavar="FIG.png",
                    help="PNG of counts / ML baseline / U-Net / ground truth (first pair of up to 6 source images)")
-    opt.add_threads(p, default=1, help="torch CPU threads (default 1)")
-    opt.add_overwrite(p)
     p.set_defaults(func=run)
 
 
@@ -84,8 +84,7 @@ def run(args) -> int:
 
     if args.max_items is not None and args.max_items < 1:
         raise ParameterError(f"--max-items must be >= 1, got {args.max_items}")
-    if args.max_lux is not None and not (math.isfinite(args.max_lux) and args.max_lux > 0):
-        raise ParameterError(f"--max-lux must be > 0 lux, got {args.max_lux}")
+    # --max-lux is checked when parsed (_options.positive_number)
     for sigma in args.ml_sigma or ():
         if not (math.isfinite(sigma) and sigma >= 0):
             raise ParameterError(f"--ml-sigma must be >= 0 binned pixels, got {sigma}")

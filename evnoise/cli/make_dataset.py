@@ -51,8 +51,7 @@ def register(subparsers) -> None:
                      "scikit-learn, PyWavelets); nothing is downloaded")
     geo = p.add_argument_group("geometry")
     opt.add_sensor(geo, default="1280x720", help="sensor size every image is fitted to (default: %(default)s)")
-    geo.add_argument("--fit", choices=("cover", "crop", "resize"), default="cover",
-                     help="how images are brought to --sensor (default: %(default)s)")
+    opt.add_image_fit(geo, help="how images are brought to --sensor (default: %(default)s)")
     geo.add_argument("--crop", metavar="WxH",
                      help="cut random crops of this size (sensor pixels, multiples of --binning) instead of "
                      "using the whole sensor; one number for a square")
@@ -67,32 +66,29 @@ def register(subparsers) -> None:
     sim.add_argument("--mode", choices=("counts", "events"), default="counts",
                      help="counts: draw the counts directly (fast); events: simulate the event stream and "
                      "count it (slow; same distribution) (default: %(default)s)")
-    sim.add_argument("--max-lux", default="18", metavar="LUX|LO:HI",
-                     help="lux of full-scale white of 8/16-bit and procedural images; LO:HI draws one per crop "
-                     "(log-uniform brightness augmentation) (default: %(default)s)")
-    sim.add_argument("--lux-scale", default="1", metavar="K|LO:HI",
-                     help="lux per unit of linear images (OpenEXR, float TIFF) (default: %(default)s)")
+    opt.add_max_lux(sim, ranges=True, default="18",
+                    help="lux of full-scale white of 8/16-bit and procedural images; LO:HI draws one per crop "
+                    "(log-uniform brightness augmentation) (default: %(default)s)")
+    opt.add_lux_scale(sim, ranges=True, default="1",
+                      help="lux per unit of linear images (OpenEXR, float TIFF) (default: %(default)s)")
     sim.add_argument("--contrast", default="1", metavar="G|LO:HI",
                      help="exponent applied to linear luminance, Y -> Y^G; LO:HI draws one per crop "
                      "(contrast augmentation) (default: %(default)s)")
     sim.add_argument("--white-lux", type=opt.positive_number("--white-lux", "lux", maximum=opt.MAX_LUX),
                      metavar="LUX",
                      help="lux shown as white in the stored images (default: the top of --max-lux)")
-    sim.add_argument("--encoding", choices=("srgb", "gamma2.2", "linear"), default="srgb",
-                     help="transfer function of 8/16-bit images (default: %(default)s)")
-    sim.add_argument("--clip-invalid", action="store_true",
-                     help="clip NaN/Inf/negative pixel values instead of skipping the image")
-    sim.add_argument("--preset", default="evk3-hd", metavar="NAME|TOML",
-                     help="noise-model preset (default: %(default)s)")
+    opt.add_encoding(sim)
+    opt.add_clip_invalid(sim, help="clip NaN/Inf/negative pixel values instead of skipping the image")
+    opt.add_preset(sim, help="noise-model preset (default: %(default)s)")
     opt.add_seed(sim, help="seed of everything (default: the interrupted run's in --out, else a fresh one, stored)")
     out = p.add_argument_group("output and execution")
     out.add_argument("--split", default="0.8,0.1,0.1", metavar="TRAIN,VAL,TEST",
                      help="fractions of source images per split (default: %(default)s)")
     out.add_argument("--shard-size", type=int, default=64, metavar="N",
                      help="pairs per HDF5 shard, about (default: %(default)s)")
-    out.add_argument("--compression", choices=("lzf", "gzip", "none"), default="lzf",
-                     help="HDF5 compression of counts and images (default: %(default)s, the fastest that h5py always "
-                          "reads; gzip for tools without h5py's LZF filter)")
+    opt.add_compression(out, default="lzf",
+                        help="HDF5 compression of counts and images (default: %(default)s, the fastest that h5py "
+                        "always reads; gzip for tools without h5py's LZF filter)")
     out.add_argument("--workers", type=int, metavar="N",
                      help="worker processes (default: the CPU count); never changes the output")
     opt.add_threads(out, help="threads per worker for --mode events and the general sampler (default: CPUs / "
@@ -178,10 +174,7 @@ def run(args) -> int:
     quiet = bool(getattr(args, "quiet", False))
     if args.workers is not None and args.workers < 1:
         raise ParameterError(f"--workers must be >= 1, got {args.workers}")
-    if args.threads is not None and args.threads < 1:
-        raise ParameterError(f"--threads must be >= 1, got {args.threads}")
-    if args.seed is not None and args.seed < 0:
-        raise ParameterError(f"--seed must be a non-negative integer, got {args.seed}")
+    # --threads and --seed are checked when parsed (_options)
     config = build_config(args)
     sources = build_sources(args)
     from ._paths import refuse_writing_inputs

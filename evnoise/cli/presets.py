@@ -32,11 +32,11 @@ def register(subparsers) -> None:
         "and fit quality, and where the file is. --plot FILE draws the ON and OFF noise rate (events/s per pixel) "
         "against lux with each term's share: shot noise alone, background activity, total, and the population "
         "mean when pixels differ.",
+        parents=[opt.output(overwrite_help="replace an existing --plot file")],
     )
     p.add_argument("name", nargs="?", metavar="NAME", help="a preset name (see the list) or a preset .toml file")
-    p.add_argument("--plot", metavar="FILE", help="with NAME: write a PNG of the rate against lux")
+    opt.add_plot(p, metavar="FILE", help="with NAME: write a PNG of the rate against lux")
     p.add_argument("--json", action="store_true", help="print as JSON")
-    opt.add_overwrite(p, help="replace an existing --plot file")
     p.set_defaults(func=run)
 
 

@@ -15,6 +15,7 @@ log = logging.getLogger("evnoise")
 
 def register(subparsers):
     from . import _options as opt
+    from .evaluate import TORCH_THREADS_HELP
 
     p = subparsers.add_parser(
         "reconstruct",
@@ -24,32 +25,26 @@ def register(subparsers):
         "U-Net and write an 8-bit grayscale PNG. With --step, a moving window writes one PNG per "
         "position (OUT_0000.png, OUT_0001.png, ...). A window shorter than the model's training window is "
         "shown to the model as its counts scaled up to that window (an estimate of the same rates; noisier).",
+        parents=[opt.events_input(),
+                 opt.output(required=True, metavar="PNG|DIR", help="output PNG (with --fps: the output folder)"),
+                 opt.run_options(threads_help=TORCH_THREADS_HELP, threads_default=1)],
     )
-    p.add_argument("events", help=opt.event_input_help())
-    opt.add_sensor(p)
-    opt.add_csv_columns(p)
-    p.add_argument("--model", default=None,
-                   help="checkpoint written by `evnoise train` (default: the shipped evk3-hd model)")
-    opt.add_out(p, required=True, metavar="PNG|DIR", help="output PNG (with --fps: the output folder)")
+    opt.add_model(p)
     p.add_argument("--window", type=opt.seconds("--window", positive=True), default=None, metavar="S",
                    help="integration window in seconds (default: the longest window the model was trained on "
                    "that fits into the recording)")
-    p.add_argument("--t-start", type=opt.seconds("--t-start"), default=None, metavar="S",
-                   help="start of the window in seconds on the recording's clock (default: its start, 0 for "
-                   "events.h5, the first event of a camera file)")
+    opt.add_t_start(p, help="start of the window in seconds on the recording's clock (default: its start, 0 for "
+                    "events.h5, the first event of a camera file)")
     p.add_argument("--step", type=opt.seconds("--step", positive=True, minimum=1e-6), default=None, metavar="S",
                    help="moving window: advance by S seconds per frame")
     p.add_argument("--frames", type=opt.count("--frames"), default=None,
                    help="with --step or --fps: at most this many frames")
     p.add_argument("--binning", type=opt.count("--binning"), default=None,
                    help="check that the model uses this binning")
-    opt.add_threads(p, default=1, help="torch CPU threads (default 1)")
-    opt.add_overwrite(p)
     video = p.add_argument_group("video mode (--fps): the static background behind moving things")
-    video.add_argument("--fps", type=opt.frequency("--fps"), default=None, metavar="F",
-                       help="write one frame per 1/F seconds into the folder --out (frame_NNNNN.png, "
-                       "overlay_NNNNN.png, frames.csv), from the noise events of pixels without motion over the "
-                       "last --window seconds")
+    opt.add_fps(video, help="write one frame per 1/F seconds into the folder --out (frame_NNNNN.png, "
+                "overlay_NNNNN.png, frames.csv), from the noise events of pixels without motion over the "
+                "last --window seconds")
     video.add_argument("--separator", choices=("density", "activity", "none"), default="density",
                        help="signal/noise separator of the video mode (default density; none: no motion mask)")
     video.add_argument("--no-overlay", action="store_true", help="video mode: do not write the overlay PNGs")

