@@ -487,7 +487,7 @@ def tiny_model(tmp_path_factory):
 def test_reconstruct_video_writes_frames_overlays_and_a_table(tmp_path, square, tiny_model):
     from PIL import Image
 
-    from evnoise.motion import reconstruct_video
+    from evnoise.reconstruct.video import reconstruct_video
 
     events, _, _, _ = square
     src = ev.write_events(tmp_path / "rec.h5", events, (H, W), t_end_us=2_000_000)
@@ -513,7 +513,7 @@ def test_reconstruct_video_writes_frames_overlays_and_a_table(tmp_path, square, 
 
 
 def test_reconstruct_video_errors(tmp_path, square, tiny_model):
-    from evnoise.motion import reconstruct_video
+    from evnoise.reconstruct.video import reconstruct_video
 
     events, _, _, _ = square
     src = ev.write_events(tmp_path / "rec.h5", events, (H, W))
