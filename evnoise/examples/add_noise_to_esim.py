@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 import evnoise as ev
-from evnoise.errors import EvnoiseError, OutputError, ParameterError
+from evnoise.errors import EvnoiseError, OutputError
 from evnoise.plugins.frames import EmulatorNoise
 
 SOURCE = "evnoise.examples.add_noise_to_esim"
@@ -120,31 +120,26 @@ def add_noise(frames, times_s, params, rng=0, *, threshold=0.3, progress=False):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    """The options (``--out``, ``--overwrite``, ``--preset``, ``--seed`` and the size check are declared once for
+    evnoise's command line, :mod:`evnoise.cli._options`, and used here as they are)."""
+    from evnoise.cli import _options as opt
+
+    parser = opt.Parser(
         prog="python -m evnoise.examples.add_noise_to_esim",
         description="Add evnoise's photon noise to the clean events of a small ESIM/v2e-style frame "
         "emulator (a bright disc crossing a gradient, by default 160x120 pixels for 1 s at 100 frames/s) and "
         "report the counts; with --out, write the noisy stream to an events.h5 file.",
     )
-    parser.add_argument("--out", metavar="FILE.h5", help="write the noisy stream to this events.h5 file")
-    parser.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
-    parser.add_argument("--preset", default="evk3-hd", help="noise preset name or TOML file (default: evk3-hd)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed of the noise (default: 0)")
-    parser.add_argument("--size", default="160x120", metavar="WxH", help="sensor size in pixels (default: 160x120)")
-    parser.add_argument("--frames", type=int, default=101, metavar="N",
-                        help="number of frames at 100 frames/s (default: 101, i.e. 1 s)")
+    opt.add_out(parser, metavar="FILE.h5", help="write the noisy stream to this events.h5 file")
+    opt.add_overwrite(parser, help="replace --out if it exists")
+    opt.add_preset(parser, help="noise preset name or TOML file (default: %(default)s)")
+    opt.add_seed(parser, default=0, help="random seed of the noise (default: %(default)s)")
+    parser.add_argument("--size", type=opt.size("--size", minimum=(41, 4), maximum=4096), default="160x120",
+                        metavar="WxH", help="sensor size in pixels (default: %(default)s)")
+    parser.add_argument("--frames", type=opt.count("--frames", minimum=2), default=101, metavar="N",
+                        help="number of frames at 100 frames/s (default: %(default)s, i.e. 1 s)")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     return parser
-
-
-def _parse_size(text):
-    try:
-        width, height = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise ParameterError(f"--size must be WIDTHxHEIGHT in pixels, e.g. 160x120, got {text!r}") from None
-    if width < 41 or height < 4 or width > 4096 or height > 4096:
-        raise ParameterError(f"--size must be between 41x4 and 4096x4096 pixels, got {text!r}")
-    return height, width
 
 
 def _check_out(out, preset, overwrite) -> Path:
@@ -165,12 +160,16 @@ def _check_out(out, preset, overwrite) -> Path:
 
 
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    from evnoise.cli._options import ArgumentsError, height_width
+
+    try:
+        args = build_parser().parse_args(argv)
+    except ArgumentsError as exc:
+        print(exc.line(), file=sys.stderr)
+        return 2
     try:
         out = _check_out(args.out, args.preset, args.overwrite) if args.out else None
-        shape = _parse_size(args.size)
-        if args.frames < 2:
-            raise ParameterError(f"--frames must be at least 2, got {args.frames}")
+        shape = height_width(args.size)
         params = ev.load_preset(args.preset)
         frames, times = moving_disc_frames(shape, n_frames=args.frames)
         noisy, clean, n_noise = add_noise(frames, times, params, rng=args.seed, progress=not args.quiet)

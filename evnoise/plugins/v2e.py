@@ -340,14 +340,19 @@ def _find_v2e_script(given):
 
 
 def main(argv=None) -> int:
-    """``python -m evnoise.plugins.v2e [options] -- <v2e.py arguments>``: v2e.py with evnoise's photon noise."""
+    """``python -m evnoise.plugins.v2e [options] -- <v2e.py arguments>``: v2e.py with evnoise's photon noise.
+
+    ``--seed`` and the check of ``--white-lux`` are the command line's (:mod:`evnoise.cli._options`)."""
+    from ..cli import _options as opt
+
     parser = argparse.ArgumentParser(
         prog="python -m evnoise.plugins.v2e",
         description="Run v2e's v2e.py with evnoise's photon noise added to every EventEmulator it creates "
                     "(its files and counts include the noise). Arguments after -- go to v2e.py.")
     parser.add_argument("--params", required=True, help="noise preset name or parameter file (e.g. evk3-hd)")
-    parser.add_argument("--white-lux", type=float, required=True, help="illuminance at the sensor of grey 255, lux")
-    parser.add_argument("--seed", type=int, default=None, help="seed of the noise (default: fresh randomness)")
+    parser.add_argument("--white-lux", type=opt.positive_number("--white-lux", "lux", maximum=opt.MAX_LUX),
+                        required=True, help="illuminance at the sensor of grey 255, lux")
+    opt.add_seed(parser, help="seed of the noise (default: fresh randomness)")
     parser.add_argument("--v2e-script", default=None, help="path of v2e.py (default: v2e.py on PATH)")
     parser.add_argument("v2e_args", nargs=argparse.REMAINDER, help="-- then v2e.py's arguments")
     args = parser.parse_args(argv)
@@ -356,7 +361,6 @@ def main(argv=None) -> int:
         v2e_args = v2e_args[1:]
     try:
         params = check_params(args.params)
-        check_positive(args.white_lux, "--white-lux", "lux")
         script = _find_v2e_script(args.v2e_script)
         importlib.import_module("v2ecore.emulator")
     except EvnoiseError as exc:
