@@ -42,28 +42,6 @@ def resolve_threads(threads) -> int:
     return default_threads() if threads is None else max(1, int(threads))
 
 
-#: Words (uint64) of a simulator stream key (xoshiro256++ is keyed by 4 words and the pixel index).
-KEY_WORDS = 4
-
-
-def kernel_key(rng) -> np.ndarray:
-    """The stream key of the simulator kernels, drawn from ``rng`` (normalised by :func:`as_generator`).
-
-    Draws ``KEY_WORDS`` uint64 words from the generator (so it consumes it): what ``simulate_events``,
-    ``sample_counts`` and friends use after the thresholds are drawn.
-    """
-    return as_generator(rng).integers(0, 2**64, size=KEY_WORDS, dtype=np.uint64, endpoint=False)
-
-
-def kernel_key_from_seed(seed: int) -> np.ndarray:
-    """A stream key straight from an integer seed: ``SeedSequence(seed).generate_state(KEY_WORDS)``.
-
-    Used where no generator is drawn from first (the dataset's direct binned-count path). It is *not*
-    the key :func:`kernel_key` gives for ``rng=seed``: both derivations are pinned by output digests.
-    """
-    return np.random.SeedSequence(int(seed)).generate_state(KEY_WORDS, np.uint64)
-
-
 def check_input_file(path, *, missing: str, kind: str):
     """``Path(path)`` of an input that must be an existing file; :class:`InputError` naming it otherwise.
 

@@ -3,8 +3,9 @@
 Shared by :mod:`evnoise.simulate` (static and changing scenes, counts) and :mod:`evnoise.stream`
 (:class:`~evnoise.stream.NoiseStream`): the per-pixel state the kernels of
 :mod:`evnoise._kernels.simulate` advance, the fixed-size pixel chunks that threads share (chunking
-never changes the output), per-pixel thresholds and background maps, the renewal tier's inputs
-and step, and the collection of each window's events in time order.
+never changes the output), the renewal tier's inputs and step, and the collection of each
+window's events in time order. A run's per-pixel maps and key come from :mod:`evnoise._run`; what each
+noise term feeds the kernels comes from :mod:`evnoise.terms`.
 """
 
 from __future__ import annotations
@@ -14,11 +15,11 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from ._checks import check_thresholds
+from . import terms
 from .errors import ParameterError
 from .events import EVENT_DTYPE, empty_events
 from .params import NoiseParams
-from .rates import draw_thresholds, trial_probabilities
+from .rates import trial_probabilities
 
 CHUNK_PIXELS = 1 << 14
 #: event buffers of a chunk larger than this are not kept between windows (13 bytes per event: 0.85 MB per chunk,
@@ -37,50 +38,6 @@ def map_chunks(fn, n: int, threads: int):
         return [fn(lo, hi) for lo, hi in chunks]
     with ThreadPoolExecutor(max_workers=threads) as pool:
         return list(pool.map(lambda c: fn(*c), chunks))
-
-
-def resolve_thresholds(shape, params: NoiseParams, gen, thresholds):
-    """Per-pixel ``(eps_on, eps_off)`` flat arrays (drawn when ``eps_sigma > 0``)."""
-    n = int(np.prod(shape))
-    if thresholds is not None:
-        thr = check_thresholds(thresholds, shape)
-    elif params.eps_sigma > 0:
-        thr = draw_thresholds(shape, params, gen)
-    else:
-        return np.full(n, params.eps_pos), np.full(n, params.eps_neg)
-    return np.ascontiguousarray(thr[0].ravel()), np.ascontiguousarray(thr[1].ravel())
-
-
-def resolve_background(shape, params: NoiseParams, gen, background):
-    """Per-pixel ``(scale, hot)`` flat arrays of the background, or None when it needs none.
-
-    Drawn (after the thresholds) when ``leak_sigma`` or hot pixels are on and no maps are given;
-    None when every pixel has the nominal background (or there is none).
-    """
-    from .background import check_background, draw_background
-
-    if background is not None:
-        arr = check_background(background, shape)
-    elif params.has_background and (params.leak_sigma > 0 or params.hot_pixel_fraction > 0):
-        arr = draw_background(shape, params, gen)
-    else:
-        return None
-    return np.ascontiguousarray(arr[0].ravel()), np.ascontiguousarray(arr[1].ravel())
-
-
-def background_coefficients(params: NoiseParams, bg, sel) -> np.ndarray:
-    """``(4, n)`` ``[l0_on, l1_on, l0_off, l1_off]`` of the trial kernel for pixels ``sel`` (``(4, 0)`` without
-    background)."""
-    if not params.has_background:
-        return np.zeros((4, 0))
-    if bg is None:
-        scale, hot = np.ones(sel.size), np.zeros(sel.size)
-    else:
-        scale, hot = bg[0][sel], bg[1][sel]
-    q = params.hot_pixel_on_fraction
-    out = np.stack([scale * params.leak_on_hz + hot * q, scale * params.leak_on_hz_per_lux,
-                    scale * params.leak_off_hz + hot * (1.0 - q), scale * params.leak_off_hz_per_lux])
-    return np.ascontiguousarray(out)
 
 
 def select_background(bg, sel):
@@ -232,10 +189,11 @@ def renewal_inputs(p_on: np.ndarray, p_off: np.ndarray):
 
 def timer_arrays(lam, params: NoiseParams, bg):
     """``(3, n)`` ``[d, log1p(-a2), ON share]`` of the regular background timer (:mod:`evnoise._kernels.background`)."""
-    from .background import _intensities, lux_of_photons, timer_shape
+    from .background import lux_of_photons
+    from .terms.timer import timer_shape
 
     scale, hot = (None, None) if bg is None else bg
-    l_on, l_off = _intensities(lux_of_photons(lam, params), params, scale, hot)
+    l_on, l_off = terms.intensities(lux_of_photons(lam, params), params, scale, hot)
     l_on = np.broadcast_to(l_on, np.shape(lam))
     l_all = l_on + np.broadcast_to(l_off, np.shape(lam))
     d, log1m_a2 = timer_shape(l_all, params.trial_us * 1e-6, params.leak_regularity)
@@ -247,7 +205,7 @@ def timer_arrays(lam, params: NoiseParams, bg):
 
 def static_inputs(lam, params: NoiseParams, eps_on, eps_off, bg):
     """Renewal-kernel inputs of static pixels at ``lam``: ``(log1m_p, q_on, timer or None, total rate)``."""
-    if params.regular_background:
+    if terms.regular_timer(params):
         from .rates import pixel_rates
 
         p_on, p_off = trial_probabilities(lam, params, (eps_on, eps_off), photon_only=True)

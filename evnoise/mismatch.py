@@ -64,6 +64,7 @@ import math
 
 import numpy as np
 
+from . import terms
 from ._checks import check_lux, check_params, check_positive
 from .errors import ParameterError
 
@@ -144,7 +145,7 @@ def background_nodes(params):
     product rule in ``(log s, log h)`` (module doc). One node ``(1, 0, 1)`` when both are off.
     """
     params = check_params(params)
-    s, ws = _lognormal_rule(params.leak_sigma if _has_leak(params) else 0.0)
+    s, ws = _lognormal_rule(params.leak_sigma if terms.LEAK.is_on(params) else 0.0)
     f = params.hot_pixel_fraction if params.hot_pixel_rate_hz > 0 else 0.0
     scale, hot, weight = [s], [np.zeros_like(s)], [(1.0 - f) * ws]
     if f > 0:
@@ -158,11 +159,6 @@ def background_nodes(params):
     scale, hot, weight = (np.concatenate(v) for v in (scale, hot, weight))
     keep = weight > 0
     return scale[keep], hot[keep], weight[keep]
-
-
-def _has_leak(params) -> bool:
-    return (params.leak_on_hz > 0 or params.leak_off_hz > 0 or params.leak_on_hz_per_lux > 0
-            or params.leak_off_hz_per_lux > 0)
 
 
 def _merge_atoms(q, mass):
@@ -248,18 +244,18 @@ class LevelStats:
         self.bg_a = None
         self.bg_l = None
         self.regularity = 0.0
-        if not params.has_background:
+        if not terms.background_on(params):
             return
-        from .background import _intensities, arrival_shares, lux_of_photons
+        from .background import arrival_shares, lux_of_photons
 
         scale, hot, weight = background_nodes(params)
         lux = lux_of_photons(lam, params)
-        l_on, l_off = _intensities(lux[None, :], params, scale[:, None], hot[:, None])
+        l_on, l_off = terms.intensities(lux[None, :], params, scale[:, None], hot[:, None])
         a_on, a_off = arrival_shares(l_on, l_off, params.trial_rate_hz)
         self.bg_weight = weight
         self.bg_a = np.stack([a_on, a_off])  # (2, B, J)
         self.bg_l = np.stack([l_on, l_off])  # (2, B, J), events/s
-        self.regularity = params.leak_regularity if params.regular_background else 0.0
+        self.regularity = params.leak_regularity if terms.regular_timer(params) else 0.0
         w = weight[:, None]
         m1, m2 = np.exp(self.log_m1), np.exp(self.log_m2)
         P1 = np.empty_like(m1)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import terms
 from ._checks import as_generator, check_lux, check_params, check_thresholds
 from .errors import ParameterError
 from .model import event_probability
@@ -31,19 +32,7 @@ def draw_thresholds(shape, params, rng=None) -> np.ndarray:
     """
     params = check_params(params)
     gen = as_generator(rng)
-    shape = tuple(int(s) for s in shape)
-    out = np.empty((2, *shape))
-    out[0] = params.eps_pos
-    out[1] = params.eps_neg
-    if params.eps_sigma > 0:
-        for i, mean in enumerate((params.eps_pos, params.eps_neg)):
-            draw = gen.normal(mean, params.eps_sigma, size=shape)
-            bad = draw <= 0
-            while bad.any():
-                draw[bad] = gen.normal(mean, params.eps_sigma, size=int(bad.sum()))
-                bad = draw <= 0
-            out[i] = draw
-    return out
+    return terms.draw_map("thresholds", tuple(int(s) for s in shape), params, gen)
 
 
 def trial_probabilities(lam, params, thresholds=None, *, background=None, skip_below=None, photon_only=False):
@@ -59,7 +48,7 @@ def trial_probabilities(lam, params, thresholds=None, *, background=None, skip_b
     eps_off = params.eps_neg if thresholds is None else thresholds[1]
     p_on = event_probability(lam, eps_on, params.bias_pr)
     p_off = event_probability(lam, eps_off, params.bias_pr)
-    if params.has_background and not photon_only:
+    if terms.background_on(params) and not photon_only:
         from .background import lux_of_photons, with_background
 
         scale, hot = (None, None) if background is None else background
@@ -125,14 +114,13 @@ def pixel_rates(lam, params, thresholds=None, background=None):
     Dead time included; background as in :func:`trial_probabilities` (``background = (scale, hot)``
     arrays matching ``lam``, or None for the nominal pixel), regular or not.
     """
-    if params.regular_background:
-        from .background import _intensities, lux_of_photons, regular_rates
+    if terms.regular_timer(params):
+        from .background import lux_of_photons
 
         p_on, p_off = trial_probabilities(lam, params, thresholds, photon_only=True)
         scale, hot = (None, None) if background is None else background
-        l_on, l_off = _intensities(lux_of_photons(lam, params), params, scale, hot)
-        return regular_rates(p_on, p_off, l_on, l_off, params.trial_rate_hz, params.refractory_us * 1e-6,
-                             params.leak_regularity)
+        l_on, l_off = terms.intensities(lux_of_photons(lam, params), params, scale, hot)
+        return terms.TIMER.rates(p_on, p_off, l_on, l_off, params)
     p_on, p_off = trial_probabilities(lam, params, thresholds, background=background)
     nu_on = params.trial_rate_hz * p_on
     nu_off = params.trial_rate_hz * p_off

@@ -24,22 +24,21 @@ from typing import Iterator
 import numpy as np
 
 from ._budget import check_allocation, human_bytes
-from ._checks import as_generator, check_lux, check_params, duration_to_us, kernel_key, resolve_threads
+from . import terms
+from ._checks import check_lux, duration_to_us, resolve_threads
 from ._engine import (
     Collector,
     PixelState,
-    background_coefficients,
     check_t_start,
     map_chunks,
     progress_bar,
     renewal_step,
-    resolve_background,
-    resolve_thresholds,
     run_to_end,
     select_background,
     sorted_window,
     static_inputs,
 )
+from ._run import run_setup
 from .errors import InputError, ParameterError
 from .events import EVENT_DTYPE, empty_events
 from .params import NoiseParams
@@ -203,7 +202,6 @@ def iter_events(
 def _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, threads, progress, sink=None,
                  background=None):
     """:func:`iter_events`; with ``sink`` (static scenes) each window is sorted straight into it."""
-    params = check_params(params)
     lux = check_lux(lux)
     duration_us = duration_to_us(duration_s)
     if method not in METHODS:
@@ -211,10 +209,8 @@ def _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, t
     t_start_us = check_t_start(t_start_us)
     _check_span(t_start_us, duration_us)
     threads = resolve_threads(threads)
-    gen = as_generator(rng)
-    eps_on, eps_off = resolve_thresholds(lux.shape, params, gen, thresholds)
-    bg = resolve_background(lux.shape, params, gen, background)
-    key = kernel_key(gen)
+    run = run_setup(lux.shape, params, rng, thresholds=thresholds, background=background)
+    params, key, (eps_on, eps_off), bg = run.params, run.key, run.thresholds, run.background
     if method == "trials":
         frames = _FrameSource([lux], name="lux")
         windows = _iter_dynamic(frames, np.array([0.0, float(duration_us)]), params, key, eps_on, eps_off,
@@ -396,7 +392,6 @@ def iter_video(
     lazily, two passes: one to find the static pixels, one to simulate). With
     ``return_labels`` each item is ``(events, is_signal)``.
     """
-    params = check_params(params)
     frames = _FrameSource(frames_lux)
     ts = _check_timestamps(timestamps_s, frames.n)
     if method not in METHODS:
@@ -411,10 +406,8 @@ def iter_video(
         static[:] = False
     elif method == "renewal" and not static.all():
         raise ParameterError("method='renewal' needs a static scene, but some pixels change between frames")
-    gen = as_generator(rng)
-    eps_on, eps_off = resolve_thresholds(shape, params, gen, thresholds)
-    bg = resolve_background(shape, params, gen, background)
-    key = kernel_key(gen)
+    run = run_setup(shape, params, rng, thresholds=thresholds, background=background)
+    params, key, (eps_on, eps_off), bg = run.params, run.key, run.thresholds, run.background
     t0_us = int(round(ts[0] * 1e6))
     frame_us = (ts - ts[0]) * 1e6
     duration_us = int(round(frame_us[-1]))
@@ -513,7 +506,6 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
     width = frames.shape[1]
     dt = params.trial_us
     refr = params.refractory_us
-    b = params.bias_pr
     n_trials = math.ceil(duration_us / dt - 1e-12)
     stat_pix = np.flatnonzero(static)
     dyn_pix = np.flatnonzero(~static)
@@ -538,14 +530,10 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
                                        select_background(bg, dyn_pix))
             rate += float(dyn_nu.sum())
         return rate * duration_us * 1e-6
-    dyn_bg = background_coefficients(params, bg, dyn_pix)
-    from .background import pr_alpha_per_photon
-
-    pr_alpha = pr_alpha_per_photon(params)
-    regularity = params.leak_regularity if params.regular_background else 0.0
+    dyn_bg = terms.kernel_coefficients(params, bg, dyn_pix)
+    model = terms.kernel_model(params)  # what each noise term feeds the trial kernel
+    regularity = model[terms.MODEL.index("regularity")]
     fast_static = TRIAL_FAST_STATIC and regularity == 0.0  # the regular timer is not memoryless
-    model = (float(b), float(dt), float(refr), 1.0 / params.photons_per_lux, float(params.dark_lux), float(pr_alpha),
-             float(regularity))
     per_window = max(1, TARGET_PIXEL_TRIALS_PER_WINDOW // max(1, dyn_pix.size))
     per_window = min(per_window, max(1, int(MAX_WINDOW_US // dt)))
     if stat_pix.size:
@@ -662,7 +650,6 @@ def sample_counts(
     numpy.ndarray
         int64 array of shape ``(2, H, W)``.
     """
-    params = check_params(params)
     lux = check_lux(lux)
     duration_us = duration_to_us(duration_s)
     if distribution not in DISTRIBUTIONS:
@@ -680,12 +667,12 @@ def sample_counts(
     elif nb_shape is not None:
         raise ParameterError("nb_shape is only used with distribution='negative-binomial'")
     threads = resolve_threads(threads)
-    gen = as_generator(rng)
-    eps_on, eps_off = resolve_thresholds(lux.shape, params, gen, thresholds)
-    bg = resolve_background(lux.shape, params, gen, background)
+    # the exact sampler draws the kernel key after the maps; the others draw counts from the generator
+    run = run_setup(lux.shape, params, rng, thresholds=thresholds, background=background,
+                    draw_key=distribution == "exact")
+    params, gen, key, (eps_on, eps_off), bg = run.params, run.gen, run.key, run.thresholds, run.background
     lam = params.photons_per_trial(lux).ravel()
     if distribution == "exact":
-        key = kernel_key(gen)
         log1m_p, q_on, timer, _ = static_inputs(lam, params, eps_on, eps_off, bg)
         state = PixelState(np.arange(lux.size), key, threads)
         parts = renewal_step(state, lux.shape[1], log1m_p, q_on, params.trial_us, params.refractory_us, 0,

@@ -4,16 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._checks import as_generator, check_lux, check_params, kernel_key, resolve_threads
-from ._engine import (
-    PixelState,
-    check_t_start,
-    renewal_step,
-    resolve_background,
-    resolve_thresholds,
-    sorted_window,
-    static_inputs,
-)
+from . import terms
+from ._checks import check_lux, resolve_threads
+from ._engine import PixelState, check_t_start, renewal_step, sorted_window, static_inputs
+from ._run import run_setup
 from .errors import InputError, ParameterError
 from .events import empty_events
 from .params import NoiseParams
@@ -52,12 +46,12 @@ class NoiseStream:
         from .events import check_shape
 
         self.shape = check_shape(shape)
-        self.params = check_params(params)
         self.threads = resolve_threads(threads)
-        gen = as_generator(rng)
-        self._eps_on, self._eps_off = resolve_thresholds(self.shape, self.params, gen, thresholds)
-        self._bg = resolve_background(self.shape, self.params, gen, background)
-        self._state = PixelState(np.arange(self.shape[0] * self.shape[1]), kernel_key(gen), self.threads)
+        run = run_setup(self.shape, params, rng, thresholds=thresholds, background=background)
+        self.params = run.params
+        self._eps_on, self._eps_off = run.thresholds
+        self._bg = run.background
+        self._state = PixelState(np.arange(self.shape[0] * self.shape[1]), run.key, self.threads)
         self._t0 = check_t_start(t_start_us)
         self._t_rel = 0  # µs since t_start_us
         self._inputs = None  # (lam, renewal inputs) of the last interval
@@ -88,10 +82,10 @@ class NoiseStream:
         j_min = _first_trial_at_or_after(self._t_rel, dt)
         discard = _first_trial_at_or_after(t_end, dt)
         if timer is not None:
-            from .background import _intensities, lux_of_photons
+            from .background import lux_of_photons
 
             scale, hot = (None, None) if self._bg is None else self._bg
-            l_on, l_off = _intensities(lux_of_photons(lam, p), p, scale, hot)
+            l_on, l_off = terms.intensities(lux_of_photons(lam, p), p, scale, hot)
             self._state.rescale_timers(np.broadcast_to(l_on + l_off, lam.shape), j_min)
         parts = renewal_step(self._state, self.shape[1], log1m_p, q_on, dt, p.refractory_us, j_min,
                               float(t_end), discard, self._t0, self.threads,
@@ -104,6 +98,6 @@ class NoiseStream:
 def _first_trial_at_or_after(t_us: float, dt: float) -> float:
     """Index of the first trial starting at or after ``t_us`` (``t_us >= 0``): the kernels' eligibility rule
     with no previous event and no refractory period (one home for the rounding of trial starts)."""
-    from ._kernels.simulate import _first_eligible
+    from ._kernels.simulate import first_eligible_trial
 
-    return float(_first_eligible(-1.0, float(t_us), 0.0, float(dt)))
+    return float(first_eligible_trial(-1.0, float(t_us), 0.0, float(dt)))

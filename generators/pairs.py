@@ -36,7 +36,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from evnoise._checks import kernel_key_from_seed
+from evnoise import terms
+from evnoise._run import run_setup
 from evnoise.errors import ParameterError
 from evnoise.radiometry import block_sum, srgb_encode
 
@@ -192,7 +193,7 @@ class CountSampler:
         self.step = config.lux_step
         p = self.params
         # per-pixel draws (threshold mismatch, background spread, hot pixels) go through sample_counts
-        per_pixel = p.eps_sigma > 0 or (p.has_background and (p.leak_sigma > 0 or p.hot_pixel_fraction > 0))
+        per_pixel = terms.maps_needed(p)
         self.direct = config.mode == "counts" and p.refractory_s == 0 and not per_pixel
         self._levels = 0
         self._p_on = self._p_off = None
@@ -255,7 +256,7 @@ class CountSampler:
             if p_max < 1.0 and -n_full * math.log1p(-p_max) <= _DIRECT_MAX_LOG:
                 from ._kernels import trial_counts_binned
 
-                key = kernel_key_from_seed(seed)
+                key = run_setup(codes.shape, self.params, key_seed=seed).key  # no maps: the key from the seed
                 h, w = codes.shape
                 out = np.zeros((2, h // b, w // b), dtype=np.int64)
                 trial_counts_binned(np.ascontiguousarray(codes), table, n_full, frac, key, b, out)

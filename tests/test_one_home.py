@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+import evnoise as ev
 from evnoise import radiometry
 from evnoise.generators import pairs
 from evnoise.reconstruct import imaging
@@ -33,14 +34,27 @@ def test_block_sum_is_one_function():
 
 
 def test_kernel_key_is_what_the_simulator_draws():
-    from evnoise._checks import kernel_key, kernel_key_from_seed
-    from evnoise._kernels.rng import key_from
+    """One key derivation (``evnoise._run.stream_key``): a run set-up draws it after its maps, and the
+    dataset's seed-only path is its ``seed=`` branch; no other module derives a key."""
+    from evnoise import _checks
+    from evnoise._kernels import rng as kernel_rng
+    from evnoise._run import run_setup, stream_key
 
-    np.testing.assert_array_equal(kernel_key(np.random.default_rng(7)), key_from(np.random.default_rng(7)))
-    np.testing.assert_array_equal(kernel_key(7), key_from(np.random.default_rng(7)))
-    want = np.random.SeedSequence(7).generate_state(4, np.uint64)
-    np.testing.assert_array_equal(kernel_key_from_seed(7), want)
-    assert kernel_key_from_seed(7).dtype == np.uint64
+    params = ev.NoiseParams(eps_pos=0.3, eps_neg=0.3, bias_pr=1.0, trial_rate_hz=1e3, photons_per_lux=1.0)
+    want = np.random.default_rng(7).integers(0, 2**64, size=4, dtype=np.uint64, endpoint=False)
+    np.testing.assert_array_equal(stream_key(np.random.default_rng(7)), want)
+    np.testing.assert_array_equal(stream_key(7), want)
+    np.testing.assert_array_equal(run_setup((3, 4), params, 7).key, want)  # no map drawn: the key comes first
+    # with threshold mismatch the key is drawn after the thresholds, from the same generator
+    gen = np.random.default_rng(7)
+    ev.draw_thresholds((3, 4), params.replace(eps_sigma=0.05), gen)
+    np.testing.assert_array_equal(run_setup((3, 4), params.replace(eps_sigma=0.05), 7).key, stream_key(gen))
+    from_seed = np.random.SeedSequence(7).generate_state(4, np.uint64)
+    np.testing.assert_array_equal(stream_key(seed=7), from_seed)
+    np.testing.assert_array_equal(run_setup((3, 4), params, key_seed=7).key, from_seed)
+    assert stream_key(seed=7).dtype == np.uint64
+    for module in (_checks, kernel_rng):
+        assert not {"kernel_key", "kernel_key_from_seed", "key_from"} & set(vars(module))
 
 
 def test_polarity_convention():

@@ -8,6 +8,7 @@ from numba import njit
 from scipy import stats
 
 from evnoise._kernels import rng as R
+from evnoise._run import stream_key
 
 MASK = (1 << 64) - 1
 
@@ -55,7 +56,7 @@ def _draw(key, index, kind, param, n):
     return out
 
 
-KEY = R.key_from(np.random.default_rng(2024))
+KEY = stream_key(np.random.default_rng(2024))
 
 
 def test_xoshiro_matches_reference_transcription():

@@ -158,7 +158,7 @@ def log_sf(k, lam):
 
 
 @kernel
-def _threshold(m, c, b):
+def threshold_count(m, c, b):
     """``k(m) = m + floor(c (m + b))``: an event needs ``n > k(m)`` when ``n0 = m``.
 
     A float throughout (``inf`` when ``c`` is): Numba's ``math.floor`` returns an int64, which wraps
@@ -172,7 +172,7 @@ def _threshold(m, c, b):
 
 @kernel
 def _approx_log_term(m, lam, c, b):
-    return log_pmf(m, lam) + approx_log_sf(_threshold(m, c, b), lam)
+    return log_pmf(m, lam) + approx_log_sf(threshold_count(m, c, b), lam)
 
 
 @kernel
@@ -216,7 +216,7 @@ def _sweep(m_hi, m_star, lam, c, b, ref):
     and only grows (blocks of positive pmf terms are added), so nothing cancels. ``ref`` is
     an estimate of the largest log term, used as the accumulator's scale.
     """
-    k_m = _threshold(m_hi, c, b)
+    k_m = threshold_count(m_hi, c, b)
     s_log = log_sf(k_m, lam)
     acc = 0.0
     first = -math.inf
@@ -238,7 +238,7 @@ def _sweep(m_hi, m_star, lam, c, b, ref):
             n_small = 0
         if m <= 0.0:
             break
-        k_new = _threshold(m - 1.0, c, b)
+        k_new = threshold_count(m - 1.0, c, b)
         if k_new < k_m:
             s_log = _logaddexp(s_log, _log_block_sum(k_new + 1.0, k_m, lam))
         k_m = k_new
@@ -450,7 +450,7 @@ def _grouped_pixel(lam, ci, b, j0, j1, pmf, sf, m_start, tol):
     m = m_start
     n_step = 0
     while True:
-        k = _threshold(m, ci, b)
+        k = threshold_count(m, ci, b)
         if not (k + 1.0 <= j1 and m <= j1):
             return math.nan
         sk = sf[int(k) - j0]
@@ -471,7 +471,7 @@ def _grouped_pixel(lam, ci, b, j0, j1, pmf, sf, m_start, tol):
     while m >= 0.0:
         if m < j0:
             return math.nan
-        k = _threshold(m, ci, b)
+        k = threshold_count(m, ci, b)
         if not j0 <= k <= j1:
             return math.nan
         sk = sf[int(k) - j0]

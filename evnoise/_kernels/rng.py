@@ -142,8 +142,3 @@ def poisson_emlam(s, lam, emlam):
             -lam + k * loglam - math.lgamma(k + 1.0)
         ):
             return k
-
-
-def key_from(rng: np.random.Generator) -> np.ndarray:
-    """Draw the 4-word stream key from a NumPy generator (consumes it)."""
-    return rng.integers(0, 2**64, size=4, dtype=np.uint64, endpoint=False)

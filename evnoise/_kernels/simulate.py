@@ -23,7 +23,7 @@ from numba import prange
 
 from ._jit import kernel
 from .background import draw_timer, draw_timer_stationary, timer_shape
-from .poisson import _threshold, log_event_probability_exact
+from .poisson import log_event_probability_exact, threshold_count
 from .rng import geometric, poisson_emlam, seed_state, uniform
 
 NO_EVENT = math.nan
@@ -37,7 +37,7 @@ def seed_streams(key, pix, states):
 
 
 @kernel
-def _first_eligible(last_trial, tau, refr_us, dt):
+def first_eligible_trial(last_trial, tau, refr_us, dt):
     """First trial ``j > last_trial`` whose start ``j dt`` is at or after ``tau + refr_us``."""
     j = np.ceil((tau + refr_us) / dt)  # a float: math.ceil is an int64 in Numba and wraps for huge values
     while j * dt < tau + refr_us:
@@ -134,11 +134,11 @@ def renewal_window(width, pix, log1m_p, q_on, timer, states, fstate, dt, refr_us
         while True:
             if math.isnan(tau):
                 if lta == -math.inf or refr_us == 0.0:
-                    # what _first_eligible gives without a refractory period, since this kernel's own
+                    # what first_eligible_trial gives without a refractory period, since this kernel's own
                     # tau = (lt + u) dt rounds to at most (lt + 1) dt (state written by another kernel may not)
                     j_e = lt + 1.0
                 else:
-                    j_e = _first_eligible(lt, lta, refr_us, dt)
+                    j_e = first_eligible_trial(lt, lta, refr_us, dt)
                 j_e = max(j_e, j_min)
                 if has_timer:
                     if math.isnan(nxt):
@@ -415,7 +415,7 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
                     if fstate[k, LAST_TAU] == -math.inf:
                         j_e = fstate[k, LAST_TRIAL] + 1.0
                     else:
-                        j_e = _first_eligible(fstate[k, LAST_TRIAL], fstate[k, LAST_TAU], refr_us, dt)
+                        j_e = first_eligible_trial(fstate[k, LAST_TRIAL], fstate[k, LAST_TAU], refr_us, dt)
                     j_e = max(j_e, float(j_start))
                     if j_e >= j_end:
                         break
@@ -516,9 +516,9 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
                 n_sig = poisson_emlam(s, lam, em_c)
                 n_ref = poisson_emlam(s, ref, emr_c)
                 pol = -1
-                if n_sig > _threshold(n_ref, thr[0, k], b):  # a float: no int64 wrap for large thresholds
+                if n_sig > threshold_count(n_ref, thr[0, k], b):  # a float: no int64 wrap for large thresholds
                     pol = 1
-                elif n_ref > _threshold(n_sig, thr[1, k], b):
+                elif n_ref > threshold_count(n_sig, thr[1, k], b):
                     pol = 0
                 elif has_bg:
                     lux_j = max(lam_in * lux_per_photon - dark_lux, 0.0)

@@ -16,7 +16,7 @@ import sys
 
 import numpy as np
 
-from .._checks import as_generator, check_lux, check_params, kernel_key, resolve_threads
+from .._checks import as_generator, check_lux, resolve_threads
 from ..errors import InputError, ParameterError
 
 __all__ = ["PhotonNoise"]
@@ -113,47 +113,42 @@ class PhotonNoise:
     """
 
     def __init__(self, sensor_size, params, lux, rng=None, *, threads: int | None = None):
-        from .._engine import resolve_thresholds
+        from .._run import run_setup
 
         self.sensor_size = tuple(_check_sensor_size(sensor_size))
         width, height, _ = self.sensor_size
-        self.params = check_params(params)
         self.lux = self._lux_map(lux, height, width)
         self.threads = threads
         if rng is None or isinstance(rng, np.random.Generator):
             self._seed = None
             self._gen = rng  # None: a fresh generator per call
-            thr_gen = as_generator(rng)
+            map_rng = rng
         elif isinstance(rng, numbers.Integral) and not isinstance(rng, bool):
-            as_generator(rng)  # validates (non-negative)
+            if rng < 0:
+                as_generator(rng)  # its error names the negative seed
             self._seed = int(rng)
             self._gen = None
-            thr_gen = np.random.default_rng(np.random.SeedSequence([self._seed, _THRESHOLD_STREAM]))
+            map_rng = np.random.SeedSequence([self._seed, _THRESHOLD_STREAM])
         else:
             raise ParameterError(f"rng must be None, an integer seed or a numpy Generator, got {type(rng).__name__}")
         self._pid = os.getpid()  # a Generator's copy in another process derives its own stream
         self._worker_gen = None  # (process identity, Generator) of that copy
-        if self.params.eps_sigma > 0:
-            eps_on, eps_off = resolve_thresholds((height, width), self.params, thr_gen, None)
-            self._thresholds = np.stack([eps_on, eps_off]).reshape(2, height, width)
-        else:
-            self._thresholds = None
-        self._background = None
-        if self.params.has_background and (self.params.leak_sigma > 0 or self.params.hot_pixel_fraction > 0):
-            from ..background import draw_background
-
-            self._background = draw_background((height, width), self.params, thr_gen)  # once per sensor
+        # the sensor's per-pixel maps (threshold mismatch, background spread, hot pixels): drawn once, here;
+        # each sample's kernel key is drawn per call (_draw)
+        self._setup = run_setup((height, width), params, map_rng, draw_key=False)
+        self.params = self._setup.params
+        self._thresholds = self._setup.threshold_map() if self.params.eps_sigma > 0 else None
+        self._background = self._setup.background_map()
         self._precompute()
 
     def _precompute(self):
         """The renewal kernel's per-pixel inputs at ``self.lux`` (what ``simulate_events`` computes per call)."""
-        from .._engine import resolve_background, resolve_thresholds, static_inputs
+        from .._engine import static_inputs
 
-        shape = self.lux.shape
-        eps_on, eps_off = resolve_thresholds(shape, self.params, None, self._thresholds)
-        bg = resolve_background(shape, self.params, None, self._background)
+        run = self._setup
         lam = self.params.photons_per_trial(self.lux).ravel()
-        self._log1m_p, self._q_on, self._timer, self._nu = static_inputs(lam, self.params, eps_on, eps_off, bg)
+        self._log1m_p, self._q_on, self._timer, self._nu = static_inputs(lam, self.params, run.eps_on, run.eps_off,
+                                                                         run.background)
         self._pix = np.arange(self.lux.size, dtype=np.int64)
 
     @staticmethod
@@ -212,8 +207,7 @@ class PhotonNoise:
         """The sample's noise as unsorted columns ``(t, x, y, on)`` (the kernel's order, chunk by chunk)."""
         from .._engine import PixelState, renewal_step
 
-        gen = self._generator(events)
-        key = kernel_key(gen)
+        key = self._setup.keyed(self._generator(events)).key
         t = events["t"]
         t_first = int(np.floor(t.min()))
         span_us = int(np.ceil(t.max())) - t_first + 1
