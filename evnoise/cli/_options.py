@@ -324,8 +324,12 @@ def add_verbosity(p, *, dest_prefix: str = "") -> None:
     """``-v/--verbose`` and ``-q/--quiet`` (before the subcommand, and after it under ``sub_*`` dests)."""
     p.add_argument("-v", "--verbose", dest=f"{dest_prefix}verbose", action="count", default=0,
                    help="more log output (-vv for debug)")
-    p.add_argument("-q", "--quiet", dest=f"{dest_prefix}quiet", action="store_true",
-                   help="only errors; no progress bars")
+    add_quiet(p, dest=f"{dest_prefix}quiet")
+
+
+def add_quiet(p, *, dest: str = "quiet", help: str = "only errors; no progress bars"):
+    """``-q/--quiet``."""
+    return p.add_argument("-q", "--quiet", dest=dest, action="store_true", help=help)
 
 
 def add_out(p, *, help: str, metavar: str | None = None, required: bool = False, default=None):
@@ -397,18 +401,16 @@ def add_model(p):
 def add_max_lux(p, *, help: str, ranges: bool = False, default=None):
     """``--max-lux``: lux of full-scale white; ``ranges``: also ``LO:HI`` (text, checked by
     :func:`check_range_text`), else one positive number."""
-    if ranges:
-        return p.add_argument("--max-lux", default=default, metavar="LUX|LO:HI", help=help)
-    return p.add_argument("--max-lux", type=positive_number("--max-lux", "lux", maximum=MAX_LUX), default=default,
-                          metavar="LUX", help=help)
+    kind = dict(metavar="LUX|LO:HI") if ranges else dict(type=positive_number("--max-lux", "lux", maximum=MAX_LUX),
+                                                          metavar="LUX")
+    return p.add_argument("--max-lux", default=default, help=help, **kind)
 
 
 def add_lux_scale(p, *, help: str, ranges: bool = False, default=None):
     """``--lux-scale``: lux per unit of linear images (``ranges``: also ``LO:HI``, as :func:`add_max_lux`)."""
-    if ranges:
-        return p.add_argument("--lux-scale", default=default, metavar="K|LO:HI", help=help)
-    return p.add_argument("--lux-scale", type=positive_number("--lux-scale", "lux per unit", maximum=MAX_LUX),
-                          default=default, metavar="K", help=help)
+    kind = dict(metavar="K|LO:HI") if ranges else dict(
+        type=positive_number("--lux-scale", "lux per unit", maximum=MAX_LUX), metavar="K")
+    return p.add_argument("--lux-scale", default=default, help=help, **kind)
 
 
 def add_encoding(p):
@@ -434,6 +436,16 @@ def add_image_fit(p, *, help: str):
 def add_compression(p, *, help: str, default: str):
     """``--compression``: HDF5 compression (``none``: off)."""
     return p.add_argument("--compression", choices=("gzip", "lzf", "none"), default=default, help=help)
+
+
+def add_binning(p, *, help: str, default=None, metavar: str | None = None):
+    """``--binning B``: counts summed over BxB pixels."""
+    return p.add_argument("--binning", type=count("--binning"), default=default, metavar=metavar, help=help)
+
+
+def add_json_output(p, *, help: str = "print as JSON"):
+    """``--json``: print the command's result as JSON instead of text."""
+    return p.add_argument("--json", action="store_true", help=help)
 
 
 def add_png(p, *, help: str):
@@ -542,6 +554,7 @@ __all__ = ["seconds", "frequency", "positive_number", "seed", "count", "size", "
            "Parser", "ArgumentsError", "PYTHON_NAMES", "flag_names", "parent", "add_verbosity", "add_out",
            "add_overwrite", "add_format", "add_sensor", "add_csv_columns", "add_t_start", "add_t_end", "add_fps",
            "add_threads", "add_seed", "add_preset", "add_model", "add_max_lux", "add_lux_scale", "add_encoding",
-           "add_clip_invalid", "add_image_fit", "add_compression", "add_png", "add_plot", "add_example",
+           "add_clip_invalid", "add_image_fit", "add_compression", "add_quiet", "add_binning", "add_json_output",
+           "add_png", "add_plot", "add_example",
            "events_input", "output", "run_options", "image_input", "training",
            "MAX_SECONDS", "MAX_HZ", "MAX_SEED", "MAX_LUX"]

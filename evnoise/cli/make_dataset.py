@@ -57,8 +57,8 @@ def register(subparsers) -> None:
                      "using the whole sensor; one number for a square")
     geo.add_argument("--crops-per-image", type=int, default=1, metavar="K",
                      help="crops per source image (needs --crop; default: %(default)s)")
-    geo.add_argument("--binning", type=int, default=2, metavar="B",
-                     help="sum counts over BxB pixels (default: %(default)s, as in the paper)")
+    opt.add_binning(geo, default=2, metavar="B", help="sum counts over BxB pixels (default: %(default)s, as in the "
+                    "paper)")
     sim = p.add_argument_group("illumination and noise")
     sim.add_argument("--window", action="append", metavar="S",
                      help="integration window(s) in seconds, comma separated or repeated "

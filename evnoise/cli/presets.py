@@ -36,7 +36,7 @@ def register(subparsers) -> None:
     )
     p.add_argument("name", nargs="?", metavar="NAME", help="a preset name (see the list) or a preset .toml file")
     opt.add_plot(p, metavar="FILE", help="with NAME: write a PNG of the rate against lux")
-    p.add_argument("--json", action="store_true", help="print as JSON")
+    opt.add_json_output(p)
     p.set_defaults(func=run)
 
 

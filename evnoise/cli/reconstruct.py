@@ -39,8 +39,7 @@ def register(subparsers):
                    help="moving window: advance by S seconds per frame")
     p.add_argument("--frames", type=opt.count("--frames"), default=None,
                    help="with --step or --fps: at most this many frames")
-    p.add_argument("--binning", type=opt.count("--binning"), default=None,
-                   help="check that the model uses this binning")
+    opt.add_binning(p, help="check that the model uses this binning")
     video = p.add_argument_group("video mode (--fps): the static background behind moving things")
     opt.add_fps(video, help="write one frame per 1/F seconds into the folder --out (frame_NNNNN.png, "
                 "overlay_NNNNN.png, frames.csv), from the noise events of pixels without motion over the "

@@ -138,7 +138,7 @@ def build_parser() -> argparse.ArgumentParser:
                         metavar="WxH", help="sensor size in pixels (default: %(default)s)")
     parser.add_argument("--frames", type=opt.count("--frames", minimum=2), default=101, metavar="N",
                         help="number of frames at 100 frames/s (default: %(default)s, i.e. 1 s)")
-    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    opt.add_quiet(parser, help="no progress bar")
     return parser
 
 
