@@ -92,9 +92,10 @@ class RunSetup:
         """The background maps ``(scale, hot)`` of pixels ``sel`` (flat indices), or None."""
         return None if self.background is None else (self.background[0][sel], self.background[1][sel])
 
-    def keyed(self, rng) -> "RunSetup":
-        """The same maps with a new key drawn from ``rng`` (the tonic plugin: maps per sensor, key per sample)."""
-        return dataclasses.replace(self, key=stream_key(rng), gen=None)
+    def keyed(self, gen: np.random.Generator) -> "RunSetup":
+        """The same maps with a new key drawn from the generator ``gen`` (the tonic plugin: maps per sensor,
+        key per sample)."""
+        return dataclasses.replace(self, key=_draw_key(gen), gen=None)
 
 
 def run_setup(shape, params, rng=None, *, thresholds=None, background=None, draw_key: bool = True,
