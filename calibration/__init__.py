@@ -15,7 +15,11 @@ or ``evnoise calibrate MEASUREMENTS --out preset.toml``. From a recording of a s
     print(fit.summary()); params = fit.to_params("davis346")
 
 or ``evnoise calibrate rec.aedat --t-start A --t-end B --out cam.toml``. The EVK3-HD preset shipped with
-evnoise is refitted by ``python -m evnoise.calibration.refit_evk3``.
+evnoise is refitted by ``python -m evnoise.calibration.scripts.refit_evk3``.
+
+Layout: :mod:`.rates` (the rate-table / flat-field fit), :mod:`.quiet` (the quiet-window fit), shared
+:mod:`.measurements` (reading the inputs), :mod:`.preset` (writing preset TOML) and ``_progress`` (phase
+lines); :mod:`.scripts` holds the provenance scripts behind the shipped presets (never imported here).
 
 Importing this package is cheap; SciPy, Numba kernels and matplotlib load on first use.
 """
@@ -35,21 +39,21 @@ _LAZY = {
     "read_measurements": ".measurements",
     "read_monitor_table": ".measurements",
     "grey_to_lux": ".measurements",
-    "calibrate": ".fit",
-    "CalibrationResult": ".result",
-    "FIT_NAMES": ".fit",
+    "calibrate": ".rates.fit",  # the rate-table / flat-field fit
+    "CalibrationResult": ".rates.result",
+    "FIT_NAMES": ".rates.spec",
+    "plot_fit": ".rates.plot",
     "population_rate": "evnoise.mismatch",  # properties of the noise model: they live in the core
     "nb_shape": "evnoise.mismatch",
     "threshold_distribution": "evnoise.mismatch",
-    "plot_fit": ".plot",
-    "QuietWindow": ".quiet",  # calibrate from a recording of a still scene
-    "quiet_window": ".quiet",
-    "fit_quiet": ".quiet",
-    "compare_to_recording": ".quiet",
-    "preset_toml": ".quiet",
-    "GOODNESS_P": ".quiet",
-    "check_verdict": ".quiet_checks",
-    "failed_checks": ".quiet_checks",
+    "QuietWindow": ".quiet.window",  # calibrate from a recording of a still scene
+    "quiet_window": ".quiet.window",
+    "fit_quiet": ".quiet.fit",
+    "preset_toml": ".quiet.fit",
+    "GOODNESS_P": ".quiet.fit",
+    "compare_to_recording": ".quiet.goodness",
+    "check_verdict": ".quiet.checks",
+    "failed_checks": ".quiet.checks",
     "write_text_atomic": ".preset",
 }
 

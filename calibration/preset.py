@@ -43,7 +43,7 @@ def _key(k: str) -> str:
     return k if k.replace("_", "").replace("-", "").isalnum() else json.dumps(k)
 
 
-def _table(name: str, items: dict, *, digits: int | None = 7) -> list[str]:
+def toml_table(name: str, items: dict, *, digits: int | None = 7) -> list[str]:
     lines = [f"[{name}]"]
     for k, v in items.items():
         if v is None:
@@ -60,7 +60,7 @@ def result_to_toml(result, *, extra_provenance: dict | None = None, header: str 
     if header:
         lines += [f"# {ln}" if ln else "#" for ln in header.splitlines()]
         lines.append("")
-    lines += _table("params", {n: float(getattr(p, n)) for n in names}, digits=None)
+    lines += toml_table("params", {n: float(getattr(p, n)) for n in names}, digits=None)
     lines.append("")
     prov = {
         "source": result.measurements.source,
@@ -73,30 +73,30 @@ def result_to_toml(result, *, extra_provenance: dict | None = None, header: str 
     }
     if extra_provenance:
         prov.update(extra_provenance)
-    lines += _table("provenance", prov)
+    lines += toml_table("provenance", prov)
     lines.append("")
     fit = {"free": list(result.free), "log_likelihood": float(result.loglik),
            "fit_status": getattr(result, "fit_status", "accepted"), "warnings": list(getattr(result, "warnings", []))}
     if getattr(result, "at_bound", None):
         fit["at_bound"] = dict(result.at_bound)
-    lines += _table("fit", fit)
+    lines += toml_table("fit", fit)
     lines.append("")
-    lines += _table("fit.status", {n: result.status.get(n, "fixed") for n in names})
+    lines += toml_table("fit.status", {n: result.status.get(n, "fixed") for n in names})
     lines.append("")
-    lines += _table("fit.std_error", {n: float(result.std_error[n]) for n in result.free})
+    lines += toml_table("fit.std_error", {n: float(result.std_error[n]) for n in result.free})
     lines.append("")
-    lines += _table("fit.relative_error", {n: float(result.rel_error[n]) for n in result.free})
+    lines += toml_table("fit.relative_error", {n: float(result.rel_error[n]) for n in result.free})
     lines.append("")
     gof = {k: (v if not isinstance(v, dict) else {a: float(b) for a, b in v.items()}) for k, v in result.gof.items()}
-    lines += _table("fit.quality", gof)
+    lines += toml_table("fit.quality", gof)
     lines.append("")
     disp = {k: float(v) for k, v in result.dispersion.items() if isinstance(v, float)}
     if result.dispersion.get("summary"):
         disp["summary"] = result.dispersion["summary"]
     if disp:
-        lines += _table("fit.dispersion", disp)
+        lines += toml_table("fit.dispersion", disp)
         lines.append("")
-    lines += _table("fit.identifiability", {"findings": list(result.identifiability), "notes": list(result.notes)})
+    lines += toml_table("fit.identifiability", {"findings": list(result.identifiability), "notes": list(result.notes)})
     lines.append("")
     return "\n".join(lines)
 

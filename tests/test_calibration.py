@@ -235,7 +235,7 @@ def _write_csv(path, header, rows):
 
 def test_rate_table_counts_recovery(tmp_path):
     """Counts from a known model: eps_sigma (not determined by means) assumed; the rest recovered."""
-    from evnoise.calibration.fit import TABLE_SIGMA
+    from evnoise.calibration.rates.spec import TABLE_SIGMA
 
     truth = ev.NoiseParams(eps_pos=0.7, eps_neg=0.9, bias_pr=2.0, trial_rate_hz=30.0, photons_per_lux=1.5,
                            dark_lux=0.15, eps_sigma=TABLE_SIGMA)
@@ -261,7 +261,7 @@ def test_rate_table_counts_recovery(tmp_path):
 
 def test_rates_without_exposure_use_residual_scatter(tmp_path):
     """Rates without n_pixels/duration_s: quasi-likelihood; 3 % scatter gives about 3 % residuals."""
-    from evnoise.calibration.fit import TABLE_SIGMA
+    from evnoise.calibration.rates.spec import TABLE_SIGMA
 
     truth = ev.NoiseParams(eps_pos=0.7, eps_neg=0.9, bias_pr=2.0, trial_rate_hz=30.0, photons_per_lux=1.5,
                            dark_lux=0.15, eps_sigma=TABLE_SIGMA)
@@ -383,19 +383,20 @@ def test_preset_round_trip(tmp_path, round_trip_fit):
 
 def _round_trip_problem():
     """The flat fields of test_preset_round_trip and their likelihood (the core parameters free)."""
-    from evnoise.calibration import fit as F
+    from evnoise.calibration.rates import likelihood as L
+    from evnoise.calibration.rates import spec as SP
 
     truth = _random_params(9)
     meas = _flat_fields(truth, 10, shape=(20, 20), lux=LUX_LEVELS[1:])
-    free = list(F.CORE)
+    free = list(SP.CORE)
     values = truth.to_dict()
-    return truth, F._Problem(meas, "poisson", "binomial", free, values, F._bounds(meas, free, values))
+    return truth, L.Problem(meas, "poisson", "binomial", free, values, SP.data_bounds(meas, free, values))
 
 
 def test_points_outside_the_domain_have_infinite_cost():
     """A non-finite or out-of-bounds point is rejected (loglik -inf, objective inf; the objective clips
     into the bounds first), and a local fit from a non-finite start returns at once; none raises."""
-    from evnoise.calibration import _search
+    from evnoise.calibration.rates import search as S
 
     truth, problem = _round_trip_problem()
     theta = problem.theta(truth)
@@ -410,26 +411,27 @@ def test_points_outside_the_domain_have_infinite_cost():
             assert not problem.in_domain(t)
     assert problem.in_domain(theta)
     t = np.full(theta.size, math.nan)
-    got, f = _search._local_fit(problem, t)
+    got, f = S.local_fit(problem, t)
     assert f == math.inf and not problem.in_domain(got)
 
 
 def test_the_search_stays_within_the_parameter_limits():
     """Bounds beyond NoiseParams' limits (PARAM_LIMITS; here dark_lux up to 1e7 lux, asked for) are cut to
     them: the likelihood and its finite differences at the upper bound evaluate without ParameterError."""
-    from evnoise.calibration import _uncertainty
-    from evnoise.calibration import fit as F
+    from evnoise.calibration.rates import likelihood as L
+    from evnoise.calibration.rates import spec as SP
+    from evnoise.calibration.rates import uncertainty as U
     from evnoise.params import PARAM_LIMITS
 
     truth, problem = _round_trip_problem()
     meas, free, values = problem.meas, list(problem.free), truth.to_dict()
-    wide = F._Problem(meas, "poisson", "binomial", free, values,
-                      F._bounds(meas, free, values, {"dark_lux": (1e-3, 1e7)}))
+    wide = L.Problem(meas, "poisson", "binomial", free, values,
+                     SP.data_bounds(meas, free, values, {"dark_lux": (1e-3, 1e7)}))
     i = free.index("dark_lux")
     theta = wide.theta(truth)
     theta[i] = wide.hi[i]
     assert math.isfinite(wide.loglik(theta))  # -1e300 at worst (no count possible), never an exception
-    info, _, _ = _uncertainty._information(wide, theta, _uncertainty._steps(wide), want_meat=False)
+    info, _, _ = U.information(wide, theta, U.steps(wide), want_meat=False)
     assert info.shape == (len(free), len(free))
     assert math.exp(wide.hi[i]) < PARAM_LIMITS["dark_lux"] < wide.bounds["dark_lux"][1]
 
@@ -439,9 +441,10 @@ def test_calibration_survives_a_non_finite_optimiser_step(monkeypatch, round_tri
     proposed NaN for eps_pos and bias_pr) is forced on purpose: the NaN step is rejected, no
     NoiseParams is ever built from a non-finite value, and the search goes on to the optimum the
     undisturbed fit finds (every estimate within a tenth of its standard error of it)."""
-    from evnoise.calibration import _likelihood, _search
+    from evnoise.calibration.rates import likelihood as L
+    from evnoise.calibration.rates import search as S
 
-    information = _search._information
+    information = S.information
     corrupted = []
 
     def nan_score_at_first_call(problem, theta, h, **kw):
@@ -458,8 +461,8 @@ def test_calibration_survives_a_non_finite_optimiser_step(monkeypatch, round_tri
         assert all(math.isfinite(v) for v in vals.values()), vals
         return ev.NoiseParams(**vals)
 
-    monkeypatch.setattr(_search, "_information", nan_score_at_first_call)
-    monkeypatch.setattr(_likelihood, "NoiseParams", checked_params)
+    monkeypatch.setattr(S, "information", nan_score_at_first_call)
+    monkeypatch.setattr(L, "NoiseParams", checked_params)
     _, result = _round_trip_fit()
     assert corrupted == ["eps_pos"] and len(built) > 50
     _, undisturbed = round_trip_fit
@@ -471,7 +474,7 @@ def test_calibration_survives_a_non_finite_optimiser_step(monkeypatch, round_tri
 
 
 def refit_evk3_authors():
-    from evnoise.calibration import refit_evk3
+    from evnoise.calibration.scripts import refit_evk3
 
     return refit_evk3.AUTHORS
 
@@ -496,7 +499,7 @@ def test_shipped_evk3_preset_is_the_refit():
 @needs_reference
 def test_evk3_preset_reproduces_the_authors_curve():
     """The shipped preset's population rate vs the regenerated curve, within the recorded fit quality."""
-    from evnoise.calibration import refit_evk3
+    from evnoise.calibration.scripts import refit_evk3
     from evnoise.params import load_preset_document
 
     grey, lux, lux_authors, *_ = refit_evk3.load_reference(REFERENCE)
@@ -515,7 +518,7 @@ def test_evk3_preset_reproduces_the_authors_curve():
 @pytest.mark.slow
 @needs_reference
 def test_evk3_refit_is_reproducible(tmp_path):
-    from evnoise.calibration import refit_evk3
+    from evnoise.calibration.scripts import refit_evk3
     from evnoise.params import load_preset_document
 
     shipped = ev.load_preset("evk3-hd")

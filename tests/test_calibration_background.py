@@ -17,7 +17,8 @@ import pytest
 
 import evnoise as ev
 from evnoise import calibration as cal
-from evnoise.calibration import fit as F
+from evnoise.calibration.rates import likelihood as L
+from evnoise.calibration.rates import spec as SP
 
 K_SIGMA = 3.0
 TRUTH = ev.NoiseParams(eps_pos=0.6, eps_neg=0.8, bias_pr=1.5, trial_rate_hz=40.0, photons_per_lux=2.0,
@@ -47,9 +48,9 @@ def test_the_likelihood_uses_the_rate_with_the_background():
 
     truth = TRUTH.replace(eps_sigma=0.0)
     meas = _flat_fields(truth, DARK_AND_LIT, shape=(6, 6))
-    free = list(F.CORE) + ["leak_on_hz", "leak_off_hz"]
+    free = list(SP.CORE) + ["leak_on_hz", "leak_off_hz"]
     values = truth.to_dict()
-    problem = F._Problem(meas, "poisson", "binomial", free, values, F._bounds(meas, free, values))
+    problem = L.Problem(meas, "poisson", "binomial", free, values, SP.data_bounds(meas, free, values))
     stats = problem.stats(problem.theta(truth))
     c = np.arange(40.0)
     trials = truth.trial_rate_hz * 5.0

@@ -10,7 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evnoise.calibration import quiet_checks as qc
+from evnoise.calibration.quiet import checks as qc
+from evnoise.calibration.quiet import fit as q
+from evnoise.calibration.quiet import likelihood as ql
+from evnoise.calibration.quiet import window as qw
 from evnoise.events import EVENT_DTYPE, OFF, ON
 
 REALDATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "realdata"
@@ -113,22 +116,18 @@ def test_the_one_second_real_window_has_a_null_with_spread():
 # -- 2. a parameter at a bound or without a standard error is not "fitted" ------------------------------------------
 def _hot_window(hot_share, seed=3, shape=(48, 48), duration_s=4.0):
     """Poisson counts: ordinary pixels at 0.3 + 0.1 Hz, a share ``hot_share`` of them at 12 Hz (70 % ON)."""
-    from evnoise.calibration import quiet as q
-
     rng = np.random.default_rng(seed)
     hot = rng.random(shape) < hot_share
     on = np.where(hot, 12.0 * 0.7, 0.3) * duration_s
     off = np.where(hot, 12.0 * 0.3, 0.1) * duration_s
-    return q.QuietWindow(np.stack([rng.poisson(on), rng.poisson(off)]), duration_s, source="simulated")
+    return qw.QuietWindow(np.stack([rng.poisson(on), rng.poisson(off)]), duration_s, source="simulated")
 
 
 def test_hot_fraction_at_its_cap_is_labelled_at_bound():
-    from evnoise.calibration import quiet as q
-
     # 12 % hot pixels, more than the model allows (HOT_MAX_FRACTION 0.05): the fraction sits on its cap,
     # where the delta method's standard error (+-3e-7 on a real window) means nothing
     fit = q.fit_quiet([_hot_window(0.12)], spread="off", regularity="off", hot="on")
-    assert fit.values["hot_fraction"] == pytest.approx(q.HOT_MAX_FRACTION, rel=1e-3)
+    assert fit.values["hot_fraction"] == pytest.approx(ql.HOT_MAX_FRACTION, rel=1e-3)
     assert fit.status["hot_fraction"].startswith("at upper bound"), fit.status
     assert fit.std_error["hot_fraction"] is None
     assert "hot_fraction" not in fit.to_toml_tables()["std_error"]
@@ -139,8 +138,6 @@ def test_hot_fraction_at_its_cap_is_labelled_at_bound():
 
 
 def test_a_spread_at_zero_is_at_bound_and_the_others_keep_their_errors():
-    from evnoise.calibration import quiet as q
-
     # hot pixels all at one rate: hot_sigma runs to 0 (its log to -inf), the observed information was
     # singular and every parameter "fitted" without a standard error
     fit = q.fit_quiet([_hot_window(0.01)], spread="off", regularity="off", hot="on")
@@ -155,11 +152,9 @@ def test_a_spread_at_zero_is_at_bound_and_the_others_keep_their_errors():
 
 
 def test_a_fit_without_standard_errors_says_so(monkeypatch):
-    from evnoise.calibration import quiet as q
-
     # a singular observed information (a real fit: sigma 11.05, regularity 1) leaves no standard errors:
     # those parameters were labelled "fitted" all the same
-    monkeypatch.setattr(q, "_hessian", lambda nll, x: np.zeros((x.size, x.size)))
+    monkeypatch.setattr(q, "hessian", lambda nll, x: np.zeros((x.size, x.size)))
     fit = q.fit_quiet([_hot_window(0.0)], spread="on", regularity="off", hot="off")
     assert any("no standard errors" in n for n in fit.notes)
     for name in ("rate_on_hz", "rate_off_hz", "sigma"):
@@ -181,9 +176,7 @@ def _spread_recording(tmp_path):
 
 
 def test_a_quiet_fit_has_an_overall_status(tmp_path):
-    from evnoise.calibration import quiet as q
-
-    window = q.quiet_window(_spread_recording(tmp_path), 2.0, 8.0)
+    window = qw.quiet_window(_spread_recording(tmp_path), 2.0, 8.0)
     rejected = q.fit_quiet([window], spread="off", hot="off", regularity="off")
     assert min(g["p_value"] for g in rejected.goodness) < q.GOODNESS_P
     assert rejected.fit_status == "rejected" and rejected.rejections, rejected.summary()
@@ -196,12 +189,10 @@ def test_a_quiet_fit_has_an_overall_status(tmp_path):
 
 
 def test_a_window_failing_a_check_rejects_the_fit():
-    from evnoise.calibration import quiet as q
-
     counts = np.ones((2, 4, 4), dtype=np.int64)
     failed = {"check": "polarity_pairs", "statistic": 50, "null_mean": 3.0, "null_sd": 1.0, "p_value": 1e-9,
               "assumption": True, "detail": "50 OFF/ON pairs"}
-    w = q.QuietWindow(counts, 2.0, source="w", checks=[failed])
+    w = qw.QuietWindow(counts, 2.0, source="w", checks=[failed])
     fit = q.fit_quiet([w], spread="off", hot="off", regularity="off")
     assert fit.fit_status == "rejected"
     assert any("polarity_pairs" in r for r in fit.rejections), fit.rejections

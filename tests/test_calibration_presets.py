@@ -19,7 +19,10 @@ import pytest
 
 import evnoise as ev
 from evnoise import calibration as cal
-from evnoise.calibration import fit as F
+from evnoise.calibration.rates import fit as F
+from evnoise.calibration.rates import likelihood as L
+from evnoise.calibration.rates import search as S
+from evnoise.calibration.rates import spec as SP
 from evnoise.cli import main
 
 LUX = np.geomspace(0.05, 50.0, 15)
@@ -51,9 +54,9 @@ def _check_recovery(result, truth, meas):
     # a bound only where it stands for 0 (a term the table does not need), and only for a truth at 0
     # or a floor too small for the table to see
     for n, side in result.at_bound.items():
-        assert side == "lower" and n in F.AT_BOUND_OK and result.status[n] == "at lower bound", result.summary()
+        assert side == "lower" and n in SP.AT_BOUND_OK and result.status[n] == "at lower bound", result.summary()
         value = getattr(truth, n)
-        invisible = n in F.FLOORS and _floor_invisible(value, meas, F.FLOORS.index(n))
+        invisible = n in SP.FLOORS and _floor_invisible(value, meas, SP.FLOORS.index(n))
         assert value == 0 or invisible, (n, result.summary())
     fitted = [n for n in result.free if result.status[n] == "fitted"]
     assert "trial_rate_hz" in fitted and ("dark_lux" in fitted or truth.dark_lux == 0), result.summary()
@@ -82,7 +85,7 @@ def _check_recovery(result, truth, meas):
 
 def _held(truth):
     """Everything but the core six and the floors at the truth (mean rates determine only those)."""
-    return {n: getattr(truth, n) for n in F.FIT_NAMES if n not in F.CORE + F.FLOORS}
+    return {n: getattr(truth, n) for n in SP.FIT_NAMES if n not in SP.CORE + SP.FLOORS}
 
 
 #: The refitted preset in the default run; the others (assembled or mapped presets with many photons per trial, or
@@ -98,11 +101,11 @@ def test_calibration_recovers_the_shipped_preset(name):
     truth = ev.load_preset(name)
     meas = _preset_table(truth)
     # bounds that contain the truth (davis346 has 3200 photons per trial at 50 lux, beyond LAM_MAX_MISMATCH)
-    lam_top = (max(F.LAM_MAX_MISMATCH, 2.0 * float(truth.photons_per_trial(LUX.max())))
-               if truth.eps_sigma > 0 else F.LAM_MAX)
+    lam_top = (max(SP.LAM_MAX_MISMATCH, 2.0 * float(truth.photons_per_trial(LUX.max())))
+               if truth.eps_sigma > 0 else SP.LAM_MAX)
     bounds = {"photons_per_lux": (1e-3 / LUX.max(), lam_top / LUX.max())}
     # the table has no dark level, so the floors are fitted only when asked (as with --fit)
-    result = cal.calibrate(meas, free=list(F.CORE + F.FLOORS), fixed=_held(truth), n_starts=2, n_seeds=256, rng=0,
+    result = cal.calibrate(meas, free=list(SP.CORE + SP.FLOORS), fixed=_held(truth), n_starts=2, n_seeds=256, rng=0,
                            bounds=bounds)
     _check_recovery(result, truth, meas)
 
@@ -152,7 +155,7 @@ def bounded_fit():
 def test_a_fit_outside_its_bounds_is_rejected_and_flagged(bounded_fit):
     r = bounded_fit
     assert r.fit_status == "rejected", r.summary()
-    assert r.gof["p_value"] < F.REJECT_P
+    assert r.gof["p_value"] < SP.REJECT_P
     assert r.at_bound.get("photons_per_lux") == "upper"
     assert r.params.photons_per_lux == pytest.approx(10.0, rel=2e-3)
     assert not any(s == "fitted" for s in r.status.values()), r.status
@@ -192,8 +195,8 @@ def test_cli_warns_when_the_fit_is_rejected(tmp_path, capsys):
 def _tiny_problem(nb=False):
     kw = dict(r_on=[5.0, 5.0, 5.0], r_off=[5.0, 5.0, 5.0]) if nb else {}
     meas = cal.count_table([0.0, 1.0, 2.0], [0, 5, 3], [1, 2, 0], 100, 1.0, **kw)
-    values = dict(F.STARTS)
-    return F._Problem(meas, "poisson", "binomial", ["eps_pos"], values, F._bounds(meas, ["eps_pos"], values))
+    values = dict(SP.STARTS)
+    return L.Problem(meas, "poisson", "binomial", ["eps_pos"], values, SP.data_bounds(meas, ["eps_pos"], values))
 
 
 def test_a_fit_problem_is_never_changed_after_construction():
@@ -201,18 +204,17 @@ def test_a_fit_problem_is_never_changed_after_construction():
     problems of new frozen specs; the problem they come from keeps its own (issue 13)."""
     import dataclasses
 
-    from evnoise.calibration import _search
 
     meas = cal.count_table([0.0, 1.0, 2.0, 4.0], [1, 5, 3, 2], [1, 2, 1, 4], 100, 1.0)
     free = ["eps_pos", "eps_neg", "bias_pr"]
-    values = dict(F.STARTS)
-    problem = F._Problem(meas, "poisson", "binomial", free, values, F._bounds(meas, free, values))
+    values = dict(SP.STARTS)
+    problem = L.Problem(meas, "poisson", "binomial", free, values, SP.data_bounds(meas, free, values))
     spec, lo = problem.spec, problem.lo.copy()
-    sub, keep = F._with_fixed(problem, "eps_neg", 0.7)
+    sub, keep = S.fixed_problem(problem, "eps_neg", 0.7)
     assert sub.free == ("eps_pos", "bias_pr") and keep == [0, 2] and sub.values["eps_neg"] == 0.7
     np.testing.assert_array_equal(sub.lo, lo[keep])
     stage = problem.with_value("eps_sigma", 0.02)
-    reweighted = _search._reweighted(problem, problem.theta(problem.params(lo)))
+    reweighted = S.reweighted(problem, problem.theta(problem.params(lo)))
     assert stage.values["eps_sigma"] == 0.02 and reweighted is not problem
     assert problem.spec is spec and problem.free == tuple(free) and problem.values["eps_neg"] == values["eps_neg"]
     np.testing.assert_array_equal(problem.lo, lo)
@@ -238,8 +240,8 @@ def test_docstrings_agree_with_the_code():
     assert "best two" not in F.__doc__ and "best two" not in F.calibrate.__doc__
     assert "N_CONVERGED" in F.__doc__ and "N_CONVERGED" in F.calibrate.__doc__
     assert not hasattr(F, "_today")
-    assert "lam" not in F._local_fit.__code__.co_varnames  # lam is photons per trial in evnoise
-    assert "damping" in F._local_fit.__code__.co_varnames
+    assert "lam" not in S.local_fit.__code__.co_varnames  # lam is photons per trial in evnoise
+    assert "damping" in S.local_fit.__code__.co_varnames
 
 
 def test_rng_defaults_to_none_and_a_seed_reproduces(tmp_path):
@@ -262,9 +264,9 @@ def test_unidentified_fix_holds_them_and_refits_the_rest():
     kw = dict(fixed={"eps_sigma": truth.eps_sigma}, n_starts=2, n_seeds=256, rng=0)
     r1 = cal.calibrate(meas, **kw)
     r2 = cal.calibrate(meas, unidentified="fix", **kw)
-    held = [n for n in F.CORE if r2.status[n] == "fixed (not identified)"]
-    assert held == [n for n in F.CORE if r1.status[n] == "not identified"] and "photons_per_lux" in held
-    assert set(r2.free) == set(F.CORE) - set(held)
+    held = [n for n in SP.CORE if r2.status[n] == "fixed (not identified)"]
+    assert held == [n for n in SP.CORE if r1.status[n] == "not identified"] and "photons_per_lux" in held
+    assert set(r2.free) == set(SP.CORE) - set(held)
     assert any("fixed (not identified)" in t for t in r2.identifiability)
     for n in held:
         assert getattr(r2.params, n) == getattr(r1.params, n)
@@ -288,9 +290,9 @@ def test_poisson_count_distribution_of_flat_fields():
     thr = ev.draw_thresholds(shape, truth, rng)
     counts = [ev.sample_counts(np.full(shape, lx), truth, 4.0, rng, thresholds=thr) for lx in lux]
     meas = cal.flat_field(lux, counts, 4.0)
-    free = list(F.CORE) + ["eps_sigma"]
+    free = list(SP.CORE) + ["eps_sigma"]
     values = truth.to_dict()
-    problem = F._Problem(meas, "poisson", "poisson", free, values, F._bounds(meas, free, values))
+    problem = L.Problem(meas, "poisson", "poisson", free, values, SP.data_bounds(meas, free, values))
     theta = problem.theta(truth)
     stats = problem.stats(theta)
     c = np.arange(12.0)
@@ -415,7 +417,7 @@ def test_a_regular_background_is_refused_where_only_poisson_arrivals_are_modelle
     def started(*args, **kwargs):
         raise Started
 
-    monkeypatch.setattr(F, "_fit", started)
+    monkeypatch.setattr(F, "run_search", started)
     with pytest.raises(Started):
         cal.calibrate(meas, fixed={"leak_regularity": 0.9}, n_starts=1, n_seeds=4, rng=0)
 

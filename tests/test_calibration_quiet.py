@@ -11,7 +11,11 @@ import pytest
 from scipy.stats import poisson
 
 import evnoise as ev
-from evnoise.calibration import quiet as q
+from evnoise.calibration.quiet import counts as qn
+from evnoise.calibration.quiet import fit as q
+from evnoise.calibration.quiet import goodness as qg
+from evnoise.calibration.quiet import likelihood as ql
+from evnoise.calibration.quiet import window as qw
 from evnoise.errors import InputError, ParameterError
 
 REALDATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "realdata"
@@ -26,13 +30,13 @@ K = 4.0
 def test_count_distribution_limits():
     k = np.arange(12)
     # r = 0: Poisson
-    np.testing.assert_allclose(q.count_survival(k, 0.7, 3.0, 0.0), poisson.sf(k - 1, 2.1), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(qn.count_survival(k, 0.7, 3.0, 0.0), poisson.sf(k - 1, 2.1), rtol=1e-12, atol=1e-15)
     # r = 1: periodic with a uniform phase: floor(T l) or floor(T l) + 1 events
-    pmf = q.count_pmf(6, 0.7, 3.0, 1.0)
+    pmf = qn.count_pmf(6, 0.7, 3.0, 1.0)
     np.testing.assert_allclose(pmf, [0, 0, 0.9, 0.1, 0, 0, 0], atol=1e-12)
     # every r: a probability distribution with mean exactly T l (a stationary process)
     for r in (0.0, 0.3, 0.8, 1.0):
-        pmf = q.count_pmf(80, np.array([0.05, 0.7, 4.0]), 3.0, r)
+        pmf = qn.count_pmf(80, np.array([0.05, 0.7, 4.0]), 3.0, r)
         np.testing.assert_allclose(pmf.sum(axis=1), 1.0, atol=1e-9)
         np.testing.assert_allclose(pmf @ np.arange(81), [0.15, 2.1, 12.0], rtol=1e-8)
 
@@ -51,7 +55,7 @@ def test_count_distribution_against_monte_carlo():
         gap = r * mu + rng.exponential((1 - r) * mu, active.sum())
         t[active] += gap
         counts[active] += (t[active] >= 0) & (t[active] < T)
-    pmf = q.count_pmf(10, rate, T, r)
+    pmf = qn.count_pmf(10, rate, T, r)
     hist = np.bincount(counts, minlength=11)[:11] / n
     se = np.sqrt(pmf * (1 - pmf) / n)
     assert np.all(np.abs(hist - pmf) < K * se + 1e-6)
@@ -62,7 +66,7 @@ def test_simulator_timer_matches_the_count_model():
     params = ev.NoiseParams(eps_pos=5, eps_neg=5, bias_pr=2, trial_rate_hz=2000, photons_per_lux=1,
                             leak_on_hz=0.6, leak_regularity=0.7)
     counts = ev.sample_counts(np.zeros((200, 200)), params, 2.5, rng=4)[0].ravel()
-    pmf = q.count_pmf(8, 0.6 * (1 - 0.6 / 4000), 2.5, 0.7)  # rate N (1 - exp(-l / N)) to first order
+    pmf = qn.count_pmf(8, 0.6 * (1 - 0.6 / 4000), 2.5, 0.7)  # rate N (1 - exp(-l / N)) to first order
     hist = np.bincount(counts, minlength=9)[:9] / counts.size
     se = np.sqrt(pmf * (1 - pmf) / counts.size)
     assert np.all(np.abs(hist - pmf) < K * se + 2e-4)
@@ -73,7 +77,7 @@ def test_simulator_timer_matches_the_count_model():
 # --------------------------------------------------------------------------------------
 def _window(params, shape, duration_s, seed):
     counts = ev.sample_counts(np.zeros(shape), params, duration_s, rng=seed)
-    return q.QuietWindow(counts, duration_s, source=f"simulated seed {seed}")
+    return qw.QuietWindow(counts, duration_s, source=f"simulated seed {seed}")
 
 
 TRUTH = ev.NoiseParams(eps_pos=5, eps_neg=5, bias_pr=2, trial_rate_hz=1000, photons_per_lux=1, leak_on_hz=0.2,
@@ -85,9 +89,9 @@ def test_count_distribution_at_the_ends_of_the_float_range():
     """Rates and regularities an optimiser's long step reaches: numbers, not NaN (r mu underflowing
     to 0 takes the phase term's limit; rates that overflow k / rate count as 0, an infinite one fires always)."""
     k = np.array([0.0, 1.0, 199000.0, 200000.0, 201000.0])
-    np.testing.assert_allclose(q.count_survival(k, 1e5, 2.0, 1e-320), poisson.sf(k - 1, 2e5), rtol=1e-10, atol=1e-15)
-    np.testing.assert_array_equal(q.count_survival(np.arange(5), 1e-308, 2.0, 0.5), [1, 0, 0, 0, 0])
-    np.testing.assert_array_equal(q.count_survival(np.arange(5), np.inf, 2.0, 0.5), [1, 1, 1, 1, 1])
+    np.testing.assert_allclose(qn.count_survival(k, 1e5, 2.0, 1e-320), poisson.sf(k - 1, 2e5), rtol=1e-10, atol=1e-15)
+    np.testing.assert_array_equal(qn.count_survival(np.arange(5), 1e-308, 2.0, 0.5), [1, 0, 0, 0, 0])
+    np.testing.assert_array_equal(qn.count_survival(np.arange(5), np.inf, 2.0, 0.5), [1, 1, 1, 1, 1])
 
 
 def test_likelihood_at_extreme_trial_points_is_a_number_without_warnings():
@@ -97,19 +101,19 @@ def test_likelihood_at_extreme_trial_points_is_a_number_without_warnings():
     import warnings
     from itertools import combinations, product
 
-    groups = q._groups([_window(TRUTH, (16, 16), 4.0, 5)])
-    model = q._Model(True, True, [np.zeros((1, 2))], False, [np.zeros(1)], True)
-    start = np.array(q._theta(dict(rate_on_hz=0.2, rate_off_hz=0.05, sigma=0.6, hot_fraction=0.003, hot_rate_hz=6.0,
+    groups = ql.window_groups([_window(TRUTH, (16, 16), 4.0, 5)])
+    model = ql.Model(True, True, [np.zeros((1, 2))], False, [np.zeros(1)], True)
+    start = np.array(q.theta_of(dict(rate_on_hz=0.2, rate_off_hz=0.05, sigma=0.6, hot_fraction=0.003, hot_rate_hz=6.0,
                                    hot_sigma=0.3, hot_on_fraction=0.7, regularity=0.9), model))
     steps = (-1e4, -720.0, -170.0, 170.0, 720.0, 1e4)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert math.isfinite(q._log_likelihood(start, model, groups))
+        assert math.isfinite(ql.mixture_log_likelihood(start, model, groups))
         for (i, j), (a, b) in product(combinations(range(start.size), 2), product(steps, steps)):
             theta = start.copy()
             theta[i] += a
             theta[j] += b
-            ll = q._log_likelihood(theta, model, groups)
+            ll = ql.mixture_log_likelihood(theta, model, groups)
             assert ll == -math.inf or math.isfinite(ll), (i, j, a, b, ll)
 
 
@@ -149,11 +153,11 @@ def test_bad_input():
     with pytest.raises(InputError):
         q.fit_quiet([])
     with pytest.raises(InputError, match="shape"):
-        q.QuietWindow(np.zeros((3, 4, 4)), 1.0)
+        qw.QuietWindow(np.zeros((3, 4, 4)), 1.0)
     with pytest.raises(ParameterError):
-        q.QuietWindow(np.zeros((2, 4, 4)), 0.0)
+        qw.QuietWindow(np.zeros((2, 4, 4)), 0.0)
     with pytest.raises(ParameterError, match="spread"):
-        q.fit_quiet([q.QuietWindow(np.zeros((2, 4, 4)), 1.0)], spread="maybe")
+        q.fit_quiet([qw.QuietWindow(np.zeros((2, 4, 4)), 1.0)], spread="maybe")
 
 
 # --------------------------------------------------------------------------------------
@@ -169,7 +173,7 @@ def _quiet_windows():
 @pytest.mark.parametrize("index", range(9))
 def test_every_dvs128_quiet_window_is_described_by_its_own_fit(index):
     rel, seg = _quiet_windows()[index]
-    window = q.quiet_window(REALDATA / rel, seg["t_from_us"] * 1e-6, seg["t_to_us"] * 1e-6)
+    window = qw.quiet_window(REALDATA / rel, seg["t_from_us"] * 1e-6, seg["t_to_us"] * 1e-6)
     assert int(window.counts.sum()) == seg["n"]
     fit = q.fit_quiet([window])
     for g in fit.goodness:
@@ -177,7 +181,7 @@ def test_every_dvs128_quiet_window_is_described_by_its_own_fit(index):
         assert g["p_value"] > 1e-3 or (np.isnan(g["p_value"]) and g.get("dof", 0) == 0), g
     # the fitted model, simulated, is consistent with the recording (two-sample test, 10 simulated sensors)
     params = fit.to_params(ev.NoiseParams(eps_pos=5, eps_neg=5, bias_pr=2, trial_rate_hz=1000, photons_per_lux=1))
-    for row in q.compare_to_recording(params, window, replicas=10, seed=index):
+    for row in qg.compare_to_recording(params, window, replicas=10, seed=index):
         assert row["p_value"] > 1e-4, row
 
 
@@ -185,7 +189,7 @@ def test_every_dvs128_quiet_window_is_described_by_its_own_fit(index):
 def test_cleanest_dvs128_window_needs_a_regular_leak():
     rel, seg = _quiet_windows()[0]
     assert rel.endswith("cam255_neal_standing_up2.aedat") and seg["from_s"] == 0.0
-    window = q.quiet_window(REALDATA / rel, seg["t_from_us"] * 1e-6, seg["t_to_us"] * 1e-6)
+    window = qw.quiet_window(REALDATA / rel, seg["t_from_us"] * 1e-6, seg["t_to_us"] * 1e-6)
     regular = q.fit_quiet([window], hot="off")
     poisson_only = q.fit_quiet([window], hot="off", regularity="off")
     assert regular.values["regularity"] > 0.9

@@ -15,7 +15,9 @@ import numpy as np
 import pytest
 
 import evnoise as ev
-from evnoise.calibration import quiet_checks as qc
+from evnoise.calibration.quiet import checks as qc
+from evnoise.calibration.quiet import fit as q
+from evnoise.calibration.quiet import window as qw
 from evnoise.events import EVENT_DTYPE, OFF, ON, count_events
 
 REALDATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "realdata"
@@ -213,15 +215,13 @@ def test_a_window_without_off_events_cannot_test_pairs():
 
 
 def test_quiet_summary_shows_thresholds_and_no_p_of_one_on_one_bin(tmp_path):
-    from evnoise.calibration import quiet as q
-
     # ON noise only: the OFF histogram is one bin (all zero), which no chi-square can test
     rng = np.random.default_rng(6)
     n = 3000
     events = _events(np.sort(rng.integers(0, 5_000_000, n)), rng.integers(0, 40, n), rng.integers(0, 30, n),
                      np.ones(n, dtype=int))
     path = ev.write_events(tmp_path / "on_only.h5", events, (30, 40), t_end_us=5_000_000)
-    window = q.quiet_window(path, 0.0, 5.0, checks=True)
+    window = qw.quiet_window(path, 0.0, 5.0, checks=True)
     fit = q.fit_quiet([window], base="dvs128", spread="off", hot="off", regularity="off")
     text = fit.summary()
     off = next(line for line in text.splitlines() if line.startswith("  fit ") and " OFF:" in line)

@@ -1,6 +1,6 @@
 """How far do threshold mismatch and background spread explain the EVK3-HD's measured r(grey)?
 
-Run ``python -m evnoise.calibration.dispersion_evk3 [--reference DIR] [--out JSON] [--step N]``.
+Run ``python -m evnoise.calibration.scripts.dispersion_evk3 [--reference DIR] [--out JSON] [--step N]``.
 
 The Noise2Image authors measured the negative-binomial shape ``r`` of the per-pixel noise count
 over 1 s windows at every grey level of their monitor (``synthetic_param.npz``; grey -> lux as in
@@ -42,7 +42,7 @@ import numpy as np
 
 from evnoise.errors import EvnoiseError
 
-HERE = Path(__file__).resolve().parent
+HERE = Path(__file__).resolve().parents[1]  # calibration/: the scripts' outputs are kept there
 DEFAULT_OUT = HERE / "evk3-dispersion.json"
 #: The authors' constant extra OFF rate (their fit), used when the preset has no OFF leak yet.
 AUTHORS_EXTRA_OFF_HZ = 0.1398
@@ -186,7 +186,7 @@ def summarize(prob, fits, grey, step):
     out = {
         "what": "fit of the population NB shape r (threshold mismatch + background spread + hot pixels, exact moments) "
                 "to the measured r(grey) of the Noise2Image EVK3-HD tables, least squares on log r",
-        "command": "python -m evnoise.calibration.dispersion_evk3",
+        "command": "python -m evnoise.calibration.scripts.dispersion_evk3",
         "mean_model": {k: getattr(prob.base, k) for k in ("eps_pos", "eps_neg", "bias_pr", "trial_rate_hz",
                                                            "photons_per_lux", "dark_lux", "leak_off_hz")},
         "grey_step": step,
@@ -275,7 +275,7 @@ def run(reference: Path, out: Path | None, *, step: int = 1, models=MODELS, prog
 def main(argv=None) -> int:
     from .refit_evk3 import DEFAULT_REFERENCE
 
-    ap = argparse.ArgumentParser(prog="python -m evnoise.calibration.dispersion_evk3",
+    ap = argparse.ArgumentParser(prog="python -m evnoise.calibration.scripts.dispersion_evk3",
                                  description=__doc__.split("\n")[0])
     ap.add_argument("--reference", type=Path, default=DEFAULT_REFERENCE, help="noise2image-reference folder")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT, help="summary JSON (default: %(default)s)")

@@ -10,8 +10,8 @@ import numpy as np
 
 from evnoise.params import NoiseParams, parameter_specs
 
-from ._spec import FIT_NAMES
-from .measurements import Measurements
+from ..measurements import Measurements
+from .spec import FIT_NAMES
 
 
 @dataclasses.dataclass(eq=False)
@@ -149,13 +149,13 @@ class CalibrationResult:
 
     def to_toml(self, *, extra_provenance: dict | None = None) -> str:
         """The preset document: ``[params]``, ``[provenance]``, ``[fit]`` tables."""
-        from .preset import result_to_toml
+        from ..preset import result_to_toml
 
         return result_to_toml(self, extra_provenance=extra_provenance)
 
     def write_preset(self, path, *, overwrite: bool = False, extra_provenance: dict | None = None):
         """Write the preset TOML atomically; returns the path."""
-        from .preset import write_text_atomic
+        from ..preset import write_text_atomic
 
         return write_text_atomic(path, self.to_toml(extra_provenance=extra_provenance), overwrite=overwrite)
 

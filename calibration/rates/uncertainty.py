@@ -9,8 +9,9 @@ import math
 
 import numpy as np
 
-from ._likelihood import _Problem
-from ._spec import (
+from .likelihood import Problem
+from .result import CalibrationResult
+from .spec import (
     AT_BOUND_OK,
     DARK_LUX,
     FIT_NAMES,
@@ -22,10 +23,9 @@ from ._spec import (
     UNMODELLED,
     ZERO_AT_BOUND,
 )
-from .result import CalibrationResult
 
 
-def _steps(problem: _Problem, base: float = 1e-3) -> np.ndarray:
+def steps(problem: Problem, base: float = 1e-3) -> np.ndarray:
     """Central-difference steps in log space (larger for step-like parameters without mismatch)."""
     coarse = problem.values.get("eps_sigma", 0.0) == 0.0 and "eps_sigma" not in problem.free
     h = np.full(len(problem.free), base)
@@ -42,7 +42,7 @@ def _shifted(theta, i, d):
     return t
 
 
-def _information(problem: _Problem, theta, h, *, want_meat: bool = True, central: bool = True):
+def information(problem: Problem, theta, h, *, want_meat: bool = True, central: bool = True):
     """``(info, meat, extras)`` in log space: expected information and the robust meat.
 
     ``extras["score"]`` is the gradient of the log-likelihood (for Fisher scoring).
@@ -141,7 +141,7 @@ def _information(problem: _Problem, theta, h, *, want_meat: bool = True, central
     return info, info.copy(), {"jac_mu": jac_mu, "jac_e": jac_e, "score": score}
 
 
-def _covariance(info, meat):
+def covariance(info, meat):
     """Sandwich ``info^-1 meat info^-1`` by a scaled pseudo-inverse (rank-deficient safe)."""
     d = np.sqrt(np.maximum(np.diag(info), 1e-300))
     scaled = info / np.outer(d, d)
@@ -155,19 +155,19 @@ def _covariance(info, meat):
     return 0.5 * (cov + cov.T), null_dirs
 
 
-def _step_like(problem: _Problem) -> bool:
+def is_step_like(problem: Problem) -> bool:
     """Whether the likelihood is a step function of the thresholds (exact form, no mismatch)."""
     return problem.method == "poisson" and problem.values.get("eps_sigma", 0.0) == 0.0 \
         and "eps_sigma" not in problem.free
 
 
-def _rejected(problem: _Problem, theta) -> bool:
+def rejected(problem: Problem, theta) -> bool:
     """Whether the goodness of fit at ``theta`` rejects the model (see :func:`_verdict`)."""
     gof, _ = _goodness(problem, theta, {"ranges": None}, len(problem.free))
     return _verdict(problem, gof)[0] == "rejected"
 
 
-def _finish(problem: _Problem, theta, max_rel_se, *, profile=None, sigma_note=None) -> CalibrationResult:
+def finish(problem: Problem, theta, max_rel_se, *, profile=None, sigma_note=None) -> CalibrationResult:
     meas = problem.meas
     params = problem.params(theta)
     free = list(problem.free)
@@ -199,18 +199,18 @@ def _finish(problem: _Problem, theta, max_rel_se, *, profile=None, sigma_note=No
     held = sorted(set(at_bound) | ({i_prof} if i_prof is not None else set()))
     inner = [i for i in range(p) if i not in held]
     notes = []
-    h = _steps(problem)
-    info, meat, extras = _information(problem, theta, h)
+    h = steps(problem)
+    info, meat, extras = information(problem, theta, h)
     cov = np.full((p, p), np.nan)
     if inner:
         ix = np.ix_(inner, inner)
-        c_in, null_dirs = _covariance(info[ix], meat[ix])
+        c_in, null_dirs = covariance(info[ix], meat[ix])
         # over every free parameter (``inner`` changes below when a profile moves parameters)
         null_dirs = [np.zeros(p) + np.bincount(inner, weights=d, minlength=p) for d in null_dirs]
         cov[ix] = c_in
         # checked step: redo with half the steps; disagreement means a step-like likelihood
-        info2, meat2, _ = _information(problem, theta, h / 2)
-        c2, _ = _covariance(info2[ix], meat2[ix])
+        info2, meat2, _ = information(problem, theta, h / 2)
+        c2, _ = covariance(info2[ix], meat2[ix])
         se1 = np.sqrt(np.maximum(np.diag(c_in), 0))
         se2 = np.sqrt(np.maximum(np.diag(c2), 0))
         for a, i in enumerate(inner):
@@ -319,7 +319,7 @@ def _finish(problem: _Problem, theta, max_rel_se, *, profile=None, sigma_note=No
                              bounds={n: tuple(problem.bounds[n]) for n in free}, profile=profile_range)
 
 
-def _verdict(problem: _Problem, gof) -> tuple[str, str]:
+def _verdict(problem: Problem, gof) -> tuple[str, str]:
     """``("accepted" | "rejected", reason)`` from the goodness of fit."""
     if problem.meas.kind == "flat-field":
         pv, z = gof.get("histogram_p_value", math.nan), gof.get("mean_rate_max_abs_z", math.nan)
@@ -341,7 +341,7 @@ def _verdict(problem: _Problem, gof) -> tuple[str, str]:
     return "accepted", ""
 
 
-def _profile_levels(problem: _Problem, theta, profile):
+def _profile_levels(problem: Problem, theta, profile):
     """``(t, dev, k0, level)``: profile points, twice the log-likelihood drop, index of the best, tolerance."""
     i = problem.free.index(profile["name"])
     pts = profile["points"]
@@ -349,16 +349,16 @@ def _profile_levels(problem: _Problem, theta, profile):
     ll = np.array([q[1] for q in pts])
     dev = 2.0 * (max(float(ll.max()), float(problem.loglik(theta))) - ll)
     k0 = int(np.argmin(np.abs(t - theta[i])))
-    level = 1.0 + (PROFILE_ROUGH if _step_like(problem) else 0.0)
+    level = 1.0 + (PROFILE_ROUGH if is_step_like(problem) else 0.0)
     return t, dev, k0, level
 
 
-def _profile_is_sharp(problem: _Problem, theta, profile) -> bool:
+def _profile_is_sharp(problem: Problem, theta, profile) -> bool:
     t, dev, k0, level = _profile_levels(problem, theta, profile)
     return 0 < k0 < t.size - 1 and dev[k0 - 1] > level and dev[k0 + 1] > level
 
 
-def _profile_uncertainty(problem: _Problem, theta, profile, cov, inner, max_rel_se):
+def _profile_uncertainty(problem: Problem, theta, profile, cov, inner, max_rel_se):
     """Uncertainty of the profiled parameter and the others' movement along its profile.
 
     Returns ``(finding, cov, moving, closed, range)``: ``cov`` with the profiled parameter's row (and
@@ -469,7 +469,7 @@ def _identifiability_text(free, inner, cov, corr, flagged, null_dirs, max_rel_se
     return out
 
 
-def _goodness(problem: _Problem, theta, extras, n_free):
+def _goodness(problem: Problem, theta, extras, n_free):
     from scipy.stats import chi2
 
     meas = problem.meas

@@ -1,6 +1,6 @@
 """Why EvCamMOKE's ``slow.csv`` cannot be reproduced by a quiet-scene preset: the checks, measured.
 
-    python -m evnoise.calibration.slow_csv [--data ../shared/data/realdata] [--shifts 200]
+    python -m evnoise.calibration.scripts.slow_csv [--data ../shared/data/realdata] [--shifts 200]
 
 ``slow.csv`` (a Prophesee Gen3 VGA camera on a MOKE microscope, 7.68 s) was listed as quasi-static
 and dominated by noise. This script runs the model-free checks of
@@ -27,7 +27,7 @@ import json
 import sys
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
+HERE = Path(__file__).resolve().parents[1]  # calibration/: the scripts' outputs are kept there
 OUT = HERE / "evcammoke-slow.json"
 FILE = Path("evcammoke") / "Expansion" / "slow.csv"
 T_START_S, T_END_S = 28.28, 35.96  # the recording's span on its clock (t in µs from 28,280,080)
@@ -77,9 +77,10 @@ def main(argv=None) -> int:
     import evnoise as ev
     from evnoise.events import count_events
 
-    from .preset import write_text_atomic
-    from .quiet import QuietWindow, fit_quiet, quiet_window
-    from .quiet_checks import PAIR_GAP_S
+    from ..preset import write_text_atomic
+    from ..quiet.checks import PAIR_GAP_S
+    from ..quiet.fit import fit_quiet
+    from ..quiet.window import QuietWindow, quiet_window
 
     rows = []
     first = None

@@ -15,7 +15,7 @@ def plot_quiet(fit, path, *, seed: int = 0, params=None):
 
     from evnoise._atomic import atomic_output
 
-    from .quiet_goodness import GOF_MAX_COUNT, simulate_window
+    from .goodness import GOF_MAX_COUNT, simulate_window
 
     params = params if params is not None else fit.to_params()
     rows = fit.windows[:6]

@@ -1,6 +1,6 @@
 """The count of a stationary renewal process in a window: the quiet-scene model's count distribution.
 
-Re-exported by :mod:`evnoise.calibration.quiet` (which uses it for the likelihood of quiet windows).
+Part of :mod:`evnoise.calibration.quiet` (which uses it for the likelihood of quiet windows).
 """
 
 from __future__ import annotations

@@ -33,66 +33,43 @@ Goodness of fit, per window and polarity: the histogram of per-pixel counts agai
 chi-square with ``bins - 1`` degrees of freedom minus the fitted parameters (at least 1). The fit as a
 whole is *rejected* (``QuietFit.fit_status``, with its reasons in ``rejections``) when a histogram's
 p-value is below :data:`GOODNESS_P` or a window fails one of the checks that it is pure stationary
-noise (:mod:`.quiet_checks`: no preset reproduces such a window); otherwise *accepted*.
+noise (:mod:`.checks`: no preset reproduces such a window); otherwise *accepted*.
 
 With ``lux`` given for the windows, the shot noise of a base preset at that illuminance is part
 of the model (fixed, not fitted) and the fitted rates are its background on top; with two or more
 illuminances the background's growth with lux joins the fit as ``leak_*_hz_per_lux`` would.
 
-Layout: this module holds the windows, :func:`fit_quiet` (starts, model selection, standard errors),
-:class:`QuietFit` and the preset document; the count distribution is in :mod:`.quiet_counts`, the
-likelihood in :mod:`.quiet_likelihood`, the goodness of fit and the comparison of a preset with a
-recording in :mod:`.quiet_goodness` (all their names are reachable from here).
+Layout (:mod:`evnoise.calibration.quiet`): the windows are in :mod:`.window`; this module holds
+:func:`fit_quiet` (starts, model selection, standard errors), :class:`QuietFit` and the preset document; the
+count distribution is in :mod:`.counts`, the likelihood in :mod:`.likelihood`, the goodness of fit and the
+comparison of a preset with a recording in :mod:`.goodness`, the checks that a window is pure noise in
+:mod:`.checks`, the figure in :mod:`.plot`.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
-from evnoise._clock import seconds_text
 from evnoise.errors import InputError, ParameterError
 
-from ._progress import Phases
-from .quiet_checks import check_verdict, failed_checks
-
-# The model's parts live in one module per job; their names are re-exported here, where the tests, the
-# command line and the scripts look for them: the renewal count distribution, the goodness of fit (the
-# model's histograms, a preset simulated against a recording), the likelihood and its maximisation.
-from .quiet_counts import count_pmf, count_survival  # noqa: F401
-from .quiet_goodness import (  # noqa: F401
-    GOF_MAX_COUNT,
-    _goodness,
-    _marginal_pmf,
-    _pool,
-    compare_to_recording,
-    simulate_window,
-)
-from .quiet_likelihood import (  # noqa: F401
-    _LOG_WZ,
-    _WZ,
-    _Z,
-    GRID,
+from .._progress import Phases
+from .checks import check_verdict, failed_checks
+from .goodness import goodness_of_fit
+from .likelihood import (
     HOT_MAX_FRACTION,
     HOT_MIN_RATIO,
-    _component_rates,
-    _exp,
-    _Group,
-    _groups,
-    _hessian,
-    _log_component,
-    _log_likelihood,
-    _log_mix,
-    _maximise,
-    _Model,
-    _sigmoid,
-    _unpack,
+    Model,
+    hessian,
+    maximise,
+    mixture_log_likelihood,
+    unpack,
+    window_groups,
 )
 
-__all__ = ["QuietWindow", "quiet_window", "fit_quiet", "QuietFit", "GRID", "LR_P", "GOODNESS_P"]
+__all__ = ["fit_quiet", "QuietFit", "LR_P", "GOODNESS_P", "preset_toml"]
 
 #: Likelihood-ratio p-value below which the spread / the hot pixels count as identified.
 LR_P = 1e-3
@@ -100,77 +77,6 @@ LR_P = 1e-3
 GOODNESS_P = 1e-3
 NAMES = ("rate_on_hz", "rate_off_hz", "regularity", "sigma", "hot_fraction", "hot_rate_hz", "hot_sigma",
          "hot_on_fraction")
-
-
-@dataclass
-class QuietWindow:
-    """Per-pixel counts ``(2, H, W)`` ``[ON, OFF]`` of a still scene over ``duration_s`` seconds."""
-
-    counts: np.ndarray
-    duration_s: float
-    source: str = ""
-    group: str = ""
-    t_start_s: float | None = None
-    t_end_s: float | None = None
-    lux: float | None = None
-    #: model-free checks that the window is pure stationary noise (:mod:`.quiet_checks`), if computed
-    checks: list = field(default_factory=list)
-
-    def __post_init__(self):
-        counts = np.asarray(self.counts)
-        if counts.ndim != 3 or counts.shape[0] != 2:
-            raise InputError(f"counts must have shape (2, H, W), got {counts.shape}")
-        if counts.size == 0 or np.any(counts < 0):
-            raise InputError("counts must be non-negative and not empty")
-        self.counts = counts.astype(np.int64)
-        if not (math.isfinite(self.duration_s) and self.duration_s > 0):
-            raise ParameterError(f"duration_s must be > 0, got {self.duration_s!r}")
-        if self.lux is not None and not (math.isfinite(self.lux) and self.lux >= 0):
-            raise ParameterError(f"lux must be finite and >= 0, got {self.lux!r}")
-        if not self.group:
-            self.group = self.source
-
-    @property
-    def shape(self):
-        return self.counts.shape[1:]
-
-    def describe(self) -> str:
-        when = "" if self.t_start_s is None else f" {seconds_text(self.t_start_s)}-{seconds_text(self.t_end_s)} s"
-        return f"{Path(self.source).name or 'counts'}{when}"
-
-
-def quiet_window(path, t_start_s: float, t_end_s: float, *, lux: float | None = None, sensor=None,
-                 csv_columns=None, checks: bool = False, seed: int = 0, progress: bool = False) -> QuietWindow:
-    """The counts of a recording's window ``[t_start_s, t_end_s)`` (seconds on the file's clock).
-
-    Any file :func:`evnoise.read_events` opens. The sensor size is the file's (or ``sensor``). With
-    ``checks``, the window's events are also checked for what the fit assumes (polarity pairs,
-    stationarity, scene motion; :func:`evnoise.calibration.quiet_checks.window_checks`, resampled
-    with ``seed``), into ``QuietWindow.checks``; ``progress`` shows a bar over their resamples.
-    """
-    from evnoise.events import count_events
-    from evnoise.io import read_events
-
-    if not (t_end_s > t_start_s):
-        raise ParameterError(f"--t-end must be after --t-start, got {seconds_text(t_start_s)} .. "
-                             f"{seconds_text(t_end_s)} s")
-    events, meta = read_events(path, t_start=t_start_s, t_end=t_end_s, sensor=sensor, csv_columns=csv_columns)
-    shape = meta.get("shape")
-    if shape is None:
-        raise InputError(f"{path}: the file does not give its sensor size; pass sensor='WxH'")
-    if events.size == 0:
-        raise InputError(f"{path}: no events in the window {seconds_text(t_start_s)} .. {seconds_text(t_end_s)} s "
-                         "(check the times: they are seconds on the file's clock)")
-    counts = count_events(events, tuple(shape))
-    found = []
-    if checks:
-        from .quiet_checks import window_checks
-
-        t0_us, t1_us = round(t_start_s * 1e6), round(t_end_s * 1e6)  # as read_events cuts the window
-        found = window_checks(events, counts, t0_us, t1_us - t0_us, seed=seed, progress=progress,
-                              desc=f"checks of {Path(str(path)).name}")
-    return QuietWindow(counts, float(t_end_s - t_start_s), str(path), str(path), float(t_start_s), float(t_end_s),
-                       None if lux is None else float(lux), found)
 
 
 # --------------------------------------------------------------------------------------
@@ -258,7 +164,7 @@ class QuietFit:
 
     def plot(self, path, *, seed: int = 0, params=None):
         """Real vs fitted-model count histograms (ON, OFF) and count maps, side by side."""
-        from .quiet_plot import plot_quiet
+        from .plot import plot_quiet
 
         plot_quiet(self, path, seed=seed, params=params)
 
@@ -372,7 +278,7 @@ def _logit(x):
     return math.log(x / (1 - x))
 
 
-def _theta(values: dict, model: _Model):
+def theta_of(values: dict, model: Model):
     """Fitted coordinates of a values dict (the inverse of :func:`_unpack`)."""
     x = [math.log(max(values["rate_on_hz"], 1e-12)), math.log(max(values["rate_off_hz"], 1e-12))]
     if model.spread:
@@ -389,7 +295,7 @@ def _theta(values: dict, model: _Model):
     return x
 
 
-def _starts(model: _Model, previous: dict, hot_guess):
+def _starts(model: Model, previous: dict, hot_guess):
     """Two starting points: moderate and strong spread/regularity, hot pixels from the data."""
     starts = []
     for sigma, reg in ((0.5, 0.5), (1.2, 0.9)):
@@ -399,7 +305,7 @@ def _starts(model: _Model, previous: dict, hot_guess):
             v.update(hot_fraction=min(hot_guess[0], 0.9 * HOT_MAX_FRACTION),
                      hot_rate_hz=max(hot_guess[1], (HOT_MIN_RATIO + 1.0) * ordinary), hot_sigma=0.5,
                      hot_on_fraction=0.5)
-        starts.append(_theta(v, model))
+        starts.append(theta_of(v, model))
     return starts
 
 
@@ -437,7 +343,7 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
     base = ev.load_preset(base) if isinstance(base, str) else base
     if any(w.lux is not None for w in windows) and base is None:
         raise ParameterError("windows with a lux need a base preset for the shot noise (base=...)")
-    groups = _groups(windows)
+    groups = window_groups(windows)
     shot = [_shot_rates(g.windows, base) for g in groups]
     lux_levels = {w.lux for w in windows if w.lux is not None}
     growth = len(lux_levels) >= 2
@@ -456,15 +362,15 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
                    hot_sigma=0.0, hot_on_fraction=0.5, growth_on=1e-3, growth_off=1e-3, regularity=0.0)
 
     def model_of(flags):
-        return _Model(flags["spread"], flags["hot"], shot, growth, lux, flags["regular"])
+        return Model(flags["spread"], flags["hot"], shot, growth, lux, flags["regular"])
 
     # backward selection: the full model first, then each term dropped in turn (likelihood-ratio test)
     full = {t: option != "off" for t, option in options.items()}
     with Phases("quiet fit", 3 + sum(full.values()), enabled=progress) as phases:
         with phases.phase("full model"):
             model = model_of(full)
-            res = _maximise(model, groups, _starts(model, values0, hot_guess))
-        values = dict(values0, **_unpack(res.x, model))
+            res = maximise(model, groups, _starts(model, values0, hot_guess))
+        values = dict(values0, **unpack(res.x, model))
         tests = {}
         dofs = {"regular": 1, "spread": 1, "hot": 4}
         names = {"regular": "regularity", "spread": "spread", "hot": "hot_pixels"}
@@ -475,7 +381,7 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
             with phases.phase(f"test of {names[term]}"):
                 reduced = model_of(dict(full, **{term: False}))
                 red_values = dict(values, **({"hot_fraction": 0.0} if term == "hot" else {}))
-                red_res = _maximise(reduced, groups, [_theta(red_values, reduced)])
+                red_res = maximise(reduced, groups, [theta_of(red_values, reduced)])
             stat = max(0.0, 2.0 * (red_res.fun - res.fun))
             tests[names[term]] = {"lr": stat, "p_value": float(chi2.sf(stat, dofs[term])), "dof": dofs[term]}
             if options[term] == "auto" and tests[names[term]]["p_value"] >= LR_P:
@@ -484,21 +390,21 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
             if keep != full:
                 model = model_of(keep)
                 kept_values = dict(values, **({} if keep["hot"] else {"hot_fraction": 0.0}))
-                res = _maximise(model, groups, [_theta(kept_values, model)] + _starts(model, values0, hot_guess)[:1])
+                res = maximise(model, groups, [theta_of(kept_values, model)] + _starts(model, values0, hot_guess)[:1])
         with phases.phase("standard errors"):
             se, notes = _standard_errors(model, groups, res)
         with phases.phase("goodness of fit"):
-            goodness = _goodness(_unpack(res.x, model), model, groups, len(res.x))
+            goodness = goodness_of_fit(unpack(res.x, model), model, groups, len(res.x))
     return _quiet_fit(model, res, se, notes, tests, goodness, windows, base, spread, hot, regularity, lux_levels)
 
 
-def _standard_errors(model: _Model, groups, res):
+def _standard_errors(model: Model, groups, res):
     """``(se, notes)``: standard errors of the fitted values (observed information, delta method)."""
-    v = _unpack(res.x, model)
+    v = unpack(res.x, model)
 
     # standard errors: observed information in the fitted coordinates, delta method
     def nll(t):
-        return -_log_likelihood(t, model, groups)
+        return -mixture_log_likelihood(t, model, groups)
 
     def inverse_information(free):
         def nll_free(t):
@@ -507,7 +413,7 @@ def _standard_errors(model: _Model, groups, res):
             return nll(x)
 
         try:
-            cov = np.linalg.inv(_hessian(nll_free, res.x[free])) if free else np.zeros((0, 0))
+            cov = np.linalg.inv(hessian(nll_free, res.x[free])) if free else np.zeros((0, 0))
         except np.linalg.LinAlgError:
             return None
         return cov if np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0) else None
@@ -561,7 +467,7 @@ def _standard_errors(model: _Model, groups, res):
     return se, notes
 
 
-def _coordinates(model: _Model) -> list:
+def _coordinates(model: Model) -> list:
     """The parameter behind each fitted coordinate, in the order of :func:`_unpack`."""
     names = ["rate_on_hz", "rate_off_hz"] + ["sigma"] * model.spread
     if model.hot:
@@ -576,7 +482,7 @@ BOUND_TOL = 1e-4
 SIGMA_FLOOR = 1e-3
 
 
-def _at_bounds(v: dict, model: _Model) -> dict:
+def _at_bounds(v: dict, model: Model) -> dict:
     """``{name: "at upper bound (BOUND" | "at lower bound (BOUND"}`` (the caller closes the bracket) of the fitted
     parameters on a bound of their range (:data:`BOUND_TOL`): the maximum is there, not inside, so the
     observed information gives it no standard error."""
@@ -604,7 +510,7 @@ def _at_bounds(v: dict, model: _Model) -> dict:
 
 def _quiet_fit(model, res, se, notes, tests, goodness, windows, base, spread, hot, regularity, lux_levels) -> QuietFit:
     """The :class:`QuietFit` of a finished fit: statuses and notes."""
-    v = _unpack(res.x, model)
+    v = unpack(res.x, model)
     status = {n: "fitted" for n in NAMES}
     if not model.spread:
         status["sigma"] = "not identified (likelihood-ratio test)" if spread == "auto" else "fixed"
@@ -651,21 +557,21 @@ def _rejections(goodness, windows) -> list:
 def preset_toml(params, *, sensor: tuple, header: str, provenance: dict, fit: QuietFit | None = None,
                 validation: list | None = None) -> str:
     """A preset document: header comment, ``[sensor]``, ``[params]``, ``[provenance]``, ``[fit]``, validation."""
-    from .preset import _table, toml_value
+    from ..preset import toml_table, toml_value
 
     width, height, name = sensor
     lines = [f"# {line}".rstrip() for line in header.strip().splitlines()] + [""]
-    lines += _table("sensor", {"width": int(width), "height": int(height), "name": name}) + [""]
-    lines += _table("params", params.to_dict(), digits=None) + [""]
-    lines += _table("provenance", provenance) + [""]
+    lines += toml_table("sensor", {"width": int(width), "height": int(height), "name": name}) + [""]
+    lines += toml_table("params", params.to_dict(), digits=None) + [""]
+    lines += toml_table("provenance", provenance) + [""]
     if fit is not None:
         tables = fit.to_toml_tables()
-        lines += _table("fit", {"method": tables["method"], "log_likelihood": tables["log_likelihood"],
+        lines += toml_table("fit", {"method": tables["method"], "log_likelihood": tables["log_likelihood"],
                                 "fit_status": tables["fit_status"], "rejections": tables["rejections"]}) + [""]
-        lines += _table("fit.status", tables["status"]) + [""]
-        lines += _table("fit.values", tables["values"]) + [""]
-        lines += _table("fit.std_error", tables["std_error"]) + [""]
-        lines += _table("fit.tests", tables["tests"]) + [""]
+        lines += toml_table("fit.status", tables["status"]) + [""]
+        lines += toml_table("fit.values", tables["values"]) + [""]
+        lines += toml_table("fit.std_error", tables["std_error"]) + [""]
+        lines += toml_table("fit.tests", tables["tests"]) + [""]
         for g in tables["goodness"]:
             lines += ["[[fit.goodness]]"] + [f"{k} = {toml_value(v)}" for k, v in g.items()] + [""]
         for c in tables["checks"]:

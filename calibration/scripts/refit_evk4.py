@@ -1,6 +1,6 @@
 """Map Noise2Params' published Prophesee EVK4 (Sony IMX636) noise fit onto evnoise's parameters.
 
-Run ``python -m evnoise.calibration.refit_evk4 [--out PRESET] [--photons-per-lux A]``.
+Run ``python -m evnoise.calibration.scripts.refit_evk4 [--out PRESET] [--photons-per-lux A]``.
 
 Noise2Params (Xu et al., "Noise2Params: Unification and Parameter Determination from Noise via a
 Probabilistic Event Camera Model", arXiv 2605.16317; code github.com/yagoiroot/Noise2Params,
@@ -39,7 +39,7 @@ import numpy as np
 
 from evnoise.errors import EvnoiseError
 
-HERE = Path(__file__).resolve().parent
+HERE = Path(__file__).resolve().parents[1]  # calibration/: the scripts' outputs are kept there
 DEFAULT_PRESET = HERE.parent / "evnoise" / "presets" / "evk4.toml"
 
 #: Noise2Params' published EVK4 parameters (configs/params_published.yaml of their code).
@@ -188,7 +188,7 @@ def refit(photons=None, *, progress: bool = True):
 
 def preset_text(params, errors: dict, profile: list) -> str:
     """The evk4 preset TOML."""
-    from .preset import toml_value
+    from ..preset import toml_value
 
     n = N2P
     prov = dict(
@@ -199,7 +199,7 @@ def preset_text(params, errors: dict, profile: list) -> str:
         status="mapped",
         method="least squares on log rates of evnoise's exact model (nominal pixel) against Noise2Params' "
                "nominal-pixel rate curve, photons_per_lux profiled on a grid",
-        command="python -m evnoise.calibration.refit_evk4",
+        command="python -m evnoise.calibration.scripts.refit_evk4",
         date=_dt.date.today().isoformat(),
         their_model="per microsecond: lam = 4.5 lux photons; ON when n + theta > e^B (n0 + theta), n, n0 ~ "
                     "Poisson(lam), theta(lam) = c1 + c2 sqrt(lam) + c3 lam; P by the saddle-point approximation; "
@@ -225,7 +225,7 @@ def preset_text(params, errors: dict, profile: list) -> str:
         "# Prophesee EVK4 (Sony IMX636, 1280x720), mapped from Noise2Params' published noise fit.",
         "#",
         "# Regenerate with",
-        "#     python -m evnoise.calibration.refit_evk4",
+        "#     python -m evnoise.calibration.scripts.refit_evk4",
         f"# Mapped rate curve vs theirs: rms relative error {errors['rate_rms_relative_error']:.3f}, "
         f"max {errors['rate_max_relative_error']:.3f} "
         f"({errors['worst_polarity']} at {errors['worst_at_lux']:.3g} lux).",
@@ -248,7 +248,7 @@ def preset_text(params, errors: dict, profile: list) -> str:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m evnoise.calibration.refit_evk4",
+    parser = argparse.ArgumentParser(prog="python -m evnoise.calibration.scripts.refit_evk4",
                                      description=__doc__.split("\n")[0])
     parser.add_argument("--out", type=Path, default=DEFAULT_PRESET, help=f"preset to write (default {DEFAULT_PRESET})")
     parser.add_argument("--photons-per-lux", type=float, help="skip the profile and use this photons_per_lux")

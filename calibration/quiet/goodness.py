@@ -1,19 +1,16 @@
 """Goodness of fit of quiet-scene models: the fitted model's count histograms against the windows', and
-a preset simulated against a recording. Re-exported by :mod:`evnoise.calibration.quiet`.
+a preset simulated against a recording. Part of :mod:`evnoise.calibration.quiet`.
 """
 
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .quiet_counts import count_pmf
-from .quiet_likelihood import _component_rates
-
-if TYPE_CHECKING:
-    from .quiet import QuietWindow
+from .counts import count_pmf
+from .likelihood import component_rates
+from .window import QuietWindow
 
 __all__ = ["GOF_MAX_COUNT", "simulate_window", "compare_to_recording"]
 
@@ -34,7 +31,7 @@ def _marginal_pmf(v, model, gi, grp, wi, pol, kmax):
     n_cap = min(int(w.counts.sum(axis=0).max()) + 5, 2 * GOF_MAX_COUNT)
     n = np.arange(n_cap + 1)
     k = np.arange(kmax + 1)
-    comps = _component_rates(v, gi, model, grp)
+    comps = component_rates(v, gi, model, grp)
     fractions = [1.0 - v["hot_fraction"], v["hot_fraction"]]
     out = np.zeros(kmax + 1)
     for (rates, share_on, weights), frac in zip(comps, fractions):
@@ -46,7 +43,7 @@ def _marginal_pmf(v, model, gi, grp, wi, pol, kmax):
     return out
 
 
-def _goodness(v, model, groups, n_fitted):
+def goodness_of_fit(v, model, groups, n_fitted):
     from scipy.stats import chi2
 
     out = []

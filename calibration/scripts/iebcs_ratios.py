@@ -1,6 +1,6 @@
 """IEBCS' per-pixel noise measured at 0.1, 161 and 3000 lux against evnoise's shot noise + leak curve.
 
-    python -m evnoise.calibration.iebcs_ratios [--data ../shared/data/realdata] [--preset davis346]
+    python -m evnoise.calibration.scripts.iebcs_ratios [--data ../shared/data/realdata] [--preset davis346]
 
 The IEBCS repository ships, for a 50x50 patch of a real sensor, per-pixel noise histograms at three
 illuminances (the sensor and the recording duration are not given). Only relative numbers can be
@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-HERE = Path(__file__).resolve().parent
+HERE = Path(__file__).resolve().parents[1]  # calibration/: the scripts' outputs are kept there
 LUX = (0.1, 161.0, 3000.0)
 FILES = {("ON", 0.1): "noise_pos_0.1lux.npy", ("ON", 161.0): "noise_pos_161lux.npy",
          ("ON", 3000.0): "noise_pos_3klux.npy", ("OFF", 0.1): "noise_neg_0.1lux.npy",

@@ -20,11 +20,11 @@ import numpy as np
 from evnoise.mismatch import LevelStats
 from evnoise.params import PARAM_LIMITS, NoiseParams
 
-from ._spec import FitSpec
-from .measurements import Measurements
+from ..measurements import Measurements
+from .spec import FitSpec
 
 
-class _Prepared:
+class Prepared:
     """What the likelihood needs from the measurements, computed once and shared by every problem
     built on them (read-only after construction)."""
 
@@ -68,34 +68,34 @@ class _Prepared:
                 self.quasi_shape = True
 
 
-class _Problem:
-    """The likelihood of measurements under a frozen :class:`~._spec.FitSpec`.
+class Problem:
+    """The likelihood of measurements under a frozen :class:`~.spec.FitSpec`.
 
-    ``_Problem(meas, method, distribution, free, values, bounds, **options)`` builds the spec;
+    ``Problem(meas, method, distribution, free, values, bounds, **options)`` builds the spec;
     :meth:`from_spec` takes one, and :meth:`derive` makes the problem of a changed spec on the same
     (already prepared) measurements. Only the cache of the last model statistics changes after
     construction.
     """
 
     def __init__(self, meas: Measurements, method, distribution, free, values, bounds, **options):
-        self._build(FitSpec(method, distribution, free, values, bounds, **options), _Prepared(meas))
+        self._build(FitSpec(method, distribution, free, values, bounds, **options), Prepared(meas))
 
     @classmethod
-    def from_spec(cls, meas: Measurements, spec: FitSpec, prepared: _Prepared | None = None) -> "_Problem":
+    def from_spec(cls, meas: Measurements, spec: FitSpec, prepared: Prepared | None = None) -> "Problem":
         """The problem of ``spec`` on ``meas`` (``prepared``: the measurements' prepared data, if at hand)."""
         problem = cls.__new__(cls)
-        problem._build(spec, prepared if prepared is not None else _Prepared(meas))
+        problem._build(spec, prepared if prepared is not None else Prepared(meas))
         return problem
 
-    def derive(self, spec: FitSpec) -> "_Problem":
+    def derive(self, spec: FitSpec) -> "Problem":
         """The problem of another spec on the same measurements."""
-        return _Problem.from_spec(self.meas, spec, self._prepared)
+        return Problem.from_spec(self.meas, spec, self._prepared)
 
-    def with_value(self, name, value) -> "_Problem":
+    def with_value(self, name, value) -> "Problem":
         """The same problem with the fixed parameter ``name`` at ``value``."""
         return self.derive(self.spec.with_value(name, value))
 
-    def _build(self, spec: FitSpec, prepared: _Prepared):
+    def _build(self, spec: FitSpec, prepared: Prepared):
         self.spec = spec
         self._prepared = prepared
         d = prepared
@@ -108,7 +108,7 @@ class _Problem:
             self.k_obs, self.k_sd, self.quasi_shape = d.k_obs, d.k_sd, d.quasi_shape
         self.lo = np.log([spec.bounds[n][0] for n in spec.free])
         # the search stays below NoiseParams' limits (PARAM_LIMITS), by the largest finite-difference
-        # step taken there (_uncertainty._steps), so that no point it evaluates is out of range
+        # step taken there (uncertainty.steps), so that no point it evaluates is out of range
         margin = [0.02 if n in ("eps_pos", "eps_neg", "bias_pr") else 1e-3 for n in spec.free]
         limit = np.log([PARAM_LIMITS.get(n, math.inf) for n in spec.free]) - margin
         self.hi = np.minimum(np.log([spec.bounds[n][1] for n in spec.free]), limit)

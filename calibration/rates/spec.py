@@ -1,7 +1,7 @@
 """Specification of a fit: the parameters, their defaults and bounds, the constants of the method, and
 :class:`FitSpec`, the frozen description of one fit.
 
-Internal to :mod:`evnoise.calibration.fit`, which re-exports these names.
+Used by :mod:`.fit` (the names the tests need are public here, in the module that owns them).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from typing import Mapping
 from evnoise.errors import InputError, ParameterError
 from evnoise.params import NoiseParams, fit_bounds, names_with_fit_role, parameter_names, parameter_specs
 
-from .measurements import Measurements
+from ..measurements import Measurements
 
 #: Every parameter of :class:`NoiseParams`, in its order.
 FIT_NAMES = parameter_names()
@@ -94,7 +94,7 @@ AT_BOUND_OK = tuple(s.name for s in parameter_specs() if s.fit_low in ("ok", "ze
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class FitSpec:
-    """What one fit is: the frozen specification a likelihood (``_likelihood._Problem``) is built on.
+    """What one fit is: the frozen specification a likelihood (``likelihood.Problem``) is built on.
 
     A stage of the fit that changes any of it (a continuation step, a parameter held on a
     profile, reweighted blocks) builds a new spec (:func:`dataclasses.replace` or the ``with_``
@@ -152,7 +152,7 @@ class FitSpec:
         return dataclasses.replace(self, weights={**self.weights, **weights})
 
 
-def _resolve(meas: Measurements, free, fixed, initial, fit_dispersion: bool = True):
+def resolve_parameters(meas: Measurements, free, fixed, initial, fit_dispersion: bool = True):
     fixed = dict(fixed or {})
     for n in fixed:
         if n not in FIT_NAMES:
@@ -200,7 +200,7 @@ def _resolve(meas: Measurements, free, fixed, initial, fit_dispersion: bool = Tr
     return free, fixed, values
 
 
-def _bounds(meas: Measurements, free, values, override=None):
+def data_bounds(meas: Measurements, free, values, override=None):
     b = dict(BOUNDS)
     lux_ref = float(max(meas.lux.max(), 1e-6))
     rate_max = float(meas.rate_hz.max())
@@ -231,7 +231,7 @@ def _bounds(meas: Measurements, free, values, override=None):
     return b
 
 
-def _check_bounds(bounds):
+def check_bounds(bounds):
     if bounds is None:
         return None
     if not isinstance(bounds, dict):

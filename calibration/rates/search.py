@@ -13,8 +13,8 @@ import numpy as np
 
 from evnoise.params import NoiseParams
 
-from ._likelihood import _Prepared, _Problem
-from ._spec import (
+from .likelihood import Prepared, Problem
+from .spec import (
     FIT_NAMES,
     FLOORS,
     GROWTH,
@@ -26,9 +26,9 @@ from ._spec import (
     SMOOTHING,
     SPREAD,
     FitSpec,
-    _bounds,
+    data_bounds,
 )
-from ._uncertainty import _covariance, _information, _rejected, _step_like, _steps
+from .uncertainty import covariance, information, is_step_like, rejected, steps
 
 log = logging.getLogger("evnoise.calibration")
 
@@ -47,7 +47,7 @@ class _MeanProxy:
     MIN_REL_SIGMA = 0.1  # ... or below this fraction of the threshold, if that is smaller
     N_NODES = 9
 
-    def __init__(self, problem: _Problem):
+    def __init__(self, problem: Problem):
         self.pr = problem
         # the spread and hot-pixel terms barely change the mean: held at their values in the stand-in;
         # the floors are profiled out with trial_rate_hz (the mean is linear in them), so the seeds
@@ -116,6 +116,7 @@ class _MeanProxy:
                 for e in ("eps_pos", "eps_neg")], axis=1)  # (S, 2, J)
         base = p * pr.exposure[None, None, :]
         y = pr.y[None]
+        # TODO(lead): use the noise-term registry (evnoise/terms/) for these background intensities
         # background: additive in the stand-in (nu ~ N p + l for l << N), mean over the population
         f_hot = vals["hot_pixel_fraction"] * (vals["hot_pixel_rate_hz"] > 0)
         hot = f_hot * vals["hot_pixel_rate_hz"]
@@ -200,7 +201,7 @@ class _MeanProxy:
         return x, f(x)
 
 
-def _local_fit(problem: _Problem, theta0, *, max_iter: int = 80, polish: bool = True, central: bool = True):
+def local_fit(problem: Problem, theta0, *, max_iter: int = 80, polish: bool = True, central: bool = True):
     """Levenberg-Marquardt-damped Fisher scoring in log space, within the bounds.
 
     Each iteration needs the score and expected information (central differences, ``2 p``
@@ -214,9 +215,9 @@ def _local_fit(problem: _Problem, theta0, *, max_iter: int = 80, polish: bool = 
         return theta, math.inf
     ll = problem.loglik(theta)
     damping = 1e-3
-    h = _steps(problem, 1e-4)
+    h = steps(problem, 1e-4)
     for _ in range(max_iter):
-        info, _, extras = _information(problem, theta, h, want_meat=False, central=central)
+        info, _, extras = information(problem, theta, h, want_meat=False, central=central)
         score = extras["score"]
         free_dir = ~(((theta <= lo + 1e-12) & (score < 0)) | ((theta >= hi - 1e-12) & (score > 0)))
         if not free_dir.any():
@@ -274,20 +275,20 @@ def _simplex(t, lo, hi, size=0.05):
     return np.array(pts)
 
 
-def _fit(meas, method, distribution, free, values, *, assumed, gen, n_starts, n_seeds, progress, have_initial,
+def run_search(meas, method, distribution, free, values, *, assumed, gen, n_starts, n_seeds, progress, have_initial,
          dispersion, bounds):
     """Build the problem and find its best optimum; ``(problem, theta)`` (the problem of the last
     stage: with rescaled block weights where the noise scale is unknown)."""
     values = dict(values)
-    fit_bounds = _bounds(meas, free, values, bounds)  # moves starting values inside the bounds
-    prepared = _Prepared(meas)
+    fit_bounds = data_bounds(meas, free, values, bounds)  # moves starting values inside the bounds
+    prepared = Prepared(meas)
     fit_shape = prepared.use_shape and dispersion == "fit"
     quasi = prepared.quasi_counts or (fit_shape and prepared.quasi_shape)
     # measured shapes only reported, or unknown scales (then the mean curve is fitted first): no shape term
     shape_weight = 0.0 if prepared.use_shape and (not fit_shape or quasi) else 1.0
     spec = FitSpec(method, distribution, free, values, fit_bounds, weights={"counts": 1.0, "shape": shape_weight},
                    fit_shape=fit_shape, assumed_sigma=assumed)
-    problem = _Problem.from_spec(meas, spec, prepared)
+    problem = Problem.from_spec(meas, spec, prepared)
     step_like = problem.values["eps_sigma"] == 0.0 and "eps_sigma" not in free and method == "poisson"
     if step_like and meas.kind == "flat-field":
         theta = _continuation(problem, gen, n_starts, n_seeds, progress, have_initial)
@@ -297,13 +298,13 @@ def _fit(meas, method, distribution, free, values, *, assumed, gen, n_starts, n_
         # table may need); the continuation, within the bounds of a fit with mismatch, only when the
         # direct fit is rejected (few photons, where the steps of the likelihood are coarse).
         theta = _optimise(problem, problem.values, gen, n_starts, n_seeds, progress, have_initial)
-        if _rejected(problem, theta):
+        if rejected(problem, theta):
             log.info("direct fit rejected; fitting the mismatch-free model by continuation")
             smooth = problem.derive(dataclasses.replace(
-                problem.spec, bounds=_bounds(meas, free, dict(problem.values, eps_sigma=SMOOTHING[0]), bounds)))
+                problem.spec, bounds=data_bounds(meas, free, dict(problem.values, eps_sigma=SMOOTHING[0]), bounds)))
             theta2 = np.clip(_continuation(smooth, gen, n_starts, n_seeds, progress, have_initial),
                              problem.lo, problem.hi)
-            theta2, _ = _local_fit(problem, theta2)
+            theta2, _ = local_fit(problem, theta2)
             if problem.objective(theta2) < problem.objective(theta):
                 theta = theta2
     else:
@@ -317,12 +318,12 @@ def _fit(meas, method, distribution, free, values, *, assumed, gen, n_starts, n_
     if quasi:
         # blocks with unknown noise scale: weight each by its residual dispersion, refit
         for _ in range(3):
-            problem = _reweighted(problem, theta)
-            theta, _ = _local_fit(problem, theta)
+            problem = reweighted(problem, theta)
+            theta, _ = local_fit(problem, theta)
     return problem, theta
 
 
-def _continuation(problem: _Problem, gen, n_starts, n_seeds, progress, have_initial):
+def _continuation(problem: Problem, gen, n_starts, n_seeds, progress, have_initial):
     """Fit the mismatch-free (step-like) model by continuation: optimise with a little mismatch
     (:data:`SMOOTHING`) and follow the optimum as the mismatch goes to 0 (each stage a problem of its
     own; ``problem`` itself is left as it is). Returns the optimum of the last stage (``eps_sigma = 0``)."""
@@ -330,11 +331,11 @@ def _continuation(problem: _Problem, gen, n_starts, n_seeds, progress, have_init
     theta = _optimise(stage, stage.values, gen, n_starts, n_seeds, progress, have_initial)
     for s_c in SMOOTHING[1:] + (0.0,):
         stage = problem.with_value("eps_sigma", s_c)
-        theta, _ = _local_fit(stage, theta)
+        theta, _ = local_fit(stage, theta)
     return theta
 
 
-def _comparable_loglik(problem: _Problem, theta) -> float:
+def comparable_loglik(problem: Problem, theta) -> float:
     """Log-likelihood of the level totals with unit weights (profiled scale for rates without exposure)."""
     mu = problem.model_counts(problem.stats(theta))
     if problem.quasi_counts:
@@ -345,13 +346,13 @@ def _comparable_loglik(problem: _Problem, theta) -> float:
     return float(np.sum(problem.count_terms(mu)))
 
 
-def _with_fixed(problem: _Problem, name: str, value: float):
+def fixed_problem(problem: Problem, name: str, value: float):
     """A copy of ``problem`` with ``name`` held at ``value``; returns it and the indices of the others."""
     keep = [i for i, n in enumerate(problem.free) if n != name]
     return problem.derive(problem.spec.with_fixed(name, value)), keep
 
 
-def _profile(problem: _Problem, theta, name: str, *, max_steps: int = 30):
+def profile_likelihood(problem: Problem, theta, name: str, *, max_steps: int = 30):
     """Profile likelihood of ``name`` (log steps of :data:`PROFILE_STEP`), the others refitted.
 
     Walks out from ``theta`` both ways until twice the log-likelihood has dropped by
@@ -363,7 +364,7 @@ def _profile(problem: _Problem, theta, name: str, *, max_steps: int = 30):
     """
     i = problem.free.index(name)
     ll0 = problem.loglik(theta)
-    stop = PROFILE_STOP + (PROFILE_ROUGH if _step_like(problem) else 0.0)
+    stop = PROFILE_STOP + (PROFILE_ROUGH if is_step_like(problem) else 0.0)
     points = [(float(theta[i]), ll0, np.array(theta, dtype=np.float64))]
     reached = {1: False, -1: False}
     ridge = np.zeros(len(problem.free))
@@ -388,10 +389,10 @@ def _profile(problem: _Problem, theta, name: str, *, max_steps: int = 30):
             starts = [last + (t - last[i]) * ridge]
             if len(path) >= 2 and path[-1][i] != path[-2][i]:
                 starts.append(last + (last - path[-2]) * ((t - last[i]) / (path[-1][i] - path[-2][i])))
-            sub, keep = _with_fixed(problem, name, math.exp(t))
+            sub, keep = fixed_problem(problem, name, math.exp(t))
             ll, full = -math.inf, None
             for start in starts:
-                x, _ = _local_fit(sub, np.clip(start[keep], sub.lo, sub.hi), max_iter=40, polish=False,
+                x, _ = local_fit(sub, np.clip(start[keep], sub.lo, sub.hi), max_iter=40, polish=False,
                                   central=False)
                 cand = start.copy()
                 cand[keep] = x
@@ -413,13 +414,13 @@ def _profile(problem: _Problem, theta, name: str, *, max_steps: int = 30):
             else:
                 beyond = 0
             # where the profile is flat (within the interval's tolerance), walk faster
-            flat = 2.0 * (best - ll) <= 1.0 + (PROFILE_ROUGH if _step_like(problem) else 0.0)
+            flat = 2.0 * (best - ll) <= 1.0 + (PROFILE_ROUGH if is_step_like(problem) else 0.0)
             step = min(step * 1.5, PROFILE_MAX_STEP) if flat else PROFILE_STEP
     points.sort(key=lambda q: q[0])
     k_best = int(np.argmax([q[1] for q in points]))
     if points[k_best][1] > ll0 + 1e-9 * (1.0 + abs(ll0)):
         # a better optimum along the profile: resume the full fit from it
-        cand, _ = _local_fit(problem, points[k_best][2])
+        cand, _ = local_fit(problem, points[k_best][2])
         theta = cand if problem.loglik(cand) >= points[k_best][1] else points[k_best][2]
         log.info("profile of %s found a better optimum: %.4g", name, math.exp(theta[i]))
         points.append((float(theta[i]), problem.loglik(theta), np.array(theta)))
@@ -427,7 +428,7 @@ def _profile(problem: _Problem, theta, name: str, *, max_steps: int = 30):
     return theta, {"name": name, "points": points, "lo_bound": reached[-1], "hi_bound": reached[1]}
 
 
-def _optimise(problem: _Problem, values, gen, n_starts, n_seeds, progress, have_initial):
+def _optimise(problem: Problem, values, gen, n_starts, n_seeds, progress, have_initial):
     """Global search: quasi-random seeds -> cheap mean-curve fits -> full fits from the best."""
     from scipy.stats import qmc
 
@@ -483,14 +484,14 @@ def _optimise(problem: _Problem, values, gen, n_starts, n_seeds, progress, have_
     # a few iterations from every start, then the best N_CONVERGED to convergence
     trial = []
     for k, s0 in enumerate(starts):
-        t, f = _local_fit(problem, s0, max_iter=10, polish=False, central=False) if len(starts) > 2 \
+        t, f = local_fit(problem, s0, max_iter=10, polish=False, central=False) if len(starts) > 2 \
             else (s0, math.inf)
         trial.append((f, k, t))
         if bar is not None:
             bar.update(1)
     trial.sort(key=lambda r: r[0])
     for _, k, t0 in trial[:N_CONVERGED]:
-        t, f = _local_fit(problem, t0)
+        t, f = local_fit(problem, t0)
         log.info("start %d/%d: objective %.10g", k + 1, len(starts), f)
         if f < best[1] or (best[0] is None and problem.in_domain(t)):
             best = (t, f)
@@ -501,7 +502,7 @@ def _optimise(problem: _Problem, values, gen, n_starts, n_seeds, progress, have_
     return _ridge_walk(problem, best[0], best[1])
 
 
-def _ridge_walk(problem: _Problem, theta, f, *, rounds: int = 2, n_directions: int = 3):
+def _ridge_walk(problem: Problem, theta, f, *, rounds: int = 2, n_directions: int = 3):
     """Look for better optima along the least-constrained directions of the best fit.
 
     The rate curve hardly changes along ridges (photons_per_lux and bias_pr up, thresholds
@@ -517,8 +518,8 @@ def _ridge_walk(problem: _Problem, theta, f, *, rounds: int = 2, n_directions: i
     # dozen numbers, slow at large photon counts): one round on the weakest direction, short fits
     thorough = problem.meas.kind == "flat-field"
     for _ in range(rounds if thorough else 1):
-        info, _, _ = _information(problem, theta, _steps(problem, 1e-4), want_meat=False)
-        cov, _ = _covariance(info, info)
+        info, _, _ = information(problem, theta, steps(problem, 1e-4), want_meat=False)
+        cov, _ = covariance(info, info)
         w, v = np.linalg.eigh(cov)
         improved = False
         base = theta
@@ -527,10 +528,10 @@ def _ridge_walk(problem: _Problem, theta, f, *, rounds: int = 2, n_directions: i
             scale = max(0.5, 1.5 * math.sqrt(max(w[-k], 0.0)))
             for t in (-2.0, -1.0, 1.0, 2.0):
                 start = np.clip(base + t * scale * direction, problem.lo, problem.hi)
-                cand, fc = (_local_fit(problem, start, central=False) if thorough else
-                            _local_fit(problem, start, max_iter=12, polish=False, central=False))
+                cand, fc = (local_fit(problem, start, central=False) if thorough else
+                            local_fit(problem, start, max_iter=12, polish=False, central=False))
                 if fc < f - 1e-9 * (1 + abs(f)):
-                    cand, fc = _local_fit(problem, cand)
+                    cand, fc = local_fit(problem, cand)
                     if fc < f:
                         log.info("ridge walk: objective %.10g -> %.10g", f, fc)
                         theta, f, improved = cand, fc, True
@@ -539,7 +540,7 @@ def _ridge_walk(problem: _Problem, theta, f, *, rounds: int = 2, n_directions: i
     return theta
 
 
-def _looks_bad(problem: _Problem, theta) -> bool:
+def _looks_bad(problem: Problem, theta) -> bool:
     """Whether the fitted level means miss the measured ones by far more than their noise."""
     meas = problem.meas
     stats = problem.stats(theta)
@@ -562,7 +563,7 @@ def _looks_bad(problem: _Problem, theta) -> bool:
     return not pearson <= 5.0 * max(problem.y.size - len(problem.free), 1)
 
 
-def _reweighted(problem: _Problem, theta) -> _Problem:
+def reweighted(problem: Problem, theta) -> Problem:
     """The problem with each block of unknown noise scale weighted by its residual dispersion at ``theta``."""
     stats = problem.stats(theta)
     n_free = len(problem.free)

@@ -1,6 +1,6 @@
 """Refit the Prophesee EVK3-HD preset from the Noise2Image authors' calibration.
 
-Run ``python -m evnoise.calibration.refit_evk3 [--reference DIR] [--out PRESET] [--plot PNG]``.
+Run ``python -m evnoise.calibration.scripts.refit_evk3 [--reference DIR] [--out PRESET] [--plot PNG]``.
 
 The authors published (see ``noise2image-reference/README.md``) their fitted parameters for the
 formula of their *code*, ``p = 1 - erf((e^eps - 1)(lam + b) / sqrt(2 lam (1 + e^eps)))`` with
@@ -51,7 +51,7 @@ import numpy as np
 from evnoise.errors import EvnoiseError, InputError
 
 DEFAULT_REFERENCE = Path(os.environ.get("EVNOISE_N2I_REFERENCE", "/work/shared/data/noise2image-reference"))
-HERE = Path(__file__).resolve().parent
+HERE = Path(__file__).resolve().parents[1]  # calibration/: the scripts' outputs are kept there
 DEFAULT_PRESET = HERE.parent / "evnoise" / "presets" / "evk3-hd.toml"
 DEFAULT_PLOT = HERE / "evk3-hd-fit.png"
 GREY_STEP = 8
@@ -105,7 +105,7 @@ def load_reference(folder: Path):
 
 def build_measurements(folder: Path, step: int = GREY_STEP):
     """The rate table (regenerated curve + measured r) at every ``step``-th grey level."""
-    from .measurements import rate_table
+    from ..measurements import rate_table
 
     grey, lux, lux_authors, r_on, r_off, lux_fit = load_reference(folder)
     idx = np.unique(np.concatenate([np.arange(0, 256, step), [255]]))
@@ -146,8 +146,8 @@ def refit(folder: Path, *, step: int = GREY_STEP, n_starts: int = 3, progress: b
     3. Final mismatch-free fit of the mean curve, with the NB shapes reported.
     The Gaussian form (eq. 3) is fitted at the authors' photon scale for comparison.
     """
-    from .fit import calibrate
-    from .measurements import rate_table
+    from ..measurements import rate_table
+    from ..rates.fit import calibrate
 
     meas, info = build_measurements(folder, step)
     means = rate_table(meas.lux, meas.rate_hz[0], meas.rate_hz[1], duration_s=1.0, source=meas.source,
@@ -196,7 +196,7 @@ def _header(exact) -> str:
         "Prophesee EVK3-HD (Sony IMX636, 1280x720), default biases, as used by the Noise2Image paper.\n"
         "\n"
         "Refitted with evnoise's exact model by\n"
-        "    python -m evnoise.calibration.refit_evk3\n"
+        "    python -m evnoise.calibration.scripts.refit_evk3\n"
         "to the Noise2Image authors' fitted rate curve (regenerated from their published parameters and\n"
         "their code's formula, with their constant extra OFF rate, which evnoise fits as the background\n"
         "floor leak_off_hz); their measured negative-binomial shapes r(grey) are NOT explained by\n"
@@ -212,7 +212,7 @@ def _header(exact) -> str:
 
 def write_outputs(meas, info, exact, gauss, profiles, preset_path: Path, plot_path: Path | None, *,
                   overwrite=True):
-    from .preset import result_to_toml, toml_value, write_text_atomic
+    from ..preset import result_to_toml, toml_value, write_text_atomic
 
     slope, intercept = info["lux_fit"]
     a = AUTHORS
@@ -226,7 +226,7 @@ def write_outputs(meas, info, exact, gauss, profiles, preset_path: Path, plot_pa
                      "(exact closed form, no threshold mismatch, background floors free, relative residuals with "
                      "quasi-likelihood scaling) with photons_per_lux profiled on a grid; the measured r tables "
                      "(1 s windows) compared with the NB shapes that a threshold mismatch predicts",
-        "command": "python -m evnoise.calibration.refit_evk3",
+        "command": "python -m evnoise.calibration.scripts.refit_evk3",
         "lux_axis": f"lux = {slope:.6g} * grey^2.2 (authors' fit of lux_far; their intercept {intercept:.4g} lux "
                     f"dropped, so the authors' lux = this - {-intercept:.4g})",
         "authors_formula": "p = 1 - erf((e^eps - 1)(lam + b) / sqrt(2 lam (1 + e^eps))), lam = a (lux + offset)",
@@ -283,7 +283,7 @@ def write_outputs(meas, info, exact, gauss, profiles, preset_path: Path, plot_pa
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m evnoise.calibration.refit_evk3",
+    parser = argparse.ArgumentParser(prog="python -m evnoise.calibration.scripts.refit_evk3",
                                      description=__doc__.split("\n")[0])
     parser.add_argument("--reference", type=Path, default=DEFAULT_REFERENCE,
                         help=f"folder of the Noise2Image reference tables (default {DEFAULT_REFERENCE})")
@@ -317,12 +317,12 @@ if __name__ == "__main__":
 
 def _dispersion_verdict() -> str:
     """How far threshold mismatch + background spread + hot pixels explain r(grey): the verdict of
-    ``python -m evnoise.calibration.dispersion_evk3`` (its JSON summary), or a pointer to it."""
+    ``python -m evnoise.calibration.scripts.dispersion_evk3`` (its JSON summary), or a pointer to it."""
     import json
 
-    path = Path(__file__).resolve().parent / "evk3-dispersion.json"
+    path = HERE / "evk3-dispersion.json"
     try:
         verdict = json.loads(path.read_text(encoding="utf-8"))["verdict"]
     except (OSError, KeyError, ValueError):
-        return "not evaluated: run python -m evnoise.calibration.dispersion_evk3"
-    return verdict + " (python -m evnoise.calibration.dispersion_evk3; calibration/evk3-dispersion.json)"
+        return "not evaluated: run python -m evnoise.calibration.scripts.dispersion_evk3"
+    return verdict + " (python -m evnoise.calibration.scripts.dispersion_evk3; calibration/evk3-dispersion.json)"

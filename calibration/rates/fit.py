@@ -68,11 +68,11 @@ Identifiability
     as such and treated as fixed there for the uncertainties of the others.
 
 Layout
-    This module holds :func:`calibrate`; the method is split by job into ``_spec`` (parameters,
+    This module holds :func:`calibrate`; the method is split by job into ``spec`` (parameters,
     defaults, bounds, constants, and the frozen ``FitSpec`` of a fit: each stage that changes it
-    builds a new one), ``_likelihood`` (the likelihood of each kind of data),
-    ``_search`` (stand-in pre-fits, local fits, ridge walk, continuation, profile),
-    ``_uncertainty`` (information, sandwich, profile intervals, identifiability, goodness of
+    builds a new one), ``likelihood`` (the likelihood of each kind of data),
+    ``search`` (stand-in pre-fits, local fits, ridge walk, continuation, profile),
+    ``uncertainty`` (information, sandwich, profile intervals, identifiability, goodness of
     fit, verdict) and ``result`` (:class:`CalibrationResult`).
 """
 
@@ -84,61 +84,12 @@ from evnoise.errors import InputError, ParameterError
 from evnoise.mismatch import METHODS
 from evnoise.params import NoiseParams
 
-# The method lives in one module per job (_likelihood, _search, _uncertainty, _spec, result);
-# the names below are re-exported for the tests and for readers who look for them here.
-from ._likelihood import (
-    _nb_log_shape_se,  # noqa: F401
-    _Problem,  # noqa: F401
-)
-from ._progress import Phases
-from ._search import (
-    _comparable_loglik,
-    _continuation,  # noqa: F401
-    _fit,
-    _local_fit,  # noqa: F401
-    _MeanProxy,  # noqa: F401
-    _optimise,  # noqa: F401
-    _profile,
-    _ridge_walk,  # noqa: F401
-    _with_fixed,  # noqa: F401
-)
-from ._spec import (
-    AT_BOUND_OK,  # noqa: F401
-    BOUNDS,  # noqa: F401
-    CORE,  # noqa: F401
-    DISTRIBUTIONS,
-    FIT_NAMES,
-    FLOORS,  # noqa: F401
-    GROWTH,  # noqa: F401
-    LAM_MAX,  # noqa: F401
-    LAM_MAX_MISMATCH,  # noqa: F401
-    N_CONVERGED,  # noqa: F401
-    NEVER,  # noqa: F401
-    PROFILE_MAX_STEP,  # noqa: F401
-    PROFILE_ROUGH,  # noqa: F401
-    PROFILE_STEP,  # noqa: F401
-    PROFILE_STOP,  # noqa: F401
-    REJECT_P,  # noqa: F401
-    REJECT_RMS,  # noqa: F401
-    SMOOTHING,  # noqa: F401
-    SPREAD,  # noqa: F401
-    STARTS,  # noqa: F401
-    TABLE_SIGMA,
-    UNMODELLED,  # noqa: F401
-    ZERO_AT_BOUND,  # noqa: F401
-    _bounds,  # noqa: F401
-    _check_bounds,
-    _resolve,
-)
-from ._uncertainty import (
-    _finish,
-    _goodness,  # noqa: F401
-    _information,  # noqa: F401
-    _rejected,
-    _verdict,  # noqa: F401
-)
-from .measurements import Measurements
+from .._progress import Phases
+from ..measurements import Measurements
 from .result import CalibrationResult
+from .search import comparable_loglik, profile_likelihood, run_search
+from .spec import DISTRIBUTIONS, FIT_NAMES, FLOORS, GROWTH, SPREAD, TABLE_SIGMA, check_bounds, resolve_parameters
+from .uncertainty import finish, rejected
 
 __all__ = ["calibrate", "CalibrationResult", "FIT_NAMES"]
 
@@ -223,7 +174,7 @@ def calibrate(measurements: Measurements, *, method: str = "poisson", distributi
         raise ParameterError(f"max_rel_se must be > 0, got {max_rel_se!r}")
     gen = as_generator(rng)
     meas = measurements
-    free, fixed, values = _resolve(meas, free, fixed, initial, fit_dispersion=dispersion == "fit")
+    free, fixed, values = resolve_parameters(meas, free, fixed, initial, fit_dispersion=dispersion == "fit")
     n_points = 2 * meas.n_levels
     needed = len([n for n in free if n != "eps_sigma"]) + 1
     if n_points < needed:
@@ -237,7 +188,7 @@ def calibrate(measurements: Measurements, *, method: str = "poisson", distributi
         raise ParameterError(
             f"a regular background (leak_regularity = {values['leak_regularity']:g}) is modelled in the mean rates "
             f"only, not in {what}: fix leak_regularity=0, or calibrate the background from a quiet recording")
-    bounds = _check_bounds(bounds)
+    bounds = check_bounds(bounds)
     assumed = ("eps_sigma" not in free and "eps_sigma" not in fixed and initial is None
                and values["eps_sigma"] == TABLE_SIGMA)
     fit_args = dict(gen=gen, n_starts=n_starts, n_seeds=n_seeds, progress=progress, have_initial=initial is not None,
@@ -254,21 +205,21 @@ def _calibrate_phases(phases, meas, method, distribution, free, fixed, values, i
                       fit_args, n_starts, max_rel_se, unidentified, dispersion, bounds, gen) -> CalibrationResult:
     """The phases of :func:`calibrate` after its checks, each shown on ``phases``."""
     with phases.phase("search"):
-        problem, theta = _fit(meas, method, distribution, free, values, assumed=assumed, **fit_args)
+        problem, theta = run_search(meas, method, distribution, free, values, assumed=assumed, **fit_args)
     profile = sigma_note = None
-    if assumed and TABLE_SIGMA > 0 and _rejected(problem, theta):
+    if assumed and TABLE_SIGMA > 0 and rejected(problem, theta):
         # The assumed mismatch changes the shape of the mean curve where photons are many (its
         # bright tail no longer falls as fast), and the data reject it: fit without mismatch as
         # well and keep that when the data clearly prefer it (twice the log-likelihood ratio above 4).
         phases.add(1 + want_profile)
         with phases.phase("search without mismatch"):
-            problem0, theta0 = _fit(meas, method, distribution, free, dict(values, eps_sigma=0.0), assumed=True,
+            problem0, theta0 = run_search(meas, method, distribution, free, dict(values, eps_sigma=0.0), assumed=True,
                                     **fit_args)
         profile0 = None
         if want_profile:
             with phases.phase("profile of photons_per_lux (without mismatch)"):
-                theta0, profile0 = _profile(problem0, theta0, "photons_per_lux")
-        ll_a, ll_0 = _comparable_loglik(problem, theta), _comparable_loglik(problem0, theta0)
+                theta0, profile0 = profile_likelihood(problem0, theta0, "photons_per_lux")
+        ll_a, ll_0 = comparable_loglik(problem, theta), comparable_loglik(problem0, theta0)
         if 2.0 * (ll_0 - ll_a) > 4.0:
             problem, theta, profile = problem0, theta0, profile0
         sigma_note = (f"the fit with the assumed {TABLE_SIGMA:g} is rejected; of it and 0 the data prefer "
@@ -277,9 +228,9 @@ def _calibrate_phases(phases, meas, method, distribution, free, fixed, values, i
     if want_profile:
         with phases.phase("profile of photons_per_lux"):
             if profile is None:
-                theta, profile = _profile(problem, theta, "photons_per_lux")
+                theta, profile = profile_likelihood(problem, theta, "photons_per_lux")
     with phases.phase("uncertainties and goodness of fit"):
-        result = _finish(problem, theta, max_rel_se, profile=profile, sigma_note=sigma_note)
+        result = finish(problem, theta, max_rel_se, profile=profile, sigma_note=sigma_note)
     if unidentified == "fix":
         flagged = [n for n in result.free if result.status[n] == "not identified"]
         if flagged:

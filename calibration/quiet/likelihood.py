@@ -2,7 +2,7 @@
 
 Per-pixel count vectors over a recording's windows, integrated over the spread of the rates (and the
 hot pixels) on a fixed grid of the standard normal; the maximisation and the numerical Hessian.
-Internal: :mod:`evnoise.calibration.quiet` re-exports these names.
+Part of :mod:`evnoise.calibration.quiet`; used by :mod:`.fit` and :mod:`.goodness`.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import numpy as np
 
 from evnoise.errors import InputError
 
-from .quiet_counts import count_survival
+from .counts import count_survival
 
 #: Grid points of the standard normal (over +-7 sd) for the integrals over the spread.
 GRID = 241
@@ -42,7 +42,7 @@ class _Group:
     log_binom: np.ndarray  # (U,) sum over windows of log C(k_on + k_off, k_on)
 
 
-def _groups(windows) -> list:
+def window_groups(windows) -> list:
     from scipy.special import gammaln
 
     by = {}
@@ -64,7 +64,7 @@ def _groups(windows) -> list:
 
 
 @dataclass
-class _Model:
+class Model:
     """What is free and the fixed shot-noise rates of each window (``shot``: (n_windows, 2) per group)."""
 
     spread: bool
@@ -83,7 +83,7 @@ def _sigmoid(x):
     return 1.0 / (1.0 + math.exp(-x)) if x >= 0 else math.exp(x) / (1.0 + math.exp(x))
 
 
-def _unpack(theta, model: _Model):
+def unpack(theta, model: Model):
     v = dict(zip(("log_on", "log_off"), theta[:2]))
     i = 2
     v["sigma"] = _exp(theta[i]) if model.spread else 0.0
@@ -108,7 +108,7 @@ def _unpack(theta, model: _Model):
     return v
 
 
-def _component_rates(v, group_index, model: _Model, grp: _Group):
+def component_rates(v, group_index, model: Model, grp: _Group):
     """Per component: total rates (M, W) events/s and ON shares (M, W) over its grid."""
     T = np.array([w.duration_s for w in grp.windows])
     shot = model.shot[group_index]
@@ -168,7 +168,7 @@ def _log_peak_rate(rate_hz, sigma):
     return math.log(rate_hz) + sigma * (_Z_MAX - 0.5 * sigma)  # -inf where sigma * sigma overflows
 
 
-def _rates_in_range(v, model: _Model) -> bool:
+def _rates_in_range(v, model: Model) -> bool:
     """Whether every rate of the model (each component on its whole grid, every window) is at most
     :data:`RATE_MAX_HZ`, so that sums and shares of the rates stay finite."""
     lux_max = max((float(np.max(x, initial=0.0)) for x in model.lux), default=0.0) if model.growth else 0.0
@@ -180,25 +180,25 @@ def _rates_in_range(v, model: _Model) -> bool:
     return v["hot_fraction"] == 0.0 or _log_peak_rate(v["hot_rate_hz"], v["hot_sigma"]) <= log_max
 
 
-def _log_likelihood(theta, model: _Model, groups) -> float:
+def mixture_log_likelihood(theta, model: Model, groups) -> float:
     """Log-likelihood of every group's count vectors at ``theta`` (-inf where a rate is beyond :data:`RATE_MAX_HZ`)."""
-    v = _unpack(theta, model)
+    v = unpack(theta, model)
     if not _rates_in_range(v, model):
         return -math.inf
     total = 0.0
     for gi, grp in enumerate(groups):
-        comps = _component_rates(v, gi, model, grp)
+        comps = component_rates(v, gi, model, grp)
         ll = _log_mix(grp.vectors, comps, v, grp, v["regularity"]) + grp.log_binom
         total += float(np.dot(grp.weight, ll))
     return total
 
 
-def _maximise(model, groups, start):
+def maximise(model, groups, start):
     """BFGS from every start (numerical gradients of a smooth likelihood), a Nelder-Mead polish of the best."""
     from scipy.optimize import minimize
 
     def nll(theta):
-        val = -_log_likelihood(theta, model, groups)
+        val = -mixture_log_likelihood(theta, model, groups)
         return val if math.isfinite(val) else 1e300
 
     best = None
@@ -211,7 +211,7 @@ def _maximise(model, groups, start):
     return polished if polished.fun < best.fun else best
 
 
-def _hessian(fun, x, step=1e-3):
+def hessian(fun, x, step=1e-3):
     n = x.size
     h = np.zeros((n, n))
     for i in range(n):
