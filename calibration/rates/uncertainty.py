@@ -1,6 +1,6 @@
 """Uncertainty and quality of a fit: expected information and sandwich by central differences,
 the profile of photons_per_lux, identifiability findings, goodness of fit and the verdict
-(accepted/rejected), assembled into a :class:`~evnoise.calibration.result.CalibrationResult`. Internal.
+(accepted/rejected), assembled into a :class:`~evnoise.calibration.rates.result.CalibrationResult`. Internal.
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ Run ``python -m evnoise.calibration.scripts.dispersion_evk3 [--reference DIR] [-
 
 The Noise2Image authors measured the negative-binomial shape ``r`` of the per-pixel noise count
 over 1 s windows at every grey level of their monitor (``synthetic_param.npz``; grey -> lux as in
-:mod:`evnoise.calibration.refit_evk3`). With the mean model of the shipped ``evk3-hd`` preset
+:mod:`evnoise.calibration.scripts.refit_evk3`). With the mean model of the shipped ``evk3-hd`` preset
 (read at run time; the authors' constant extra OFF rate ``leak_off_hz = 0.1398`` added when the
 preset does not have it yet), the population NB shape :func:`evnoise.mismatch.nb_shape` (threshold
 mismatch, log-normal background spread, hot pixels; exact moments, refractory 0) is fitted to the

@@ -91,7 +91,7 @@ def main(argv=None) -> int:
                           f"OFF {own.values['rate_off_hz']:.2g}/s, regularity {own.values['regularity']:.2f}, "
                           f"spread {own.values['sigma']:.2f}; goodness p ON {ps['ON']:.2g}, OFF {ps['OFF']:.2g}")
         print("  own fit:", per_window[-1])
-    # the model-free checks of each window (evnoise.calibration.quiet_checks): what the model assumes
+    # the model-free checks of each window (evnoise.calibration.quiet.checks): what the model assumes
     window_checks = [f"{w.source} {seg['from_s']}-{seg['to_s']} s: "
                      + ", ".join(f"{c['check']} p {c['p_value']:.2g}" for c in w.checks) for w, seg in check]
     print("\n".join("  checks: " + line for line in window_checks))

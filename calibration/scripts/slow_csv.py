@@ -4,7 +4,7 @@
 
 ``slow.csv`` (a Prophesee Gen3 VGA camera on a MOKE microscope, 7.68 s) was listed as quasi-static
 and dominated by noise. This script runs the model-free checks of
-:mod:`evnoise.calibration.quiet_checks` on the whole recording and on its four quarters, and fits the
+:mod:`evnoise.calibration.quiet.checks` on the whole recording and on its four quarters, and fits the
 quiet-scene model (:func:`evnoise.calibration.quiet.fit_quiet`, with hot pixels) to the first quarter,
 the one where nothing sweeps the sensor yet. Prints a table and writes
 ``calibration/evcammoke-slow.json``. The recording is third-party data: it is read, never copied.
