@@ -88,10 +88,6 @@ class RunSetup:
             return None
         return np.stack(self.background).reshape(2, *self.shape)
 
-    def background_of(self, sel):
-        """The background maps ``(scale, hot)`` of pixels ``sel`` (flat indices), or None."""
-        return None if self.background is None else (self.background[0][sel], self.background[1][sel])
-
     def keyed(self, gen: np.random.Generator) -> "RunSetup":
         """The same maps with a new key drawn from the generator ``gen`` (the tonic plugin: maps per sensor,
         key per sample)."""
