@@ -23,8 +23,8 @@ from typing import Iterator
 
 import numpy as np
 
-from ._budget import check_allocation, human_bytes
 from . import terms
+from ._budget import check_allocation, human_bytes
 from ._checks import check_lux, duration_to_us, resolve_threads
 from ._engine import (
     Collector,

@@ -22,7 +22,8 @@ from .leak import LEAK
 from .shot import SHOT
 from .timer import TIMER
 
-__all__ = ["NoiseTerm", "SHOT", "LEAK", "HOT_PIXELS", "TIMER", "BANDWIDTH", "TERMS", "MAPS", "MODEL", "register", "unregister", "term", "active", "background_on",
+__all__ = ["NoiseTerm", "SHOT", "LEAK", "HOT_PIXELS", "TIMER", "BANDWIDTH", "TERMS", "MAPS", "MODEL", "register",
+           "unregister", "term", "active", "background_on",
            "regular_timer", "map_needed", "maps_needed", "draw_map", "intensities", "mean_intensities",
            "kernel_coefficients", "kernel_model", "bounds"]
 
