@@ -140,7 +140,7 @@ def atomic_output(path, *, overwrite: bool = True, what: str = "file"):
     if not folder.is_dir():
         raise OutputError(f"cannot write {what} {path}: directory {folder} does not exist")
     if path.exists() and not overwrite:
-        raise OutputError(f"{what} {path} already exists; pass --overwrite (overwrite=True in Python) to replace it")
+        raise OutputError(f"{what} {path} already exists; pass overwrite=True to replace it")
     out = AtomicFile(path, overwrite=overwrite, what=what)
     try:
         yield out.tmp

@@ -32,7 +32,7 @@ def recording_info(path, shape=None, *, csv_columns=None):
     if src.shape is None:
         if sensor is None:
             raise InputError(f"{path}: the sensor size is unknown (no width/height in the file); "
-                             f"give it with --sensor WxH")
+                             f"give it with sensor='WxH'")
         src = open_events(path, sensor=sensor, csv_columns=csv_columns)
     if src.format == "h5":
         n, t_first, t_last = src.n_events, src.t_first_us, src.t_last_us

@@ -73,8 +73,7 @@ def open_output_path(path, *, overwrite: bool = False, what: str = "output") -> 
     if path.is_dir():
         raise OutputError(f"cannot write {what} {path}: it is a directory")
     if path.exists() and not overwrite:
-        raise OutputError(f"{what} {path} already exists; pass --overwrite (overwrite=True in Python) to "
-                          f"replace it")
+        raise OutputError(f"{what} {path} already exists; pass overwrite=True to replace it")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise OutputError(f"cannot write {what} {path}: directory {parent} is not writable")
     return path
@@ -427,10 +426,6 @@ def import_faery():
         listed = ", ".join(suffixes[:-1]) + f" or {suffixes[-1]}" if len(suffixes) > 1 else "".join(suffixes)
         raise OutputError(f"writing {listed} needs the faery package: pip install 'evnoise[readers]'") from None
     return faery
-
-
-#: Former private name of :func:`import_faery`, kept while callers move to the public one.
-_import_faery = import_faery
 
 
 def write_aedat4(path, chunks, shape, *, overwrite: bool = False, attrs=None) -> Path:

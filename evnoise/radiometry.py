@@ -432,7 +432,7 @@ def handle_invalid(values: np.ndarray, name: str, clip_invalid: bool) -> np.ndar
                      if n)
     if not clip_invalid:
         raise InputError(f"{name} has invalid pixel values ({what}); fix the image or clip them "
-                         f"(clip_invalid=True, --clip-invalid)")
+                         f"(clip_invalid=True)")
     finite = values[np.isfinite(values)]
     top = float(finite.max()) if finite.size else 0.0
     out = values.copy()
@@ -610,7 +610,7 @@ def fit_to_sensor(image, shape, mode: str = "cover") -> np.ndarray:
         raise InputError(f"fit_to_sensor needs a non-empty 2-D image, got shape {img.shape}")
     # the float32 resampling planes and the float64 result, and a simulation's own per-pixel state after it
     check_allocation(24.0 * height * width, f"an image brought to a {width}x{height} sensor",
-                     hint="choose a smaller sensor (--sensor WxH) or raise EVNOISE_MAX_MEMORY", error=ParameterError)
+                     hint="choose a smaller sensor (sensor_shape) or raise EVNOISE_MAX_MEMORY", error=ParameterError)
     h, w = img.shape
     if (h, w) == (height, width):
         return img

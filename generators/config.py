@@ -98,9 +98,9 @@ def parse_windows(texts) -> tuple:
             try:
                 values.append(float(part))
             except ValueError:
-                raise ParameterError(f"--window must be seconds (e.g. 0.1,0.25,1), got {part!r}") from None
+                raise ParameterError(f"windows_s must be seconds (e.g. (0.1, 0.25, 1)), got {part!r}") from None
     if not values:
-        raise ParameterError("--window needs at least one window in seconds")
+        raise ParameterError("windows_s needs at least one window in seconds")
     return tuple(values)
 
 
@@ -220,7 +220,7 @@ class PairConfig:
             raise ParameterError(f"the {what} size {w}x{h} must be a multiple of binning={b} in both directions")
         n_crops = _int(self.crops_per_image, "crops_per_image", 1)
         if n_crops > 1 and crop is None:
-            raise ParameterError("crops_per_image > 1 needs a crop_shape smaller than the sensor (--crop)")
+            raise ParameterError("crops_per_image > 1 needs a crop_shape smaller than the sensor")
         put("crops_per_image", n_crops)
         windows = self.windows_s
         if isinstance(windows, (int, float)) and not isinstance(windows, bool):

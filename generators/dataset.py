@@ -144,7 +144,7 @@ def _mismatch(root: Path, state, plan: Plan) -> str:
             what = f"a dataset made with different options (differs in: {', '.join(diff)})"
         else:
             what = "a dataset of a different list of source images"
-    return (f"output folder {root} already holds {what}; pass --overwrite (overwrite=True) to replace it, "
+    return (f"output folder {root} already holds {what}; pass overwrite=True to replace it, "
             "or choose another folder")
 
 
@@ -609,7 +609,7 @@ def _run_dask(root, plan, todo, scheduler, threads, finished) -> int:
     try:
         from distributed import Client, as_completed
     except ImportError:
-        raise ParameterError("--scheduler needs Dask: pip install 'evnoise[dask]'") from None
+        raise ParameterError("scheduler= needs Dask: pip install 'evnoise[dask]'") from None
     own = not isinstance(scheduler, Client)
     try:
         client = Client(scheduler, set_as_default=False) if own else scheduler

@@ -16,7 +16,6 @@ import ast
 import collections
 from pathlib import Path
 
-import pytest
 
 ROOT = Path(__file__).resolve().parents[1] / "evnoise"
 
@@ -32,10 +31,6 @@ DIFFERENT_MEANINGS = {
     "--ml-sigma": (2, "train/pretrain: one ML input channel (one declaration); evaluate: baseline rows, repeatable"),
     "--json": (2, "evaluate: a JSON file to write; presets/info: print JSON (one declaration)"),
 }
-
-#: declarations in evnoise/cli/info.py (owned elsewhere) still to move onto the shared ones:
-#: flag -> the _options function that replaces it
-INFO_PENDING = {"--t-start": "add_t_start", "--t-end": "add_t_end", "--png": "add_png", "--json": "add_json_output"}
 
 #: argparse's own, never declared by evnoise
 ARGPARSE_OWN = {"--help"}
@@ -76,8 +71,6 @@ def test_shared_options_are_declared_once():
     wrong = {}
     for flag, names in sorted(shared.items()):
         places = declared.get(flag, [])
-        if flag in INFO_PENDING:
-            places = [p for p in places if not p.startswith("evnoise/cli/info.py:")]
         expected = DIFFERENT_MEANINGS.get(flag, (1, ""))[0]
         if len(places) != expected:
             wrong[flag] = (sorted(names), places)
@@ -85,13 +78,9 @@ def test_shared_options_are_declared_once():
 
 
 def test_the_exceptions_are_still_needed():
-    declared = _declarations()
     shared = _shared_flags()
     for flag in DIFFERENT_MEANINGS:
         assert flag in shared, f"{flag} is no longer shared: drop it from DIFFERENT_MEANINGS"
-    for flag in INFO_PENDING:
-        if not any(p.startswith("evnoise/cli/info.py:") for p in declared.get(flag, [])):
-            pytest.fail(f"info.py no longer declares {flag} itself: drop it from INFO_PENDING")
 
 
 def test_no_code_reads_argparse_private_actions():

@@ -80,7 +80,7 @@ def main(argv=None) -> int:
     args.verbose = args.verbose + getattr(args, "sub_verbose", 0)
     args.quiet = bool(args.quiet or getattr(args, "sub_quiet", False))
     level = logging.ERROR if args.quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
-    handler = _ProgressAwareHandler()
+    handler = _ProgressAwareHandler(getattr(args, "cli_flags", None))
     handler.setFormatter(logging.Formatter("evnoise: %(levelname)s: %(message)s"))
     logging.basicConfig(level=level, handlers=[handler], force=True)
     if not getattr(args, "func", None):
@@ -266,11 +266,19 @@ def _restore_sigterm(previous) -> None:
 
 class _ProgressAwareHandler(logging.Handler):
     """Log records to standard error through ``tqdm.write`` when tqdm is loaded, so that a warning
-    does not land on the line of a progress bar (the bar is redrawn below the message)."""
+    does not land on the line of a progress bar (the bar is redrawn below the message). ``flags``: the
+    running command's names -> flags, with which the library's Python names are written as flags, as in
+    an error line."""
+
+    def __init__(self, flags: dict | None = None):
+        super().__init__()
+        self.flags = flags or {}
 
     def emit(self, record) -> None:
         try:
             text = self.format(record)
+            if self.flags:
+                text = flag_names(text, self.flags)
             tqdm_module = sys.modules.get("tqdm")
             if tqdm_module is not None and getattr(tqdm_module.tqdm, "_instances", None):
                 tqdm_module.tqdm.write(text, file=sys.stderr)

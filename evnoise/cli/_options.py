@@ -226,7 +226,8 @@ def height_width(text) -> tuple:
 PYTHON_NAMES = {
     "--duration": ("duration_s",), "--window": ("window_s", "windows_s"), "--crop": ("crop_shape",),
     "--sensor": ("sensor_shape",), "--t-start": ("t_start_s",), "--step": ("step_s",), "--radius": ("radius_px",),
-    "--starts": ("n_starts",), "--frames": ("max_frames",), "--fps": ("fps_out",),
+    "--starts": ("n_starts",), "--frames": ("max_frames",), "--fps": ("fps_out",), "--preset": ("params",),
+    "--model": ("model_path",),
 }
 
 
@@ -290,12 +291,21 @@ class Parser(argparse.ArgumentParser):
 
 
 def flag_names(message: str, flags: dict) -> str:
-    """``message`` with the Python parameter names of ``flags`` (a :class:`Parser`'s table) written as flags
-    (``max_lux must be ...`` -> ``--max-lux must be ...``, ``clip_invalid=True`` -> ``--clip-invalid``)."""
+    """``message`` with the Python parameter names of ``flags`` (a :class:`Parser`'s table) written as flags.
+
+    A name with an underscore is rewritten wherever it stands as a word (``max_lux must be ...`` ->
+    ``--max-lux must be ...``); a plain word (``sensor``, ``overwrite``: as likely prose as a parameter) only
+    in its keyword form: ``overwrite=True`` -> ``--overwrite``, ``sensor="WxH"`` -> ``--sensor WxH``,
+    ``windows_s=0.05`` -> ``--window 0.05``, and ``params=`` (the name itself) -> ``--preset``."""
+    before = r"(?<![\w./-])"
     for name, flag in sorted(flags.items(), key=lambda kv: -len(kv[0])):
-        if "_" not in name:
-            continue  # a plain word (``seed``, ``fps``) is as likely prose as a parameter
-        message = re.sub(rf"(?<![\w./-]){re.escape(name)}(=True)?(?![\w/]|\.\w)", flag, message)
+        word = before + re.escape(name)
+        message = re.sub(rf"{word}=True(?!\w)", flag, message)
+        message = re.sub(rf"{word}=(['\"])([^'\"]*)\1", lambda m, flag=flag: f"{flag} {m.group(2)}", message)
+        message = re.sub(rf"{word}=(\d[\w.,:+-]*\w|\d)", lambda m, flag=flag: f"{flag} {m.group(1)}", message)
+        message = re.sub(rf"{word}=(?![\w'\"(\[{{])", flag, message)
+        if "_" in name:
+            message = re.sub(rf"{word}(?![\w/=]|\.\w)", flag, message)
     # "(clip_invalid=True, --clip-invalid)" and "window_s (--window)" now say the flag twice
     return re.sub(r"(--[\w-]+)(?:, \1(?![\w-])| \(\1\))", r"\1", message)
 

@@ -41,15 +41,12 @@ def register(subparsers) -> None:
         f"Known kinds: {', '.join(KINDS) or 'none'}.",
     )
     p.add_argument("file", metavar="FILE", help="the file to describe")
-    p.add_argument("--json", action="store_true",
-                   help="print the summary as JSON (numbers as numbers, units in the keys)")
+    opt.add_json_output(p, help="print the summary as JSON (numbers as numbers, units in the keys)")
     ev = p.add_argument_group("event files")
     opt.add_sensor(ev, help="sensor size, e.g. 640x480, for files whose header has none (EVT 2.0, CSV, N-CARS "
                    ".dat) or a wrong one")
-    ev.add_argument("--t-start", type=opt.seconds("--t-start"), metavar="S",
-                    help="start of the time window, seconds on the file's clock")
-    ev.add_argument("--t-end", type=opt.seconds("--t-end"), metavar="S",
-                    help="end of the time window (exclusive), seconds on the file's clock")
+    opt.add_t_start(ev, help="start of the time window, seconds on the file's clock")
+    opt.add_t_end(ev, help="end of the time window (exclusive), seconds on the file's clock")
     opt.add_csv_columns(ev)
     ev.add_argument("--stats", action="store_true",
                     help="noise statistics: rate per pixel (mean, quantiles), ON fraction, active pixels, "
@@ -57,8 +54,7 @@ def register(subparsers) -> None:
     ev.add_argument("--hot-threshold", type=float, metavar="N",
                     help="--stats: a pixel is hot above N events (default: 10 x the mean count of active pixels, "
                     "at least 10)")
-    ev.add_argument("--png", metavar="FILE",
-                    help="--stats: also write a PNG of the ON/OFF count maps and the per-pixel count histogram")
+    opt.add_png(ev, help="--stats: also write a PNG of the ON/OFF count maps and the per-pixel count histogram")
     opt.add_overwrite(ev, help="replace an existing --png file")
     p.set_defaults(func=run)
 
@@ -100,6 +96,7 @@ def run(args) -> int:
                 **summarise_events(path, sensor=args.sensor, t_start=args.t_start, t_end=args.t_end,
                                    csv_columns=args.csv_columns, stats=args.stats, hot_threshold=args.hot_threshold,
                                    png=args.png, overwrite=args.overwrite)}
+        info = _in_flags(info, getattr(args, "cli_flags", {}))
     else:
         if given:
             raise ParameterError(f"{', '.join(given)}: only for event files; {path} is a {kind}")
@@ -109,6 +106,20 @@ def run(args) -> int:
     else:
         print(format_summary(info))
     return 0
+
+
+#: summary entries whose text the library words with Python names (``given (hot_threshold)``)
+_WORDED = {"rule", "columns_from", "note"}
+
+
+def _in_flags(info, flags: dict):
+    """``info`` with the Python names in the library's notes (:data:`_WORDED`) written as info's flags."""
+    from ._options import flag_names
+
+    if isinstance(info, dict):
+        return {k: flag_names(v, flags) if k in _WORDED and isinstance(v, str) else _in_flags(v, flags)
+                for k, v in info.items()}
+    return info
 
 
 def format_summary(info: dict, indent: str = "") -> str:

@@ -138,9 +138,9 @@ def run(args) -> int:
         raise ParameterError(f"--format {args.format} disagrees with --out {args.out} ({fmt}); the suffix decides")
     out = open_output_path(args.out, overwrite=args.overwrite, what="event file")
     if fmt != "h5":
-        from ..io import _import_faery
+        from ..io import import_faery
 
-        _import_faery()  # fail before the work if faery is missing
+        import_faery()  # fail before the work if faery is missing
     png = None
     if args.png:
         png = open_output_path(args.png, overwrite=args.overwrite, what="PNG file")

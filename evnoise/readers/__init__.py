@@ -197,13 +197,13 @@ def window_counts(path, t_start_s: float, window_s: float, *, sensor=None, csv_c
     """
     from .stats import pixel_counts
 
-    a = seconds_to_us(t_start_s, "--t-start")
-    w = seconds_to_us(window_s, "--window")
+    a = seconds_to_us(t_start_s, "t_start_s")
+    w = seconds_to_us(window_s, "window_s")
     if w is None or w <= 0:
-        raise ParameterError(f"--window must be > 0 seconds, got {window_s!r}")
+        raise ParameterError(f"window_s must be > 0 seconds, got {window_s!r}")
     src = open_events(path, sensor=sensor, csv_columns=csv_columns)
     if src.shape is None:
-        raise InputError(f"{path}: the header gives no sensor size; add --sensor WxH")
+        raise InputError(f"{path}: the header gives no sensor size; add sensor='WxH'")
     with src:
         counts, _ = pixel_counts(src.chunks(a, a + w), src.shape)
     return counts

@@ -39,7 +39,7 @@ def parse_sensor(sensor) -> tuple[int, int] | None:
     if isinstance(sensor, str):
         m = re.fullmatch(r"\s*(\d+)\s*[xX*,]\s*(\d+)\s*", sensor)
         if not m:
-            raise ParameterError(f"--sensor must be WIDTHxHEIGHT, e.g. 640x480, got {sensor!r}")
+            raise ParameterError(f"sensor must be 'WIDTHxHEIGHT', e.g. '640x480', got {sensor!r}")
         width, height = int(m.group(1)), int(m.group(2))
     else:
         try:
@@ -47,7 +47,7 @@ def parse_sensor(sensor) -> tuple[int, int] | None:
         except (TypeError, ValueError):
             raise ParameterError(f"sensor must be 'WxH' or (width, height), got {sensor!r}") from None
     if not (1 <= width <= 65536 and 1 <= height <= 65536):
-        raise ParameterError(f"--sensor must be WIDTHxHEIGHT with 1 .. 65536 each, got {sensor!r}")
+        raise ParameterError(f"sensor must be WIDTHxHEIGHT with 1 .. 65536 each, got {sensor!r}")
     return height, width
 
 
@@ -144,7 +144,7 @@ class EventSource:
                     f"sensor swapped: sensor is (width, height), while meta['shape'] is (height, width); pass "
                     f"meta['sensor'] (\"WxH\"), or the string \"{user[1]}x{user[0]}\" if the header is wrong")
             if header_shape is not None and header_shape != user:
-                log.warning("%s: the header says %dx%d; using --sensor %dx%d", self.path, header_shape[1],
+                log.warning("%s: the header says %dx%d; using sensor='%dx%d'", self.path, header_shape[1],
                             header_shape[0], user[1], user[0])
             self.shape, self.shape_from = user, "sensor"
         elif header_shape is not None:
@@ -190,7 +190,7 @@ class EventSource:
         if self.shape is not None:
             height, width = self.shape
             if int(chunk["x"].max()) >= width or int(chunk["y"].max()) >= height:
-                where = "--sensor" if self.shape_from == "sensor" else "the header"
+                where = "sensor=" if self.shape_from == "sensor" else "the header"
                 raise InputError(f"{self.path}: an event at x = {int(chunk['x'].max())}, y = {int(chunk['y'].max())} "
                                  f"lies outside the {width}x{height} sensor given by {where}")
         return chunk

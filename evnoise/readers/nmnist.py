@@ -28,7 +28,7 @@ class NmnistSource(EventSource):
         if size % 5:
             raise InputError(f"cannot read {self.path} as N-MNIST: {size} bytes is not a whole number of 5-byte "
                              f"events (truncated file?)")
-        self.meta = {"note": "N-MNIST has no header; 34x34 assumed unless --sensor is given"}
+        self.meta = {"note": "N-MNIST has no header; 34x34 assumed unless sensor= is given"}
         self._set_shape((NMNIST_SENSOR[1], NMNIST_SENSOR[0]), source="format")
         self.meta.pop("header_sensor", None)
 

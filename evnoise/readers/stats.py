@@ -52,7 +52,7 @@ def _check_maps(height: int, width: int) -> None:
     # the two int64 maps, plus one bincount of the same size while a chunk is added
     check_allocation(3 * 2 * int(height) * int(width) * 8,
                      f"ON/OFF count maps of a {width}x{height} sensor",
-                     hint="give the real size with --sensor WxH (sensor=(W, H)) or raise EVNOISE_MAX_MEMORY")
+                     hint="give the real size with sensor='WxH' or raise EVNOISE_MAX_MEMORY")
 
 
 def noise_stats(counts, duration_s: float, *, hot_threshold: float | None = None) -> dict:
@@ -88,8 +88,8 @@ def noise_stats(counts, duration_s: float, *, hot_threshold: float | None = None
     out["count_var_over_mean"] = float(total.var() / mean) if mean > 0 else None
     if hot_threshold is not None:
         if not (np.isfinite(hot_threshold) and hot_threshold >= 0):
-            raise ParameterError(f"--hot-threshold must be >= 0 events, got {hot_threshold!r}")
-        threshold, rule = float(hot_threshold), "given (--hot-threshold)"
+            raise ParameterError(f"hot_threshold must be >= 0 events, got {hot_threshold!r}")
+        threshold, rule = float(hot_threshold), "given (hot_threshold)"
     else:
         mean_active = float(total[active].mean()) if active.any() else 0.0
         threshold = max(float(HOT_MIN_COUNT), HOT_FACTOR * mean_active)

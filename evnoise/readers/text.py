@@ -58,11 +58,11 @@ def parse_columns(text) -> dict[str, int]:
         if key is None:
             continue
         if key in out:
-            raise ParameterError(f"--csv-columns names {key!r} twice: {text!r}")
+            raise ParameterError(f"csv_columns names {key!r} twice: {text!r}")
         out[key] = i
     missing = [k for k in "txyp" if k not in out]
     if missing:
-        raise ParameterError(f"--csv-columns must name the columns t, x, y and p (e.g. x,y,p,t); "
+        raise ParameterError(f"csv_columns must name the columns t, x, y and p (e.g. 'x,y,p,t'); "
                              f"{', '.join(missing)} missing in {text!r}")
     return out
 
@@ -137,7 +137,7 @@ class CsvSource(EventSource):
                 cols = parse_columns([tok.split("@")[0] for tok in names_line])
             except ParameterError:
                 raise InputError(f"{self.path}: the header {' '.join(names_line)!r} does not name t, x, y and p; "
-                                 f"give the column order with --csv-columns (e.g. x,y,p,t)") from None
+                                 f"give the column order with csv_columns (e.g. csv_columns='x,y,p,t')") from None
         if cols is None and comment_names is not None:
             cols = comment_names
         if cols is None:
@@ -146,7 +146,7 @@ class CsvSource(EventSource):
                 self._default_columns = True
             else:
                 raise InputError(f"{self.path}: a CSV file without a header; give the column order with "
-                                 f"--csv-columns (e.g. --csv-columns x,y,p,t)")
+                                 f"csv_columns (e.g. csv_columns='x,y,p,t')")
         self._cols = cols
         self._n_cols = None
         self._seconds = False
@@ -161,7 +161,7 @@ class CsvSource(EventSource):
         self.meta = {"columns": self._columns_text(), "header_line": names_line is not None,
                      "time_unit": "s" if self._seconds else "us", "delimiter": "comma" if self._comma else "space"}
         if self._default_columns:
-            self.meta["columns_from"] = "default t x y p (no header); give --csv-columns for another order"
+            self.meta["columns_from"] = "default t x y p (no header); give csv_columns for another order"
         header_shape = None
         if names_line is not None:  # faery writes the sensor size into the header: t,x@W,y@H,on
             sizes = dict(tok.split("@", 1) for tok in names_line if "@" in tok)
@@ -180,7 +180,7 @@ class CsvSource(EventSource):
 
     def _hint(self) -> str:
         if self._default_columns:
-            return " (the columns were taken as t x y p: give the order with --csv-columns if it is another)"
+            return " (the columns were taken as t x y p: give the order with csv_columns if it is another)"
         return ""
 
     def _bad_line(self, block: bytes, line0: int) -> InputError:

@@ -370,7 +370,7 @@ def random_crop(item: dict, crop: int, rng) -> dict:
     h, w = image.shape
     if crop > h or crop > w:
         raise InputError(f"crop {crop} is larger than a pair of {h}x{w} binned pixels; use a smaller crop "
-                         "(training crops count binned pixels, make-dataset --crop sensor pixels)")
+                         "(training crops count binned pixels, a dataset's crop_shape sensor pixels)")
     r0 = int(rng.integers(0, h - crop + 1))
     c0 = int(rng.integers(0, w - crop + 1))
     out = dict(item)

@@ -99,7 +99,7 @@ def evaluate(dataset, model=None, *, params=None, max_lux=None, lpips: bool = Tr
         if params is None or max_lux is None:
             raise ParameterError(
                 "the ML-inversion baseline needs the noise parameters and max_lux of the dataset "
-                "(give params= / max_lux=, or --preset / --max-lux)"
+                "(give params= / max_lux=)"
             )
         binning = int(getattr(dataset, "binning", net.spec.binning if net is not None else 2))
         sigmas = [float(smoothing_sigma)] if np.ndim(smoothing_sigma) == 0 else [float(x) for x in smoothing_sigma]

@@ -33,7 +33,7 @@ def default_model_path() -> Path:
         path = None
     if path is None or not path.is_file():
         raise InputError(f"this evnoise installation has no shipped reconstructor (evnoise/models/"
-                         f"{DEFAULT_MODEL_FILE}); give a model trained with `evnoise train` (--model)")
+                         f"{DEFAULT_MODEL_FILE}); give model_path= (a model trained with `evnoise train`)")
     return path
 
 
@@ -61,7 +61,7 @@ def choose_window(spec, duration_s: float, t_start_s: float = 0.0):
     """
     windows = trained_windows(spec)
     if not windows:
-        raise ParameterError("the model does not record its training window: give --window")
+        raise ParameterError("the model does not record its training window: give window_s=")
     available = duration_s - t_start_s
     fitting = [w for w in windows if w <= available + 1e-9]
     if fitting:
@@ -79,8 +79,8 @@ def short_window_note(spec, window_s: float, what: str = "the window") -> str | 
     trained = ", ".join(f"{w:g}" for w in trained_windows(spec))
     return (f"{what} ({window_s:.6g} s) is shorter than every window the model was trained on ({trained} s): its "
             f"counts are scaled by {seen / window_s:.3g} to the model's {seen:g} s window (the same rates; "
-            f"expect a noisier image; a model trained on windows this short does better: make-dataset --window "
-            f"{window_s:.3g}, then train)")
+            f"expect a noisier image; a model trained on windows this short does better: make a dataset with "
+            f"windows_s={window_s:.3g}, then train)")
 
 
 _PARAM_KEYS = ("eps_pos", "eps_neg", "bias_pr", "trial_rate_hz", "photons_per_lux", "dark_lux", "refractory_s",

@@ -112,7 +112,7 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
     if not out_dir.exists() and not parent.is_dir():
         raise OutputError(f"cannot create output folder {out_dir}: {parent} does not exist")
     if out_dir.is_dir() and not overwrite and (any(out_dir.glob("frame_*.png")) or any(out_dir.glob("overlay_*.png"))):
-        raise OutputError(f"{out_dir} already holds frames; pass --overwrite (overwrite=True) to replace them")
+        raise OutputError(f"{out_dir} already holds frames; pass overwrite=True to replace them")
     shape, n, t_first, t_last, t_file_end = recording_info(events_h5, parse_sensor(sensor),
                                                            csv_columns=csv_columns)  # input errors before the model
     if n == 0:
@@ -127,7 +127,7 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
     if window_s is None:
         window_s = rec.spec.window_s
         if window_s is None:
-            raise ParameterError("the model does not record its training window: give window_s (--window)")
+            raise ParameterError("the model does not record its training window: give window_s=")
     window_s = check_float(window_s, "window_s", "seconds")
     note = short_window_note(rec.spec, window_s)
     if note:  # the frames are still made (counts scaled to the model's window), but the user must know
