@@ -98,7 +98,7 @@ def parse_windows(texts) -> tuple:
             try:
                 values.append(float(part))
             except ValueError:
-                raise ParameterError(f"windows_s must be seconds (e.g. (0.1, 0.25, 1)), got {part!r}") from None
+                raise ParameterError(f"windows_s must be seconds (e.g. 0.1,0.25,1), got {part!r}") from None
     if not values:
         raise ParameterError("windows_s needs at least one window in seconds")
     return tuple(values)

@@ -505,7 +505,7 @@ def make_dataset(sources, out_dir, config: PairConfig | None = None, *, workers:
                 n_workers = 0
             elif scheduler is not None:
                 if workers is not None:
-                    log.info("--workers is not used with a Dask scheduler")
+                    log.info("workers= is not used with a Dask scheduler")
                 n_workers = _run_dask(root, plan, todo, scheduler, threads or 1, finished)
             elif in_process:
                 n_workers = 1
