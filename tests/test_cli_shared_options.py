@@ -16,7 +16,6 @@ import ast
 import collections
 from pathlib import Path
 
-
 ROOT = Path(__file__).resolve().parents[1] / "evnoise"
 
 #: flags that two commands use for different things: flag -> (number of add_argument calls, why)

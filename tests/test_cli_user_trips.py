@@ -224,7 +224,8 @@ def test_reconstruct_a_45_ms_recording_is_not_black(tmp_path, capsys):
     assert code == 0, err
     code, _, err = run_cli(capsys, "reconstruct", events, "-o", tmp_path / "r.png")
     assert code == 0, err
-    assert "counts are scaled by" in err and "make a dataset with --window 0.045" in err  # says what it did, and what to do
+    # says what it did, and what to do
+    assert "counts are scaled by" in err and "make a dataset with --window 0.045" in err
     image = np.asarray(PIL_Image.open(tmp_path / "r.png"), dtype=np.float64)
     assert image.mean() > 40 and image.std() > 5  # was all 0: the Anscombe input of empty pixels out of range
 

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import evnoise as ev
-from tests._cli_helpers import one_error_line, run_cli, small_events_file
+from _cli_helpers import one_error_line, run_cli, small_events_file
 
 REPO = Path(__file__).resolve().parents[1]
 #: the library's packages (the command line, evnoise/cli/, speaks flags by design)
