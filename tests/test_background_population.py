@@ -212,11 +212,11 @@ def test_regular_background_with_mismatch_is_approximate_to_about_1_percent():
 
 
 def test_dispersion_evk3_script_runs_on_the_reference_tables():
-    """Smoke test of calibration/dispersion_evk3 (coarse grey step, one model); skipped without the tables."""
+    """Smoke test of calibration/scripts/dispersion_evk3 (coarse grey step, one model); skipped without the tables."""
     from pathlib import Path
 
-    from evnoise.calibration import dispersion_evk3
-    from evnoise.calibration.refit_evk3 import DEFAULT_REFERENCE
+    from evnoise.calibration.scripts import dispersion_evk3
+    from evnoise.calibration.scripts.refit_evk3 import DEFAULT_REFERENCE
 
     if not (Path(DEFAULT_REFERENCE) / "synthetic_param.npz").is_file():
         pytest.skip(f"reference tables not found in {DEFAULT_REFERENCE}")

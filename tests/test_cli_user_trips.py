@@ -321,7 +321,7 @@ def test_quiet_window_names_unix_clock_times_to_the_microsecond(tmp_path):
 def test_calibrate_shows_each_phase_after_the_search(capsys, monkeypatch):
     from importlib import resources
 
-    from evnoise.calibration import fit as F
+    from evnoise.calibration.rates import fit as F
     from evnoise.calibration import read_measurements
 
     ran = []
@@ -333,10 +333,10 @@ def test_calibrate_shows_each_phase_after_the_search(capsys, monkeypatch):
         return run
 
     # the phases themselves are stand-ins: this test is about what the user sees while they run
-    monkeypatch.setattr(F, "_fit", phase("search", ("problem", "theta")))
-    monkeypatch.setattr(F, "_rejected", lambda problem, theta: False)
-    monkeypatch.setattr(F, "_profile", phase("profile", ("theta", "profile")))
-    monkeypatch.setattr(F, "_finish", phase("finish", "result"))
+    monkeypatch.setattr(F, "run_search", phase("search", ("problem", "theta")))
+    monkeypatch.setattr(F, "rejected", lambda problem, theta: False)
+    monkeypatch.setattr(F, "profile_likelihood", phase("profile", ("theta", "profile")))
+    monkeypatch.setattr(F, "finish", phase("finish", "result"))
     meas = read_measurements(str(resources.files("evnoise.data") / "rates-example.csv"))
     capsys.readouterr()
     assert F.calibrate(meas, rng=0, progress=True) == "result"
