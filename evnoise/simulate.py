@@ -112,8 +112,8 @@ def _check_memory(expected_events: float, what: str = "simulate_events") -> None
     """Refuse to hold an event array that cannot fit in memory (before allocating it)."""
     need = (expected_events + 8.0 * math.sqrt(max(expected_events, 0.0))) * EVENT_DTYPE.itemsize
     check_allocation(need, f"{what} would return about {expected_events:,.0f} events; they",
-                     hint="shorten the duration, stream the windows (iter_events, iter_video), or write a file "
-                          "(evnoise simulate --out)", error=ParameterError)
+                     hint="shorten the duration, or stream the windows (iter_events, iter_video) into a file "
+                          "(EventWriter)", error=ParameterError)
 
 
 _human_bytes = human_bytes  # the name the size messages below use

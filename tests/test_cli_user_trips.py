@@ -321,8 +321,8 @@ def test_quiet_window_names_unix_clock_times_to_the_microsecond(tmp_path):
 def test_calibrate_shows_each_phase_after_the_search(capsys, monkeypatch):
     from importlib import resources
 
-    from evnoise.calibration.rates import fit as F
     from evnoise.calibration import read_measurements
+    from evnoise.calibration.rates import fit as F
 
     ran = []
 

@@ -41,9 +41,7 @@ WHOLE_COMMANDS = {
 
 #: messages in files another change is rewriting now: (file, flag) -> the message; drop each when it is fixed
 #: (test_the_exceptions_are_still_needed says when)
-PENDING = {
-    ("evnoise/simulate.py", "--out"): "_check_memory's hint: write a file (evnoise simulate --out)",
-}
+PENDING: dict = {}  # (file, flag): why it is still there, while a message waits for its fix
 
 FLAG = re.compile(r"(?<![\w-])--[a-z][a-z0-9-]*")
 #: calls whose string arguments are messages: logging's, warnings.warn, and exception / warning classes

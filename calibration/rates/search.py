@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 
+from evnoise import terms
 from evnoise.params import NoiseParams
 
 from .likelihood import Prepared, Problem
@@ -116,15 +117,10 @@ class _MeanProxy:
                 for e in ("eps_pos", "eps_neg")], axis=1)  # (S, 2, J)
         base = p * pr.exposure[None, None, :]
         y = pr.y[None]
-        # TODO(lead): use the noise-term registry (evnoise/terms/) for these background intensities
-        # background: additive in the stand-in (nu ~ N p + l for l << N), mean over the population
-        f_hot = vals["hot_pixel_fraction"] * (vals["hot_pixel_rate_hz"] > 0)
-        hot = f_hot * vals["hot_pixel_rate_hz"]
-        q_hot = vals["hot_pixel_on_fraction"]
-        bg = np.stack([vals["leak_on_hz"][:, None] + vals["leak_on_hz_per_lux"][:, None] * pr.lux[None, :]
-                       + (hot * q_hot)[:, None],
-                       vals["leak_off_hz"][:, None] + vals["leak_off_hz_per_lux"][:, None] * pr.lux[None, :]
-                       + (hot * (1.0 - q_hot))[:, None]], axis=1) * pr.exposure[None, None, :]  # (S, 2, J)
+        # background: additive in the stand-in (nu ~ N p + l for l << N), the population mean of every
+        # background term of the registry
+        bg = np.stack(terms.mean_intensities(pr.lux[None, :], {k: v[:, None] for k, v in vals.items()}),
+                      axis=1) * pr.exposure[None, None, :]  # (S, 2, J)
         if self.profile_n:
             lo, hi = pr.bounds["trial_rate_hz"]
             with np.errstate(divide="ignore", invalid="ignore", over="ignore"):

@@ -12,16 +12,15 @@ from __future__ import annotations
 import logging
 
 from ..errors import ParameterError
+from ..params import parameter_names
 from . import _options as opt
 
 log = logging.getLogger(__name__)
 
 EXAMPLE = "rates-example.csv"
 
-PARAMETERS = ("eps_pos", "eps_neg", "bias_pr", "trial_rate_hz", "photons_per_lux", "dark_lux", "refractory_s",
-              "eps_sigma", "leak_on_hz", "leak_off_hz", "leak_on_hz_per_lux", "leak_off_hz_per_lux", "leak_sigma",
-              "hot_pixel_fraction", "hot_pixel_rate_hz", "hot_pixel_sigma", "hot_pixel_on_fraction",
-              "leak_regularity", "pr_tau_s_at_1lux")
+#: every NoiseParams field, in field order (the one list, from the fields' metadata)
+PARAMETERS = parameter_names()
 
 
 def register(subparsers) -> None:
