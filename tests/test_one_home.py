@@ -135,3 +135,151 @@ def test_generators_and_calibration_are_imported_under_one_name():
                  for path in sorted((root / folder).rglob("*.py"))
                  for m in pattern.finditer(path.read_text(encoding="utf-8"))]
     assert not offenders, offenders
+
+
+# --- issue 30: the package's shape -------------------------------------------------------------------------
+
+_PACKAGE_ROOTS = {"evnoise": "evnoise", "evnoise.generators": "generators", "evnoise.calibration": "calibration"}
+
+
+def _library_modules():
+    """``{module name: path}`` of every library module (the three folders installed as ``evnoise``)."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    modules = {}
+    for package, folder in _PACKAGE_ROOTS.items():
+        for path in root.joinpath(folder).rglob("*.py"):
+            parts = list(path.relative_to(root / folder).with_suffix("").parts)
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            modules[".".join([package, *parts])] = path
+    return modules
+
+
+def _import_edges():
+    """``{module: {imported library modules}}`` over every import statement, module level or inside a function."""
+    import ast
+
+    modules = _library_modules()
+
+    def owner(name):
+        while name and name not in modules:
+            name = name.rpartition(".")[0]
+        return name
+
+    edges = {}
+    for module, path in modules.items():
+        targets = set()
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Import):
+                targets.update(owner(a.name) for a in node.names if a.name.startswith("evnoise"))
+            elif isinstance(node, ast.ImportFrom):
+                if node.level:
+                    base = module.split(".") if path.name == "__init__.py" else module.split(".")[:-1]
+                    base = base[:len(base) - node.level + 1]
+                    name = ".".join(base + ([node.module] if node.module else []))
+                else:
+                    name = node.module or ""
+                if not name.startswith("evnoise"):
+                    continue
+                for alias in node.names:
+                    sub = f"{name}.{alias.name}"
+                    targets.add(owner(sub if sub in modules else name))
+        edges[module] = targets - {module, ""}
+    return edges
+
+
+def _cycles(edges):
+    """The strongly connected components with more than one module (Tarjan, iterative)."""
+    index, low, stack, on_stack, found = {}, {}, [], set(), []
+    counter = 0
+    for start in edges:
+        if start in index:
+            continue
+        work = [(start, iter(sorted(edges[start])))]
+        index[start] = low[start] = counter
+        counter += 1
+        stack.append(start)
+        on_stack.add(start)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = counter
+                    counter += 1
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(edges.get(child, ())))))
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                component = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    component.append(member)
+                    if member == node:
+                        break
+                if len(component) > 1:
+                    found.append(sorted(component))
+    return found
+
+
+def test_cycle_finder_finds_a_cycle():
+    edges = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
+    assert _cycles(edges) == [["a", "b", "c"]]
+    assert _cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_no_import_cycle_anywhere():
+    """Issue 30: no cycle between library modules, counting imports inside functions too."""
+    edges = _import_edges()
+    assert "evnoise.simulate" in edges and "evnoise.calibration" in edges  # the walk saw the tree
+    assert not _cycles(edges), _cycles(edges)
+
+
+def test_no_private_name_crosses_a_module_boundary():
+    """Issue 30: a ``_private`` function, class or constant is used only in its own module (private
+    *modules* such as ``evnoise._checks`` are the package's internals and may be imported)."""
+    modules = _library_modules()
+    crossing = [imp for imp in _private_imports_across_modules()
+                if not any(m.endswith("." + imp[2]) or m == imp[2] for m in modules)
+                and f"{imp[1]}.{imp[2]}".lstrip(".") not in modules]
+    assert not crossing, crossing
+
+
+def test_every_library_package_is_installed():
+    """A package folder missing from pyproject's list is left out of the wheel (an editable install hides it)."""
+    import tomllib
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    listed = set(tomllib.loads(root.joinpath("pyproject.toml").read_text(encoding="utf-8"))["tool"]["setuptools"]
+                 ["packages"])
+    packages = {name for name, path in _library_modules().items() if path.name == "__init__.py"}
+    assert "evnoise.terms" in packages and "evnoise.calibration.rates" in packages
+    assert packages <= listed, sorted(packages - listed)
+
+
+def test_the_readme_layout_names_every_package():
+    """The README's "Layout" block names each subpackage of the tree, and names none that is gone."""
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    text = root.joinpath("README.md").read_text(encoding="utf-8")
+    layout = text.split("## Layout", 1)[1].split("```", 2)[1]
+    packages = {name.rpartition(".")[2] for name, path in _library_modules().items()
+                if path.name == "__init__.py" and name.count(".") >= 1}
+    missing = sorted(p for p in packages if not re.search(rf"(?<![\w.]){re.escape(p)}/", layout))
+    assert not missing, f"README Layout does not name {missing}"
+    named = set(re.findall(r"(?<![\w.])([a-z_]+)/", layout))
+    top = {"evnoise", "generators", "calibration", "tests", "benchmarks", "docs"}
+    gone = sorted(n for n in named - top - packages)
+    assert not gone, f"README Layout names folders that are not packages: {gone}"

@@ -23,7 +23,7 @@ from . import _options as opt
 log = logging.getLogger(__name__)
 
 
-#: What to do when a window fails a check of :mod:`evnoise.calibration.quiet_checks`.
+#: What to do when a window fails a check of :mod:`evnoise.calibration.quiet.checks`.
 _ADVICE = {
     "polarity_pairs": "the model's ON and OFF events are independent, so no preset reproduces these pairs",
     "stationarity": "the rate drifts; a shorter window, or several windows, describe it better",
