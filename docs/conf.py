@@ -57,8 +57,10 @@ nitpick_ignore_regex = [
     (r"py:.*", r"(int|float|str|bool|bytes|dict|list|tuple|set|object|callable|None|type|Path|Iterator|Iterable|Sequence|Mapping|array_like|ndarray|array|path|optional|TextIO|BinaryIO|Exception|ValueError|TypeError|OSError|KeyboardInterrupt|RuntimeError|ImportError|NotImplementedError|PathLike|Generator)"),
     # evnoise's internal modules and their members (being reorganised; the public names are documented)
     (r"py:.*", r"(evnoise\.)?_.*|.*\._[a-z].*"),
-    (r"py:.*", r"(~?\.)?[a-z_]+\.[A-Za-z_.]+"),
-    (r"py:.*", r"evnoise\.(model|rates|background|mismatch|simulate|stream|io|readers|radiometry|separation|motion|params|events|errors|testing|cli|presets|data|models|examples|plugins|calibration|generators|reconstruct)(\.[A-Za-z_.]+)?"),
+    (r"py:mod", r"evnoise\..*"),
+    (r"py:.*", r"evnoise\.(model|rates|background|mismatch|simulate|stream|io|readers|radiometry|separation|motion|params|events|errors|testing|cli|presets|data|models|examples)(\.[A-Za-z_.]+)?"),
+    # members of the documented subpackages' internal modules (evnoise.reconstruct.train.train, ...)
+    (r"py:.*", r"evnoise\.(plugins|calibration|generators|reconstruct)\.[a-z_0-9]+\.[A-Za-z_.]+"),
     (r"py:.*", r"[A-Z][A-Z0-9_]+"),  # module constants named bare in docstrings (GZIP_LEVEL, COUNT_MODES, ...)
     (r"py:.*", r"[A-Z][A-Za-z0-9]+(\.[A-Za-z_]+)?"),  # bare class names in docstrings (MotionFrame, QuietFit, MaskParams, ...)
     (r"py:.*", r"[a-z_][a-z_0-9]*"),  # bare function/attribute names of the same module
@@ -75,7 +77,7 @@ sphinx_gallery_conf = {
     "download_all_examples": False,
     "remove_config_comments": True,
     "within_subsection_order": "FileNameSortKey",
-    "min_reported_time": 1,
+    "min_reported_time": 0,
     "show_memory": False,
     "matplotlib_animations": False,
     "image_scrapers": ("matplotlib",),
