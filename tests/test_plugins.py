@@ -436,24 +436,24 @@ def test_v2e_warns_about_its_own_noise_and_rejects_bad_input():
 
 
 # --------------------------------------------------------------------------------------
-# the README's snippets run as written
+# the plugin guide's snippets (docs/guides/plugins.md) run as written
 # --------------------------------------------------------------------------------------
-def _readme_snippet(heading):
-    text = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
-    match = re.search(rf"^### {re.escape(heading)}\n(.*?)(?=^##|\Z)", text, flags=re.S | re.M)
-    assert match, f"README has no section '### {heading}'"
+def _guide_snippet(heading):
+    text = (Path(__file__).resolve().parents[1] / "docs" / "guides" / "plugins.md").read_text(encoding="utf-8")
+    match = re.search(rf"^## {re.escape(heading)}\n(.*?)(?=^## |\Z)", text, flags=re.S | re.M)
+    assert match, f"docs/guides/plugins.md has no section '## {heading}'"
     blocks = re.findall(r"```python\n(.*?)```", match.group(1), flags=re.S)
-    assert blocks, f"README section '{heading}' has no python snippet"
+    assert blocks, f"docs/guides/plugins.md section '{heading}' has no python snippet"
     return "\n".join(blocks)
 
 
-def test_readme_tonic_snippet_runs():
+def test_guide_tonic_snippet_runs():
     namespace = {}
-    exec(compile(_readme_snippet("Use inside tonic"), "README:tonic", "exec"), namespace)
+    exec(compile(_guide_snippet("tonic"), "plugins.md:tonic", "exec"), namespace)
     assert "frames" in namespace and namespace["frames"].ndim == 4
 
 
-def test_readme_v2e_snippet_runs_against_the_stand_in(monkeypatch):
+def test_guide_v2e_snippet_runs_against_the_stand_in(monkeypatch):
     v2ecore = types.ModuleType("v2ecore")
     emulator_module = types.ModuleType("v2ecore.emulator")
     emulator_module.EventEmulator = StandInEmulator
@@ -461,7 +461,7 @@ def test_readme_v2e_snippet_runs_against_the_stand_in(monkeypatch):
     monkeypatch.setitem(sys.modules, "v2ecore", v2ecore)
     monkeypatch.setitem(sys.modules, "v2ecore.emulator", emulator_module)
     namespace = {}
-    exec(compile(_readme_snippet("Use inside v2e"), "README:v2e", "exec"), namespace)
+    exec(compile(_guide_snippet("v2e"), "plugins.md:v2e", "exec"), namespace)
     assert namespace["events"] is not None and namespace["events"].shape[1] == 4
 
 
