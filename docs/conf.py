@@ -117,22 +117,3 @@ _write_name_lists()
 
 
 # --- docstring fix-ups (reported upstream; remove when the docstrings are fixed) -----------------
-def _join_continuations(app, what, name, obj, options, lines):
-    """Join a table row's indented continuation line to its row (PairDataset's field table).
-
-    ``evnoise.generators.PairDataset`` lists its fields one per line and continues one of them on an
-    indented line, which reStructuredText reads as an unexpected block quote (an error under -W).
-    """
-    if not name.endswith("PairDataset"):
-        return
-    i = 1
-    while i < len(lines):
-        if lines[i].startswith(" " * 12) and lines[i - 1].lstrip().startswith('``"'):
-            lines[i - 1] = lines[i - 1].rstrip() + " " + lines[i].strip()
-            del lines[i]
-        else:
-            i += 1
-
-
-def setup(app):
-    app.connect("autodoc-process-docstring", _join_continuations)

@@ -56,8 +56,7 @@ class PairDataset:
     ``"source"``          str: id of the source image
     ``"crop_index"``      int: crop number within the source
     ``"crop_box"``        int32 ``(4,)``: top, left, height, width in fitted-sensor pixels
-    ``"lux_scale"``       float: lux of image value 1; ``srgb_decode(image) * lux_scale`` is the
-                          binned illuminance (where the image is below 1)
+    ``"lux_scale"``       float: lux of image value 1 (``srgb_decode(image) * lux_scale`` is the binned lux)
     ``"max_lux"``         float: lux of the source's full-scale white for this crop
     ``"contrast_gamma"``  float: contrast exponent applied to the source's luminance
     ``"seed"``            int: the pair's noise seed
