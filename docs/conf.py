@@ -114,6 +114,3 @@ def _write_name_lists() -> None:
 
 
 _write_name_lists()
-
-
-# --- docstring fix-ups (reported upstream; remove when the docstrings are fixed) -----------------
