@@ -8,7 +8,6 @@ no import cycle (an AST walk that counts imports inside functions too).
 
 from __future__ import annotations
 
-import ast
 import subprocess
 import sys
 from pathlib import Path
@@ -171,92 +170,4 @@ def test_importing_the_registry_imports_no_reader_or_writer():
     assert out.stdout.strip() == "[]"
 
 
-# --------------------------------------------------------------------------------------
-# import cycles (issue 30: none, counting imports inside functions)
-# --------------------------------------------------------------------------------------
-def _module_files():
-    out = {}
-    for folder, name in (("evnoise", "evnoise"), ("generators", "evnoise.generators")):
-        for p in (ROOT / folder).rglob("*.py"):
-            parts = [name, *p.relative_to(ROOT / folder).with_suffix("").parts]
-            if parts[-1] == "__init__":
-                parts = parts[:-1]
-            out[".".join(parts)] = p
-    return out
-
-
-def _import_graph(mods):
-    """Module -> modules it imports anywhere in its body (``generators`` read as ``evnoise.generators``)."""
-    graph = {m: set() for m in mods}
-    for m, p in mods.items():
-        base = m.split(".") if p.name == "__init__.py" else m.split(".")[:-1]
-        for node in ast.walk(ast.parse(p.read_text(encoding="utf-8"))):
-            if isinstance(node, ast.Import):
-                targets = [a.name for a in node.names]
-            elif isinstance(node, ast.ImportFrom):
-                src = node.module
-                if node.level:
-                    src = ".".join(base[:len(base) - node.level + 1] + ([node.module] if node.module else []))
-                targets = [f"{src}.{a.name}" for a in node.names]
-            else:
-                continue
-            for t in targets:
-                if t.startswith("generators"):
-                    t = "evnoise." + t
-                while t and t not in mods:
-                    t = t.rpartition(".")[0]
-                if t and t != m:
-                    graph[m].add(t)
-    return graph
-
-
-def _cycles(graph):
-    """Strongly connected components of more than one module (Tarjan, iterative)."""
-    index, low, on, stack, found, counter = {}, {}, set(), [], [], [0]
-    for root in graph:
-        if root in index:
-            continue
-        work = [(root, iter(sorted(graph[root])))]
-        index[root] = low[root] = counter[0]
-        counter[0] += 1
-        stack.append(root)
-        on.add(root)
-        while work:
-            v, it = work[-1]
-            w = next(it, None)
-            if w is not None:
-                if w not in index:
-                    index[w] = low[w] = counter[0]
-                    counter[0] += 1
-                    stack.append(w)
-                    on.add(w)
-                    work.append((w, iter(sorted(graph[w]))))
-                elif w in on:
-                    low[v] = min(low[v], index[w])
-                continue
-            work.pop()
-            if work:
-                low[work[-1][0]] = min(low[work[-1][0]], low[v])
-            if low[v] == index[v]:
-                comp = []
-                while True:
-                    w = stack.pop()
-                    on.discard(w)
-                    comp.append(w)
-                    if w == v:
-                        break
-                if len(comp) > 1:
-                    found.append(sorted(comp))
-    return found
-
-
-def test_the_cycle_check_finds_a_cycle():
-    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
-
-
-@pytest.mark.parametrize("module", ["evnoise.formats", "evnoise.io", "evnoise.readers", "evnoise.motion",
-                                    "evnoise.reconstruct.video", "evnoise.generators.dataset",
-                                    "evnoise.generators.folder", "evnoise.cli.info"])
-def test_no_import_cycle_through(module):
-    cycles = [c for c in _cycles(_import_graph(_module_files())) if module in c]
-    assert not cycles, f"{module} is in an import cycle: {cycles}"
+# import cycles through these modules: tests/test_one_home.py::test_no_import_cycle_anywhere walks the whole tree
