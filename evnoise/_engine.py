@@ -15,9 +15,10 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from . import terms
+from . import model, terms
 from .errors import ParameterError
 from .events import EVENT_DTYPE, empty_events
+from .model import same_path_values
 from .params import NoiseParams
 from .rates import trial_probabilities
 
@@ -204,7 +205,51 @@ def timer_arrays(lam, params: NoiseParams, bg):
 
 
 def static_inputs(lam, params: NoiseParams, eps_on, eps_off, bg):
-    """Renewal-kernel inputs of static pixels at ``lam``: ``(log1m_p, q_on, timer or None, total rate)``."""
+    """Renewal-kernel inputs of static pixels at ``lam``: ``(log1m_p, q_on, timer or None, total rate)``.
+
+    Every input is a function of the pixel's ``(lam, eps_on, eps_off)`` alone when no pixel has a background
+    map of its own (``bg`` None), evaluated element by element: a field with one threshold pair and few
+    distinct ``lam`` (a flat field: one; an 8-bit image: at most 256) is then evaluated once per distinct
+    ``lam`` and scattered, through the closed form's path for the whole field
+    (:func:`evnoise.model.same_path_values`), so the arrays are bit for bit those of a per-pixel evaluation.
+    """
+    found = _scene_levels(lam, eps_on, eps_off, bg)
+    if found is None:
+        return _static_inputs(lam, params, eps_on, eps_off, bg)
+    levels, inverse = found
+    n, k = lam.size, levels.size
+    values = same_path_values(levels, n)
+    m = values.size
+    log1m_p, q_on, timer, nu = _static_inputs(values, params, np.full(m, eps_on.flat[0]),
+                                              np.full(m, eps_off.flat[0]), None)
+
+    def scatter(a):
+        return np.full(n, a[0]) if k == 1 else a[:k][inverse]
+
+    if timer is not None:
+        timer = np.ascontiguousarray(timer[:, :1].repeat(n, axis=1) if k == 1 else timer[:, :k][:, inverse])
+    return scatter(log1m_p), scatter(q_on), timer, scatter(nu)
+
+
+def _scene_levels(lam, eps_on, eps_off, bg):
+    """``(levels, inverse)`` of a flat ``lam`` with few distinct values and one threshold pair, else None."""
+    lam = np.asarray(lam)
+    if bg is not None or lam.ndim != 1 or lam.size < 2 or lam.dtype != np.float64:
+        return None
+    eps_on, eps_off = np.asarray(eps_on), np.asarray(eps_off)
+    for eps in (eps_on, eps_off):
+        if eps.size not in (1, lam.size) or eps.min() != eps.max():
+            return None
+    cap = min(model.MAX_LEVELS, lam.size // 2)
+    if cap < 1:
+        return None
+    from ._kernels.levels import find_levels
+
+    return find_levels(lam, cap)
+
+
+def _static_inputs(lam, params: NoiseParams, eps_on, eps_off, bg):
+    """:func:`static_inputs` element by element."""
     if terms.regular_timer(params):
         from .rates import pixel_rates
 

@@ -26,12 +26,15 @@ import numpy as np
 from .errors import ParameterError
 
 METHODS = ("poisson", "gaussian")
-_TABLE_MIN_SIZE = 4096  # below this many elements the direct sum is cheaper than a table
+TABLE_MIN_SIZE = 4096  #: below this many elements the direct sum is cheaper than a table
 _TABLE_UNITS = (-40, 16)  # unit panels of log(lam) covered by tables: lam in [4e-18, 2.4e7)
 _SKIP_CHECK_MIN_LAM = 100.0  # below this the exact sum is cheap: no bound needed
 _LOG_TINY = -746.0  # exp(x) rounds to exactly 0 for every x below about -745.13
 _tables: dict = {}
 _tables_lock = threading.Lock()
+#: A tabulated array is evaluated once per distinct ``lam`` when it has at most this many distinct values
+#: (and at most half its size); 0 evaluates every element (what earlier versions did, same bits).
+MAX_LEVELS = 1 << 16
 
 
 def _as_float_array(x, name: str) -> np.ndarray:
@@ -101,15 +104,21 @@ def _log_p_poisson(lam, eps, bias, shape, skip_below=None):
     out = np.empty(lam_b.shape)
     uniform = eps.size == 1 or np.all(eps == eps.flat[0])
     uniform = uniform and (bias.size == 1 or np.all(bias == bias.flat[0]))
-    if uniform and lam_b.size >= _TABLE_MIN_SIZE and (skip_below is None or skip_below <= _LOG_TINY):
+    if uniform and lam_b.size >= TABLE_MIN_SIZE and (skip_below is None or skip_below <= _LOG_TINY):
         c = float(np.expm1(eps.flat[0]))
         table = _table_for(c, float(bias.flat[0]))
+        # The table evaluates element by element, so a field with few distinct lam (a flat field: one; an
+        # 8-bit image: at most 256) is evaluated once per value and scattered: the same bits, less work.
+        found = _levels(lam_b)
+        values = lam_b if found is None else found[0]
         # The skip test (a Chernoff bound, ~100 exp per value) costs more than a table lookup, so the
         # table applies it only where it would fall back to the exact sum; a tabulated log p below
         # skip_below gives exp(log p) = 0 exactly as -inf does (skip_below <= _LOG_TINY), so p is unchanged.
         if skip_below is None:
-            return table.evaluate(lam_b).reshape(shape)
-        return table.evaluate(lam_b, float(skip_below), _SKIP_CHECK_MIN_LAM).reshape(shape)
+            log_p = table.evaluate(values)
+        else:
+            log_p = table.evaluate(values, float(skip_below), _SKIP_CHECK_MIN_LAM)
+        return (log_p if found is None else log_p[found[1]]).reshape(shape)
     todo = np.ones(lam_b.shape, dtype=bool)
     c_b = np.ascontiguousarray(np.broadcast_to(np.expm1(eps), shape)).ravel()
     if bias.size == 1 or np.all(bias == bias.flat[0]):
@@ -143,13 +152,53 @@ def _log_p_poisson(lam, eps, bias, shape, skip_below=None):
     return out.reshape(shape)
 
 
+def _levels(lam: np.ndarray):
+    """``(levels, inverse)`` of the flat ``lam`` when it has few distinct values (:data:`MAX_LEVELS`), else None."""
+    cap = min(MAX_LEVELS, lam.size // 2)
+    if cap < 1:
+        return None
+    from ._kernels.levels import find_levels
+
+    return find_levels(lam, cap)
+
+
+def same_path_values(levels, n_values: int) -> np.ndarray:
+    """Distinct photon counts ``levels`` arranged so that the closed form treats them as it treats ``n_values`` values.
+
+    For one ``(eps, bias)`` the closed form (:func:`event_probability`, :func:`log_event_probability`,
+    ``method="poisson"``) evaluates each element on its own, by one of two paths chosen by the array's
+    size: the exact sum for small arrays, the Chebyshev table (equal to the sum to ~1e-11, not bit for
+    bit) from ``TABLE_MIN_SIZE`` elements on. A caller that evaluates a large field once per distinct
+    value and scatters the results must keep the large array's path: this returns ``levels`` (1-D
+    float64, non-empty) padded with copies of its last value up to ``TABLE_MIN_SIZE`` where the full
+    array of ``n_values`` values takes the table path. The first ``levels.size`` results are then, bit
+    for bit, those the values get inside the full array.
+
+    Parameters
+    ----------
+    levels : numpy.ndarray
+        1-D float64 photon counts per trial (typically distinct), at least one.
+    n_values : int
+        Size of the array whose evaluation path is to be kept.
+
+    Returns
+    -------
+    numpy.ndarray
+        1-D contiguous float64 array that starts with ``levels``.
+    """
+    levels = np.ascontiguousarray(levels, dtype=np.float64).ravel()
+    if n_values >= TABLE_MIN_SIZE > levels.size:
+        return np.concatenate([levels, np.full(TABLE_MIN_SIZE - levels.size, levels[-1])])
+    return levels
+
+
 def _grouped(lam, c, b, todo, out) -> np.ndarray:
     """Fill ``out`` (log p) where lam repeats enough for the grouped path; returns the mask of done."""
     from ._kernels.poisson import GROUPED_MAX_LAM, event_probability_grouped
 
     done = np.zeros(lam.shape, dtype=bool)
     cand = np.flatnonzero(todo & (lam > 0) & (lam <= GROUPED_MAX_LAM))
-    if cand.size < _TABLE_MIN_SIZE:
+    if cand.size < TABLE_MIN_SIZE:
         return done
     levels, inverse = np.unique(lam[cand], return_inverse=True)
     if levels.size * 8 > cand.size:

@@ -27,6 +27,9 @@ MAX_DEPTH = 6  # smallest panel width 2**-6 in natural-log units of lam
 ABS_TOL = 1e-13
 REL_TOL = 1e-14
 DIRECT = -1  # marker of a panel evaluated with the exact kernel
+#: Fewer values than this are evaluated in one thread: waking the thread pool costs ~10 us on an idle machine
+#: and milliseconds on a busy one, more than a few hundred table look-ups (the result is the same bit for bit).
+SERIAL_BELOW = 1024
 
 
 @kernel
@@ -160,8 +163,9 @@ class LogPTable:
             self._arrays = self._pack()
         out = np.empty_like(lam)
         unit_start, bounds, coef, direct, panel_bound = self._arrays
-        _evaluate(lam, unit_start, bounds, coef, direct, panel_bound, self.first_unit, self.c, self.b,
-                  float(skip_below), float(skip_min_lam), out)
+        run = _evaluate_serial if lam.shape[0] < SERIAL_BELOW else _evaluate
+        run(lam, unit_start, bounds, coef, direct, panel_bound, self.first_unit, self.c, self.b,
+            float(skip_below), float(skip_min_lam), out)
         return out
 
 
@@ -187,34 +191,45 @@ def _exact_or_skip(x, c, b, skip_below, skip_min_lam):
     return log_event_probability_exact(x, c, b)
 
 
+@kernel(inline=True)
+def _evaluate_one(x, unit_start, bounds, coef, direct, panel_bound, first_unit, c, b, skip_below, skip_min_lam):
+    """``log p`` at one ``x`` from the table (the body of :func:`_evaluate` and :func:`_evaluate_serial`)."""
+    n_units = unit_start.shape[0] - 1
+    if not x > 0.0 or x == math.inf:
+        return -math.inf
+    u = math.log(x)
+    unit = int(math.floor(u)) - first_unit
+    if unit < 0 or unit >= n_units or unit_start[unit] == unit_start[unit + 1]:
+        return _exact_or_skip(x, c, b, skip_below, skip_min_lam)
+    lo = unit_start[unit]
+    hi = unit_start[unit + 1] - 1
+    while lo < hi:  # last panel with u_lo <= u
+        mid = (lo + hi + 1) // 2
+        if bounds[mid, 0] <= u:
+            lo = mid
+        else:
+            hi = mid - 1
+    if direct[lo]:
+        if panel_bound[lo] < skip_below:
+            return -math.inf
+        return _exact_or_skip(x, c, b, skip_below, skip_min_lam)
+    u_lo = bounds[lo, 0]
+    u_hi = bounds[lo, 1]
+    t = (2.0 * u - u_lo - u_hi) / (u_hi - u_lo)
+    return _clenshaw(coef[lo], t)
+
+
 @kernel(parallel=True)
 def _evaluate(lam, unit_start, bounds, coef, direct, panel_bound, first_unit, c, b, skip_below, skip_min_lam, out):
-    n_units = unit_start.shape[0] - 1
     for i in prange(lam.shape[0]):
-        x = lam[i]
-        if not x > 0.0 or x == math.inf:
-            out[i] = -math.inf
-            continue
-        u = math.log(x)
-        unit = int(math.floor(u)) - first_unit
-        if unit < 0 or unit >= n_units or unit_start[unit] == unit_start[unit + 1]:
-            out[i] = _exact_or_skip(x, c, b, skip_below, skip_min_lam)
-            continue
-        lo = unit_start[unit]
-        hi = unit_start[unit + 1] - 1
-        while lo < hi:  # last panel with u_lo <= u
-            mid = (lo + hi + 1) // 2
-            if bounds[mid, 0] <= u:
-                lo = mid
-            else:
-                hi = mid - 1
-        if direct[lo]:
-            if panel_bound[lo] < skip_below:
-                out[i] = -math.inf
-            else:
-                out[i] = _exact_or_skip(x, c, b, skip_below, skip_min_lam)
-            continue
-        u_lo = bounds[lo, 0]
-        u_hi = bounds[lo, 1]
-        t = (2.0 * u - u_lo - u_hi) / (u_hi - u_lo)
-        out[i] = _clenshaw(coef[lo], t)
+        out[i] = _evaluate_one(lam[i], unit_start, bounds, coef, direct, panel_bound, first_unit, c, b, skip_below,
+                               skip_min_lam)
+
+
+@kernel
+def _evaluate_serial(lam, unit_start, bounds, coef, direct, panel_bound, first_unit, c, b, skip_below, skip_min_lam,
+                     out):
+    """:func:`_evaluate` in one thread (same body, same bits): for few values, where waking threads costs more."""
+    for i in range(lam.shape[0]):
+        out[i] = _evaluate_one(lam[i], unit_start, bounds, coef, direct, panel_bound, first_unit, c, b, skip_below,
+                               skip_min_lam)
