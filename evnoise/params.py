@@ -171,6 +171,12 @@ class NoiseParams:
         ``1 / (lux + dark_lux)`` (bandwidth grows with photocurrent). In changing scenes the level
         a pixel compares follows the scene through this first-order low-pass filter; 0 (default)
         means an infinitely fast photoreceptor. Static pixels are not affected.
+    reset_memory : float, optional
+        Reset memory ``k``, ``0 <= k <= 1``: the share of trials in which a pixel compares its photon count
+        against the count it stored at its last event, instead of a fresh reference sample (the paper's
+        memoryless model, ``k = 0``, the default). With ``k > 0`` a pixel that fired ON stored a high level and
+        tends to fire OFF next: consecutive events alternate in polarity, as in real quiet pixels (see
+        :mod:`evnoise.terms.memory`; static scenes through :func:`~evnoise.simulate_events` only, for now).
 
     Every field also has an upper limit, where the physics of a pixel ends (:data:`PARAM_LIMITS`:
     thresholds up to 20, photon counts up to 1e12 per trial, background rates up to 1e9/s, times up to
@@ -218,6 +224,7 @@ class NoiseParams:
     leak_regularity: float = _param("1", "background", high=1.0, default=0.0, fit_role="unmodelled")
     pr_tau_s_at_1lux: float = _param("s", "photoreceptor", high=_TIME_S, default=0.0, fit_role="never",
                                      fit_bounds=(1e-9, 1e3))
+    reset_memory: float = _param("1", "timing", high=1.0, default=0.0, fit_role="unmodelled")
 
     def __post_init__(self):
         specs = parameter_specs()

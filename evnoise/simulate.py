@@ -43,6 +43,7 @@ from .errors import InputError, ParameterError
 from .events import EVENT_DTYPE, empty_events
 from .params import NoiseParams
 from .rates import trial_probabilities
+from .terms.memory import check_supported, memory_on, refuse
 
 __all__ = [
     "simulate_events",
@@ -211,6 +212,12 @@ def _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, t
     threads = resolve_threads(threads)
     run = run_setup(lux.shape, params, rng, thresholds=thresholds, background=background)
     params, key, (eps_on, eps_off), bg = run.params, run.key, run.thresholds, run.background
+    if memory_on(params):
+        check_supported(params, thresholds, background)
+        if method == "trials":
+            raise ParameterError("method='trials' does not model reset_memory > 0 yet; use method='auto' or "
+                                 "'renewal' (the reset-memory renewal tier)")
+        return _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, sink)
     if method == "trials":
         frames = _FrameSource([lux], name="lux")
         windows = _iter_dynamic(frames, np.array([0.0, float(duration_us)]), params, key, eps_on, eps_off,
@@ -253,6 +260,59 @@ def _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, thr
             del window
             if bar is not None:
                 bar.update(w_end - t_prev)  # whole microseconds: the steps add up to the total exactly
+            t_prev = w_end
+        if bar is not None:
+            bar.close()
+
+    return EventWindows(gen(), expected_events=total, t_start_us=t_start_us, duration_us=duration_us)
+
+
+def _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, sink=None):
+    """The windows of a static scene with reset memory (:mod:`evnoise.terms.memory`): pixels grouped by light
+    level, each advanced event by event over its level's state tables (:mod:`evnoise._kernels.memory`)."""
+    from ._kernels.memory import memory_window
+    from .terms.memory import kernel_tables
+
+    width = lux.shape[1]
+    lam = params.photons_per_trial(lux).ravel()
+    levels, group = np.unique(lam, return_inverse=True)
+    group = np.ascontiguousarray(group.ravel(), dtype=np.int64)
+    table, itable, offsets, sizes, level_rates = kernel_tables(levels, params)
+    nu = level_rates[group]
+    dt = params.trial_us
+    refr = float(params.refractory_us)
+    total = float(nu.sum()) * duration_us * 1e-6
+    n_win = max(1, math.ceil(total / TARGET_EVENTS_PER_WINDOW), -(-duration_us // MAX_WINDOW_US))
+    if sink is not None:
+        _check_memory(total)
+        sink.__init__(int(math.ceil(1.2 * total + 8.0 * math.sqrt(total) + 4096)))
+
+    def gen():
+        state = PixelState(np.arange(lux.size), key, threads)
+        mem = np.full(lux.size, math.nan)  # each pixel's stored state (NaN: drawn at its first window)
+        bar = _time_bar(duration_us, progress)
+        t_prev = 0
+        for k in range(n_win):
+            w_end = duration_us * (k + 1) // n_win
+
+            def run(lo, hi, w_end=w_end, span=w_end - t_prev):
+                out = state.buffers(lo, int(1.2 * nu[lo:hi].sum() * span * 1e-6 + 64))
+                on = np.zeros(hi - lo, dtype=np.int64)
+                off = np.zeros(hi - lo, dtype=np.int64)
+                out, n = run_to_end(lambda buf, n, j: memory_window(
+                    width, state.pix[lo:hi], group[lo:hi], offsets, sizes, table, itable, state.states[lo:hi],
+                    state.fstate[lo:hi], mem[lo:hi], dt, refr, float(w_end), np.int64(t_start_us), buf, n, j, on,
+                    off, True), out, hi - lo)
+                state.keep(lo, out)
+                return tuple(a[:n] for a in out)
+
+            parts = map_chunks(run, lux.size, threads)
+            window = sorted_window(parts, t_start_us + t_prev, t_start_us + w_end, sink=sink)
+            del parts
+            yield window
+            del window
+            if bar is not None:
+                bar.update(w_end - t_prev)
             t_prev = w_end
         if bar is not None:
             bar.close()
@@ -408,6 +468,7 @@ def iter_video(
         raise ParameterError("method='renewal' needs a static scene, but some pixels change between frames")
     run = run_setup(shape, params, rng, thresholds=thresholds, background=background)
     params, key, (eps_on, eps_off), bg = run.params, run.key, run.thresholds, run.background
+    refuse(params, "simulate_video / iter_video (changing scenes)")
     t0_us = int(round(ts[0] * 1e6))
     frame_us = (ts - ts[0]) * 1e6
     duration_us = int(round(frame_us[-1]))
@@ -671,6 +732,7 @@ def sample_counts(
     run = run_setup(lux.shape, params, rng, thresholds=thresholds, background=background,
                     draw_key=distribution == "exact")
     params, gen, key, (eps_on, eps_off), bg = run.params, run.gen, run.key, run.thresholds, run.background
+    refuse(params, "sample_counts")
     lam = params.photons_per_trial(lux).ravel()
     if distribution == "exact":
         log1m_p, q_on, timer, _ = static_inputs(lam, params, eps_on, eps_off, bg)

@@ -11,6 +11,7 @@ from ._run import run_setup
 from .errors import InputError, ParameterError
 from .events import empty_events
 from .params import NoiseParams
+from .terms.memory import refuse
 
 __all__ = ["NoiseStream"]
 
@@ -48,6 +49,7 @@ class NoiseStream:
         self.shape = check_shape(shape)
         self.threads = resolve_threads(threads)
         run = run_setup(self.shape, params, rng, thresholds=thresholds, background=background)
+        refuse(run.params, "NoiseStream")
         self.params = run.params
         self._eps_on, self._eps_off = run.thresholds
         self._bg = run.background

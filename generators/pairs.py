@@ -194,6 +194,10 @@ class CountSampler:
         p = self.params
         # per-pixel draws (threshold mismatch, background spread, hot pixels) go through sample_counts
         per_pixel = terms.maps_needed(p)
+        if config.mode == "counts":  # mode="events" goes through simulate_events, which models reset memory
+            from evnoise.terms.memory import refuse
+
+            refuse(p, "the dataset generator's counts mode (use mode='events')")
         self.direct = config.mode == "counts" and p.refractory_s == 0 and not per_pixel
         self._levels = 0
         self._p_on = self._p_off = None

@@ -135,7 +135,10 @@ class PhotonNoise:
         self._worker_gen = None  # (process identity, Generator) of that copy
         # the sensor's per-pixel maps (threshold mismatch, background spread, hot pixels): drawn once, here;
         # each sample's kernel key is drawn per call (_draw)
+        from ..terms.memory import refuse
+
         self._setup = run_setup((height, width), params, map_rng, draw_key=False)
+        refuse(self._setup.params, "the tonic plugin (PhotonNoise)")
         self.params = self._setup.params
         self._thresholds = self._setup.threshold_map() if self.params.eps_sigma > 0 else None
         self._background = self._setup.background_map()

@@ -19,16 +19,17 @@ from .bandwidth import BANDWIDTH
 from .base import NoiseTerm
 from .hot_pixels import HOT_PIXELS
 from .leak import LEAK
+from .memory import MEMORY
 from .shot import SHOT
 from .timer import TIMER
 
-__all__ = ["NoiseTerm", "SHOT", "LEAK", "HOT_PIXELS", "TIMER", "BANDWIDTH", "TERMS", "MAPS", "MODEL", "register",
+__all__ = ["NoiseTerm", "SHOT", "LEAK", "HOT_PIXELS", "TIMER", "BANDWIDTH", "MEMORY", "TERMS", "MAPS", "MODEL", "register",
            "unregister", "term", "active", "background_on",
            "regular_timer", "map_needed", "maps_needed", "draw_map", "intensities", "mean_intensities",
            "kernel_coefficients", "kernel_model", "bounds"]
 
 #: The registered terms, in order.
-TERMS: list[NoiseTerm] = [SHOT, LEAK, HOT_PIXELS, TIMER, BANDWIDTH]
+TERMS: list[NoiseTerm] = [SHOT, LEAK, HOT_PIXELS, TIMER, BANDWIDTH, MEMORY]
 
 #: The per-pixel maps a run may draw, in draw order (each ``(2, H, W)``).
 MAPS = ("thresholds", "background")

@@ -1,0 +1,209 @@
+"""Kernels of the reset-memory term (``reset_memory > 0``): state tables and the event-by-event simulator.
+
+A static pixel with reset memory is a Markov renewal process over its *stored count* ``m`` (the photon
+count of the trial of its last event; module doc of :mod:`evnoise.terms.memory`). The states are the
+counts ``lo .. lo + S - 1`` of one light level (a *group* of pixels sharing ``lam`` and thresholds); per
+state the tables hold the per-trial event probability and what the next state is drawn from. The
+window kernel advances pixels event by event: a geometric gap in eligible trials from the state's
+probability, a uniform time within the trial, the refractory period as in
+:func:`evnoise._kernels.simulate.renewal_window`, then the branch and polarity, then the new state. All
+draws of one event are made when the event is drawn (an event beyond the window stays pending with its
+polarity and new state), so a pixel's stream, and the output, do not depend on windows, chunks or threads.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ._jit import kernel
+from .poisson import log_pmf, threshold_count
+from .rng import geometric, uniform, uniform_pos
+from .simulate import LAST_TAU, LAST_TRIAL, PEND_ON, PEND_TAU, PEND_TRIAL, first_eligible_trial
+
+NO_EVENT = math.nan
+
+#: Rows of the per-state float table ``(N_ROWS, total states)`` of :func:`memory_window`.
+(ROW_LOG1M_P, ROW_FRESH_ON, ROW_FRESH_OFF, ROW_STORED_ON, ROW_STORED_OFF, ROW_CUM_FRESH_ON, ROW_CUM_FRESH_OFF,
+ ROW_TAIL, ROW_HEAD) = range(9)
+N_ROWS = 9
+#: Rows of the per-state integer table ``(2, total states)``: first state above the ON threshold, last state
+#: below the OFF threshold (local indices; ``S`` and ``-1`` for none).
+ROW_IDX_ON, ROW_IDX_OFF = range(2)
+
+
+@kernel
+def fill_counts(lam, lo, n_states, c_on, c_off, b, log_pmf_out, k_on_out, k_off_out):
+    """Per state ``m = lo + s``: ``log P(N = m)`` for ``N ~ Poisson(lam)`` and the threshold counts
+    ``k(m) = m + floor(c (m + b))`` of both polarities (:func:`~evnoise._kernels.poisson.threshold_count`)."""
+    for s in range(n_states):
+        m = lo + s
+        if lam > 0.0:
+            log_pmf_out[s] = log_pmf(m, lam)
+        else:
+            log_pmf_out[s] = 0.0 if m == 0.0 else -math.inf
+        k_on_out[s] = threshold_count(m, c_on, b)
+        k_off_out[s] = threshold_count(m, c_off, b)
+
+
+@kernel
+def _search_up(cum, a, b, target):
+    """Smallest index ``i`` in ``[a, b]`` with ``cum[i] >= target`` (``cum`` nondecreasing; ``b`` if none)."""
+    while a < b:
+        mid = (a + b) // 2
+        if cum[mid] >= target:
+            b = mid
+        else:
+            a = mid + 1
+    return a
+
+
+@kernel
+def _search_down(tail, a, b, target):
+    """Largest index ``i`` in ``[a, b]`` with ``tail[i] >= target`` (``tail`` nonincreasing; ``a`` if none)."""
+    while a < b:
+        mid = (a + b + 1) // 2
+        if tail[mid] >= target:
+            a = mid
+        else:
+            b = mid - 1
+    return a
+
+
+@kernel
+def draw_initial(s, table, o, n_s):
+    """A state drawn from ``Poisson(lam)`` restricted to the group's states (the reference at ``t = 0``)."""
+    head = table[ROW_HEAD, o:o + n_s]
+    return float(_search_up(head, 0, n_s - 1, uniform_pos(s) * head[n_s - 1]))
+
+
+@kernel
+def draw_event(s, table, itable, o, n_s, st):
+    """Branch, polarity and new state of an event from state ``st`` (local index) of the group at offset ``o``.
+
+    Returns ``(on, new_state)``. One uniform picks the branch and polarity in proportion to the four
+    per-trial probabilities (fresh ON, fresh OFF, stored ON, stored OFF), one more the new state by
+    inversion of that branch's table.
+    """
+    i = o + int(st)
+    f_on = table[ROW_FRESH_ON, i]
+    f_off = table[ROW_FRESH_OFF, i]
+    s_on = table[ROW_STORED_ON, i]
+    s_off = table[ROW_STORED_OFF, i]
+    v = uniform(s) * (f_on + f_off + s_on + s_off)
+    w = uniform_pos(s)
+    # the first branch whose cumulative weight passes v (a branch of weight 0 is never chosen, also
+    # when rounding puts v at the total: then the last branch of positive weight)
+    branch = -1
+    acc = 0.0
+    for c in range(4):
+        wt = f_on if c == 0 else (f_off if c == 1 else (s_on if c == 2 else s_off))
+        if wt > 0.0:
+            acc += wt
+            branch = c
+            if v < acc:
+                break
+    if branch == 0:
+        cum = table[ROW_CUM_FRESH_ON, o:o + n_s]
+        return True, float(_search_up(cum, 0, n_s - 1, w * cum[n_s - 1]))
+    if branch == 1:
+        cum = table[ROW_CUM_FRESH_OFF, o:o + n_s]
+        return False, float(_search_up(cum, 0, n_s - 1, w * cum[n_s - 1]))
+    if branch == 2:
+        a = itable[ROW_IDX_ON, i]  # Poisson restricted to states a .. S - 1: invert its upper tail
+        tail = table[ROW_TAIL, o:o + n_s]
+        return True, float(_search_down(tail, a, n_s - 1, w * tail[a]))
+    b = itable[ROW_IDX_OFF, i]  # Poisson restricted to states 0 .. b: invert its cumulative sum
+    head = table[ROW_HEAD, o:o + n_s]
+    return False, float(_search_up(head, 0, b, w * head[b]))
+
+
+@kernel
+def memory_window(width, pix, group, offsets, sizes, table, itable, states, fstate, mem, dt, refr_us, w_end, t0_us,
+                  out, n, k_start, on_counts, off_counts, store):
+    """Advance static pixels with reset memory up to time ``w_end`` (µs); the memory twin of ``renewal_window``.
+
+    Per pixel ``k`` of the chunk: ``group[k]`` its light level, whose states are the columns
+    ``offsets[g] .. offsets[g] + sizes[g] - 1`` of ``table`` (rows ``ROW_*``) and ``itable``;
+    ``states[k]`` its random stream; ``fstate[k]`` its state (columns of :mod:`evnoise._kernels.simulate`:
+    last event's trial and time, a pending event's trial, time and polarity); ``mem[k]`` its stored state
+    (local index; NaN before the first draw, then drawn from the group's ``Poisson(lam)``) and ``mem[k]``
+    after a pending event is ``PEND`` - the new state is kept in the pending polarity's column as
+    ``2 + state`` (``fstate[k, PEND_ON]``: ``on + 2 * (state + 1)``).
+
+    Events go to ``out = (t, x, y, p)`` from slot ``n``; counts to ``on_counts``, ``off_counts``. Returns
+    ``(n, k)`` like ``renewal_window`` (``k = len(pix)``: done; else the buffers are full and pixel ``k``
+    keeps its next event pending: grow them and call again from ``k``).
+    """
+    t_out, x_out, y_out, p_out = out
+    cap = t_out.shape[0] if store else 0
+    n_pix = pix.shape[0]
+    s = np.empty(4, dtype=np.uint64)
+    for k in range(k_start, n_pix):
+        tau = fstate[k, PEND_TAU]
+        if tau >= w_end:
+            continue
+        for w in range(4):
+            s[w] = states[k, w]
+        g = group[k]
+        o = offsets[g]
+        n_s = sizes[g]
+        st = mem[k]
+        if math.isnan(st):
+            st = draw_initial(s, table, o, n_s)
+        jp = fstate[k, PEND_TRIAL]
+        code = fstate[k, PEND_ON]  # pending event: on + 2 * (new state + 1)
+        x_pix = pix[k] % width
+        y_pix = pix[k] // width
+        lt = fstate[k, LAST_TRIAL]
+        lta = fstate[k, LAST_TAU]
+        n_on = 0
+        n_off = 0
+        full = False
+        while True:
+            if math.isnan(tau):
+                if lta == -math.inf or refr_us == 0.0:
+                    j_e = lt + 1.0
+                else:
+                    j_e = first_eligible_trial(lt, lta, refr_us, dt)
+                gap = geometric(s, table[ROW_LOG1M_P, o + int(st)])
+                if gap == math.inf:
+                    tau = math.inf
+                    jp = math.inf
+                    break
+                jp = j_e + gap - 1.0
+                tau = (jp + uniform(s)) * dt
+                on, new_st = draw_event(s, table, itable, o, n_s, st)
+                code = (1.0 if on else 0.0) + 2.0 * (new_st + 1.0)
+            if tau >= w_end:
+                break
+            if store and n == cap:
+                full = True
+                break
+            pol = np.uint8(int(code) % 2)
+            n_on += pol
+            n_off += 1 - pol
+            if store:
+                t_out[n] = t0_us + np.int64(math.floor(tau))
+                x_out[n] = x_pix
+                y_out[n] = y_pix
+                p_out[n] = pol
+                n += 1
+            st = float(int(code) // 2 - 1)
+            lta = tau
+            lt = jp
+            tau = NO_EVENT
+        on_counts[k] += n_on
+        off_counts[k] += n_off
+        fstate[k, LAST_TAU] = lta
+        fstate[k, LAST_TRIAL] = lt
+        fstate[k, PEND_TAU] = tau
+        fstate[k, PEND_TRIAL] = jp
+        fstate[k, PEND_ON] = code
+        mem[k] = st
+        for w in range(4):
+            states[k, w] = s[w]
+        if full:
+            return n, k
+    return n, n_pix

@@ -1,0 +1,480 @@
+"""Reset memory (``reset_memory > 0``): after an event a pixel compares against the level it stored then.
+
+The paper's per-trial model is memoryless: every trial compares a fresh photon count ``n ~ Poisson(lam)``
+with a fresh reference ``n0 ~ Poisson(lam)``. A real pixel stores the (noisy) level it reset at, so after
+an ON event, stored high, the next crossing tends to be OFF: quiet pixels alternate polarity (93 % of
+consecutive events opposite in real recordings, 50 % in the memoryless model; issue 32).
+
+Model (static pixels). A pixel's state is its *stored count* ``m``: the photon count ``n`` of the trial of
+its last event (at ``t = 0``: a draw of ``Poisson(lam)``, as if it had just been reset). In each trial
+``n ~ Poisson(lam)`` and, with probability ``k = reset_memory``, the reference is the stored ``m``; else
+(probability ``1 - k``) it is a fresh ``n0 ~ Poisson(lam)``, as in the paper. ON when
+``log(n + b) - log(ref + b) > eps_pos``, OFF when ``log(ref + b) - log(n + b) > eps_neg``; an event stores
+``m = n``. ``k = 0`` is exactly the memoryless model (the state is never read; the simulators then run their
+memoryless paths unchanged); ``k = 1``: every comparison is against the stored level.
+
+Per trial from state ``m`` (``k_on(i) = i + floor(expm1(eps_pos) (i + b))``, the exact kernel's thresholds,
+and ``k_off`` alike):
+
+    P_on(m)  = (1 - k) p_on  + k P(N > k_on(m)),      p_on  = P(N > k_on(N0))     (the paper's exact p)
+    P_off(m) = (1 - k) p_off + k P(k_off(N) < m),     p_off = P(N0 > k_off(N))
+
+single Poisson tails per state, and the new state's law is a Poisson pmf times a tail: after a fresh ON
+``P(n = j) ∝ Poisson(j) P(k_on(N0) < j)``, after a stored ON ``∝ Poisson(j) 1{j > k_on(m)}`` (OFF alike).
+So the event sequence is a Markov renewal process: the gap is geometric in eligible trials with
+``P(m) = P_on(m) + P_off(m)`` (plus the refractory period, as in the memoryless tiers: the mean time from
+an event in state ``m`` to the next is ``R + dt / P(m)``), the polarity and the next state are drawn from
+the state's laws. :func:`memory_statistics` evaluates the stationary rate, ON share, polarity-transition
+matrix and inter-event intervals per polarity pair from the stationary law of the embedded chain (a
+linear solve); :mod:`evnoise._kernels.memory` simulates it event by event.
+
+Truncation (the tail bound). Counts are restricted to ``lo <= n, n0, m <= hi`` around ``lam``
+(:func:`state_range`): the tables describe the model in which a count outside that range never fires
+an event. That model and the full one coincide unless some trial's ``n`` or ``n0`` falls outside the
+range, which has probability at most ``2 * tail_mass`` per trial; so over ``J`` pixel-trials the two
+models' event streams (coupled) differ with probability at most ``2 J tail_mass``.
+``tail_mass <= 1e-17`` per side while the range fits :data:`MAX_STATES` states (``lam`` up to about
+3e4); beyond, the range is the ``MAX_STATES`` counts around ``lam`` and ``tail_mass`` (reported by
+:func:`memory_statistics`) grows (2e-6 at ``lam = 1e5``); there events need
+counts tens of standard deviations from ``lam`` for any ``eps`` above ``~5 / sqrt(lam)`` and the rate is 0.
+
+Supported: :func:`evnoise.simulate_events` / :func:`evnoise.iter_events` of static scenes with nominal
+thresholds and no background. Refused with :class:`~evnoise.ParameterError` (not yet modelled):
+threshold mismatch (``eps_sigma > 0`` or given ``thresholds``), background and hot pixels, changing scenes
+(:func:`evnoise.simulate_video`), :func:`evnoise.sample_counts`, :class:`evnoise.NoiseStream`, the tonic
+plugin and the dataset generator's counts. The closed forms of :mod:`evnoise.rates`
+(:func:`evnoise.expected_rate`) are the memoryless ones; use :func:`memory_statistics`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from .base import NoiseTerm
+
+#: Most states (counts) of one light level: bounds the dense linear solve of :func:`memory_statistics`
+#: (an ``S x S`` matrix, 72 MB) and the kernel's tables.
+MAX_STATES = 3001
+#: Poisson mass per side left outside the state range when it fits in :data:`MAX_STATES`.
+TAIL_MASS = 1e-17
+#: Up to this many distinct light levels a simulation computes each level's stationary rate (its expected
+#: events); beyond, an estimate sizes its windows.
+EXACT_RATE_LEVELS = 64
+#: Most table entries (states over all light levels) one simulation builds (about 80 bytes each).
+MAX_TABLE_STATES = 20_000_000
+
+
+class ResetMemory(NoiseTerm):
+    """``reset_memory``: the share of trials that compare against the level stored at the last event (0: none)."""
+
+    name = "memory"
+    fields = ("reset_memory",)
+
+
+MEMORY = ResetMemory()
+
+
+def memory_on(params) -> bool:
+    """True when ``params`` has reset memory (``reset_memory > 0``)."""
+    return getattr(params, "reset_memory", 0.0) > 0
+
+
+def refuse(params, where: str) -> None:
+    """Raise :class:`~evnoise.ParameterError` when ``params`` (checked :class:`~evnoise.NoiseParams`) has reset
+    memory, which ``where`` does not model yet."""
+    if memory_on(params):
+        from ..errors import ParameterError
+
+        raise ParameterError(f"reset_memory > 0 is not supported by {where} yet (only simulate_events and iter_events "
+                             f"of static scenes model it); set reset_memory = 0")
+
+
+def check_supported(params, thresholds=None, background=None) -> None:
+    """Refuse, naming it, what the reset-memory simulator does not support yet (see the module doc)."""
+    from ..errors import ParameterError
+
+    missing = []
+    if params.eps_sigma > 0 or thresholds is not None:
+        missing.append("threshold mismatch (eps_sigma > 0 or given thresholds)")
+    if params.has_background or background is not None:
+        missing.append("background activity or hot pixels (leak_*, hot_pixel_*)")
+    if missing:
+        raise ParameterError(f"reset_memory > 0 does not support {' and '.join(missing)} yet; set reset_memory = 0 "
+                             f"or turn them off")
+
+
+# --------------------------------------------------------------------------------------------------
+# the states of one light level
+# --------------------------------------------------------------------------------------------------
+def _log_cumsum(log_x):
+    """``log(cumsum(exp(log_x)))`` without overflow or underflow (``-inf`` entries allowed)."""
+    top = np.max(log_x)
+    if not np.isfinite(top):
+        return np.full_like(log_x, -np.inf)
+    with np.errstate(divide="ignore"):
+        return np.log(np.cumsum(np.exp(log_x - top))) + top
+
+
+def state_range(lam: float):
+    """``(lo, n_states, tail_mass)``: the counts ``lo .. lo + n_states - 1`` kept around ``lam``.
+
+    The smallest range with at most :data:`TAIL_MASS` of ``Poisson(lam)`` below and above it, or, when that
+    needs more than :data:`MAX_STATES` counts, the ``MAX_STATES`` counts centred on ``floor(lam)``;
+    ``tail_mass`` is the Poisson mass outside the range (module doc: the truncation's bound).
+    """
+    from .._kernels.memory import fill_counts
+
+    lam = float(lam)
+    if lam <= 0.0:
+        return 0, 1, 0.0
+    half = int(min(math.ceil(12.0 * math.sqrt(lam) + 40.0), 4 * MAX_STATES))
+    centre = int(math.floor(lam))
+    c_lo = max(0, centre - half)
+    n_c = centre + half - c_lo + 1
+    log_p = np.empty(n_c)
+    scratch = np.empty(n_c)
+    fill_counts(lam, float(c_lo), n_c, 0.0, 0.0, 0.0, log_p, scratch, scratch)
+    below = _log_cumsum(log_p)  # log P(c_lo <= N <= i)
+    above = _log_cumsum(log_p[::-1])[::-1]  # log P(i <= N <= c_hi)
+    limit = math.log(TAIL_MASS)
+    # lo: the largest count with P(N < lo) <= TAIL_MASS; hi: the smallest with P(N > hi) <= TAIL_MASS
+    ok_lo = np.flatnonzero(np.concatenate([[-np.inf], below[:-1]]) <= limit)
+    i_lo = int(ok_lo[-1]) if ok_lo.size else 0
+    ok_hi = np.flatnonzero(np.concatenate([above[1:], [-np.inf]]) <= limit)
+    i_hi = int(ok_hi[0]) if ok_hi.size else n_c - 1
+    if i_hi - i_lo + 1 > MAX_STATES:
+        i_lo = max(0, centre - c_lo - MAX_STATES // 2)
+        i_hi = min(n_c - 1, i_lo + MAX_STATES - 1)
+        inside = np.logaddexp.reduce(log_p[i_lo:i_hi + 1])
+        tail = float(-np.expm1(min(inside, 0.0)))
+    else:
+        with np.errstate(divide="ignore"):
+            parts = [below[i_lo - 1] if i_lo > 0 else -np.inf, above[i_hi + 1] if i_hi + 1 < n_c else -np.inf]
+        tail = float(np.exp(np.logaddexp(*parts)))
+    return c_lo + i_lo, i_hi - i_lo + 1, tail
+
+
+@dataclasses.dataclass(frozen=True)
+class LevelTables:
+    """The reset-memory chain of one light level (module doc), over states ``m = lo + s``, ``s < n_states``.
+
+    Attributes
+    ----------
+    k : float
+        The reset memory.
+    lo, n_states : int
+        The states.
+    tail_mass : float
+        Poisson mass outside them (:func:`state_range`).
+    pmf : numpy.ndarray
+        ``P(N = m)``.
+    head, tail : numpy.ndarray
+        ``P(lo <= N <= m)`` and ``P(m <= N <= hi)``.
+    idx_on, idx_off : numpy.ndarray (int64)
+        First state above the ON threshold of ``m`` (``n_states``: none) and last state ``j`` with
+        ``k_off(j) < m`` (``-1``: none).
+    fresh_on, fresh_off : numpy.ndarray
+        ``(1 - k) Poisson(j) P(fresh reference beaten)``: the joint law of the new state and a fresh event.
+    p_fresh_on, p_fresh_off : float
+        Their sums (``(1 - k)`` times the paper's ``p_on``, ``p_off`` of the truncated model).
+    stored_on, stored_off : numpy.ndarray
+        ``k P(N > k_on(m))`` and ``k P(k_off(N) < m)`` per state.
+    """
+
+    k: float
+    lo: int
+    n_states: int
+    tail_mass: float
+    pmf: np.ndarray
+    head: np.ndarray
+    tail: np.ndarray
+    idx_on: np.ndarray
+    idx_off: np.ndarray
+    fresh_on: np.ndarray
+    fresh_off: np.ndarray
+    p_fresh_on: float
+    p_fresh_off: float
+    stored_on: np.ndarray
+    stored_off: np.ndarray
+
+    @property
+    def p_on(self) -> np.ndarray:
+        """Per-trial ON probability of each state."""
+        return self.p_fresh_on + self.stored_on
+
+    @property
+    def p_off(self) -> np.ndarray:
+        """Per-trial OFF probability of each state."""
+        return self.p_fresh_off + self.stored_off
+
+    @property
+    def p_event(self) -> np.ndarray:
+        """Per-trial event probability of each state (at most 1)."""
+        return np.minimum(self.p_on + self.p_off, 1.0)
+
+
+def kernel_tables(levels, params):
+    """The kernel's tables of the light levels ``levels`` (photons per trial) of one run (nominal thresholds).
+
+    Returns ``(table, itable, offsets, sizes, rates)``: float rows ``ROW_*`` and integer rows ``ROW_IDX_*`` of
+    :mod:`evnoise._kernels.memory` over all levels' states (level ``g``'s at ``offsets[g] .. + sizes[g]``) and
+    each level's rate (events/s, both polarities): the stationary rate for up to :data:`EXACT_RATE_LEVELS`
+    levels, beyond an estimate (the states weighted by ``Poisson(lam)``) that only sizes windows and buffers.
+    Raises :class:`~evnoise.ParameterError` when the tables would pass :data:`MAX_TABLE_STATES`.
+    """
+    from .._kernels import memory as km
+    from ..errors import ParameterError
+
+    ranges = [state_range(lam) for lam in levels]
+    sizes = np.array([r[1] for r in ranges], dtype=np.int64)
+    total = int(sizes.sum())
+    if total > MAX_TABLE_STATES:
+        raise ParameterError(f"reset_memory > 0: this scene's {len(levels):,} distinct light levels need "
+                             f"{total:,} table states, more than {MAX_TABLE_STATES:,}; use fewer distinct "
+                             f"illuminance values (e.g. quantise lux)")
+    offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+    table = np.empty((km.N_ROWS, total))
+    itable = np.empty((2, total), dtype=np.int64)
+    rates = np.empty(len(levels))
+    dt_s = 1.0 / params.trial_rate_hz
+    refr_s = params.refractory_us * 1e-6
+    for g, lam in enumerate(levels):
+        t = level_tables(lam, params.eps_pos, params.eps_neg, params.bias_pr, params.reset_memory)
+        cols = slice(offsets[g], offsets[g] + sizes[g])
+        p = t.p_event
+        with np.errstate(divide="ignore"):
+            table[km.ROW_LOG1M_P, cols] = np.log1p(-p)
+        table[km.ROW_FRESH_ON, cols] = t.p_fresh_on
+        table[km.ROW_FRESH_OFF, cols] = t.p_fresh_off
+        table[km.ROW_STORED_ON, cols] = t.stored_on
+        table[km.ROW_STORED_OFF, cols] = t.stored_off
+        table[km.ROW_CUM_FRESH_ON, cols] = np.cumsum(t.fresh_on)
+        table[km.ROW_CUM_FRESH_OFF, cols] = np.cumsum(t.fresh_off)
+        table[km.ROW_TAIL, cols] = t.tail
+        table[km.ROW_HEAD, cols] = t.head
+        itable[km.ROW_IDX_ON, cols] = t.idx_on
+        itable[km.ROW_IDX_OFF, cols] = t.idx_off
+        if len(levels) <= EXACT_RATE_LEVELS:
+            r_on, r_off, *_ = level_statistics(t, dt_s, refr_s)
+            rates[g] = r_on + r_off
+        else:
+            mean_p = float((t.pmf * p).sum())
+            rates[g] = mean_p / (dt_s + mean_p * refr_s)
+    return table, itable, offsets, sizes, rates
+
+
+def level_tables(lam: float, eps_on: float, eps_off: float, bias: float, k: float) -> LevelTables:
+    """The chain of a pixel with ``lam`` photons per trial, thresholds ``eps_on``, ``eps_off``, bias ``bias``
+    (photons per trial) and reset memory ``k`` (module doc)."""
+    from .._kernels.memory import fill_counts
+
+    lo, n_s, tail_mass = state_range(lam)
+    log_p = np.empty(n_s)
+    k_on = np.empty(n_s)
+    k_off = np.empty(n_s)
+    fill_counts(float(lam), float(lo), n_s, math.expm1(eps_on), math.expm1(eps_off), float(bias), log_p, k_on,
+                k_off)
+    pmf = np.exp(log_p)
+    m = lo + np.arange(n_s, dtype=np.float64)
+    head = np.cumsum(pmf)
+    tail = np.cumsum(pmf[::-1])[::-1]
+    tail_ext = np.append(tail, 0.0)
+    head_ext = np.append(head, 0.0)  # index -1 reads the 0 at the end
+    idx_on = np.searchsorted(m, k_on, side="right").astype(np.int64)
+    idx_off = (np.searchsorted(k_off, m, side="left") - 1).astype(np.int64)
+    fresh_on = (1.0 - k) * pmf * head_ext[np.searchsorted(k_on, m, side="left") - 1]
+    fresh_off = (1.0 - k) * pmf * tail_ext[np.searchsorted(m, k_off, side="right")]
+    return LevelTables(float(k), lo, n_s, tail_mass, pmf, head, tail, idx_on, idx_off, fresh_on, fresh_off,
+                       float(fresh_on.sum()), float(fresh_off.sum()), k * tail_ext[idx_on], k * head_ext[idx_off])
+
+
+# --------------------------------------------------------------------------------------------------
+# closed form
+# --------------------------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class MemoryStatistics:
+    """Stationary statistics of static pixels with reset memory (:func:`memory_statistics`).
+
+    Arrays have the shape of ``lux``; ``[a, b]`` indices are polarities (0 OFF, 1 ON, as in events' ``p``).
+
+    Attributes
+    ----------
+    rate_hz : numpy.ndarray (2, ...)
+        Events/s per pixel ``[ON, OFF]`` (refractory period included).
+    on_share : numpy.ndarray
+        Share of ON events (NaN where there are none).
+    transition : numpy.ndarray (2, 2, ...)
+        ``transition[a, b]``: probability that an event of polarity ``a`` is followed by one of polarity ``b``.
+    p_opposite : numpy.ndarray
+        Probability that consecutive events have opposite polarities.
+    iei_mean_s : numpy.ndarray (2, 2, ...)
+        Mean interval (s) from an event of polarity ``a`` to the next event when that is of polarity ``b``.
+    tail_mass : numpy.ndarray
+        Poisson mass outside the state range per count (the truncation's bound, module doc).
+    """
+
+    rate_hz: np.ndarray
+    on_share: np.ndarray
+    transition: np.ndarray
+    p_opposite: np.ndarray
+    iei_mean_s: np.ndarray
+    tail_mass: np.ndarray
+
+
+def _stationary(t: LevelTables):
+    """``(pi, p)``: the stationary law of the state at an event's start (embedded chain) and ``P(m)``.
+
+    ``pi`` solves ``pi T = pi``, ``sum pi = 1`` with ``T(m, j) = E(m, j) / P(m)`` (dense solve); a state
+    with ``P(m) = 0`` never fires again (absorbing).
+    """
+    n_s = t.n_states
+    p = t.p_on + t.p_off
+    j = np.arange(n_s)
+    # M[j, m] = T(m, j): (1 - k) fresh laws + k Poisson(j) on the stored branches' ranges
+    m_t = (j[:, None] >= t.idx_on[None, :]).astype(np.float64)
+    m_t += j[:, None] <= t.idx_off[None, :]
+    m_t *= (t.k * t.pmf)[:, None]
+    m_t += (t.fresh_on + t.fresh_off)[:, None]
+    live = p > 0
+    m_t[:, live] /= p[live]
+    m_t[:, ~live] = 0.0
+    m_t[j[~live], j[~live]] = 1.0  # absorbing
+    m_t[j, j] -= 1.0
+    m_t[-1, :] = 1.0
+    rhs = np.zeros(n_s)
+    rhs[-1] = 1.0
+    try:
+        pi = np.linalg.solve(m_t, rhs)
+    except np.linalg.LinAlgError:
+        pi = np.linalg.lstsq(m_t, rhs, rcond=None)[0]
+    pi = np.clip(pi, 0.0, None)
+    total = pi.sum()
+    return (pi / total if total > 0 else pi), p
+
+
+def _after(t: LevelTables, w_on, w_off):
+    """Per state ``j``: ``sum_m w_on(m) E_on(m, j)`` and ``sum_m w_off(m) E_off(m, j)`` (``w = pi / P``),
+    the stationary laws of the state just after an ON and an OFF event (unnormalised), in O(S log S)."""
+    k = t.k
+    n_s = t.n_states
+    j = np.arange(n_s)
+    # ON: stored branch reaches j from the m with idx_on(m) <= j (idx_on nondecreasing: a prefix of m)
+    c_on = np.concatenate([[0.0], np.cumsum(w_on)])
+    a = np.searchsorted(t.idx_on, j, side="right")
+    after_on = t.fresh_on * w_on.sum() + k * t.pmf * c_on[a]
+    # OFF: from the m with idx_off(m) >= j (a suffix)
+    c_off = np.concatenate([[0.0], np.cumsum(w_off)])
+    b = np.searchsorted(t.idx_off, j, side="left")
+    after_off = t.fresh_off * w_off.sum() + k * t.pmf * (c_off[-1] - c_off[b])
+    return after_on, after_off
+
+
+def level_statistics(t: LevelTables, dt_s: float, refr_s: float):
+    """The statistics of one level (trial length ``dt_s``, refractory period ``refr_s``): ``(rate_on, rate_off, transition (2, 2), iei_mean (2, 2))`` and the mixtures
+    ``(weights (2, 2, S), p)`` of its inter-event intervals."""
+    pi, p = _stationary(t)
+    live = p > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(live, pi / np.where(live, p, 1.0), np.where(pi > 0, np.inf, 0.0))  # trials per event
+        mean_trials = float(w.sum())
+        gap_s = refr_s + dt_s * mean_trials
+        rate = 1.0 / gap_s if np.isfinite(gap_s) and gap_s > 0 else 0.0
+        w_fin = np.where(np.isfinite(w), w, 0.0)
+        share_on = float((w_fin * t.p_on).sum())
+        after_on, after_off = _after(t, w_fin, w_fin)
+        q_on = np.where(live, t.p_on / np.where(live, p, 1.0), 0.0)
+        q_off = np.where(live, t.p_off / np.where(live, p, 1.0), 0.0)
+        weights = np.empty((2, 2, t.n_states))
+        for a, after in ((1, after_on), (0, after_off)):
+            weights[a, 1] = after * q_on
+            weights[a, 0] = after * q_off
+        mass = weights.sum(axis=2)
+        transition = mass / mass.sum(axis=1, keepdims=True)
+        iei = refr_s + dt_s * (weights * np.where(live, 1.0 / np.where(live, p, 1.0), np.inf)).sum(axis=2) / mass
+    return rate * share_on, rate * (1.0 - share_on) if rate > 0 else 0.0, transition, iei, weights, p
+
+
+def memory_statistics(lux, params) -> MemoryStatistics:
+    """Stationary rate, ON share, polarity transitions and mean intervals of static pixels with reset memory.
+
+    Parameters
+    ----------
+    lux : float or array_like
+        Illuminance at the sensor in lux (``>= 0``).
+    params : NoiseParams or str
+        Model parameters (``reset_memory`` may be 0: the memoryless model, evaluated the same way). Threshold
+        mismatch and background terms are not part of this closed form (nominal thresholds, no background).
+
+    Returns
+    -------
+    MemoryStatistics
+        Arrays with the shape of ``lux`` (module doc: the model, its Markov renewal closed form and the
+        truncation bound). Cost: one dense linear solve of up to :data:`MAX_STATES` states per distinct level.
+    """
+    from .._checks import check_params
+
+    params = check_params(params)
+    lux = np.asarray(lux, dtype=np.float64)
+    lam = np.asarray(params.photons_per_trial(lux), dtype=np.float64)
+    levels, inverse = np.unique(lam.ravel(), return_inverse=True)
+    out = {name: np.empty((len(levels),) + shape) for name, shape in
+           (("rate", (2,)), ("share", ()), ("trans", (2, 2)), ("opp", ()), ("iei", (2, 2)), ("tail", ()))}
+    dt_s = 1.0 / params.trial_rate_hz
+    refr_s = params.refractory_us * 1e-6
+    for i, level in enumerate(levels):
+        t = level_tables(level, params.eps_pos, params.eps_neg, params.bias_pr, params.reset_memory)
+        r_on, r_off, trans, iei, weights, _ = level_statistics(t, dt_s, refr_s)
+        out["rate"][i] = (r_on, r_off)
+        total = r_on + r_off
+        out["share"][i] = r_on / total if total > 0 else math.nan
+        out["trans"][i] = trans
+        out["opp"][i] = (trans[1, 0] * r_on + trans[0, 1] * r_off) / total if total > 0 else math.nan
+        out["iei"][i] = iei
+        out["tail"][i] = t.tail_mass
+
+    def shaped(a, lead=()):
+        a = a[inverse]
+        a = np.moveaxis(a, 0, -1) if lead else a
+        return a.reshape(lead + lux.shape)
+
+    return MemoryStatistics(shaped(out["rate"], (2,)), shaped(out["share"]), shaped(out["trans"], (2, 2)),
+                            shaped(out["opp"]), shaped(out["iei"], (2, 2)), shaped(out["tail"]))
+
+
+def memory_iei_cdf(t_s, lux: float, params) -> np.ndarray:
+    """CDF of the interval from an event of polarity ``a`` to the next when that is of polarity ``b``.
+
+    Returns ``(2, 2, len(t_s))``: ``[a, b]`` polarities (0 OFF, 1 ON), at times ``t_s`` (seconds, exact up to the
+    microsecond rounding of emitted timestamps). Given the state ``j`` after the first event the interval is
+    ``R + dt (G - 1 + U1 + U2)``, ``G`` geometric with ``P(j)``, ``U1``, ``U2`` uniform (the uniform times of the two
+    events in their trials; the refractory period's mean skip is exactly ``R``), independent of the next
+    polarity; the CDF is the mixture over ``j`` weighted by the stationary law of the states after ``a``
+    events and ``P(b | j)``.
+    """
+    from .._checks import check_params
+
+    params = check_params(params)
+    lam = float(params.photons_per_trial(float(lux)))
+    t = level_tables(lam, params.eps_pos, params.eps_neg, params.bias_pr, params.reset_memory)
+    dt_s = 1.0 / params.trial_rate_hz
+    refr_s = params.refractory_us * 1e-6
+    *_, weights, p = level_statistics(t, dt_s, refr_s)
+    x = (np.atleast_1d(np.asarray(t_s, dtype=np.float64)) - refr_s) / dt_s  # G - 1 + U1 + U2
+    n = np.floor(x)
+    f = x - n
+    q = 1.0 - p
+    with np.errstate(divide="ignore", invalid="ignore", under="ignore"):
+        lq = np.log1p(-np.minimum(p, 1.0))[:, None]  # (S, 1)
+        qn1 = np.exp(np.where(n[None, :] >= 1, (n[None, :] - 1.0) * lq, 0.0))  # q^(n - 1)
+        qn = np.where(n[None, :] >= 0, qn1 * np.where(n[None, :] >= 1, q[:, None], 1.0), 0.0)  # q^n
+        pp = p[:, None]
+        cdf = (np.where(n[None, :] >= 1, 1.0 - qn1, 0.0)
+               + np.where(n[None, :] >= 1, pp * qn1 * (1.0 - 0.5 * (1.0 - f[None, :]) ** 2), 0.0)
+               + np.where(n[None, :] >= 0, pp * qn * 0.5 * f[None, :] ** 2, 0.0))
+        cdf = np.where(x[None, :] < 0, 0.0, cdf)
+        mass = weights.sum(axis=2)
+        out = np.einsum("abs,st->abt", weights, cdf) / mass[:, :, None]
+    return np.clip(out, 0.0, 1.0)
