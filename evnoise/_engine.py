@@ -59,15 +59,21 @@ class PixelState:
         self.pix = np.ascontiguousarray(pix, dtype=np.int64)
         n = self.pix.size
         self.states = np.empty((n, 4), dtype=np.uint64)
-        # each pixel's stream is keyed by its flat index, not by its position in this set
-        map_chunks(lambda lo, hi: k.seed_streams(key, self.pix[lo:hi], self.states[lo:hi]), n, threads)
         row = np.zeros(k.N_STATE)
         initial = {k.LAST_TRIAL: -1.0, k.LAST_TAU: -math.inf, k.PEND_TRIAL: math.nan, k.PEND_TAU: math.nan,
                    k.PEND_ON: math.nan, k.CACHE_LAM: math.nan, k.BG_NEXT: math.nan}
         for col, value in initial.items():
             row[col] = value
         self.fstate = np.empty((n, k.N_STATE))
-        self.fstate[:] = row  # one pass over the rows (column by column is a strided pass each)
+
+        def init(lo, hi):
+            # each pixel's stream is keyed by its flat index, not by its position in this set
+            k.seed_streams(key, self.pix[lo:hi], self.states[lo:hi])
+            # one pass over the chunk's rows (column by column is a strided pass each), in the chunk's thread:
+            # the fresh pages of this ~100 bytes-per-pixel state are faulted in by both threads
+            self.fstate[lo:hi] = row
+
+        map_chunks(init, n, threads)
         self.last_trial = self.fstate[:, k.LAST_TRIAL]
         self.last_tau = self.fstate[:, k.LAST_TAU]
         self.pend_trial = self.fstate[:, k.PEND_TRIAL]

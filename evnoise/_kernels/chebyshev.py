@@ -12,7 +12,10 @@ the exact kernel directly). Evaluation does a binary search for the panel and Cl
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import math
+from pathlib import Path
 
 import numpy as np
 from numba import prange
@@ -105,8 +108,90 @@ def build_unit_panel(unit: int, c: float, b: float):
     return out
 
 
+_CACHED = ("units", "unit_start", "bounds", "coef")
+
+
+@functools.lru_cache(maxsize=1)
+def _build_signature() -> dict:
+    """What a table's bits depend on besides ``(c, b)``: the code that builds it and what compiles and runs it."""
+    import platform
+    import sys
+
+    import llvmlite
+    import llvmlite.binding as llvm
+    import numba
+    from numba.core import config
+
+    here = Path(__file__).resolve().parent
+    source = hashlib.sha256()
+    for name in ("chebyshev.py", "poisson.py", "bounds.py", "_jit.py"):
+        source.update((here / name).read_bytes())
+    features = config.CPU_FEATURES if config.CPU_FEATURES is not None else llvm.get_host_cpu_features().flatten()
+    from .._version import __version__
+
+    return {"what": "evnoise log p Chebyshev table", "evnoise": __version__, "source": source.hexdigest(),
+            "numpy": np.__version__, "numba": numba.__version__, "llvmlite": llvmlite.__version__,
+            "machine": platform.machine(), "byteorder": sys.byteorder,
+            "cpu": config.CPU_NAME or llvm.get_host_cpu_name(),
+            "cpu_features": hashlib.sha256(features.encode()).hexdigest()[:16]}
+
+
+def units_to_arrays(units: dict) -> dict:
+    """Unit panels ``{unit: [(u_lo, u_hi, coef | None), ...]}`` as flat arrays (a direct panel: a row of NaN)."""
+    keys = sorted(units)
+    unit_start = np.zeros(len(keys) + 1, dtype=np.int64)
+    bounds, coefs = [], []
+    for i, u in enumerate(keys):
+        unit_start[i + 1] = unit_start[i] + len(units[u])
+        for u_lo, u_hi, coef in units[u]:
+            bounds.append((u_lo, u_hi))
+            coefs.append(np.full(DEGREE + 1, np.nan) if coef is None else coef)
+    return {"units": np.array(keys, dtype=np.int64), "unit_start": unit_start,
+            "bounds": np.array(bounds, dtype=np.float64).reshape(-1, 2),
+            "coef": np.array(coefs, dtype=np.float64).reshape(-1, DEGREE + 1)}
+
+
+def arrays_to_units(arrays: dict, first_unit: int, last_unit: int) -> dict | None:
+    """:func:`units_to_arrays` undone, or None when the arrays are not a well-formed table of ``[first, last]``.
+
+    Checked: dtypes and shapes; units increasing inside the table's range; each unit's panels cover
+    ``[unit, unit + 1)`` contiguously in increasing order; a panel's coefficients are all finite, or the
+    unit is one direct panel (all NaN).
+    """
+    units, start, bounds, coef = (arrays[k] for k in _CACHED)
+    if not (units.dtype == np.int64 and start.dtype == np.int64 and bounds.dtype == np.float64
+            and coef.dtype == np.float64 and units.ndim == 1 and start.shape == (units.size + 1,)
+            and bounds.ndim == 2 and bounds.shape[1] == 2 and coef.shape == (bounds.shape[0], DEGREE + 1)):
+        return None
+    if units.size and not (units[0] >= first_unit and units[-1] <= last_unit and (np.diff(units) > 0).all()):
+        return None
+    if not (start[0] == 0 and start[-1] == bounds.shape[0] and (np.diff(start) > 0).all()
+            and np.isfinite(bounds).all()):
+        return None
+    finite = np.isfinite(coef).all(axis=1)
+    nan = np.isnan(coef).all(axis=1)
+    out = {}
+    for i, u in enumerate(units.tolist()):
+        lo, hi = int(start[i]), int(start[i + 1])
+        b = bounds[lo:hi]
+        if not (b[0, 0] == u and b[-1, 1] == u + 1 and (b[:, 0] < b[:, 1]).all() and (b[1:, 0] == b[:-1, 1]).all()):
+            return None
+        if hi - lo == 1 and nan[lo]:
+            out[u] = [(float(u), float(u + 1), None)]
+        elif finite[lo:hi].all():
+            out[u] = [(float(b[j, 0]), float(b[j, 1]), coef[lo + j].copy()) for j in range(hi - lo)]
+        else:
+            return None
+    return out
+
+
 class LogPTable:
-    """Lazily built adaptive table of ``log p`` for one ``(c, b)`` over unit panels of ``u``."""
+    """Lazily built adaptive table of ``log p`` for one ``(c, b)`` over unit panels of ``u``.
+
+    Built units are kept in evnoise's on-disk cache (:mod:`evnoise._cache`, keyed by ``(c, b)``, the
+    table's range and :func:`_build_signature`), so that the next process reads them instead of
+    building them; a table read back is the same, bit for bit, as one built.
+    """
 
     def __init__(self, c: float, b: float, first_unit: int, last_unit: int):
         self.c = float(c)
@@ -115,13 +200,45 @@ class LogPTable:
         self.last_unit = last_unit
         self._units: dict[int, list] = {}
         self._arrays = None
+        self._disk_read = False
+
+    def cache_key(self) -> dict:
+        """The on-disk cache key of this table (:mod:`evnoise._cache`)."""
+        return {**_build_signature(), "c": self.c.hex(), "b": self.b.hex(), "units": [self.first_unit, self.last_unit],
+                "degree": DEGREE, "max_depth": MAX_DEPTH, "abs_tol": ABS_TOL.hex(), "rel_tol": REL_TOL.hex()}
+
+    def _read_disk(self) -> dict:
+        from .._cache import load_arrays
+
+        try:
+            arrays = load_arrays(self.cache_key(), _CACHED)
+            found = None if arrays is None else arrays_to_units(arrays, self.first_unit, self.last_unit)
+        except Exception:  # noqa: BLE001 -- whatever is wrong with a cached file, the table is built instead
+            found = None
+        return found or {}
+
+    def _write_disk(self) -> None:
+        from .._cache import save_arrays
+
+        merged = {**self._read_disk(), **self._units}  # keep what other processes added meanwhile
+        save_arrays(self.cache_key(), units_to_arrays(merged))
 
     def ensure(self, units) -> None:
-        """Build the unit panels in ``units`` (an iterable of ints) that are not built yet."""
+        """Build the unit panels in ``units`` (an iterable of ints) that are not built yet (or read them from disk)."""
         new = [u for u in units if self.first_unit <= u <= self.last_unit and u not in self._units]
+        changed = False
+        if new and not self._disk_read:
+            self._disk_read = True
+            for u, panels in self._read_disk().items():
+                if u not in self._units:
+                    self._units[u] = panels
+                    changed = True
+            new = [u for u in new if u not in self._units]
         for u in new:
             self._units[u] = build_unit_panel(u, self.c, self.b)
-        if new or self._arrays is None:
+        if new:
+            self._write_disk()
+        if new or changed or self._arrays is None:
             self._arrays = self._pack()
 
     def _pack(self):

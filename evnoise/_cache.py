@@ -1,0 +1,113 @@
+"""evnoise's on-disk cache of computed arrays (the closed form's Chebyshev tables), shared by processes.
+
+A fresh process (``evnoise simulate``, a DataLoader worker) would otherwise rebuild the tables the closed
+form uses (about a CPU-second per threshold and bias); with the cache it reads them back. What is cached
+is only ever a speed-up, never trusted:
+
+- **Where**: ``tables/`` in evnoise's cache folder (:func:`evnoise.reconstruct.lpips.cache_dir`:
+  ``$EVNOISE_CACHE``, else ``$XDG_CACHE_HOME/evnoise``, else ``~/.cache/evnoise``).
+- **Off**: ``EVNOISE_TABLE_CACHE=0`` (or ``off``, ``no``, ``false``) neither reads nor writes it.
+- **Key**: a dict of strings naming everything the arrays depend on; its SHA-256 names the file and
+  the whole key is stored in it and compared on load (a file written for another key, another
+  format version, or by other code is ignored).
+- **Verified**: a SHA-256 of the key and every array's dtype, shape and bytes is stored and checked
+  on load; the caller checks the arrays' structure too. A file that fails any check is ignored (and
+  replaced by the next save).
+- **Written atomically**: to a unique temporary name in the same folder, then ``os.replace``: a reader
+  sees an old file or a new one, never half of one; of concurrent writers the last one wins, and what
+  the others added is rebuilt when it is next needed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+#: Version of the file layout (in every key: a new layout never reads an old file).
+FORMAT = 1
+_OFF = ("0", "off", "no", "false")
+
+
+def table_cache_dir() -> Path | None:
+    """The folder of cached tables, or None when ``EVNOISE_TABLE_CACHE`` turns the cache off."""
+    if os.environ.get("EVNOISE_TABLE_CACHE", "").strip().lower() in _OFF:
+        return None
+    from .reconstruct.lpips import cache_dir
+
+    return cache_dir() / "tables"
+
+
+def _key_text(key: dict) -> str:
+    return json.dumps({"format": FORMAT, **key}, sort_keys=True, separators=(",", ":"))
+
+
+def _checksum(text: str, arrays: dict) -> str:
+    h = hashlib.sha256(text.encode())
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        h.update(f"|{name}|{a.dtype.str}|{a.shape}|".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def table_path(key: dict, folder: Path) -> Path:
+    """The file of ``key`` in ``folder`` (named by the key's hash)."""
+    return folder / f"table-{hashlib.sha256(_key_text(key).encode()).hexdigest()[:32]}.npz"
+
+
+def load_arrays(key: dict, names: tuple) -> dict | None:
+    """The arrays ``names`` stored for ``key``, or None (no cache, no file, or a file that fails a check).
+
+    The checks here: the file is a NumPy ``.npz`` read without pickles, holds exactly ``names`` plus the
+    key and checksum, its key is ``key`` and its checksum matches. The caller checks what the arrays mean.
+    """
+    folder = table_cache_dir()
+    if folder is None:
+        return None
+    path = table_path(key, folder)
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            if set(npz.files) != {*names, "key", "checksum"}:
+                raise ValueError(f"members {sorted(npz.files)}")
+            text = str(npz["key"][()])
+            stored = str(npz["checksum"][()])
+            arrays = {name: npz[name] for name in names}
+    except FileNotFoundError:
+        return None
+    except Exception as exc:  # noqa: BLE001 -- a damaged file of any kind is ignored, never trusted
+        log.debug("ignoring cached table %s: %s", path, exc)
+        return None
+    if text != _key_text(key) or stored != _checksum(text, arrays):
+        log.debug("ignoring cached table %s: key or checksum does not match", path)
+        return None
+    return arrays
+
+
+def save_arrays(key: dict, arrays: dict) -> Path | None:
+    """Store ``arrays`` for ``key`` (atomically); returns the file, or None (cache off, or it cannot be written)."""
+    folder = table_cache_dir()
+    if folder is None:
+        return None
+    path = table_path(key, folder)
+    text = _key_text(key)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}-{os.urandom(4).hex()}.tmp")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with open(tmp, "xb") as fh:
+            np.savez(fh, key=np.array(text), checksum=np.array(_checksum(text, arrays)), **arrays)
+        os.replace(tmp, path)
+    except OSError as exc:  # a read-only or full disk: the cache is only a speed-up
+        log.debug("cannot write cached table %s: %s", path, exc)
+        try:
+            tmp.unlink()
+        except OSError:
+            pass
+        return None
+    return path
