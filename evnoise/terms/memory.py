@@ -55,9 +55,11 @@ import numpy as np
 
 from .base import NoiseTerm
 
-#: Most states (counts) of one light level: bounds the dense linear solve of :func:`memory_statistics`
-#: (an ``S x S`` matrix, 72 MB) and the kernel's tables.
+#: Most states (counts) of one light level: bounds the kernel's tables and the stationary solve of
+#: :func:`memory_statistics` (and its dense fallback, an ``S x S`` matrix of 72 MB).
 MAX_STATES = 3001
+#: Up to this many states :func:`memory_statistics` solves densely (beyond: GMRES with the chain's structure).
+DENSE_STATES = 600
 #: Poisson mass per side left outside the state range when it fits in :data:`MAX_STATES`.
 TAIL_MASS = 1e-17
 #: Up to this many distinct light levels a simulation computes each level's stationary rate (its expected
@@ -327,32 +329,55 @@ class MemoryStatistics:
 def _stationary(t: LevelTables):
     """``(pi, p)``: the stationary law of the state at an event's start (embedded chain) and ``P(m)``.
 
-    ``pi`` solves ``pi T = pi``, ``sum pi = 1`` with ``T(m, j) = E(m, j) / P(m)`` (dense solve); a state
-    with ``P(m) = 0`` never fires again (absorbing).
+    ``pi`` solves ``pi T = pi``, ``sum pi = 1`` with ``T(m, j) = E(m, j) / P(m)``; a state with ``P(m) = 0``
+    never fires again (absorbing). Up to :data:`DENSE_STATES` states a dense solve; beyond, GMRES on
+    ``pi - pi T + u sum(pi) = u`` (``u`` uniform; its solution sums to 1 and is stationary) with the chain's
+    O(S log S) product (:func:`_after`), checked by its residual (a dense solve if GMRES falls short).
     """
     n_s = t.n_states
     p = t.p_on + t.p_off
-    j = np.arange(n_s)
-    # M[j, m] = T(m, j): (1 - k) fresh laws + k Poisson(j) on the stored branches' ranges
-    m_t = (j[:, None] >= t.idx_on[None, :]).astype(np.float64)
-    m_t += j[:, None] <= t.idx_off[None, :]
-    m_t *= (t.k * t.pmf)[:, None]
-    m_t += (t.fresh_on + t.fresh_off)[:, None]
     live = p > 0
-    m_t[:, live] /= p[live]
-    m_t[:, ~live] = 0.0
-    m_t[j[~live], j[~live]] = 1.0  # absorbing
-    m_t[j, j] -= 1.0
-    m_t[-1, :] = 1.0
-    rhs = np.zeros(n_s)
-    rhs[-1] = 1.0
-    try:
-        pi = np.linalg.solve(m_t, rhs)
-    except np.linalg.LinAlgError:
-        pi = np.linalg.lstsq(m_t, rhs, rcond=None)[0]
-    pi = np.clip(pi, 0.0, None)
-    total = pi.sum()
-    return (pi / total if total > 0 else pi), p
+    p_safe = np.where(live, p, 1.0)
+
+    def step(x):  # the row vector x T
+        w = np.where(live, x / p_safe, 0.0)
+        a_on, a_off = _after(t, w, w)
+        return a_on + a_off + np.where(live, 0.0, x)
+
+    pi = None
+    if n_s > DENSE_STATES:
+        from scipy.sparse.linalg import LinearOperator, gmres
+
+        u = np.full(n_s, 1.0 / n_s)
+        op = LinearOperator((n_s, n_s), matvec=lambda x: x - step(x) + u * x.sum(), dtype=np.float64)
+        x, _ = gmres(op, u, rtol=1e-13, atol=0.0, restart=100, maxiter=20)
+        x = np.clip(x, 0.0, None)
+        if x.sum() > 0:
+            x /= x.sum()
+            if np.abs(x - step(x)).sum() <= 1e-10:
+                pi = x
+    if pi is None:
+        j = np.arange(n_s)
+        # m_t[j, m] = T(m, j): (1 - k) fresh laws + k Poisson(j) on the stored branches' ranges
+        m_t = (j[:, None] >= t.idx_on[None, :]).astype(np.float64)
+        m_t += j[:, None] <= t.idx_off[None, :]
+        m_t *= (t.k * t.pmf)[:, None]
+        m_t += (t.fresh_on + t.fresh_off)[:, None]
+        m_t[:, live] /= p[live]
+        m_t[:, ~live] = 0.0
+        m_t[j[~live], j[~live]] = 1.0  # absorbing
+        m_t[j, j] -= 1.0
+        m_t[-1, :] = 1.0
+        rhs = np.zeros(n_s)
+        rhs[-1] = 1.0
+        try:
+            pi = np.linalg.solve(m_t, rhs)
+        except np.linalg.LinAlgError:
+            pi = np.linalg.lstsq(m_t, rhs, rcond=None)[0]
+        pi = np.clip(pi, 0.0, None)
+        total = pi.sum()
+        pi = pi / total if total > 0 else pi
+    return pi, p
 
 
 def _after(t: LevelTables, w_on, w_off):
@@ -412,7 +437,7 @@ def memory_statistics(lux, params) -> MemoryStatistics:
     -------
     MemoryStatistics
         Arrays with the shape of ``lux`` (module doc: the model, its Markov renewal closed form and the
-        truncation bound). Cost: one dense linear solve of up to :data:`MAX_STATES` states per distinct level.
+        truncation bound). Cost: one linear solve over up to :data:`MAX_STATES` states per distinct level.
     """
     from .._checks import check_params
 

@@ -1,0 +1,238 @@
+"""Reset memory (``reset_memory``, issue 32 §1): closed form, fast kernel and an independent per-trial simulation.
+
+Statistical checks use fixed seeds and k-sigma tolerances whose sigma is estimated from the samples themselves
+(pixels are independent; the events of one pixel are not, so sigmas come from per-pixel totals).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+from scipy import stats
+
+import evnoise as ev
+from evnoise import simulate as sim
+from evnoise.terms import memory
+
+K_SIGMA = 5.0
+BASE = ev.NoiseParams(eps_pos=0.5, eps_neg=0.6, bias_pr=1.0, trial_rate_hz=1000.0, photons_per_lux=5.0,
+                      refractory_s=3e-4)
+MEM = BASE.replace(reset_memory=0.7)
+
+
+def _reference(lam, params, n_pix, n_trials, seed):
+    """Plain NumPy, trial by trial (the model as the module doc states it, in log comparisons): per pixel
+    the event times (float µs) and polarities. Independent of the kernels' threshold counts and tables."""
+    rng = np.random.default_rng(seed)
+    b, k, dt, refr = params.bias_pr, params.reset_memory, params.trial_us, params.refractory_us
+    stored = rng.poisson(lam, n_pix)
+    last = np.full(n_pix, -np.inf)
+    times, pols, pixels = [], [], []
+    for j in range(n_trials):
+        n = rng.poisson(lam, n_pix)
+        fresh = rng.poisson(lam, n_pix)
+        ref = np.where(rng.random(n_pix) < k, stored, fresh)
+        d = np.log(n + b) - np.log(ref + b)
+        on, off = d > params.eps_pos, -d > params.eps_neg
+        tau = (j + rng.random(n_pix)) * dt
+        fire = (on | off) & (j * dt >= last + refr)
+        idx = np.flatnonzero(fire)
+        if idx.size:
+            times.append(tau[idx])
+            pols.append(on[idx].astype(np.uint8))
+            pixels.append(idx)
+            stored[idx] = n[idx]
+            last[idx] = tau[idx]
+    return np.concatenate(pixels), np.concatenate(times), np.concatenate(pols)
+
+
+def _per_pixel(pix, t, p):
+    """Sorted by pixel then time: ``(pix, t, p, same)`` with ``same[i]``: events i and i+1 are one pixel's."""
+    order = np.lexsort((t, pix))
+    pix, t, p = pix[order], t[order], p[order]
+    return pix, t, p, pix[1:] == pix[:-1]
+
+
+def _ratio(num, den):
+    """Pooled ratio of per-pixel totals and its standard error (delta method over independent pixels)."""
+    r = num.sum() / den.sum()
+    se = math.sqrt(((num - r * den) ** 2).sum()) / den.sum()
+    return r, se
+
+
+def _summaries(pix, t, p, n_pix):
+    """Per-pixel totals: events, ON events, transitions, opposite transitions, and per pair (a, b) the count and
+    summed interval (µs)."""
+    pix, t, p, same = _per_pixel(pix, t, p)
+    out = {"events": np.bincount(pix, minlength=n_pix), "on": np.bincount(pix, weights=p, minlength=n_pix)}
+    first = pix[:-1][same]
+    out["trans"] = np.bincount(first, minlength=n_pix)
+    out["opp"] = np.bincount(first, weights=(p[1:] != p[:-1])[same], minlength=n_pix)
+    gaps = np.diff(t)[same]
+    pa, pb = p[:-1][same], p[1:][same]
+    for a in (0, 1):
+        for b in (0, 1):
+            m = (pa == a) & (pb == b)
+            out[a, b] = np.bincount(first[m], minlength=n_pix)
+            out["gap", a, b] = np.bincount(first[m], weights=gaps[m], minlength=n_pix)
+            out["gaps", a, b] = gaps[m]
+    return out
+
+
+def _check_against_closed_form(s, st, duration_s, n_pix):
+    rate = s["events"] / duration_s
+    assert abs(rate.mean() - st.rate_hz.sum()) < K_SIGMA * rate.std() / math.sqrt(n_pix)
+    share, se = _ratio(s["on"], s["events"])
+    assert abs(share - st.on_share) < K_SIGMA * se
+    opp, se = _ratio(s["opp"], s["trans"])
+    assert abs(opp - st.p_opposite) < K_SIGMA * se
+    for a in (0, 1):
+        frac, se = _ratio(s[a, 1], s[a, 0] + s[a, 1])
+        assert abs(frac - st.transition[a, 1]) < K_SIGMA * se
+        for b in (0, 1):
+            mean, se = _ratio(s["gap", a, b], s[a, b])
+            # emitted timestamps are floored to whole µs: the mean interval moves by less than 1 µs
+            assert abs(mean * 1e-6 - st.iei_mean_s[a, b]) < K_SIGMA * se * 1e-6 + 1e-6
+
+
+def _events(lux, params, duration_s, seed, threads=1):
+    e = ev.simulate_events(lux, params, duration_s, rng=seed, threads=threads)
+    return e["y"].astype(np.int64) * lux.shape[1] + e["x"], e["t"].astype(np.float64), e["p"]
+
+
+def test_memoryless_limit_is_the_exact_model():
+    """k = 0: the chain's rates are expected_rate's (within the truncation's bound) and polarities independent."""
+    lux = np.array([1e-6, 0.3, 1.0, 10.0, 100.0])
+    st = memory.memory_statistics(lux, BASE)
+    want = ev.expected_rate(lux, BASE)
+    bound = 2.0 * st.tail_mass * BASE.trial_rate_hz  # events/s the truncation can move
+    assert np.all(np.abs(st.rate_hz - want) <= 1e-9 * want + bound)
+    np.testing.assert_allclose(st.transition[:, 1], np.broadcast_to(st.on_share, (2, lux.size)), rtol=1e-9)
+    # the fresh branch of the tables is the paper's exact p (the same threshold counts)
+    t = memory.level_tables(5.0, 0.5, 0.6, 1.0, 0.0)
+    np.testing.assert_allclose([t.p_fresh_on, t.p_fresh_off], [ev.event_probability(5.0, 0.5, 1.0),
+                                                               ev.event_probability(5.0, 0.6, 1.0)], rtol=1e-12)
+
+
+def test_memory_makes_polarities_alternate():
+    st = memory.memory_statistics(1.0, BASE.replace(reset_memory=0.0))
+    previous = float(st.p_opposite)
+    for k in (0.3, 0.7, 1.0):
+        opp = float(memory.memory_statistics(1.0, BASE.replace(reset_memory=k)).p_opposite)
+        assert opp > previous + 0.05
+        previous = opp
+
+
+def test_closed_form_against_an_independent_per_trial_simulation():
+    lam, n_pix, n_trials = 10.0, 400, 12_000
+    pix, t, p = _reference(lam, MEM, n_pix, n_trials, seed=5)
+    duration_s = n_trials * MEM.trial_us * 1e-6
+    st = memory.memory_statistics(lam / MEM.photons_per_lux, MEM)
+    s = _summaries(pix, np.floor(t), p, n_pix)
+    _check_against_closed_form(s, st, duration_s, n_pix)
+
+
+def test_fast_kernel_against_the_closed_form():
+    lux = np.full((30, 40), 2.0)
+    lux[:15] = 0.5
+    duration_s = 10.0
+    pix, t, p = _events(lux, MEM, duration_s, seed=11)
+    st = memory.memory_statistics([0.5, 2.0], MEM)
+    for rows, level in ((slice(0, 15), 0), (slice(15, 30), 1)):
+        sel = (pix // 40 >= rows.start) & (pix // 40 < rows.stop)
+        s = _summaries(pix[sel] - rows.start * 40, t[sel], p[sel], 15 * 40)
+        st_l = memory.MemoryStatistics(st.rate_hz[:, level], st.on_share[level], st.transition[..., level],
+                                       st.p_opposite[level], st.iei_mean_s[..., level], st.tail_mass[level])
+        _check_against_closed_form(s, st_l, duration_s, 15 * 40)
+        # the whole interval distribution per polarity pair against the closed-form CDF
+        for a in (0, 1):
+            for b in (0, 1):
+                gaps = s["gaps", a, b] * 1e-6
+                p_ks = stats.kstest(gaps, lambda x: memory.memory_iei_cdf(x, [0.5, 2.0][level], MEM)[a, b]).pvalue
+                assert p_ks > 1e-3, (level, a, b, p_ks)
+
+
+def test_fast_kernel_against_the_reference_simulation():
+    """Two-sample KS of the intervals per polarity pair, and the transition counts (chi-square)."""
+    lam, n_pix, n_trials = 10.0, 300, 10_000
+    rp, rt, rpol = _reference(lam, MEM, n_pix, n_trials, seed=3)
+    lux = np.full((10, 30), lam / MEM.photons_per_lux)
+    kp, kt, kpol = _events(lux, MEM, n_trials * MEM.trial_us * 1e-6, seed=4)
+    ref, fast = _summaries(rp, np.floor(rt), rpol, n_pix), _summaries(kp, kt, kpol, n_pix)
+    table = np.array([[ref[a, b].sum() for a in (0, 1) for b in (0, 1)],
+                      [fast[a, b].sum() for a in (0, 1) for b in (0, 1)]])
+    assert stats.chi2_contingency(table).pvalue > 1e-3
+    for a in (0, 1):
+        for b in (0, 1):
+            assert stats.ks_2samp(ref["gaps", a, b], fast["gaps", a, b]).pvalue > 1e-3, (a, b)
+
+
+def test_output_does_not_depend_on_threads_or_windows(monkeypatch):
+    lux = np.full((130, 130), 1.0)  # 16,900 pixels: two chunks
+    lux[::3] = 3.0
+    one = ev.simulate_events(lux, MEM, 0.2, rng=7, threads=1)
+    two = ev.simulate_events(lux, MEM, 0.2, rng=7, threads=2)
+    assert one.size > 10_000 and np.array_equal(one, two)
+    monkeypatch.setattr(sim, "TARGET_EVENTS_PER_WINDOW", 3000)  # many windows, events pending across them
+    windows = list(ev.iter_events(lux, MEM, 0.2, rng=7, threads=2))
+    assert len(windows) > 5 and np.array_equal(np.concatenate(windows), one)
+
+
+def test_zero_memory_is_the_memoryless_simulator(monkeypatch):
+    lux = np.full((20, 20), 1.0)
+    want = ev.simulate_events(lux, BASE, 1.0, rng=3)
+
+    def fail(*args, **kwargs):
+        raise AssertionError("the memory path ran with reset_memory = 0")
+
+    monkeypatch.setattr(sim, "_iter_memory", fail)
+    got = ev.simulate_events(lux, BASE.replace(reset_memory=0.0), 1.0, rng=3)
+    assert np.array_equal(got, want)
+
+
+@pytest.mark.parametrize("changes, lux", [
+    ({}, 1e-12), ({}, 0.0), ({"photons_per_lux": 5e4}, 2.0), ({"eps_pos": 1e-3, "eps_neg": 1e-3}, 1.0),
+    ({"eps_pos": 15.0, "eps_neg": 15.0}, 1.0), ({"bias_pr": 0.0}, 0.1), ({"reset_memory": 1.0}, 1.0),
+    ({"reset_memory": 1.0, "bias_pr": 0.0}, 0.02)])
+def test_hard_cases_are_finite_and_quiet(changes, lux):
+    params = MEM.replace(**changes)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        st = memory.memory_statistics(lux, params)
+        e = ev.simulate_events(np.full((4, 4), lux), params, 0.05, rng=1)
+    assert np.all(np.isfinite(st.rate_hz)) and np.all(st.rate_hz >= 0) and np.isfinite(st.tail_mass)
+    if st.rate_hz.sum() > 0:
+        assert np.isfinite(st.p_opposite) and 0 <= st.p_opposite <= 1
+    assert np.all(np.diff(e["t"]) >= 0)
+
+
+def test_state_range_bound():
+    lo, n, tail = memory.state_range(20.0)
+    assert tail <= 2 * memory.TAIL_MASS and lo <= 20 < lo + n
+    assert memory.state_range(1e5)[1] == memory.MAX_STATES  # capped: the bound is reported instead
+    assert 0 < memory.state_range(1e5)[2] < 1e-4
+
+
+@pytest.mark.parametrize("what", ["video", "counts", "stream", "tonic", "mismatch", "background", "trials"])
+def test_what_is_not_modelled_yet_is_refused(what):
+    lux = np.full((4, 4), 1.0)
+    with pytest.raises(ev.ParameterError, match="reset_memory"):
+        if what == "video":
+            ev.simulate_video(np.stack([lux, 2 * lux]), [0.0, 0.1], MEM, rng=1)
+        elif what == "counts":
+            ev.sample_counts(lux, MEM, 1.0, rng=1)
+        elif what == "stream":
+            ev.NoiseStream((4, 4), MEM, rng=1)
+        elif what == "tonic":
+            from evnoise.plugins.tonic import PhotonNoise
+
+            PhotonNoise((4, 4, 2), MEM, 1.0, rng=1)
+        elif what == "mismatch":
+            ev.simulate_events(lux, MEM.replace(eps_sigma=0.05), 1.0, rng=1)
+        elif what == "background":
+            ev.simulate_events(lux, MEM.replace(leak_on_hz=0.1), 1.0, rng=1)
+        else:
+            ev.simulate_events(lux, MEM, 1.0, rng=1, method="trials")
