@@ -127,10 +127,9 @@ def memory_window(width, pix, group, offsets, sizes, table, itable, states, fsta
     Per pixel ``k`` of the chunk: ``group[k]`` its light level, whose states are the columns
     ``offsets[g] .. offsets[g] + sizes[g] - 1`` of ``table`` (rows ``ROW_*``) and ``itable``;
     ``states[k]`` its random stream; ``fstate[k]`` its state (columns of :mod:`evnoise._kernels.simulate`:
-    last event's trial and time, a pending event's trial, time and polarity); ``mem[k]`` its stored state
-    (local index; NaN before the first draw, then drawn from the group's ``Poisson(lam)``) and ``mem[k]``
-    after a pending event is ``PEND`` - the new state is kept in the pending polarity's column as
-    ``2 + state`` (``fstate[k, PEND_ON]``: ``on + 2 * (state + 1)``).
+    last event's trial and time, a pending event's trial and time; ``PEND_ON`` holds the pending event's
+    code ``on + 2 * (new state + 1)``); ``mem[k]`` its stored state (local index; NaN before its first window,
+    then drawn from the level's ``Poisson(lam)``).
 
     Events go to ``out = (t, x, y, p)`` from slot ``n``; counts to ``on_counts``, ``off_counts``. Returns
     ``(n, k)`` like ``renewal_window`` (``k = len(pix)``: done; else the buffers are full and pixel ``k``

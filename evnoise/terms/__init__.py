@@ -23,8 +23,8 @@ from .memory import MEMORY
 from .shot import SHOT
 from .timer import TIMER
 
-__all__ = ["NoiseTerm", "SHOT", "LEAK", "HOT_PIXELS", "TIMER", "BANDWIDTH", "MEMORY", "TERMS", "MAPS", "MODEL", "register",
-           "unregister", "term", "active", "background_on",
+__all__ = ["NoiseTerm", "SHOT", "LEAK", "HOT_PIXELS", "TIMER", "BANDWIDTH", "MEMORY", "TERMS", "MAPS", "MODEL",
+           "register", "unregister", "term", "active", "background_on",
            "regular_timer", "map_needed", "maps_needed", "draw_map", "intensities", "mean_intensities",
            "kernel_coefficients", "kernel_model", "bounds"]
 

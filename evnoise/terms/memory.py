@@ -398,8 +398,11 @@ def _after(t: LevelTables, w_on, w_off):
 
 
 def level_statistics(t: LevelTables, dt_s: float, refr_s: float):
-    """The statistics of one level (trial length ``dt_s``, refractory period ``refr_s``): ``(rate_on, rate_off, transition (2, 2), iei_mean (2, 2))`` and the mixtures
-    ``(weights (2, 2, S), p)`` of its inter-event intervals."""
+    """The statistics of one level (trial length ``dt_s``, refractory period ``refr_s``).
+
+    Returns ``(rate_on, rate_off, transition (2, 2), iei_mean_s (2, 2), weights (2, 2, S), p)``: events/s, the
+    polarity-transition matrix, the mean intervals per pair, and the mixture weights over the state after the
+    first event and the per-state event probabilities of the inter-event intervals (:func:`memory_iei_cdf`)."""
     pi, p = _stationary(t)
     live = p > 0
     with np.errstate(divide="ignore", invalid="ignore"):
