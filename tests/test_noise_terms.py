@@ -64,7 +64,7 @@ def test_every_parameter_has_one_term():
     owned = Counter(f for t in terms.TERMS for f in t.fields)
     assert all(n == 1 for n in owned.values()), owned
     assert set(owned) == {f.name for f in dataclasses.fields(ev.NoiseParams)}
-    assert [t.name for t in terms.TERMS] == ["shot", "leak", "hot_pixels", "timer", "bandwidth"]
+    assert [t.name for t in terms.TERMS] == ["shot", "leak", "hot_pixels", "timer", "bandwidth", "memory"]
     assert set(terms.bounds()) == set(owned)
     with pytest.raises(ValueError, match="already registered"):
         terms.register(terms.LEAK)
