@@ -221,7 +221,10 @@ class LogPTable:
         from .._cache import save_arrays
 
         merged = {**self._read_disk(), **self._units}  # keep what other processes added meanwhile
-        save_arrays(self.cache_key(), units_to_arrays(merged))
+        try:
+            save_arrays(self.cache_key(), units_to_arrays(merged))
+        except Exception:  # noqa: BLE001 -- the cache is only a speed-up: a table that cannot be stored is kept in memory
+            pass
 
     def ensure(self, units) -> None:
         """Build the unit panels in ``units`` (an iterable of ints) that are not built yet (or read them from disk)."""
