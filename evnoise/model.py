@@ -10,7 +10,7 @@ scene it has the same probability function). Two closed forms:
     an adaptive piecewise-Chebyshev table in ``log(lam)`` is built from that sum and
     verified against it panel by panel (absolute error in ``log p`` below
     ``1e-13 + 1e-14 |log p|``, i.e. relative error below about 1e-11 wherever ``p > 1e-300``).
-    Built tables are kept in evnoise's cache folder (:mod:`evnoise._cache`; ``EVNOISE_TABLE_CACHE=0``
+    Built tables are kept in evnoise's cache folder (module ``evnoise._cache``; ``EVNOISE_TABLE_CACHE=0``
     turns that off), and a table-sized array with few distinct ``lam`` (a flat field, an 8-bit
     image) is evaluated once per value and scattered: the same bits either way.
 ``method="gaussian"``
