@@ -4,7 +4,7 @@ A fresh process (``evnoise simulate``, a DataLoader worker) would otherwise rebu
 form uses (about a CPU-second per threshold and bias); with the cache it reads them back. What is cached
 is only ever a speed-up, never trusted:
 
-- **Where**: ``tables/`` in evnoise's cache folder (:func:`evnoise.reconstruct.lpips.cache_dir`:
+- **Where**: ``tables/`` in evnoise's cache folder (:func:`cache_dir`:
   ``$EVNOISE_CACHE``, else ``$XDG_CACHE_HOME/evnoise``, else ``~/.cache/evnoise``).
 - **Off**: ``EVNOISE_TABLE_CACHE=0`` (or ``off``, ``no``, ``false``) neither reads nor writes it.
 - **Key**: a dict of strings naming everything the arrays depend on; its SHA-256 names the file and
@@ -35,12 +35,24 @@ FORMAT = 1
 _OFF = ("0", "off", "no", "false")
 
 
+def cache_dir() -> Path:
+    """evnoise's cache folder: ``$EVNOISE_CACHE``, else ``$XDG_CACHE_HOME/evnoise``, else ``~/.cache/evnoise``.
+
+    It holds the closed form's tables (``tables/``) and the LPIPS weights. A relative ``XDG_CACHE_HOME`` is
+    ignored, as the XDG base-directory specification says.
+    """
+    env = os.environ.get("EVNOISE_CACHE")
+    if env:
+        return Path(env).expanduser()
+    xdg = os.environ.get("XDG_CACHE_HOME", "")
+    base = Path(xdg).expanduser() if xdg and Path(xdg).expanduser().is_absolute() else Path.home() / ".cache"
+    return base / "evnoise"
+
+
 def table_cache_dir() -> Path | None:
     """The folder of cached tables, or None when ``EVNOISE_TABLE_CACHE`` turns the cache off."""
     if os.environ.get("EVNOISE_TABLE_CACHE", "").strip().lower() in _OFF:
         return None
-    from .reconstruct.lpips import cache_dir
-
     return cache_dir() / "tables"
 
 

@@ -284,3 +284,15 @@ def test_the_readme_layout_names_every_package():
     top = {"evnoise", "generators", "calibration", "tests", "benchmarks", "docs"}
     gone = sorted(n for n in named - top - packages)
     assert not gone, f"README Layout names folders that are not packages: {gone}"
+
+
+def test_the_core_does_not_import_the_layers_above_it():
+    """The model, simulator, radiometry, readers and io never import the reconstructor, the CLI, the plugins,
+    the generators or calibration (they build on the core, not the other way round)."""
+    upper = ("evnoise.reconstruct", "evnoise.cli", "evnoise.plugins", "evnoise.examples", "evnoise.generators",
+             "evnoise.calibration", "evnoise.data")
+    edges = _import_edges()
+    core = [m for m in edges if not m.startswith(upper) and m not in ("evnoise", "evnoise.__main__")]
+    assert "evnoise._cache" in core and "evnoise.simulate" in core
+    upward = {m: sorted(t for t in edges[m] if t.startswith(upper)) for m in core}
+    assert not {m: t for m, t in upward.items() if t}, upward

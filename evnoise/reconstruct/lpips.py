@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from .._atomic import atomic_output
+from .._cache import cache_dir
 from ..errors import EvnoiseError, InputError, OutputError
 
 __all__ = ["LPIPS", "weights_path", "cache_dir", "install_weights", "load_weights", "convert_ckpt", "reference_check",
@@ -64,19 +65,6 @@ INSTALL_HINT = "evnoise lpips install"
 
 class LPIPSWeightsMissing(EvnoiseError, FileNotFoundError):
     """The offline LPIPS weights have not been installed."""
-
-
-def cache_dir() -> Path:
-    """evnoise's cache folder: ``$EVNOISE_CACHE``, else ``$XDG_CACHE_HOME/evnoise``, else ``~/.cache/evnoise``.
-
-    A relative ``XDG_CACHE_HOME`` is ignored, as the XDG base-directory specification says.
-    """
-    env = os.environ.get("EVNOISE_CACHE")
-    if env:
-        return Path(env).expanduser()
-    xdg = os.environ.get("XDG_CACHE_HOME", "")
-    base = Path(xdg).expanduser() if xdg and Path(xdg).expanduser().is_absolute() else Path.home() / ".cache"
-    return base / "evnoise"
 
 
 def weights_path() -> Path:
