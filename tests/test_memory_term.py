@@ -236,3 +236,20 @@ def test_what_is_not_modelled_yet_is_refused(what):
             ev.simulate_events(lux, MEM.replace(leak_on_hz=0.1), 1.0, rng=1)
         else:
             ev.simulate_events(lux, MEM, 1.0, rng=1, method="trials")
+
+
+def test_expected_rate_of_a_pixel_with_memory_is_the_markov_renewal_rate():
+    """``expected_rate`` with ``reset_memory > 0`` is the memory closed form (not the memoryless rate), and refuses
+    what that form does not cover instead of answering for another model."""
+    p = BASE.replace(reset_memory=0.3)
+    lux = np.array([[0.5, 2.0], [2.0, 30.0]])
+    got = ev.expected_rate(lux, p)
+    want = memory.memory_statistics(lux, p).rate_hz
+    assert got.shape == (2, 2, 2)
+    np.testing.assert_array_equal(got, want)
+    memoryless = ev.expected_rate(lux, p.replace(reset_memory=0.0))
+    assert not np.allclose(got, memoryless, rtol=1e-3)  # the memory changes the rate
+    with pytest.raises(ev.ParameterError, match="reset_memory"):
+        ev.expected_rate(lux, p.replace(leak_on_hz=0.1))
+    with pytest.raises(ev.ParameterError, match="reset_memory"):
+        ev.expected_rate(lux, p, thresholds=np.full((2, 2, 2), 0.5))
