@@ -40,6 +40,26 @@ assumption fails, each with a p-value from a null distribution that does not dep
   sensor (a slow edge, a domain wall, a person shifting) shows up here, and so does a drift that is
   not the same factor for every pixel (e.g. ordinary pixels speeding up while hot pixels do not).
 
+Two tests of timing are not checks of the window but of the fitted model (the fit's goodness report,
+``QuietFit.timing``, :func:`evnoise.calibration.quiet.goodness.timing_tests`); the window's events
+for them are gathered here (:func:`same_pixel_timing`, kept in the polarity pairs' dict as ``same_pixel``):
+
+- **polarity transitions**: of a pixel's consecutive events, how many are opposite in polarity,
+  against what a memoryless model predicts. The fit's model draws each event's polarity
+  independently with the pixel's ON share (whatever its arrival times), so given a pixel's ``n_on``
+  ON and ``n_off`` OFF events their order is a uniformly random arrangement: the number of opposite
+  transitions has mean ``2 n_on n_off / n`` and variance ``2 n_on n_off (2 n_on n_off - n) / (n^2 (n - 1))``
+  (Wald-Wolfowitz runs, ``n = n_on + n_off``), exactly, for any per-pixel ON share (the ``2 q (1 - q)``
+  per transition, with ``q`` taken from the pixel's own counts). Summed over the pixels (independent),
+  a two-sided normal test: real quiet pixels alternate (93 % opposite, issue 32) where the model says
+  about 50 %. A model with reset memory predicts its own ``p_opposite``
+  (:func:`evnoise.terms.memory.memory_statistics`): pass it to :func:`polarity_transitions` for a
+  binomial test instead. Fewer than :data:`MIN_INTERVALS` transitions: not testable ("not enough
+  intervals");
+- **inter-event intervals**: the same pass collects the pixels' inter-event intervals (``intervals_s``,
+  at most :data:`STORED_INTERVALS` order statistics, and ``n_intervals``), which the fit's goodness
+  report tests against the fitted model's distribution (a KS test).
+
 And one for information, not an assumption of the fit:
 
 - **spatial structure**: the variance of the mean count of ``block`` x ``block`` pixel blocks
@@ -62,13 +82,21 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["window_checks", "failed_checks", "check_verdict", "polarity_pairs", "stationarity", "scene_motion",
-           "spatial_structure", "PAIR_GAP_S", "CHECK_P"]
+__all__ = ["window_checks", "failed_checks", "check_verdict", "polarity_pairs", "same_pixel_timing",
+           "polarity_transitions",
+           "stationarity", "scene_motion", "spatial_structure", "PAIR_GAP_S", "CHECK_P", "MIN_INTERVALS",
+           "STORED_INTERVALS"]
 
 #: Largest gap (seconds) between a pixel's OFF and ON events counted as a pair.
 PAIR_GAP_S = 0.05
 #: p-value below which a check is reported as failed.
 CHECK_P = 1e-3
+#: Fewest same-pixel intervals (consecutive events of one pixel) for the timing tests.
+MIN_INTERVALS = 100
+#: Most order statistics of the intervals kept in a check's ``intervals_s`` (evenly spaced in rank; all of
+#: them up to this many): bounds what a window's checks hold; the KS statistic from them is within
+#: ``1 / STORED_INTERVALS`` of the full sample's.
+STORED_INTERVALS = 5000
 
 
 def _resampled(observed: float, null: np.ndarray) -> tuple:
@@ -181,6 +209,68 @@ def polarity_pairs(events: np.ndarray, shape: tuple, t_start_us: int, duration_u
     return out
 
 
+def same_pixel_timing(events: np.ndarray, shape: tuple) -> dict:
+    """Consecutive events of one pixel (module doc, polarity transitions): how many, how many opposite in
+    polarity, the memoryless model's mean and sd of that number given the pixels' ON/OFF counts, and the
+    intervals (``intervals_s``: at most :data:`STORED_INTERVALS` order statistics of ``n_intervals``)."""
+    width = int(shape[1])
+    pix = events["y"].astype(np.int64) * width + events["x"].astype(np.int64)
+    t = events["t"].astype(np.int64)
+    order = np.lexsort((t, pix))
+    pix, t, on = pix[order], t[order], (events["p"] == 1)[order]
+    same = pix[1:] == pix[:-1]
+    n_trans = int(np.count_nonzero(same))
+    observed = int(np.count_nonzero(same & (on[1:] != on[:-1])))
+    intervals = np.sort((t[1:] - t[:-1])[same] * 1e-6)
+    if intervals.size > STORED_INTERVALS:
+        intervals = intervals[np.round(np.linspace(0, intervals.size - 1, STORED_INTERVALS)).astype(np.int64)]
+    n_pix = int(shape[0]) * width
+    n_on = np.bincount(pix[on], minlength=n_pix).astype(np.float64)
+    n = np.bincount(pix, minlength=n_pix).astype(np.float64)
+    two = n >= 2
+    prod = 2.0 * n_on[two] * (n[two] - n_on[two])
+    mean = float(np.sum(prod / n[two]))
+    var = float(np.sum(prod * (prod - n[two]) / (n[two] ** 2 * (n[two] - 1.0))))
+    return {"transitions": n_trans, "opposite": observed, "memoryless_mean": mean,
+            "memoryless_sd": float(np.sqrt(max(var, 0.0))), "n_intervals": n_trans,
+            "intervals_s": [float(x) for x in intervals]}
+
+
+def polarity_transitions(timing: dict, *, p_opposite: float | None = None) -> dict:
+    """Opposite-polarity transitions of consecutive same-pixel events (``timing`` from
+    :func:`same_pixel_timing`) against a memoryless model (module doc), or against ``p_opposite`` (a
+    binomial test): ``{test, statistic, null_mean, null_sd, p_value, testable, opposite_share, transitions,
+    detail}``."""
+    from scipy.stats import binomtest, norm
+
+    n_trans, observed = int(timing["transitions"]), int(timing["opposite"])
+    mean, sd = float(timing["memoryless_mean"]), float(timing["memoryless_sd"])
+    share = observed / n_trans if n_trans else float("nan")
+    out = {"test": "polarity_transitions", "statistic": observed, "null_mean": mean, "null_sd": sd,
+           "p_value": float("nan"), "testable": False, "opposite_share": share, "transitions": n_trans}
+    if n_trans < MIN_INTERVALS:
+        out["detail"] = (f"not enough intervals: {n_trans} pairs of consecutive events of one pixel "
+                         f"(< {MIN_INTERVALS}), {observed} of them opposite in polarity")
+        return out
+    if p_opposite is not None:
+        out["null_mean"] = float(p_opposite) * n_trans
+        out["null_sd"] = float(np.sqrt(n_trans * p_opposite * (1.0 - p_opposite)))
+        out["p_value"] = float(binomtest(observed, n_trans, float(p_opposite)).pvalue)
+        how = f"the model's p_opposite {p_opposite:.3g}; binomial test"
+    elif sd <= 0:
+        out["detail"] = (f"{observed} of {n_trans} consecutive same-pixel events opposite in polarity, but no pixel "
+                         f"has events of both polarities: the order says nothing")
+        return out
+    else:
+        out["p_value"] = float(2.0 * norm.sf(abs(observed - mean) / sd))
+        how = "memoryless polarities given each pixel's ON/OFF counts; two-sided normal test"
+    out["testable"] = True
+    out["detail"] = (f"{observed} of {n_trans} consecutive same-pixel events opposite in polarity "
+                     f"({100 * share:.1f} %), model {out['null_mean']:.1f} +- {out['null_sd']:.1f} "
+                     f"({100 * out['null_mean'] / n_trans:.1f} %; {how})")
+    return out
+
+
 def stationarity(events: np.ndarray, t_start_us: int, duration_us: int, *, pieces: int = 4) -> dict:
     """Events in ``pieces`` equal time slices against equal shares (Pearson chi-square)."""
     from scipy.stats import chi2
@@ -277,6 +367,9 @@ def window_checks(events: np.ndarray, counts: np.ndarray, t_start_us: int, durat
                   shifts: int = 200, seed: int = 0, progress: bool = False, desc: str = "quiet checks") -> list:
     """The checks of one window (module doc): polarity pairs, stationarity, scene motion, spatial structure.
 
+    The polarity pairs' dict also carries the window's same-pixel timing (``same_pixel``:
+    :func:`same_pixel_timing`), which the fit's timing tests use (:func:`.goodness.timing_tests`).
+
     ``progress``: a bar over the resamples of the three resampled checks (about 15 s per million events).
     """
     shape = counts.shape[1:]
@@ -288,7 +381,9 @@ def window_checks(events: np.ndarray, counts: np.ndarray, t_start_us: int, durat
         bar = tqdm(total=3 * int(shifts), desc=desc, unit="resample", leave=False)
         tick = bar.update
     try:
-        return [polarity_pairs(events, shape, t_start_us, duration_us, shifts=shifts, seed=seed, tick=tick),
+        pairs = polarity_pairs(events, shape, t_start_us, duration_us, shifts=shifts, seed=seed, tick=tick)
+        pairs["same_pixel"] = same_pixel_timing(events, shape)
+        return [pairs,
                 stationarity(events, t_start_us, duration_us),
                 scene_motion(events, shape, t_start_us, duration_us, shifts=shifts, seed=seed, tick=tick),
                 spatial_structure(counts, shifts=shifts, seed=seed, tick=tick)]

@@ -33,7 +33,12 @@ Goodness of fit, per window and polarity: the histogram of per-pixel counts agai
 chi-square with ``bins - 1`` degrees of freedom minus the fitted parameters (at least 1). The fit as a
 whole is *rejected* (``QuietFit.fit_status``, with its reasons in ``rejections``) when a histogram's
 p-value is below :data:`GOODNESS_P` or a window fails one of the checks that it is pure stationary
-noise (:mod:`.checks`: no preset reproduces such a window); otherwise *accepted*.
+noise (:mod:`.checks`: no preset reproduces such a window) or a timing test (``QuietFit.timing``,
+:func:`.goodness.timing_tests`, for windows whose checks gathered their events): consecutive same-pixel
+events opposite in polarity against the memoryless model's share (a normal test), and the same-pixel
+inter-event intervals against the fitted model's distribution (a KS test), each at :data:`GOODNESS_P`;
+windows with fewer than 100 intervals report "not enough intervals"; otherwise *accepted*. So a window
+whose counts the model reproduces but whose timing it does not is not accepted.
 
 With ``lux`` given for the windows, the shot noise of a base preset at that illuminance is part
 of the model (fixed, not fitted) and the fitted rates are its background on top; with two or more
@@ -57,7 +62,7 @@ from evnoise.errors import InputError, ParameterError
 
 from .._progress import Phases
 from .checks import check_verdict, failed_checks
-from .goodness import goodness_of_fit
+from .goodness import goodness_of_fit, timing_tests
 from .likelihood import (
     HOT_MAX_FRACTION,
     HOT_MIN_RATIO,
@@ -98,6 +103,8 @@ class QuietFit:
     #: ``"accepted"`` or ``"rejected"`` (module doc), and why it was rejected
     fit_status: str = "accepted"
     rejections: list = field(default_factory=list)
+    #: timing tests of the windows with events (:func:`.goodness.interval_test`)
+    timing: list = field(default_factory=list)
 
     def to_params(self, base=None):
         """NoiseParams whose nominal rates at 0 lux (or the windows' lux) reproduce the fitted ones.
@@ -140,6 +147,8 @@ class QuietFit:
                 continue
             lines.append(f"  fit {g['window']} {g['polarity']}: chi2 {g['chi2']:.2f} on {g['dof']} dof, "
                          f"p = {g['p_value']:.3g} ({g['bins']} bins over counts 0..{g['max_count']})")
+        for t in self.timing:
+            lines.append(f"  timing {t['window']} {t['test']}: {_timing_verdict(t)}; {t['detail']}")
         for w in self.windows:
             for c in w.checks:
                 lines.append(f"  check {w.describe()} {c['check']}: {check_verdict(c)}; {c['detail']}")
@@ -159,7 +168,10 @@ class QuietFit:
             "tests": {k: {kk: float(vv) for kk, vv in t.items()} for k, t in self.tests.items()},
             "goodness": [{k: (float(v) if isinstance(v, (int, float, np.floating)) and not isinstance(v, bool)
                               else v) for k, v in g.items()} for g in self.goodness],
-            "checks": [dict(window=w.describe(), **c) for w in self.windows for c in w.checks],
+            "checks": [dict(window=w.describe(), **{k: v for k, v in c.items() if k != "same_pixel"})
+                       for w in self.windows for c in w.checks],
+            "timing": [{k: (float(v) if isinstance(v, (int, float, np.floating)) and not isinstance(v, bool)
+                            else v) for k, v in t.items()} for t in self.timing],
         }
 
     def plot(self, path, *, seed: int = 0, params=None):
@@ -395,7 +407,9 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
             se, notes = _standard_errors(model, groups, res)
         with phases.phase("goodness of fit"):
             goodness = goodness_of_fit(unpack(res.x, model), model, groups, len(res.x))
-    return _quiet_fit(model, res, se, notes, tests, goodness, windows, base, spread, hot, regularity, lux_levels)
+            timing = timing_tests(unpack(res.x, model), model, groups)
+    return _quiet_fit(model, res, se, notes, tests, goodness, windows, base, spread, hot, regularity, lux_levels,
+                      timing)
 
 
 def _standard_errors(model: Model, groups, res):
@@ -508,7 +522,8 @@ def _at_bounds(v: dict, model: Model) -> dict:
     return out
 
 
-def _quiet_fit(model, res, se, notes, tests, goodness, windows, base, spread, hot, regularity, lux_levels) -> QuietFit:
+def _quiet_fit(model, res, se, notes, tests, goodness, windows, base, spread, hot, regularity, lux_levels,
+               timing=()) -> QuietFit:
     """The :class:`QuietFit` of a finished fit: statuses and notes."""
     v = unpack(res.x, model)
     status = {n: "fitted" for n in NAMES}
@@ -535,12 +550,21 @@ def _quiet_fit(model, res, se, notes, tests, goodness, windows, base, spread, ho
     if not lux_levels:
         notes.append("illuminance unknown: the rates are the totals at the recording's light (shot noise and "
                      "background together); the shot-noise parameters are not identified")
-    rejections = _rejections(goodness, windows)
+    rejections = _rejections(goodness, windows, timing)
     return QuietFit(v, se, status, -float(res.fun), tests, goodness, windows, base, notes,
-                    "rejected" if rejections else "accepted", rejections)
+                    "rejected" if rejections else "accepted", rejections, list(timing))
 
 
-def _rejections(goodness, windows) -> list:
+def _timing_verdict(t: dict) -> str:
+    """A timing test's verdict in the words of :func:`.checks.check_verdict`."""
+    if not t.get("testable", True) or not math.isfinite(t["p_value"]):
+        return "not testable"
+    if t["p_value"] < GOODNESS_P:
+        return f"FAILED (p = {t['p_value']:.3g} < {GOODNESS_P:g})"
+    return f"passed (p = {t['p_value']:.3g} >= {GOODNESS_P:g})"
+
+
+def _rejections(goodness, windows, timing=()) -> list:
     """Why the fit is rejected (module doc): histograms the model does not describe, windows that are not noise."""
     out = [f"{g['window']} {g['polarity']}: the count histogram does not match the model (chi2 {g['chi2']:.3g} on "
            f"{g['dof']} dof, p = {g['p_value']:.3g} < {GOODNESS_P:g})"
@@ -548,6 +572,10 @@ def _rejections(goodness, windows) -> list:
     for w in windows:
         out += [f"{w.describe()} is not pure stationary noise: {c['check']} {check_verdict(c)}"
                 for c in failed_checks(w.checks)]
+    what = {"intervals": "the same-pixel inter-event intervals do not match the model",
+            "polarity_transitions": "consecutive same-pixel events alternate in polarity unlike the model"}
+    out += [f"{t['window']}: {what[t['test']]} ({t['test']} {_timing_verdict(t)}: {t['detail']})"
+            for t in timing if _timing_verdict(t).startswith("FAILED")]
     return out
 
 
@@ -576,6 +604,8 @@ def preset_toml(params, *, sensor: tuple, header: str, provenance: dict, fit: Qu
             lines += ["[[fit.goodness]]"] + [f"{k} = {toml_value(v)}" for k, v in g.items()] + [""]
         for c in tables["checks"]:
             lines += ["[[fit.checks]]"] + [f"{k} = {toml_value(v)}" for k, v in c.items()] + [""]
+        for t in tables["timing"]:
+            lines += ["[[fit.timing]]"] + [f"{k} = {toml_value(v)}" for k, v in t.items()] + [""]
     for g in validation or []:
         lines += ["[[validation]]"] + [f"{k} = {toml_value(v)}" for k, v in g.items()] + [""]
     return "\n".join(lines).rstrip() + "\n"

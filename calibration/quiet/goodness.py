@@ -12,7 +12,7 @@ from .counts import count_pmf
 from .likelihood import component_rates
 from .window import QuietWindow
 
-__all__ = ["GOF_MAX_COUNT", "simulate_window", "compare_to_recording"]
+__all__ = ["GOF_MAX_COUNT", "simulate_window", "compare_to_recording", "interval_cdf", "timing_tests"]
 
 
 #: Largest count evaluated one by one in the goodness-of-fit histograms (higher ones form the tail bin).
@@ -67,6 +67,89 @@ def goodness_of_fit(v, model, groups, n_fitted):
                             "p_value": float(chi2.sf(stat, dof)) if testable else math.nan, "bins": len(obs),
                             "pooled": len(obs) < kmax + 1, "max_count": kmax, "events": int(w.counts[pol].sum()),
                             "expected_events": float(np.dot(np.arange(kmax + 1), pmf) * n_pix)})
+    return out
+
+
+def _gap_parts(x, rate, regularity):
+    """``F(x)`` and ``int_0^x u f(u) du`` of the renewal gap ``r mu + Exp((1 - r) mu)``, ``mu = 1 / rate``
+    (``x`` (N,), ``rate`` (M,) -> (M, N))."""
+    x = np.asarray(x, dtype=np.float64)[None, :]
+    mu = 1.0 / np.maximum(np.asarray(rate, dtype=np.float64), 1e-300)[:, None]
+    d = regularity * mu
+    theta = np.maximum((1.0 - regularity) * mu, 1e-300)
+    y = np.maximum(x - d, 0.0)
+    tail = np.exp(-y / theta)
+    cdf = np.where(x >= d, 1.0 - tail, 0.0)
+    partial = np.where(x >= d, d * (1.0 - tail) + theta * (1.0 - tail * (1.0 + y / theta)), 0.0)
+    return cdf, partial
+
+
+def interval_cdf(x, v, model, gi, grp, wi):
+    """CDF of the fitted model's same-pixel inter-event intervals as a window observes them.
+
+    A pixel's events form a renewal process of its total rate ``lam`` (gaps ``r mu + Exp((1 - r) mu)``, the
+    fit's model: refractory period and trial steps are negligible beside the gaps); a window of ``T`` seconds
+    holds on average ``lam (T - x) f(x) dx`` intervals of length ``x`` (the long ones are cut by its ends), and
+    the window's intervals are the mixture of that over its pixels (spread grid, hot pixels) weighted by
+    their share of pixels.
+    """
+    T = float(grp.windows[wi].duration_s)
+    x = np.minimum(np.asarray(x, dtype=np.float64), T)
+    num = np.zeros(x.shape)
+    den = 0.0
+    fractions = [1.0 - v["hot_fraction"], v["hot_fraction"]]
+    for (rates, _share, weights), frac in zip(component_rates(v, gi, model, grp), fractions):
+        if frac <= 0:
+            continue
+        lam = rates[:, wi]
+        wgt = frac * weights / weights.sum() * lam
+        cdf, part = _gap_parts(x, lam, v["regularity"])
+        cdf_t, part_t = _gap_parts(np.array([T]), lam, v["regularity"])
+        num += wgt @ (T * cdf - part)
+        den += float(wgt @ (T * cdf_t - part_t)[:, 0])
+    return np.clip(num / den, 0.0, 1.0) if den > 0 else np.zeros(x.shape)
+
+
+def timing_tests(v, model, groups, *, p_opposite: float | None = None) -> list:
+    """The timing tests of each window whose checks gathered its events (``same_pixel`` in the polarity
+    pairs' check, :func:`.checks.same_pixel_timing`; windows without have no entry): the polarity transitions
+    (:func:`.checks.polarity_transitions`; against ``p_opposite`` if given, a reset-memory model's) and a KS
+    test of the same-pixel inter-event intervals against the fitted model's (:func:`interval_cdf`). Dicts
+    ``{window, test, statistic, p_value, testable, detail, ...}``; fewer than
+    :data:`.checks.MIN_INTERVALS` intervals: not testable, "not enough intervals"."""
+    from scipy.optimize import brentq
+    from scipy.stats import kstwo
+
+    from .checks import MIN_INTERVALS, polarity_transitions
+
+    out = []
+    for gi, grp in enumerate(groups):
+        for wi, w in enumerate(grp.windows):
+            found = [c["same_pixel"] for c in w.checks if "same_pixel" in c]
+            if not found:
+                continue
+            timing = found[0]
+            out.append(dict(window=w.describe(), **polarity_transitions(timing, p_opposite=p_opposite)))
+            n = int(timing["n_intervals"])
+            xs = np.asarray(timing["intervals_s"], dtype=np.float64)
+            row = {"window": w.describe(), "test": "intervals", "statistic": math.nan, "p_value": math.nan,
+                   "testable": n >= MIN_INTERVALS, "intervals": n}
+            if n < MIN_INTERVALS:
+                row["detail"] = (f"not enough intervals: {n} pairs of consecutive events of one pixel "
+                                 f"(< {MIN_INTERVALS})")
+                out.append(row)
+                continue
+            # ranks of the stored order statistics (all of them, or evenly spaced ones: checks.STORED_INTERVALS)
+            ranks = np.round(np.linspace(0, n - 1, xs.size)) if xs.size < n else np.arange(n, dtype=np.float64)
+            model_cdf = interval_cdf(xs, v, model, gi, grp, wi)
+            stat = float(max(np.max((ranks + 1) / n - model_cdf), np.max(model_cdf - ranks / n)))
+            pv = float(kstwo.sf(stat, n))
+            med = brentq(lambda x: interval_cdf(np.array([x]), v, model, gi, grp, wi)[0] - 0.5, 0.0, w.duration_s)
+            emp_med = float(np.interp((n - 1) / 2, ranks, xs))
+            row.update(statistic=stat, p_value=pv, median_s=emp_med, model_median_s=float(med),
+                       detail=(f"KS D = {stat:.3g} over {n} same-pixel intervals, median {emp_med:.4g} s against "
+                               f"the model's {med:.4g} s"))
+            out.append(row)
     return out
 
 

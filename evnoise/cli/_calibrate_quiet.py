@@ -6,8 +6,9 @@ entries combine) holds a still scene, so its per-pixel counts are pure noise. Fi
 the hot pixels, each only where the data carry it. Without ``--lux`` the illuminance is unknown and
 the rates are the totals at the recording's light (the preset reproduces them at 0 lux).
 
-A *rejected* fit (a window's count histogram not described at ``GOODNESS_P``, or a window failing a
-check that it is pure stationary noise; ``fit status`` in the report, ``fit_status`` in ``[fit]``)
+A *rejected* fit (a window's count histogram, its polarity alternation or its same-pixel inter-event
+intervals not described at ``GOODNESS_P``, or a window failing a check that it is pure stationary noise;
+``fit status`` in the report, ``fit_status`` in ``[fit]``)
 writes no preset and exits 1, unless ``--accept-rejected``: then the preset is written, its ``[fit]``
 table says ``fit_status = "rejected"`` with the reasons, and the exit code is 0.
 """

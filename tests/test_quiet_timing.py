@@ -1,0 +1,129 @@
+"""Timing in the quiet fit's goodness report (issue 32 section 2): the polarity-transition test (a check of
+each window) and the same-pixel inter-event-interval KS test (``QuietFit.timing``), so a window whose counts
+the model reproduces but whose timing it does not is not "accepted"."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+import evnoise as ev
+from evnoise.calibration.quiet import checks as qc
+from evnoise.calibration.quiet import fit as q
+from evnoise.calibration.quiet import goodness as qg
+from evnoise.calibration.quiet import likelihood as ql
+from evnoise.calibration.quiet.window import QuietWindow
+from evnoise.events import count_events
+from evnoise.terms.memory import memory_statistics
+
+
+def _window(events, shape, duration_s, shifts=20):
+    events = np.sort(events, order="t", kind="stable")
+    counts = count_events(events, shape)
+    found = qc.window_checks(events, counts, 0, round(duration_s * 1e6), shifts=shifts, seed=1)
+    return QuietWindow(counts, duration_s, "sim.h5", checks=found)
+
+
+def _timing(fit):
+    return {t["test"]: t for t in fit.timing}
+
+
+def _memoryless(shape, duration_s, seed):
+    params = dataclasses.replace(ev.load_preset("dvs128"), leak_on_hz=0.6, leak_off_hz=0.4, leak_sigma=0.5,
+                                 leak_regularity=0.0, hot_pixel_fraction=0.0)
+    return ev.simulate_events(np.zeros(shape), params, duration_s, rng=seed)
+
+
+@pytest.fixture(scope="module")
+def memoryless_fit():
+    shape, duration = (24, 24), 20.0
+    w = _window(_memoryless(shape, duration, 5), shape, duration)
+    return w, q.fit_quiet([w], hot="off", regularity="off")
+
+
+def test_memoryless_window_passes_both_timing_tests(memoryless_fit):
+    w, fit = memoryless_fit
+    tests = _timing(fit)
+    tr = tests["polarity_transitions"]
+    assert tr["transitions"] > 1000
+    # independent computation: a random arrangement's expected opposite share ~ 2 q (1 - q), q = 0.6
+    assert abs(tr["opposite_share"] - 2 * 0.6 * 0.4) < 4 * np.sqrt(0.48 * 0.52 / tr["transitions"]) + 0.02
+    assert tr["testable"] and tr["p_value"] >= q.GOODNESS_P
+    iei = tests["intervals"]
+    assert iei["testable"] and iei["intervals"] == tr["transitions"]
+    assert iei["p_value"] >= q.GOODNESS_P
+    assert fit.fit_status == "accepted", fit.rejections
+    text = fit.summary()
+    assert "timing sim.h5 intervals: passed" in text and "timing sim.h5 polarity_transitions: passed" in text
+    tables = fit.to_toml_tables()
+    assert "intervals_s" not in str(tables["checks"]) and len(tables["timing"]) == 2
+    # the window's checks are the four they were
+    assert {c["check"] for c in w.checks} == {"polarity_pairs", "stationarity", "scene_motion", "spatial_structure"}
+
+
+def test_interval_cdf_against_simulated_renewal():
+    """The window-truncated mixture CDF against a direct simulation of Poisson pixels in a window."""
+    rng = np.random.default_rng(2)
+    T, rates = 5.0, np.array([0.5, 2.0])
+    ivals = []
+    for lam in np.repeat(rates, 400):
+        t = np.cumsum(rng.exponential(1 / lam, size=int(lam * T * 3 + 50)))
+        t = t[t < T]
+        ivals.append(np.diff(t))
+    ivals = np.concatenate(ivals)
+    # a two-point "spread" grid: the model's pixels at rates 0.5 and 2 in equal shares
+    v = dict(rate_on_hz=0.5, rate_off_hz=0.0, growth_on=0.0, growth_off=0.0, sigma=0.0, hot_fraction=0.5,
+             hot_rate_hz=1.5, hot_sigma=0.0, hot_on_fraction=1.0, regularity=0.0)
+    w = QuietWindow(np.zeros((2, 2, 2), dtype=np.int64), T, "x")
+    groups = ql.window_groups([w])
+    model = ql.Model(False, True, [np.zeros((1, 2))], False, [np.zeros(1)], False)
+    from scipy.stats import kstest
+
+    res = kstest(ivals, lambda x: qg.interval_cdf(x, v, model, 0, groups[0], 0))
+    assert res.pvalue > 1e-3
+    # and it is the truncated law, not the plain mixture of exponentials
+    plain = kstest(ivals, lambda x: 1 - 0.5 * np.exp(-0.5 * x) - 0.5 * np.exp(-2 * x))
+    assert plain.pvalue < 1e-3
+
+
+def test_alternating_window_fails_the_transition_test():
+    shape, duration, lux = (16, 16), 6.0, 10.0
+    params = dataclasses.replace(ev.load_preset("dvs128"), leak_on_hz=0.0, leak_off_hz=0.0, leak_sigma=0.0,
+                                 hot_pixel_fraction=0.0, leak_regularity=0.0, eps_sigma=0.0, reset_memory=0.7)
+    events = ev.simulate_events(np.full(shape, lux), params, duration, rng=7)
+    w = _window(events, shape, duration)
+    fit = q.fit_quiet([w], hot="off", regularity="off", spread="off")
+    tr = _timing(fit)["polarity_transitions"]
+    p_opp = float(memory_statistics(np.array([lux]), params).p_opposite[0])
+    assert p_opp > 0.9
+    se = np.sqrt(p_opp * (1 - p_opp) / tr["transitions"])
+    assert abs(tr["opposite_share"] - p_opp) < 5 * se + 0.01  # the simulator alternates as the model says
+    assert tr["p_value"] < q.GOODNESS_P
+    assert fit.fit_status == "rejected"
+    assert any("polarity_transitions FAILED" in r for r in fit.rejections)
+    assert "timing sim.h5 polarity_transitions: FAILED" in fit.summary()
+    # against the reset-memory model's own p_opposite the same window passes
+    timing = qc.same_pixel_timing(np.sort(events, order="t", kind="stable"), shape)
+    assert qc.polarity_transitions(timing, p_opposite=p_opp)["p_value"] >= q.GOODNESS_P
+
+
+def test_short_window_reports_not_enough_intervals():
+    shape, duration = (4, 4), 2.0
+    w = _window(_memoryless(shape, duration, 3), shape, duration)
+    fit = q.fit_quiet([w], hot="off", regularity="off", spread="off")
+    tests = _timing(fit)
+    assert 0 < tests["intervals"]["intervals"] < qc.MIN_INTERVALS
+    for t in tests.values():
+        assert t["testable"] is False and t["detail"].startswith("not enough intervals")
+    assert fit.fit_status == "accepted"
+    text = fit.summary()
+    assert "timing sim.h5 intervals: not testable; not enough intervals" in text
+    assert "timing sim.h5 polarity_transitions: not testable; not enough intervals" in text
+
+
+def test_counts_only_windows_have_no_timing_tests():
+    w = QuietWindow(count_events(_memoryless((8, 8), 5.0, 4), (8, 8)), 5.0, "counts")
+    fit = q.fit_quiet([w], hot="off", regularity="off", spread="off")
+    assert fit.timing == [] and "timing" not in fit.summary()
