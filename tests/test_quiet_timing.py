@@ -127,3 +127,24 @@ def test_counts_only_windows_have_no_timing_tests():
     w = QuietWindow(count_events(_memoryless((8, 8), 5.0, 4), (8, 8)), 5.0, "counts")
     fit = q.fit_quiet([w], hot="off", regularity="off", spread="off")
     assert fit.timing == [] and "timing" not in fit.summary()
+
+
+def test_counts_right_timing_wrong_is_rejected():
+    """Each pixel's events moved into a random 2 s stretch of the 20 s window: the per-pixel counts (and the
+    polarity order) are those of the memoryless window, so the count histograms pass, but the intervals do
+    not and the fit is not accepted."""
+    shape, duration = (24, 24), 20.0
+    events = np.sort(_memoryless(shape, duration, 5), order="t", kind="stable")
+    rng = np.random.default_rng(9)
+    pix = events["y"].astype(np.int64) * shape[1] + events["x"]
+    start = rng.uniform(0, duration - 2.0, size=shape[0] * shape[1])
+    bunched = events.copy()
+    bunched["t"] = np.round((start[pix] + events["t"] * 1e-6 / duration * 2.0) * 1e6).astype(events["t"].dtype)
+    w = _window(bunched, shape, duration)
+    np.testing.assert_array_equal(w.counts, count_events(events, shape))
+    fit = q.fit_quiet([w], hot="off", regularity="off")
+    assert all(g["p_value"] >= q.GOODNESS_P for g in fit.goodness)
+    iei = _timing(fit)["intervals"]
+    assert iei["p_value"] < 1e-6 and iei["median_s"] < 0.5 * iei["model_median_s"]
+    assert fit.fit_status == "rejected"
+    assert any("inter-event intervals do not match" in r for r in fit.rejections)
