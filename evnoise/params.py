@@ -14,12 +14,14 @@ from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 from types import MappingProxyType
+from typing import NamedTuple
 
 import tomllib
 
 from .errors import ParameterError
 
-__all__ = ["NoiseParams", "load_preset", "list_presets", "preset_info", "PARAM_LIMITS", "ParameterSpec",
+__all__ = ["NoiseParams", "load_preset", "list_presets", "preset_info", "LightRange", "preset_light_range",
+           "light_range_warning", "PARAM_LIMITS", "ParameterSpec",
            "parameter_specs", "parameter_names", "parameter_spec", "names_in_group", "names_with_fit_role",
            "fit_bounds", "GROUPS", "FIT_ROLES"]
 
@@ -386,7 +388,9 @@ def load_preset(name_or_path) -> NoiseParams:
     doc = load_preset_document(name_or_path)
     if "params" not in doc or not isinstance(doc["params"], dict):
         raise ParameterError(f"preset {name_or_path} has no [params] table")
-    return NoiseParams.from_dict(doc["params"])
+    params = NoiseParams.from_dict(doc["params"])
+    _LOADED[params] = (_preset_label(name_or_path), _light_range_of(doc))
+    return params
 
 
 def preset_info(name_or_path) -> dict:
@@ -413,3 +417,99 @@ def preset_info(name_or_path) -> dict:
         "summary": provenance.get("summary"),
         "path": path,
     }
+
+
+# --------------------------------------------------------------------------------------
+# the light range a preset was fitted or measured on
+# --------------------------------------------------------------------------------------
+class LightRange(NamedTuple):
+    """Illuminance range (lux at the sensor) a preset was fitted or measured on, from its
+    ``[provenance] fitted_lux = [lo, hi]``; ``note`` says where it comes from (``"assumed: ..."`` where
+    the data do not say) and ``meaning`` what leaving it means for the rates."""
+
+    lo: float
+    hi: float
+    note: str
+    meaning: str = ""
+
+    @property
+    def assumed(self) -> bool:
+        return self.note.startswith("assumed")
+
+
+#: parameters returned by :func:`load_preset` -> (preset label, its LightRange or None); equal
+#: parameters are the same preset for this purpose
+_LOADED: dict = {}
+
+
+def _preset_label(name_or_path) -> str:
+    text = str(name_or_path)
+    return Path(text).stem if text.endswith(".toml") or Path(text).exists() else text
+
+
+def _light_range_of(doc: dict):
+    provenance = doc.get("provenance") if isinstance(doc.get("provenance"), dict) else {}
+    value = provenance.get("fitted_lux")
+    if not (isinstance(value, list) and len(value) == 2
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)):
+        return None
+    lo, hi = float(value[0]), float(value[1])
+    if not (0.0 <= lo < hi < math.inf):
+        raise ParameterError(f"preset provenance.fitted_lux must be [lo, hi] lux with 0 <= lo < hi, got {value}")
+    return LightRange(lo, hi, str(provenance.get("fitted_lux_note", "")),
+                      str(provenance.get("fitted_lux_meaning", "")))
+
+
+@functools.lru_cache(maxsize=None)
+def _shipped_ranges() -> tuple:
+    """``((params, name, LightRange | None), ...)`` of the shipped presets."""
+    out = []
+    for name in list_presets():
+        doc = load_preset_document(name)
+        if isinstance(doc.get("params"), dict):
+            out.append((NoiseParams.from_dict(doc["params"]), name, _light_range_of(doc)))
+    return tuple(out)
+
+
+def _find_preset(preset):
+    """``(label, LightRange | None)`` of a preset name/path or of parameters made from a preset;
+    ``(None, None)`` for parameters that match no loaded or shipped preset."""
+    if isinstance(preset, NoiseParams):
+        if preset in _LOADED:
+            return _LOADED[preset]
+        for params, name, light in _shipped_ranges():
+            if params == preset:
+                return name, light
+        return None, None
+    return _preset_label(preset), _light_range_of(load_preset_document(preset))
+
+
+def preset_light_range(preset) -> LightRange | None:
+    """The illuminance range (lux) a preset was fitted or measured on: ``LightRange(lo, hi, note, meaning)``,
+    or None where the preset records none.
+
+    ``preset`` is a preset name (``"dvs128"``), a TOML path, or :class:`NoiseParams` made from a preset
+    (by :func:`load_preset`, or equal to a shipped preset); parameters of no known preset give None.
+    """
+    return _find_preset(preset)[1]
+
+
+def light_range_warning(preset, lux_min: float, lux_max: float, *, factor: float = 2.0) -> str | None:
+    """One line saying that a scene spanning ``lux_min .. lux_max`` lux leaves the range the preset was
+    fitted on by more than ``factor`` (above ``hi * factor`` or, where ``lo > 0``, below ``lo / factor``);
+    None inside it, or for a preset (or parameters) with no recorded range.
+
+    ``evnoise simulate`` logs it as a warning; library callers may do the same before simulating.
+    """
+    name, light = _find_preset(preset)
+    if light is None:
+        return None
+    lux_min, lux_max = float(lux_min), float(lux_max)
+    above = lux_max > light.hi * factor
+    below = light.lo > 0.0 and lux_min < light.lo / factor
+    if not (above or below):
+        return None
+    kind = "the assumed range" if light.assumed else "the range"
+    meaning = light.meaning or "its rates there are extrapolated"
+    return (f"the scene spans {lux_min:.3g} .. {lux_max:.3g} lux, more than x{factor:g} outside {kind} preset "
+            f"{name} was fitted on ({light.lo:.3g} .. {light.hi:.3g} lux): {meaning}")

@@ -71,6 +71,11 @@ def describe(name_or_path) -> dict:
                 quality[key] = source[key]
     info.update(params=_non_default(params), source=provenance.get("source"), status=provenance.get("status"),
                 quality=quality)
+    from ..params import preset_light_range
+
+    light = preset_light_range(name_or_path)
+    info["fitted_lux"] = None if light is None else {"lo": light.lo, "hi": light.hi, "note": light.note,
+                                                      "meaning": light.meaning}
     return info
 
 
@@ -92,6 +97,10 @@ def _text_show(d: dict) -> str:
         lines.append(f"status: {d['status']}")
     if d["source"]:
         lines.append(f"source: {d['source']}")
+    light = d.get("fitted_lux")
+    if light:
+        note = f" ({light['note']})" if light["note"] else ""
+        lines.append(f"fitted on: {light['lo']:g} .. {light['hi']:g} lux{note}")
     lines.append("parameters (non-default):")
     lines += [f"  {k} = {v:.6g}" for k, v in d["params"].items()]
     if d["quality"]:

@@ -84,9 +84,10 @@ class LuxFrames:
     few frames read are kept, since the simulator reads neighbouring frames repeatedly.
     """
 
-    def __init__(self, paths, convert, keep: int = 4):
+    def __init__(self, paths, convert, keep: int = 4, on_frame=None):
         self.paths = list(paths)
         self._convert = convert
+        self._on_frame = on_frame  # called with each frame's illuminance when it is first read
         self._keep = keep
         self._cache: dict[int, object] = {}
         self.shape = None
@@ -100,6 +101,8 @@ class LuxFrames:
         if i in self._cache:
             return self._cache[i]
         lux = self._convert(self.paths[i])
+        if self._on_frame is not None:
+            self._on_frame(lux)
         if self.shape is not None and lux.shape != self.shape:
             h, w = lux.shape
             raise InputError(
@@ -229,8 +232,9 @@ def _scene(args, source, is_video, duration, fps, sensor, params, seed, *, progr
         radiometry.image_to_lux, max_lux=args.max_lux, lux_scale=args.lux_scale, encoding=args.encoding,
         clip_invalid=args.clip_invalid, sensor_shape=sensor, fit=args.fit,
     )
+    light = _LightCheck(params, args.preset)
     if is_video:
-        frames = LuxFrames(radiometry.list_frames(source), convert)
+        frames = LuxFrames(radiometry.list_frames(source), convert, on_frame=light)
         if len(frames) < 2:
             raise InputError(f"folder {source} holds one frame; a video needs at least 2 "
                              f"(simulate the image itself with --duration for a static scene)")
@@ -243,12 +247,39 @@ def _scene(args, source, is_video, duration, fps, sensor, params, seed, *, progr
         return _Scene(stream, frames.shape, t_end_us, attrs, f"a {len(frames)}-frame video at {fps:g} fps",
                       frames[0])
     lux = convert(source)
+    light(lux)
     stream = iter_events(lux, params, duration, seed, args.method, threads=args.threads, progress=progress)
     attrs = {"scene": "static", "duration_s": duration, "lux_min": float(lux.min()),
              "lux_mean": float(lux.mean()), "lux_max": float(lux.max())}
     text = (f"a static scene ({lux.min():.3g} to {lux.max():.3g} lux, mean {lux.mean():.3g} lux) "
             f"for {duration:g} s")
     return _Scene(stream, lux.shape, int(round(duration * 1e6)), attrs, text, lux)
+
+
+class _LightCheck:
+    """Warns once (a log warning: ``-q`` hides it, like the command's other warnings) when the scene's
+    illuminance (min .. max over the image, or over the frames read so far) leaves the range the preset
+    was fitted on (:func:`evnoise.params.light_range_warning`)."""
+
+    def __init__(self, params, preset):
+        from ..params import preset_light_range
+
+        self.preset = preset if preset is not None else params
+        self.active = preset_light_range(self.preset) is not None
+        self.lo = self.hi = None
+
+    def __call__(self, lux) -> None:
+        if not self.active:
+            return
+        from ..params import light_range_warning
+
+        lo, hi = float(lux.min()), float(lux.max())
+        self.lo = lo if self.lo is None else min(self.lo, lo)
+        self.hi = hi if self.hi is None else max(self.hi, hi)
+        message = light_range_warning(self.preset, self.lo, self.hi)
+        if message is not None:
+            self.active = False
+            log.warning("%s", message)
 
 
 def _write_outputs(args, fmt, out, png, scene: _Scene, attrs):
