@@ -253,3 +253,36 @@ def test_expected_rate_of_a_pixel_with_memory_is_the_markov_renewal_rate():
         ev.expected_rate(lux, p.replace(leak_on_hz=0.1))
     with pytest.raises(ev.ParameterError, match="reset_memory"):
         ev.expected_rate(lux, p, thresholds=np.full((2, 2, 2), 0.5))
+
+
+#: dvs128-like thresholds (no background), where a pixel's stored level relaxes over seconds: a run that did not
+#: start in the steady state drifted (first 10 % of a 6 s window at half the steady rate).
+STEADY = ev.NoiseParams(eps_pos=0.15, eps_neg=0.15, bias_pr=64.0, trial_rate_hz=424.0, photons_per_lux=64.0,
+                        refractory_s=1e-3, reset_memory=0.7)
+
+
+@pytest.mark.parametrize("params, lux_value", [(STEADY, 10.0), (STEADY, 1.0), (MEM, 10.0),
+                                               (STEADY.replace(refractory_s=0.0), 10.0), (STEADY, "levels")])
+def test_a_run_starts_in_the_steady_state(params, lux_value):
+    """The rate does not drift in a window: the first 10 % has the closed-form rate, the two halves agree
+    (sigmas from the per-pixel counts' spread across independent pixels). ``"levels"``: more distinct light
+    levels than ``EXACT_RATE_LEVELS`` (the iterated embedded law)."""
+    duration_s = 6.0
+    if lux_value == "levels":
+        lux = np.repeat(np.linspace(1.0, 20.0, memory.EXACT_RATE_LEVELS + 36), 41)[:4096].reshape(64, 64)
+    else:
+        lux = np.full((64, 64), lux_value)
+    e = ev.simulate_events(lux, params, duration_s, rng=11)
+    pix = e["y"].astype(np.int64) * lux.shape[1] + e["x"]
+    rate = float(memory.memory_statistics(lux, params).rate_hz.sum()) / lux.size
+
+    def counts(a, b):
+        m = (e["t"] >= a * 1e6) & (e["t"] < b * 1e6)
+        return np.bincount(pix[m], minlength=lux.size).astype(np.float64)
+
+    head = counts(0.0, 0.1 * duration_s)
+    want = lux.size * rate * 0.1 * duration_s
+    assert want > 2000
+    assert abs(head.sum() - want) < K_SIGMA * math.sqrt(lux.size * head.var()), (head.sum(), want)
+    d = counts(0.0, 0.5 * duration_s) - counts(0.5 * duration_s, duration_s)
+    assert abs(d.sum()) < K_SIGMA * math.sqrt(lux.size * d.var()), d.sum()

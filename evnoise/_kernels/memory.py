@@ -25,9 +25,12 @@ from .simulate import LAST_TAU, LAST_TRIAL, PEND_ON, PEND_TAU, PEND_TRIAL, first
 NO_EVENT = math.nan
 
 #: Rows of the per-state float table ``(N_ROWS, total states)`` of :func:`memory_window`.
+#: ``ROW_CUM_INIT``: cumulative (unnormalised) time-stationary law of the state at ``t = 0``; ``ROW_DEAD``: the
+#: probability, given the state, that ``t = 0`` falls in the refractory period after the last event
+#: (:func:`evnoise.terms.memory.initial_law`).
 (ROW_LOG1M_P, ROW_FRESH_ON, ROW_FRESH_OFF, ROW_STORED_ON, ROW_STORED_OFF, ROW_CUM_FRESH_ON, ROW_CUM_FRESH_OFF,
- ROW_TAIL, ROW_HEAD) = range(9)
-N_ROWS = 9
+ ROW_TAIL, ROW_HEAD, ROW_CUM_INIT, ROW_DEAD) = range(11)
+N_ROWS = 11
 #: Rows of the per-state integer table ``(2, total states)``: first state above the ON threshold, last state
 #: below the OFF threshold (local indices; ``S`` and ``-1`` for none).
 ROW_IDX_ON, ROW_IDX_OFF = range(2)
@@ -72,10 +75,20 @@ def _search_down(tail, a, b, target):
 
 
 @kernel
-def draw_initial(s, table, o, n_s):
-    """A state drawn from ``Poisson(lam)`` restricted to the group's states (the reference at ``t = 0``)."""
-    head = table[ROW_HEAD, o:o + n_s]
-    return float(_search_up(head, 0, n_s - 1, uniform_pos(s) * head[n_s - 1]))
+def draw_initial(s, table, o, n_s, refr_us):
+    """A pixel's state at ``t = 0`` (a trial start) in its steady state: ``(state, elapsed_us)``.
+
+    The state (local index) is drawn from the time-stationary law ``ROW_CUM_INIT`` (``pi_m E[T_m]``, see
+    :func:`evnoise.terms.memory.initial_law`); then, with probability ``ROW_DEAD`` of that state, ``t = 0`` is
+    in the refractory period after the pixel's last event, which was ``elapsed_us`` ago, uniform on
+    ``(0, refr_us]``; else ``elapsed_us`` is ``-1`` (eligible: the next event's trial is geometric from trial 0,
+    memoryless). Always two uniforms, three when dead.
+    """
+    cum = table[ROW_CUM_INIT, o:o + n_s]
+    st = float(_search_up(cum, 0, n_s - 1, uniform_pos(s) * cum[n_s - 1]))
+    if uniform(s) < table[ROW_DEAD, o + int(st)]:
+        return st, uniform_pos(s) * refr_us
+    return st, -1.0
 
 
 @kernel
@@ -129,7 +142,8 @@ def memory_window(width, pix, group, offsets, sizes, table, itable, states, fsta
     ``states[k]`` its random stream; ``fstate[k]`` its state (columns of :mod:`evnoise._kernels.simulate`:
     last event's trial and time, a pending event's trial and time; ``PEND_ON`` holds the pending event's
     code ``on + 2 * (new state + 1)``); ``mem[k]`` its stored state (local index; NaN before its first window,
-    then drawn from the level's ``Poisson(lam)``).
+    then drawn, with its last event's time when ``t = 0`` is in its dead time, from the steady state:
+    :func:`draw_initial`).
 
     Events go to ``out = (t, x, y, p)`` from slot ``n``; counts to ``on_counts``, ``off_counts``. Returns
     ``(n, k)`` like ``renewal_window`` (``k = len(pix)``: done; else the buffers are full and pixel ``k``
@@ -150,7 +164,10 @@ def memory_window(width, pix, group, offsets, sizes, table, itable, states, fsta
         n_s = sizes[g]
         st = mem[k]
         if math.isnan(st):
-            st = draw_initial(s, table, o, n_s)
+            st, elapsed = draw_initial(s, table, o, n_s, refr_us)
+            if elapsed > 0.0:  # in the dead time of an event at -elapsed µs (in trial floor(-elapsed / dt) < 0)
+                fstate[k, LAST_TAU] = -elapsed
+                fstate[k, LAST_TRIAL] = np.floor(-elapsed / dt)
         jp = fstate[k, PEND_TRIAL]
         code = fstate[k, PEND_ON]  # pending event: on + 2 * (new state + 1)
         x_pix = pix[k] % width

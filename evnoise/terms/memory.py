@@ -6,7 +6,7 @@ an ON event, stored high, the next crossing tends to be OFF: quiet pixels altern
 consecutive events opposite in real recordings, 50 % in the memoryless model; issue 32).
 
 Model (static pixels). A pixel's state is its *stored count* ``m``: the photon count ``n`` of the trial of
-its last event (at ``t = 0``: a draw of ``Poisson(lam)``, as if it had just been reset). In each trial
+its last event (at ``t = 0``: drawn from the steady state, :func:`initial_law`). In each trial
 ``n ~ Poisson(lam)`` and, with probability ``k = reset_memory``, the reference is the stored ``m``; else
 (probability ``1 - k``) it is a fresh ``n0 ~ Poisson(lam)``, as in the paper. ON when
 ``log(n + b) - log(ref + b) > eps_pos``, OFF when ``log(ref + b) - log(n + b) > eps_neg``; an event stores
@@ -262,10 +262,72 @@ def kernel_tables(levels, params):
         if len(levels) <= EXACT_RATE_LEVELS:
             r_on, r_off, *_ = level_statistics(t, dt_s, refr_s)
             rates[g] = r_on + r_off
+            pi = _stationary(t)[0]
         else:
             mean_p = float((t.pmf * p).sum())
             rates[g] = mean_p / (dt_s + mean_p * refr_s)
+            pi = _embedded_iterate(t, ITERATED_STEPS)
+        weight, dead = initial_law(t, pi, dt_s, refr_s)
+        table[km.ROW_CUM_INIT, cols] = np.cumsum(weight)
+        table[km.ROW_DEAD, cols] = dead
     return table, itable, offsets, sizes, rates
+
+
+#: Beyond :data:`EXACT_RATE_LEVELS` levels the embedded stationary law of :func:`initial_law` is this many steps
+#: of the embedded chain from ``Poisson(lam)`` (each ``O(S log S)``), not a linear solve.
+ITERATED_STEPS = 40
+
+
+def _embedded_iterate(t: LevelTables, steps: int) -> np.ndarray:
+    """The embedded chain's law after ``steps`` events from a state drawn from ``Poisson(lam)`` (normalised):
+    the stationary law of :func:`_stationary` up to the chain's mixing after ``steps`` steps."""
+    p = t.p_on + t.p_off
+    live = p > 0
+    p_safe = np.where(live, p, 1.0)
+    x = t.pmf / t.pmf.sum()
+    for _ in range(steps):
+        w = np.where(live, x / p_safe, 0.0)
+        a_on, a_off = _after(t, w, w)
+        x = a_on + a_off + np.where(live, 0.0, x)
+        total = x.sum()
+        if not total > 0:
+            return t.pmf / t.pmf.sum()
+        x = x / total
+    return x
+
+
+def initial_law(t: LevelTables, pi: np.ndarray, dt_s: float, refr_s: float):
+    """The steady state of a pixel at a trial start (``t = 0``): ``(weight, dead)`` per state ``m``.
+
+    The pixel is a Markov renewal process: ``pi`` is the embedded chain's stationary law (:func:`_stationary`:
+    the state ``m`` after an event, which governs the sojourn to the next event), and a sojourn from state ``m``
+    is ``T_m = R + V + dt (G - 1 + U)``: the refractory period ``R``, ``V`` uniform on ``(0, dt]`` up to the
+    start of the first eligible trial (the event's time is uniform in its trial), ``G`` geometric with ``P(m)``
+    eligible trials, ``U`` the uniform time of the event in its trial; ``E[T_m] = R + dt / P(m)``. Counting the
+    trial starts inside sojourns: ``R / dt`` of them (mean; the phase of the event is uniform) fall in the dead
+    time, and ``G`` (all of the eligible trials, up to the event's own start) not. So at a trial start:
+
+        P(state m)          = pi_m E[T_m] / sum_j pi_j E[T_j]        (``weight``, unnormalised)
+        P(dead | m)         = R / E[T_m] = R P(m) / (R P(m) + dt)    (``dead``)
+
+    given dead, the time since the last event is uniform on ``(0, R)`` (the event's phase is uniform); given
+    not dead, the eligible trials left up to and including the event's are again geometric with ``P(m)``
+    (length-biased ``G`` and a uniform position in it), i.e. the pixel runs as if its first eligible trial were
+    trial 0. A state with ``P(m) = 0`` and ``pi_m > 0`` never fires again: then the steady state is ``pi`` on
+    those states (rate 0). ``pi`` summing to 0 falls back to ``Poisson(lam)``.
+    """
+    p = t.p_on + t.p_off
+    live = p > 0
+    pi = np.clip(np.asarray(pi, dtype=np.float64), 0.0, None)
+    if not pi.sum() > 0:
+        pi = t.pmf
+    absorbed = (pi > 0) & ~live
+    if absorbed.any():
+        weight = np.where(absorbed, pi, 0.0)
+    else:
+        weight = np.where(live, pi * (refr_s / dt_s + 1.0 / np.where(live, p, 1.0)), 0.0)
+    dead = np.where(live, refr_s * p / (refr_s * p + dt_s), 0.0)
+    return weight / weight.sum(), dead
 
 
 def level_tables(lam: float, eps_on: float, eps_off: float, bias: float, k: float) -> LevelTables:
