@@ -177,11 +177,13 @@ def test_rate_band_is_finite_with_a_parameter_on_its_upper_bound(bounded_fit):
 def test_cli_warns_when_the_fit_is_rejected(tmp_path, capsys):
     out = tmp_path / "bad.toml"
     # a photons_per_lux far too small for the example table: nothing else can make up for it
-    rc = main(["calibrate", "--example", "--out", str(out), "--fix", "photons_per_lux=0.05", "eps_sigma=0",
-               "--starts", "1"])
-    assert rc == 0
+    argv = ["calibrate", "--example", "--out", str(out), "--fix", "photons_per_lux=0.05", "eps_sigma=0",
+            "--starts", "1"]
+    assert main(argv) == 1  # rejected: no preset that looks like any other
     err = capsys.readouterr().err
     assert "evnoise: WARNING: calibrate: fit rejected: Pearson chi2/dof" in err, err
+    assert "no preset written" in err and "--accept-rejected" in err and not out.exists()
+    assert main(argv + ["--accept-rejected"]) == 0
     from evnoise.params import load_preset_document
 
     doc = load_preset_document(out)

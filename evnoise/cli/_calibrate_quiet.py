@@ -50,9 +50,6 @@ def add_arguments(p) -> None:
     g.add_argument("--hot", choices=("auto", "on", "off"), default="auto", help="hot pixels (default: auto)")
     g.add_argument("--regularity", choices=("auto", "on", "off"), default="auto",
                    help="regular (near-periodic) arrivals (default: auto)")
-    g.add_argument("--accept-rejected", action="store_true",
-                   help="write the preset even when the fit is rejected (its [fit] table then says fit_status = "
-                        "\"rejected\"); without it a rejected fit writes no preset and exits 1")
     g.add_argument("--no-checks", dest="checks", action="store_false",
                    help="skip the checks that each window is pure stationary noise (OFF/ON pairs, drift, a changing "
                         "pattern; about 15 s per million events)")

@@ -64,6 +64,9 @@ def register(subparsers) -> None:
     p.add_argument("--starts", type=opt.count("--starts"), default=6, metavar="N",
                    help="strata of starting points (2 each are screened; more is slower and safer) "
                    "(default: %(default)s)")
+    p.add_argument("--accept-rejected", action="store_true",
+                   help="write the preset even when the fit is rejected (its [fit] table then says fit_status = "
+                        "\"rejected\"); without it a rejected fit writes no preset and exits 1 (both modes)")
     p.add_argument("--unidentified", choices=("report", "fix"), default="report",
                    help="parameters the data do not constrain: report them, or fix them and refit the rest "
                    "(default: %(default)s)")
@@ -141,12 +144,20 @@ def run(args) -> int:
     # a rejected fit or a parameter on a bound must not go unnoticed (shown with -q too)
     for text in result.warnings:
         log.warning("calibrate: %s", text)
-    result.write_preset(out, overwrite=args.overwrite,
-                        extra_provenance={"command": "evnoise calibrate "
-                                          + ("--example" if args.example else str(args.measurements))})
-    if plot is not None:
+    # as in the quiet mode: a rejected fit writes no preset (it would look like any other) unless asked to
+    written = result.fit_status != "rejected" or args.accept_rejected
+    if written:
+        result.write_preset(out, overwrite=args.overwrite,
+                            extra_provenance={"command": "evnoise calibrate "
+                                              + ("--example" if args.example else str(args.measurements))})
+    if plot is not None:  # a rejected fit's figure too: it shows where the model misses
         result.plot(plot, overwrite=args.overwrite)
     if not args.quiet:
         print(result.summary())
-        print(f"wrote {out}" + (f" and {plot}" if plot is not None else ""))
+        wrote = ([str(out)] if written else []) + ([str(plot)] if plot is not None else [])
+        if wrote:
+            print("wrote " + " and ".join(wrote))
+    if not written:
+        log.error("the fit is rejected: no preset written to %s; --accept-rejected writes it anyway", out)
+        return 1
     return 0
