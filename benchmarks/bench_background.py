@@ -27,6 +27,8 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
+from _report import replace_section  # noqa: E402  (the benchmarks folder, put on the path above)
+
 TITLE = "## Background activity, hot pixels, bandwidth: cost off and on (issue 15)"
 
 
@@ -134,17 +136,6 @@ def section(rows, repeats):
     return "\n".join(lines)
 
 
-def replace_section(report: Path, text: str):
-    old = report.read_text(encoding="utf-8") if report.exists() else ""
-    at = old.find(TITLE)
-    if at < 0:
-        new = old.rstrip("\n") + "\n\n" + text
-    else:
-        nxt = old.find("\n## ", at + len(TITLE))
-        new = old[:at] + text + ("" if nxt < 0 else old[nxt:])
-    report.write_text(new.rstrip("\n") + "\n", encoding="utf-8")
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=3)
@@ -154,7 +145,7 @@ def main(argv=None) -> int:
     if args.report:
         report = Path(args.report)
         plot(rows, report.parent / "background_cost.png")
-        replace_section(report, section(rows, args.repeats))
+        replace_section(report, TITLE, section(rows, args.repeats))
         print(f"wrote {report}")
     return 0
 

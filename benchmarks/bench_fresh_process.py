@@ -35,6 +35,9 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
+sys.path.insert(0, str(HERE))
+from _report import cpu_name, replace_section  # noqa: E402  (the benchmarks folder, put on the path above)
+
 TITLE = "## Fresh process: fixed costs once per machine, set-up per pixel (issue 33)"
 LUX = (0.01, 2.0, 300.0)
 FLAT = ("import sys, numpy as np, evnoise as ev; "
@@ -198,14 +201,6 @@ def closed_form_error() -> list[dict]:
     return out
 
 
-def _cpu_name() -> str:
-    try:
-        with open("/proc/cpuinfo") as fh:
-            return next(line.split(":", 1)[1].strip() for line in fh if line.startswith("model name"))
-    except (OSError, StopIteration):
-        return platform.processor()
-
-
 def _fmt(values) -> str:
     v = np.asarray(values)
     return f"{np.median(v):.2f} ({v.min():.2f}–{v.max():.2f})"
@@ -219,7 +214,7 @@ def section(fresh, setup, errors, args, plot_name) -> str:
     load = os.getloadavg()
     lines = [
         TITLE, "",
-        f"Machine: {_cpu_name()}, {os.cpu_count()} cores shared with other jobs (load average {load[0]:.1f} at the "
+        f"Machine: {cpu_name()}, {os.cpu_count()} cores shared with other jobs (load average {load[0]:.1f} at the "
         f"end), {platform.system()}; Python {platform.python_version()}, NumPy {np.__version__}, Numba "
         f"{numba.__version__}; evnoise {ev.__version__}; {_dt.date.today().isoformat()}. Command: "
         f"`python benchmarks/bench_fresh_process.py --repeats {args.repeats} --cold-repeats {args.cold_repeats}"
@@ -314,17 +309,6 @@ def plot(fresh, path: Path) -> None:
     plt.close(fig)
 
 
-def replace_section(report: Path, text: str) -> None:
-    old = report.read_text(encoding="utf-8") if report.exists() else ""
-    at = old.find(TITLE)
-    if at < 0:
-        new = old.rstrip("\n") + "\n\n" + text
-    else:
-        nxt = old.find("\n## ", at + len(TITLE))
-        new = old[:at] + text + ("" if nxt < 0 else old[nxt:])
-    report.write_text(new.rstrip("\n") + "\n", encoding="utf-8")
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=5, help="runs per warm-cache row (default 5)")
@@ -339,7 +323,7 @@ def main(argv=None) -> int:
     errors = closed_form_error()
     if args.report:
         plot(fresh, args.report.parent / "fresh_process.png")
-        replace_section(args.report, section(fresh, setup, errors, args, "fresh_process.png"))
+        replace_section(args.report, TITLE, section(fresh, setup, errors, args, "fresh_process.png"))
         print(f"wrote {args.report}")
     else:
         print(section(fresh, setup, errors, args, "fresh_process.png"))

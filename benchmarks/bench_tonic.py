@@ -21,6 +21,7 @@ import datetime as _dt
 import multiprocessing
 import platform
 import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -28,6 +29,9 @@ import numpy as np
 
 import evnoise as ev
 from evnoise.plugins.tonic import PhotonNoise
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _report import cpu_name  # noqa: E402  (the benchmarks folder, put on the path above)
 
 SENSOR = (34, 34, 2)
 N_EVENTS, SPAN_US = 4325, 310_000
@@ -88,14 +92,6 @@ def added_events_error(events, calls: int) -> tuple[float, float, float]:
     return added.mean(), added.std(ddof=1) / np.sqrt(calls), rate * SPAN_US * 1e-6
 
 
-def _cpu_name() -> str:
-    try:
-        with open("/proc/cpuinfo") as fh:
-            return next(line.split(":", 1)[1].strip() for line in fh if line.startswith("model name"))
-    except (OSError, StopIteration):
-        return platform.processor()
-
-
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--calls", type=int, default=400)
@@ -123,7 +119,7 @@ def main(argv=None) -> None:
     lines = [
         "## tonic: PhotonNoise against UniformNoise per N-MNIST sample (issue 31)",
         "",
-        f"Machine: {platform.machine()} {_cpu_name()}, {multiprocessing.cpu_count()} cores (shared), "
+        f"Machine: {platform.machine()} {cpu_name()}, {multiprocessing.cpu_count()} cores (shared), "
         f"Python {platform.python_version()}, tonic {tonic.__version__}; {_dt.date.today()}. Command: "
         f"`python benchmarks/bench_tonic.py --calls {args.calls} --items {args.items}`. Sample: {N_EVENTS} events, "
         f"34x34, {SPAN_US / 1000:.0f} ms; preset `{PRESET}` at {LUX} lux. In-process: median (min-max) of "
