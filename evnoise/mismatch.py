@@ -179,6 +179,25 @@ def _merge_atoms(q, mass):
     return out, m / m.sum()
 
 
+def _node_mean(weight, values):
+    """Weighted sums over background nodes, one per level.
+
+    Parameters
+    ----------
+    weight : numpy.ndarray
+        Node weights, ``(B,)``.
+    values : numpy.ndarray
+        C-contiguous ``(J, B)``: one row of node values per level.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``sum_b weight[b] * values[j, b]``, ``(J,)``; each row is summed on its own (contiguous,
+        numpy's pairwise sum), so a level's result does not depend on the other levels.
+    """
+    return np.sum(weight[None, :] * values, axis=1)
+
+
 def _logsumexp(lp, w):
     top = np.max(lp)
     if not np.isfinite(top):
@@ -256,16 +275,18 @@ class LevelStats:
         self.bg_a = np.stack([a_on, a_off])  # (2, B, J)
         self.bg_l = np.stack([l_on, l_off])  # (2, B, J), events/s
         self.regularity = params.leak_regularity if terms.regular_timer(params) else 0.0
-        w = weight[:, None]
         m1, m2 = np.exp(self.log_m1), np.exp(self.log_m2)
         P1 = np.empty_like(m1)
         P2 = np.empty_like(m1)
         for k in range(2):
-            a = self.bg_a[k]
-            e_a = np.sum(w * a, axis=0)
-            e_a2 = np.sum(w * a * a, axis=0)
-            e_b2 = np.sum(w * (1.0 - a) ** 2, axis=0)
-            e_ab = np.sum(w * a * (1.0 - a), axis=0)
+            # levels as contiguous rows (J, B): each level's sum over the nodes is then the same
+            # pairwise sum as for that level alone, so an array of levels equals the scalar calls
+            # bit for bit (a sum over axis 0 of (B, J) accumulates in another order for J > 1)
+            a = np.ascontiguousarray(self.bg_a[k].T)
+            e_a = _node_mean(weight, a)
+            e_a2 = _node_mean(weight, a * a)
+            e_b2 = _node_mean(weight, (1.0 - a) ** 2)
+            e_ab = _node_mean(weight, a * (1.0 - a))
             mo1, mo2 = m1[1 - k], m2[1 - k]
             P1[k] = m1[k] * (1.0 - e_a) + e_a * (1.0 - mo1)
             P2[k] = m2[k] * e_b2 + 2.0 * m1[k] * (1.0 - mo1) * e_ab + e_a2 * (1.0 - 2.0 * mo1 + mo2)
