@@ -104,9 +104,13 @@ def test_alternating_window_fails_the_transition_test():
     assert fit.fit_status == "rejected"
     assert any("polarity_transitions FAILED" in r for r in fit.rejections)
     assert "timing sim.h5 polarity_transitions: FAILED" in fit.summary()
-    # against the reset-memory model's own p_opposite the same window passes
+    # against the reset-memory model's own p_opposite the same window is far closer: its share sits above the
+    # stationary p_opposite only by the window-end cut (polarity_transitions' doc; +0.006 here, about 2 binomial
+    # sd, so a p-value against the uncorrected p_opposite would be a coin toss across machines' last bits)
     timing = qc.same_pixel_timing(np.sort(events, order="t", kind="stable"), shape)
-    assert qc.polarity_transitions(timing, p_opposite=p_opp)["p_value"] >= q.GOODNESS_P
+    against_memory = qc.polarity_transitions(timing, p_opposite=p_opp)
+    miss_memory = abs(against_memory["statistic"] - against_memory["null_mean"])
+    assert miss_memory < 0.05 * abs(tr["statistic"] - tr["null_mean"])  # 20x closer than the memoryless model
 
 
 def test_short_window_reports_not_enough_intervals():

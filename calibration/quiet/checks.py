@@ -240,7 +240,15 @@ def polarity_transitions(timing: dict, *, p_opposite: float | None = None) -> di
     """Opposite-polarity transitions of consecutive same-pixel events (``timing`` from
     :func:`same_pixel_timing`) against a memoryless model (module doc), or against ``p_opposite`` (a
     binomial test): ``{test, statistic, null_mean, null_sd, p_value, testable, opposite_share, transitions,
-    detail}``."""
+    detail}``.
+
+    The memoryless expectation is exact given each pixel's counts (polarity does not depend on timing). A
+    model with memory is different: its same-polarity pairs are further apart than its opposite pairs, so a
+    window's end cuts more of them and the share of opposite pairs seen in a window of ``T`` seconds is
+    higher than the stationary ``p_opposite`` by about ``p_opposite (mean gap - mean opposite gap) / T``
+    (+0.006 for a 6 s window of a dvs128-like pixel with ``reset_memory = 0.7``). Give a ``p_opposite`` that
+    includes that cut (``tests/test_memory_term.py`` computes it from ``memory_iei_cdf``) or a window long
+    enough for it not to matter."""
     from scipy.stats import binomtest, norm
 
     n_trans, observed = int(timing["transitions"]), int(timing["opposite"])
