@@ -16,12 +16,13 @@ from .events import check_shape, empty_events, make_events
 __all__ = ["recording_info", "recording_start_us", "recording_blocks"]
 
 
-def recording_info(path, shape=None, *, csv_columns=None):
+def recording_info(path, shape=None, *, csv_columns=None, shape_argument: str = "sensor='WxH'"):
     """``(shape, n_events, t_first, t_last, t_end_attr)`` of an event file (events.h5 or any camera file).
 
     An events.h5 file is read little (its attributes and two timestamps); a camera file is
     scanned once (streaming). ``shape`` (H, W) is the sensor size for files whose header has
-    none; a file that does give one must agree.
+    none; a file that does give one must agree. ``shape_argument`` is how the caller's own parameter
+    for it is written in the message when it is missing (the library speaks its callers' names).
     """
     from .readers import open_events, scan_events
 
@@ -32,7 +33,7 @@ def recording_info(path, shape=None, *, csv_columns=None):
     if src.shape is None:
         if sensor is None:
             raise InputError(f"{path}: the sensor size is unknown (no width/height in the file); "
-                             f"give it with sensor='WxH'")
+                             f"give it with {shape_argument}")
         src = open_events(path, sensor=sensor, csv_columns=csv_columns)
     if src.format == "h5":
         n, t_first, t_last = src.n_events, src.t_first_us, src.t_last_us

@@ -437,7 +437,8 @@ def iter_motion(source, shape=None, *, fps: float, window_s: float, separator="d
         if is_signal is not None:
             raise InputError("is_signal can only be given with an event array")
         # any event file
-        file_shape, n, t_first, t_last, t_file_end = recording_info(source, shape, csv_columns=csv_columns)
+        file_shape, n, t_first, t_last, t_file_end = recording_info(source, shape, csv_columns=csv_columns,
+                                                                    shape_argument="shape=(H, W)")
         shape = file_shape
         if t_start_s is None:
             t_start_us = recording_start_us(source, t_first)
