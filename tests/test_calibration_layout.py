@@ -129,7 +129,7 @@ def test_importing_calibration_is_cheap():
 
 
 @pytest.mark.parametrize("name", ["refit_evk3", "refit_evk4", "fit_dvs128", "dispersion_evk3", "iebcs_ratios",
-                                  "slow_csv"])
+                                  "slow_csv", "quiet_timing"])
 def test_scripts_run_as_modules(name):
     out = subprocess.run([sys.executable, "-m", f"evnoise.calibration.scripts.{name}", "--help"],
                          capture_output=True, text=True, cwd=ROOT)
