@@ -482,10 +482,10 @@ def output_format(path, *, flag: str = "out") -> str:
     text = os.fspath(path)
     known = ", ".join(table)
     if text.endswith(("/", os.sep)) or Path(text).is_dir():
-        raise OutputError(f"{flag} {text} is a folder; give an event file name ending in {known}")
+        raise OutputError(f"{flag}={text!r} is a folder; give an event file name ending in {known}")
     suffix = Path(text).suffix.lower()
     if suffix not in table:
-        raise ParameterError(f"{flag} {text}: unknown event file suffix {suffix or '(none)'!r}; the suffix decides "
+        raise ParameterError(f"{flag}={text!r}: unknown event file suffix {suffix or '(none)'!r}; the suffix decides "
                              f"the format: {known}")
     return table[suffix]
 

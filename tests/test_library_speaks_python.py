@@ -164,3 +164,12 @@ def test_a_negative_hot_threshold_names_the_parameter_in_python_and_the_flag_on_
     code, out, err = run_cli(capsys, "info", path, "--stats", "--hot-threshold", "2")
     assert code == 0, err
     assert "given (--hot-threshold)" in out  # the library's "given (hot_threshold)", in info's words
+
+
+def test_an_unknown_output_suffix_is_named_by_each_side(tmp_path, capsys):
+    """The library names its parameter (``path=...``), the CLI its flag (``--out ...``): a bare ``out`` is neither."""
+    bad = tmp_path / "x.png"
+    with pytest.raises(ev.ParameterError, match=r"^path='.*x\.png': unknown event file suffix"):
+        ev.write_events(bad, ev.events_from_array(np.zeros((0, 4))), (2, 2))
+    code, _, err = run_cli(capsys, "simulate", "--example", "--duration", "0.1", "--out", str(bad))
+    one_error_line(code, err, f"--out {bad}: unknown event file suffix '.png'")
