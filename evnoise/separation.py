@@ -437,13 +437,14 @@ def separate_file(path, signal_out=None, noise_out=None, method="density", *, ov
     flt = as_filter(method, **params)
     if signal_out is None and noise_out is None:
         raise ParameterError("give at least one output: signal_out or noise_out")
-    outs = [Path(p) for p in (signal_out, noise_out) if p is not None]
+    named = [(name, Path(p)) for name, p in (("signal_out", signal_out), ("noise_out", noise_out)) if p is not None]
+    outs = [out for _, out in named]
     if len(outs) == 2 and outs[0].resolve() == outs[1].resolve():
         raise ParameterError(f"signal and noise outputs are the same file: {outs[0]}")
-    for out in outs:
+    for name, out in named:
         if out.resolve() == Path(path).resolve():
             raise ParameterError(f"the output {out} is the input file")
-        output_format(out)
+        output_format(out, flag=name)
         open_output_path(out, overwrite=overwrite, what="event file")
     user = parse_sensor(sensor)
     shape, n, t_first, t_last, t_end_attr = recording_info(path, user, csv_columns=csv_columns)

@@ -227,7 +227,7 @@ PYTHON_NAMES = {
     "--duration": ("duration_s",), "--window": ("window_s", "windows_s"), "--crop": ("crop_shape",),
     "--sensor": ("sensor_shape",), "--t-start": ("t_start_s",), "--step": ("step_s",), "--radius": ("radius_px",),
     "--starts": ("n_starts",), "--frames": ("max_frames",), "--fps": ("fps_out",), "--preset": ("params",),
-    "--model": ("model_path",),
+    "--model": ("model_path",), "--out": ("signal_out",),
 }
 
 
