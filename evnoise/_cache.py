@@ -32,6 +32,9 @@ log = logging.getLogger(__name__)
 
 #: Version of the file layout (in every key: a new layout never reads an old file).
 FORMAT = 1
+#: Largest cached file read, and largest total its members may declare (a table is tens of kB): a file
+#: declaring more is ignored before anything is allocated for it.
+MAX_FILE_BYTES = 16 << 20
 _OFF = ("0", "off", "no", "false")
 
 
@@ -65,7 +68,7 @@ def _checksum(text: str, arrays: dict) -> str:
     for name in sorted(arrays):
         a = np.ascontiguousarray(arrays[name])
         h.update(f"|{name}|{a.dtype.str}|{a.shape}|".encode())
-        h.update(a.tobytes())
+        h.update(memoryview(a).cast("B"))
     return h.hexdigest()
 
 
@@ -85,12 +88,7 @@ def load_arrays(key: dict, names: tuple) -> dict | None:
         return None
     path = table_path(key, folder)
     try:
-        with np.load(path, allow_pickle=False) as npz:
-            if set(npz.files) != {*names, "key", "checksum"}:
-                raise ValueError(f"members {sorted(npz.files)}")
-            text = str(npz["key"][()])
-            stored = str(npz["checksum"][()])
-            arrays = {name: npz[name] for name in names}
+        arrays, text, stored = _read_npz(path, names, _key_text(key))
     except FileNotFoundError:
         return None
     except Exception as exc:  # noqa: BLE001 -- a damaged file of any kind is ignored, never trusted
@@ -102,6 +100,34 @@ def load_arrays(key: dict, names: tuple) -> dict | None:
     return arrays
 
 
+def _read_npz(path: Path, names: tuple, want_key: str):
+    """``(arrays, key text, checksum)`` of a cached file, read only if it is a plain file of bounded size whose
+    uncompressed members declare a bounded total and whose key is ``want_key`` (checked before the arrays are
+    read). Never follows a link, never waits on a pipe or device."""
+    import stat
+    import zipfile
+
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0))
+    with os.fdopen(fd, "rb") as fh:
+        info = os.fstat(fh.fileno())
+        if not stat.S_ISREG(info.st_mode) or info.st_size > MAX_FILE_BYTES:
+            raise ValueError("not a plain file of a table's size")
+        with zipfile.ZipFile(fh) as archive:
+            members = archive.infolist()
+            if {m.filename for m in members} != {f"{n}.npy" for n in (*names, "key", "checksum")}:
+                raise ValueError(f"members {sorted(m.filename for m in members)}")
+            if any(m.compress_type != zipfile.ZIP_STORED for m in members) or \
+                    sum(m.file_size for m in members) > MAX_FILE_BYTES:
+                raise ValueError("compressed members, or more data than a table holds")
+        fh.seek(0)
+        with np.load(fh, allow_pickle=False) as npz:
+            text = str(npz["key"][()])
+            if text != want_key:
+                raise ValueError("written for another key")
+            stored = str(npz["checksum"][()])
+            return {name: npz[name] for name in names}, text, stored
+
+
 def save_arrays(key: dict, arrays: dict) -> Path | None:
     """Store ``arrays`` for ``key`` (atomically); returns the file, or None (cache off, or it cannot be written)."""
     folder = table_cache_dir()
@@ -110,16 +136,20 @@ def save_arrays(key: dict, arrays: dict) -> Path | None:
     path = table_path(key, folder)
     text = _key_text(key)
     tmp = path.with_name(f".{path.name}.{os.getpid()}-{os.urandom(4).hex()}.tmp")
+    replaced = False
     try:
         folder.mkdir(parents=True, exist_ok=True)
         with open(tmp, "xb") as fh:
             np.savez(fh, key=np.array(text), checksum=np.array(_checksum(text, arrays)), **arrays)
         os.replace(tmp, path)
+        replaced = True
     except OSError as exc:  # a read-only or full disk: the cache is only a speed-up
         log.debug("cannot write cached table %s: %s", path, exc)
-        try:
-            tmp.unlink()
-        except OSError:
-            pass
         return None
+    finally:
+        if not replaced:  # any failure (an error, Ctrl-C) leaves no temporary behind
+            try:
+                tmp.unlink()
+            except OSError:
+                pass
     return path

@@ -212,3 +212,66 @@ def test_concurrent_writers_leave_a_valid_file(cache):
     assert arrays is not None and chebyshev.arrays_to_units(arrays, *UNITS)
     fresh, _ = _fresh_values()
     assert np.array_equal(_table().evaluate(LAM), fresh)
+
+
+def _table_names():
+    return ("units", "unit_start", "bounds", "coef")
+
+
+def test_a_file_declaring_more_than_a_table_is_refused_before_it_is_read(cache, monkeypatch):
+    """A small file whose members inflate to far more than any table (a zip bomb) is ignored without
+    allocating for it: its members' declared sizes are checked first."""
+    import zipfile
+
+    _table().evaluate(LAM)
+    (path,) = cache.glob("table-*.npz")
+    with np.load(path, allow_pickle=False) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+        for name, a in arrays.items():
+            if name != "coef":
+                archive.writestr(f"{name}.npy", _npy_bytes(a))
+        archive.writestr("coef.npy", b"\0" * (_cache.MAX_FILE_BYTES * 4))  # inflates to 64 MiB
+    assert path.stat().st_size < 1 << 20
+    read = []
+    monkeypatch.setattr(np, "load", lambda *a, **k: read.append(a) or pytest.fail("np.load reached"))
+    assert _cache.load_arrays(_table().cache_key(), _table_names()) is None
+    assert not read
+
+
+def _npy_bytes(a):
+    import io
+
+    buf = io.BytesIO()
+    np.save(buf, a, allow_pickle=False)
+    return buf.getvalue()
+
+
+def test_a_pipe_or_a_link_at_the_cache_path_is_not_followed(cache, tmp_path):
+    """A named pipe is not waited on (the read would block forever) and a link is not followed."""
+    _table().evaluate(LAM)
+    (path,) = cache.glob("table-*.npz")
+    elsewhere = tmp_path / "elsewhere.npz"
+    path.rename(elsewhere)
+    path.symlink_to(elsewhere)
+    assert _cache.load_arrays(_table().cache_key(), _table_names()) is None
+    path.unlink()
+    os.mkfifo(path)
+    # in a child process, so that a regression hangs a process with a time limit, not the test run
+    code = ("import sys; from evnoise import _cache; from evnoise._kernels import chebyshev; "
+            f"t = chebyshev.LogPTable({C!r}, {B!r}, {UNITS[0]}, {UNITS[1]}); "
+            "sys.exit(0 if _cache.load_arrays(t.cache_key(), ('units', 'unit_start', 'bounds', 'coef')) is None "
+            "else 1)")
+    env = dict(os.environ)
+    done = subprocess.run([sys.executable, "-c", code], env=env, timeout=120)
+    assert done.returncode == 0
+
+
+def test_a_failed_write_leaves_no_temporary(cache, monkeypatch):
+    def broken(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(np, "savez", broken)
+    with pytest.raises(KeyboardInterrupt):
+        _cache.save_arrays(_table().cache_key(), {"units": np.zeros(1)})
+    assert not [p for p in cache.iterdir() if p.name.endswith(".tmp")]
