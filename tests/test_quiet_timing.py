@@ -39,7 +39,9 @@ def _memoryless(shape, duration_s, seed):
 @pytest.fixture(scope="module")
 def memoryless_fit():
     shape, duration = (24, 24), 20.0
-    w = _window(_memoryless(shape, duration, 5), shape, duration)
+    # seed 6: every p-value of this fit is >= 0.2 (seed 5's second histogram sat at 0.0018, a coin toss across
+    # machines' last bits against GOODNESS_P = 1e-3)
+    w = _window(_memoryless(shape, duration, 6), shape, duration)
     return w, q.fit_quiet([w], hot="off", regularity="off")
 
 
@@ -138,7 +140,7 @@ def test_counts_right_timing_wrong_is_rejected():
     polarity order) are those of the memoryless window, so the count histograms pass, but the intervals do
     not and the fit is not accepted."""
     shape, duration = (24, 24), 20.0
-    events = np.sort(_memoryless(shape, duration, 5), order="t", kind="stable")
+    events = np.sort(_memoryless(shape, duration, 6), order="t", kind="stable")
     rng = np.random.default_rng(9)
     pix = events["y"].astype(np.int64) * shape[1] + events["x"]
     start = rng.uniform(0, duration - 2.0, size=shape[0] * shape[1])
