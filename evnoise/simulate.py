@@ -117,9 +117,6 @@ def _check_memory(expected_events: float, what: str = "simulate_events") -> None
                           "(EventWriter)", error=ParameterError)
 
 
-_human_bytes = human_bytes  # the name the size messages below use
-
-
 # Bytes per event of each output format (measured on `simulate --example`, 1 M events in 2 s), and
 # events.h5's bytes per millisecond of its ms_to_idx index. Typical values, not bounds: a file can
 # come out somewhat larger or smaller.
@@ -162,16 +159,16 @@ def check_disk_space(windows, path, fmt: str = "h5", *, compression="gzip") -> s
     size = estimate_file_size(expected, windows.duration_us, fmt, compression=compression,
                               t_end_us=windows.t_start_us + windows.duration_us)
     folder = Path(path).parent if str(Path(path).parent) else Path(".")
-    line = f"expecting about {expected:,.0f} events, a file of about {_human_bytes(size)}"
+    line = f"expecting about {expected:,.0f} events, a file of about {human_bytes(size)}"
     try:
         free = shutil.disk_usage(folder).free
     except OSError:
         return line
     if size > free:
-        raise OutputError(f"{path} would be about {_human_bytes(size)} ({expected:,.0f} events expected), more "
-                          f"than the {_human_bytes(free)} free on its disk; shorten the duration or choose "
+        raise OutputError(f"{path} would be about {human_bytes(size)} ({expected:,.0f} events expected), more "
+                          f"than the {human_bytes(free)} free on its disk; shorten the duration or choose "
                           f"another disk")
-    return f"{line} ({_human_bytes(free)} free)"
+    return f"{line} ({human_bytes(free)} free)"
 
 
 # --------------------------------------------------------------------------------------

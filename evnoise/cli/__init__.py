@@ -31,9 +31,6 @@ COMMANDS = ["simulate", "make_dataset", "calibrate", "train", "pretrain", "evalu
 log = logging.getLogger("evnoise")
 
 
-_Parser = Parser  # the name earlier code and tests use
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = Parser(
         prog="evnoise",

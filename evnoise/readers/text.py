@@ -42,9 +42,9 @@ _ALIASES = {
 }
 
 #: Bytes parsed at a time (memory stays at a few times this).
+BLOCK_BYTES = 1 << 23
 #: Longest line accepted (an event line has a few dozen bytes).
 MAX_LINE_BYTES = 1 << 20
-BLOCK_BYTES = 1 << 23
 #: Bytes looked at for the header.
 _HEAD_BYTES = 1 << 16
 
