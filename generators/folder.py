@@ -156,7 +156,10 @@ _TEMPORARY = re.compile(r"\..+\.(\d+)(?:-[0-9a-f]+)?\.tmp(?:\.[a-z]+)?")
 
 
 def _pid_alive(pid: int) -> bool:
-    """Whether a process ``pid`` exists (a process of another user counts; so does this one)."""
+    """Whether a process ``pid`` exists and can still write (a process of another user counts; so does
+    this one). A zombie (a process that has ended but that its parent, often a container's PID 1, has
+    not reaped yet) writes nothing more: it counts as gone. Where ``/proc`` is missing, a zombie
+    counts as alive (its file is kept, as for any writer we cannot judge)."""
     if pid <= 0:
         return True  # not a PID we can judge: keep the file
     if pid == os.getpid():
@@ -167,7 +170,19 @@ def _pid_alive(pid: int) -> bool:
         return False
     except OSError:  # PermissionError: it exists; anything else: do not guess
         return True
-    return True
+    return not _is_zombie(pid)
+
+
+def _is_zombie(pid: int) -> bool:
+    """Whether Linux's ``/proc`` says ``pid`` has ended and waits to be reaped (state Z or X)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            stat_line = f.read(4096)
+    except OSError:
+        return False
+    end = stat_line.rfind(b")")  # the command name may hold spaces and parentheses
+    state = stat_line[end + 2: end + 3] if end >= 0 else b""
+    return state in (b"Z", b"X")
 
 
 def remove_stale_temporaries(root: Path) -> list:

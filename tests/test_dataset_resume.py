@@ -178,11 +178,15 @@ def test_stale_temporaries_are_removed_only_inside_out_and_only_of_dead_writers(
                 make_dataset(DeadLeaves(5), out, SMALL, workers=1)
     dead = _dead_pid()
     sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(600)"])
+    zombie = subprocess.Popen([sys.executable, "-c", "pass"])  # ends, and is not reaped until the end
+    _wait_for(lambda: Path(f"/proc/{zombie.pid}").exists() and not _alive(zombie.pid), "a zombie child")
     try:
         live = sleeper.pid
         stale = [out / "shards" / f".train-00000.h5.{dead}-0a1b2c3d.tmp",  # a shard of a SIGKILLed worker
                  out / "shards" / f".val-00000.h5.{dead}.tmp",  # the older naming
-                 out / f".manifest.json.{dead}-deadbeef.tmp"]
+                 out / f".manifest.json.{dead}-deadbeef.tmp",
+                 # a worker of a SIGKILLed run that its new parent (a container's PID 1) has not reaped yet
+                 out / "shards" / f".test-00000.h5.{zombie.pid}-0a1b2c3d.tmp"]
         if not complete:
             stale.append(out / PROGRESS_DIR / f".train-00000.done.json.{dead}-00ff00ff.tmp")
         kept = [out / "shards" / f".train-00001.h5.{live}-0a1b2c3d.tmp",  # its writer is still at work
@@ -205,6 +209,7 @@ def test_stale_temporaries_are_removed_only_inside_out_and_only_of_dead_writers(
     finally:
         sleeper.kill()
         sleeper.wait()
+        zombie.wait()
 
 
 # --------------------------------------------------------------------------------------
