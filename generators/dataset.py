@@ -561,10 +561,16 @@ def _die_with_parent(parent_pid: int) -> None:
     this the workers (and through them multiprocessing's resource tracker) ran on forever, holding
     the caller's standard output. On Linux the kernel sends SIGKILL at the parent's death
     (``prctl(PR_SET_PDEATHSIG)``); everywhere a daemon thread also checks ``os.getppid()``. The
-    shard being written is left as a temporary file, which the next run into the folder removes."""
+    shard being written is left as a temporary file, which the next run into the folder removes.
+
+    The worker also ignores SIGINT (Ctrl-C in a terminal reaches the whole process group): the
+    process running ``make_dataset`` decides, and ends its workers itself (:func:`_stop_workers`).
+    A KeyboardInterrupt raised inside a worker could land in the middle of the pool's own queue
+    traffic (a half-read job, a half-sent result) and leave the pool blocked for ever."""
     import signal
     import sys
 
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     if sys.platform.startswith("linux"):
         try:
             import ctypes
@@ -599,10 +605,39 @@ def _run_pool(root, plan, todo, n_workers, threads, finished) -> None:
             done, pending = wait(pending, return_when=FIRST_COMPLETED)
             for fut in sorted(done, key=lambda f: f.exception() is not None):
                 finished(fut.result())  # re-raises a worker's exception
-    except BaseException:
-        pool.shutdown(wait=True, cancel_futures=True)
+    except KeyboardInterrupt:  # Ctrl-C, or the CLI's SIGTERM (evnoise.cli.Terminated)
+        _stop_workers(pool, root)
+        raise
+    except BaseException:  # a shard failed: the shards under way finish and are recorded
+        try:
+            pool.shutdown(wait=True, cancel_futures=True)
+        except KeyboardInterrupt:
+            _stop_workers(pool, root)
         raise
     pool.shutdown(wait=True)
+
+
+#: how long (seconds) an interrupted run waits for its terminated workers to end before killing them
+_STOP_GRACE_S = 5.0
+
+
+def _stop_workers(pool, root) -> None:
+    """End an interrupted run's pool now: queued shards are cancelled, the workers are terminated
+    (their shards are abandoned: a shard is only kept once recorded) and the temporary files they
+    leave are removed. Waiting for them to finish their shards kept an interrupted run alive for the
+    length of a shard, or for ever when a worker had been interrupted inside the pool's queues."""
+    processes = list((getattr(pool, "_processes", None) or {}).values())  # CPython's pool keeps them here
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in processes:
+        process.terminate()
+    deadline = time.monotonic() + _STOP_GRACE_S
+    for process in processes:
+        process.join(max(0.0, deadline - time.monotonic()))
+    for process in processes:
+        if process.is_alive():
+            process.kill()
+            process.join(1.0)
+    remove_stale_temporaries(Path(root))
 
 
 def _run_dask(root, plan, todo, scheduler, threads, finished) -> int:

@@ -158,6 +158,66 @@ def test_interrupted_with_every_shard_recorded_finishes_with_workers(tmp_path, m
     assert not (out / PROGRESS_DIR).exists()
 
 
+#: a caller whose workers never finish their shard: the interruption must not wait for them
+STUCK_SCRIPT = """
+import os, signal, sys, threading, time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from evnoise.generators import PairConfig, make_dataset
+
+
+@dataclass(frozen=True)
+class StuckSource:
+    marks: str
+    kind = "stuck"
+
+    def items(self):
+        return [f"stuck/{k}" for k in range(6)]
+
+    def load(self, item_id, ctx):
+        Path(self.marks, str(os.getpid())).touch()  # this worker is inside its shard, its file open
+        time.sleep(3600)
+        return np.full(ctx.sensor_shape, 0.5), "display"
+
+    def spec(self):
+        return {"kind": self.kind}
+
+
+if __name__ == "__main__":
+    out, marks = Path(sys.argv[1]), Path(sys.argv[2])
+
+    def interrupt_when_both_workers_are_stuck():
+        while len(list(marks.iterdir())) < 2:
+            time.sleep(0.01)
+        os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C (in a notebook too: the kernel gets SIGINT)
+
+    threading.Thread(target=interrupt_when_both_workers_are_stuck, daemon=True).start()
+    config = PairConfig(sensor_shape=(24, 32), crop_shape=(16, 16), windows_s=(0.25,), shard_size=1, seed=3)
+    try:
+        make_dataset(StuckSource(str(marks)), out, config, workers=2)
+    except KeyboardInterrupt:
+        print("interrupted")
+"""
+
+
+def test_interrupted_library_call_ends_its_stuck_workers_and_their_temporaries(tmp_path):
+    """An interruption ends the pool's workers instead of waiting for their shards (a worker inside a
+    shard that never ends kept ``make_dataset`` waiting for ever), and removes the files they had open."""
+    script, out, marks = tmp_path / "stuck.py", tmp_path / "ds", tmp_path / "marks"
+    script.write_text(STUCK_SCRIPT)
+    marks.mkdir()
+    done = subprocess.run([sys.executable, os.fspath(script), os.fspath(out), os.fspath(marks)],
+                          capture_output=True, text=True, timeout=PATIENCE_S)
+    workers = [int(p.name) for p in marks.iterdir()]
+    assert len(workers) == 2 and done.returncode == 0 and done.stdout.strip() == "interrupted", done.stderr
+    assert not any(_alive(pid) for pid in workers)
+    assert not list((out / "shards").iterdir())  # no shard, no temporary
+    assert not (out / MANIFEST).exists()
+
+
 def _dead_pid() -> int:
     child = subprocess.Popen([sys.executable, "-c", "pass"])
     child.wait()

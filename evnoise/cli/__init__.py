@@ -202,9 +202,10 @@ def _catch_sigterm():
     pid = os.getpid()
     timer = hasattr(signal, "setitimer") and hasattr(signal, "SIGALRM")
     pending = []
+    left = []  # set by _restore_sigterm: the command is over, a late alarm must not raise out of main()
 
     def raise_unless_unwinding():
-        if sys.exc_info()[1] is None:
+        if not left and sys.exc_info()[1] is None:
             raise Terminated()
 
     def on_sigterm(signum, frame):
@@ -212,11 +213,10 @@ def _catch_sigterm():
             signal.signal(signal.SIGTERM, signal.SIG_DFL)
             os.kill(os.getpid(), signal.SIGTERM)
             return
-        if pending:
+        if pending or left:
             raise_unless_unwinding()
             return
         pending.append(True)
-        _interrupt_workers()
         if timer:
             signal.setitimer(signal.ITIMER_REAL, _RETRY_S, _RETRY_S)
         raise Terminated()
@@ -229,24 +229,7 @@ def _catch_sigterm():
     except (ValueError, OSError):  # pragma: no cover - no signals here (embedded interpreter)
         return _NO_HANDLER
     previous_alarm = signal.signal(signal.SIGALRM, on_alarm) if timer else _NO_HANDLER
-    return previous, previous_alarm
-
-
-def _interrupt_workers() -> None:
-    """Send SIGINT to this process's multiprocessing workers (make-dataset's pool), as Ctrl-C in a
-    terminal does to the whole process group: they stop their shard and remove its temporary file
-    instead of finishing it while the main process waits."""
-    import os
-    import signal
-
-    multiprocessing = sys.modules.get("multiprocessing")
-    if multiprocessing is None:  # no pool was ever started
-        return
-    for child in multiprocessing.active_children():
-        try:
-            os.kill(child.pid, signal.SIGINT)
-        except (OSError, TypeError):  # already gone, or not started
-            pass
+    return previous, previous_alarm, left
 
 
 def _restore_sigterm(previous) -> None:
@@ -254,7 +237,8 @@ def _restore_sigterm(previous) -> None:
 
     if previous is _NO_HANDLER:
         return
-    term, alarm = previous
+    term, alarm, left = previous
+    left.append(True)
     if alarm is not _NO_HANDLER:
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, alarm if alarm is not None else signal.SIG_DFL)
