@@ -16,6 +16,10 @@ is only ever a speed-up, never trusted:
 - **Written atomically**: to a unique temporary name in the same folder, then ``os.replace``: a reader
   sees an old file or a new one, never half of one; of concurrent writers the last one wins, and what
   the others added is rebuilt when it is next needed.
+- **Bounded**: at most :data:`MAX_TABLE_FILES` tables (a table is about 35 kB: ~70 MB). A save that finds
+  more removes the least recently used (a load marks its file used) down to :data:`PRUNE_TO_FILES`, and
+  temporary files older than :data:`STALE_TEMPORARY_S` (left by a writer that was killed). A sweep over
+  thresholds, as calibration does, so never fills a disk; a removed table is rebuilt when next needed.
 """
 
 from __future__ import annotations
@@ -36,6 +40,11 @@ FORMAT = 1
 #: declaring more is ignored before anything is allocated for it.
 MAX_FILE_BYTES = 16 << 20
 _OFF = ("0", "off", "no", "false")
+#: Most tables kept in the folder; a save beyond removes the least recently used down to PRUNE_TO_FILES.
+MAX_TABLE_FILES = 2000
+PRUNE_TO_FILES = 1800
+#: Age (seconds) after which a temporary file in the folder is a killed writer's (a save takes milliseconds).
+STALE_TEMPORARY_S = 3600.0
 
 
 def cache_dir() -> Path:
@@ -97,6 +106,10 @@ def load_arrays(key: dict, names: tuple) -> dict | None:
     if text != _key_text(key) or stored != _checksum(text, arrays):
         log.debug("ignoring cached table %s: key or checksum does not match", path)
         return None
+    try:  # mark it used: pruning removes the least recently used tables first
+        os.utime(path, follow_symlinks=False)
+    except (OSError, NotImplementedError):  # a read-only cache, or no lutimes here: only the order suffers
+        pass
     return arrays
 
 
@@ -152,4 +165,47 @@ def save_arrays(key: dict, arrays: dict) -> Path | None:
                 tmp.unlink()
             except OSError:
                 pass
+    prune(folder)
     return path
+
+
+def prune(folder: Path) -> list:
+    """Keep the table folder bounded: when it holds more than :data:`MAX_TABLE_FILES` tables, remove the
+    least recently used (oldest modification time; a load updates it) down to :data:`PRUNE_TO_FILES`;
+    remove temporary files older than :data:`STALE_TEMPORARY_S` seconds. Only plain files of the cache's own naming are touched (never a
+    link, nothing outside ``folder``). Returns the paths removed; errors (a file another process removed
+    first, a read-only folder) are ignored."""
+    import re
+    import stat
+    import time
+
+    table_name = re.compile(r"table-[0-9a-f]{32}\.npz")
+    temporary_name = re.compile(r"\.table-[0-9a-f]{32}\.npz\.\d+-[0-9a-f]+\.tmp")
+    tables, removed = [], []
+    now = time.time()
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return removed
+    for entry in entries:
+        try:
+            info = entry.stat(follow_symlinks=False)
+        except OSError:
+            continue
+        if not stat.S_ISREG(info.st_mode):
+            continue
+        if table_name.fullmatch(entry.name):
+            tables.append((info.st_mtime_ns, entry.name, entry.path))
+        elif temporary_name.fullmatch(entry.name) and now - info.st_mtime > STALE_TEMPORARY_S:
+            removed.append(entry.path)
+    if len(tables) > MAX_TABLE_FILES:
+        tables.sort()
+        removed.extend(path for _, _, path in tables[: len(tables) - PRUNE_TO_FILES])
+    gone = []
+    for path in removed:
+        try:
+            os.unlink(path)
+            gone.append(Path(path))
+        except OSError:
+            pass
+    return gone

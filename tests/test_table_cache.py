@@ -275,3 +275,32 @@ def test_a_failed_write_leaves_no_temporary(cache, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         _cache.save_arrays(_table().cache_key(), {"units": np.zeros(1)})
     assert not [p for p in cache.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_the_folder_stays_bounded_and_keeps_the_recently_used_tables(cache, monkeypatch):
+    """A sweep over many keys (calibration tries hundreds of thresholds) never grows the folder past its cap:
+    the least recently used tables go first (a load marks a table used), stale temporaries go, nothing else."""
+    monkeypatch.setattr(_cache, "MAX_TABLE_FILES", 10)
+    monkeypatch.setattr(_cache, "PRUNE_TO_FILES", 6)
+    arrays = {"units": np.arange(3.0)}
+    keys = [{"eps": str(k)} for k in range(10)]
+    for age, key in enumerate(keys):  # file k last used 100 - k seconds ago (key 0 the oldest)
+        path = _cache.save_arrays(key, arrays)
+        os.utime(path, (1e9 + age, 1e9 + age))
+    assert len(list(cache.glob("table-*.npz"))) == 10
+    assert _cache.load_arrays(keys[0], ("units",)) is not None  # the oldest is used again: now the newest
+    stale = cache / f".{_cache.table_path({'x': '1'}, cache).name}.{os.getpid()}-0a1b2c3d.tmp"
+    fresh = cache / f".{_cache.table_path({'x': '2'}, cache).name}.{os.getpid()}-0a1b2c3e.tmp"
+    for tmp in (stale, fresh):
+        tmp.write_bytes(b"partial")
+    os.utime(stale, (1e9, 1e9))
+    other = cache / "notes.txt"
+    other.write_text("not the cache's")
+    link = cache / f"table-{'0' * 32}.npz"
+    link.symlink_to(other)
+    _cache.save_arrays({"eps": "new"}, arrays)  # the 11th table: the folder is pruned to 6
+    left = {p.name for p in cache.glob("table-*.npz") if not p.is_symlink()}
+    expected = {_cache.table_path(k, cache).name for k in (*keys[6:], keys[0], {"eps": "new"})}
+    assert left == expected
+    assert not stale.exists() and fresh.exists() and other.read_text() == "not the cache's" and link.is_symlink()
+    assert _cache.load_arrays(keys[1], ("units",)) is None  # a removed table is only a miss (rebuilt by its caller)
