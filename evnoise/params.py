@@ -21,7 +21,7 @@ import tomllib
 from .errors import ParameterError
 
 __all__ = ["NoiseParams", "load_preset", "list_presets", "preset_info", "LightRange", "preset_light_range",
-           "light_range_warning", "PARAM_LIMITS", "ParameterSpec",
+           "light_range_warning", "light_outside_range", "LIGHT_WARNING_SHARE", "PARAM_LIMITS", "ParameterSpec",
            "parameter_specs", "parameter_names", "parameter_spec", "names_in_group", "names_with_fit_role",
            "fit_bounds", "GROUPS", "FIT_ROLES"]
 
@@ -494,12 +494,16 @@ def preset_light_range(preset) -> LightRange | None:
     return _find_preset(preset)[1]
 
 
-def light_range_warning(preset, lux_min: float, lux_max: float, *, factor: float = 2.0) -> str | None:
+def light_range_warning(preset, lux_min: float, lux_max: float, *, factor: float = 2.0,
+                        outside_share: float | None = None) -> str | None:
     """One line saying that a scene spanning ``lux_min .. lux_max`` lux leaves the range the preset was
     fitted on by more than ``factor`` (above ``hi * factor`` or, where ``lo > 0``, below ``lo / factor``);
-    None inside it, or for a preset (or parameters) with no recorded range.
+    None inside it, or for a preset (or parameters) with no recorded range. ``outside_share`` (the share
+    of the scene's pixels outside, if the caller counted them with :func:`light_outside_range`) is named
+    in the line.
 
-    ``evnoise simulate`` logs it as a warning; library callers may do the same before simulating.
+    ``evnoise simulate`` logs it as a warning when at least :data:`LIGHT_WARNING_SHARE` of the pixels lie
+    outside (a few black pixels in a photograph do not); library callers may do the same before simulating.
     """
     name, light = _find_preset(preset)
     if light is None:
@@ -511,5 +515,25 @@ def light_range_warning(preset, lux_min: float, lux_max: float, *, factor: float
         return None
     kind = "the assumed range" if light.assumed else "the range"
     meaning = light.meaning or "its rates there are extrapolated"
-    return (f"the scene spans {lux_min:.3g} .. {lux_max:.3g} lux, more than x{factor:g} outside {kind} preset "
-            f"{name} was fitted on ({light.lo:.3g} .. {light.hi:.3g} lux): {meaning}")
+    share = "" if outside_share is None else f" ({100 * outside_share:.3g} % of its pixels)"
+    return (f"the scene spans {lux_min:.3g} .. {lux_max:.3g} lux, more than x{factor:g} outside {kind}{share} "
+            f"preset {name} was fitted on ({light.lo:.3g} .. {light.hi:.3g} lux): {meaning}")
+
+
+#: share of a scene's pixels outside a preset's light range (by more than x2) from which ``evnoise simulate`` warns
+LIGHT_WARNING_SHARE = 0.01
+
+
+def light_outside_range(preset, lux, *, factor: float = 2.0) -> tuple:
+    """``(outside, total)``: how many pixels of ``lux`` lie more than ``factor`` outside the light range
+    ``preset`` was fitted on, of how many (``(0, lux.size)`` for a preset with no recorded range)."""
+    import numpy as np
+
+    _, light = _find_preset(preset)
+    lux = np.asarray(lux)
+    if light is None:
+        return 0, int(lux.size)
+    outside = lux > light.hi * factor
+    if light.lo > 0.0:
+        outside |= lux < light.lo / factor
+    return int(np.count_nonzero(outside)), int(lux.size)

@@ -97,3 +97,21 @@ def test_presets_command_prints_the_range(capsys):
     assert main(["presets", "dvs128"]) == 0
     out, _ = capsys.readouterr()
     assert "fitted on: 0 .. 0.05 lux (assumed" in out
+
+
+def test_a_few_black_pixels_do_not_warn_but_a_dark_scene_does(tmp_path, capsys):
+    """evk4 was fitted on 0.15 .. 25 lux: a photograph with a few black pixels (under 1 % of them) is inside it,
+    a scene whose dark part is a tenth of the image is not, and the line says how much lies outside."""
+    scene = np.full((40, 50), 128, dtype=np.uint8)
+    scene[0, :10] = 0  # 10 of 2000 pixels black: 0.5 %
+    path = tmp_path / "photo.png"
+    PIL_Image.fromarray(scene).save(path)
+    assert _simulate(tmp_path, path, capsys, "--preset", "evk4") == []
+    scene[:4] = 0  # 200 of 2000: 10 %
+    PIL_Image.fromarray(scene).save(path)
+    lines = _simulate(tmp_path, path, capsys, "--preset", "evk4")
+    assert len(lines) == 1 and "(10 % of its pixels)" in lines[0]
+    from evnoise.params import light_outside_range
+
+    assert light_outside_range("evk4", np.array([0.0, 0.074, 0.076, 50.0, 50.3])) == (3, 5)
+    assert light_outside_range(load_preset("evk4").replace(eps_pos=0.3), np.zeros(3)) == (0, 3)  # no recorded range

@@ -257,9 +257,10 @@ def _scene(args, source, is_video, duration, fps, sensor, params, seed, *, progr
 
 
 class _LightCheck:
-    """Warns once (a log warning: ``-q`` hides it, like the command's other warnings) when the scene's
-    illuminance (min .. max over the image, or over the frames read so far) leaves the range the preset
-    was fitted on (:func:`evnoise.params.light_range_warning`)."""
+    """Warns once (a log warning: ``-q`` hides it, like the command's other warnings) when at least
+    :data:`evnoise.params.LIGHT_WARNING_SHARE` of the scene's pixels (over the image, or over the frames
+    read so far) lie outside the range the preset was fitted on (:func:`evnoise.params.light_range_warning`);
+    a photograph's few black pixels do not count as a dark scene."""
 
     def __init__(self, params, preset):
         from ..params import preset_light_range
@@ -267,16 +268,23 @@ class _LightCheck:
         self.preset = preset if preset is not None else params
         self.active = preset_light_range(self.preset) is not None
         self.lo = self.hi = None
+        self.outside = self.total = 0
 
     def __call__(self, lux) -> None:
         if not self.active:
             return
-        from ..params import light_range_warning
+        from ..params import LIGHT_WARNING_SHARE, light_outside_range, light_range_warning
 
         lo, hi = float(lux.min()), float(lux.max())
         self.lo = lo if self.lo is None else min(self.lo, lo)
         self.hi = hi if self.hi is None else max(self.hi, hi)
-        message = light_range_warning(self.preset, self.lo, self.hi)
+        outside, total = light_outside_range(self.preset, lux)
+        self.outside += outside
+        self.total += total
+        share = self.outside / max(self.total, 1)
+        if share < LIGHT_WARNING_SHARE:
+            return
+        message = light_range_warning(self.preset, self.lo, self.hi, outside_share=share)
         if message is not None:
             self.active = False
             log.warning("%s", message)
