@@ -172,9 +172,9 @@ def save_arrays(key: dict, arrays: dict) -> Path | None:
 def prune(folder: Path) -> list:
     """Keep the table folder bounded: when it holds more than :data:`MAX_TABLE_FILES` tables, remove the
     least recently used (oldest modification time; a load updates it) down to :data:`PRUNE_TO_FILES`;
-    remove temporary files older than :data:`STALE_TEMPORARY_S` seconds. Only plain files of the cache's own naming are touched (never a
-    link, nothing outside ``folder``). Returns the paths removed; errors (a file another process removed
-    first, a read-only folder) are ignored."""
+    remove temporary files older than :data:`STALE_TEMPORARY_S` seconds. Only plain files of the cache's
+    own naming are touched (never a link, nothing outside ``folder``). Returns the paths removed; errors
+    (a file another process removed first, a read-only folder) are ignored."""
     import re
     import stat
     import time
