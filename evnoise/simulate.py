@@ -31,6 +31,7 @@ from ._engine import (
     PixelState,
     check_t_start,
     map_chunks,
+    memory_step,
     progress_bar,
     renewal_step,
     run_to_end,
@@ -267,7 +268,6 @@ def _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, thr
 def _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, sink=None):
     """The windows of a static scene with reset memory (:mod:`evnoise.terms.memory`): pixels grouped by light
     level, each advanced event by event over its level's state tables (:mod:`evnoise._kernels.memory`)."""
-    from ._kernels.memory import memory_window
     from .terms.memory import kernel_tables
 
     width = lux.shape[1]
@@ -291,19 +291,8 @@ def _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, s
         t_prev = 0
         for k in range(n_win):
             w_end = duration_us * (k + 1) // n_win
-
-            def run(lo, hi, w_end=w_end, span=w_end - t_prev):
-                out = state.buffers(lo, int(1.2 * nu[lo:hi].sum() * span * 1e-6 + 64))
-                on = np.zeros(hi - lo, dtype=np.int64)
-                off = np.zeros(hi - lo, dtype=np.int64)
-                out, n = run_to_end(lambda buf, n, j: memory_window(
-                    width, state.pix[lo:hi], group[lo:hi], offsets, sizes, table, itable, state.states[lo:hi],
-                    state.fstate[lo:hi], mem[lo:hi], dt, refr, float(w_end), np.int64(t_start_us), buf, n, j, on,
-                    off, True), out, hi - lo)
-                state.keep(lo, out)
-                return tuple(a[:n] for a in out)
-
-            parts = map_chunks(run, lux.size, threads)
+            parts = memory_step(state, mem, width, group, (table, itable, offsets, sizes), dt, refr, 0.0, float(w_end),
+                                math.inf, np.int64(t_start_us), threads, nu * ((w_end - t_prev) * 1e-6))
             window = sorted_window(parts, t_start_us + t_prev, t_start_us + w_end, sink=sink)
             del parts
             yield window

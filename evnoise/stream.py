@@ -6,12 +6,12 @@ import numpy as np
 
 from . import terms
 from ._checks import check_lux, resolve_threads
-from ._engine import PixelState, check_t_start, renewal_step, sorted_window, static_inputs
+from ._engine import PixelState, check_t_start, memory_step, renewal_step, sorted_window, static_inputs
 from ._run import run_setup
 from .errors import InputError, ParameterError
 from .events import empty_events
 from .params import NoiseParams
-from .terms.memory import refuse
+from .terms.memory import check_supported, memory_on
 
 __all__ = ["NoiseStream"]
 
@@ -40,6 +40,15 @@ class NoiseStream:
     background : array_like, optional
         Per-pixel background maps ``(2, H, W)``; drawn when ``params.leak_sigma > 0`` or hot
         pixels are on (see :func:`simulate_events`).
+
+    Notes
+    -----
+    With reset memory (``params.reset_memory > 0``, :mod:`evnoise.terms.memory`) each pixel keeps its stored
+    level between intervals, so polarities alternate across interval boundaries as within one; the first
+    interval starts in the steady state of its light. When a pixel's light changes, its stored photon count
+    is kept (clamped into the new light's state range, which spans the new ``lam`` ± many standard
+    deviations: only a jump of the light beyond that range moves it). Threshold mismatch and background
+    activity are not modelled with reset memory yet (:class:`~evnoise.ParameterError`).
     """
 
     def __init__(self, shape, params: NoiseParams, rng=None, *, t_start_us: int = 0, thresholds=None,
@@ -49,7 +58,8 @@ class NoiseStream:
         self.shape = check_shape(shape)
         self.threads = resolve_threads(threads)
         run = run_setup(self.shape, params, rng, thresholds=thresholds, background=background)
-        refuse(run.params, "NoiseStream")
+        if memory_on(run.params):
+            check_supported(run.params, thresholds, background)
         self.params = run.params
         self._eps_on, self._eps_off = run.thresholds
         self._bg = run.background
@@ -57,6 +67,9 @@ class NoiseStream:
         self._t0 = check_t_start(t_start_us)
         self._t_rel = 0  # µs since t_start_us
         self._inputs = None  # (lam, renewal inputs) of the last interval
+        self._memory = None  # reset memory: (levels, tables, each level's lowest count) of the last interval
+        self._stored = np.full(self.shape[0] * self.shape[1], np.nan)  # stored photon counts (NaN: none yet)
+        self._pending_count = np.full(self.shape[0] * self.shape[1], np.nan)  # new state of a pending event
 
     @property
     def t_us(self) -> int:
@@ -76,6 +89,8 @@ class NoiseStream:
         p = self.params
         dt = p.trial_us
         lam = p.photons_per_trial(lux).ravel()
+        if memory_on(p):
+            return self._advance_memory(lam, t_end)
         if self._inputs is not None and np.array_equal(lam, self._inputs[0]):
             log1m_p, q_on, timer, nu = self._inputs[1]  # the same light as the last interval: same closed form
         else:
@@ -95,6 +110,72 @@ class NoiseStream:
         out = sorted_window(parts, self._t0 + self._t_rel, self._t0 + t_end)
         self._t_rel = t_end
         return out
+
+
+    def _advance_memory(self, lam, t_end: int) -> np.ndarray:
+        """:meth:`advance` with reset memory: the memory kernel over the interval's light levels. A pixel's
+        stored state is kept as a photon count between intervals (a level's tables index counts from its
+        lowest one), and so is the new state of an event pending in a trial that started in the last interval."""
+        from ._kernels.simulate import PEND_ON, PEND_TAU
+        from .terms.memory import kernel_tables
+
+        p = self.params
+        dt = p.trial_us
+        levels, group = np.unique(lam, return_inverse=True)
+        group = np.ascontiguousarray(group.ravel(), dtype=np.int64)
+        spans = _memory_spans(levels, group, self._stored, self._pending_count)
+        if self._memory is None or not np.array_equal(levels, self._memory[0]) or spans != self._memory[4]:
+            table, itable, offsets, sizes, rates = kernel_tables(levels, p, spans)
+            lowest = np.array([lo for lo, _ in spans], dtype=np.float64)
+            self._memory = (levels, (table, itable, offsets, sizes), lowest, rates, spans)
+        _, tables, lowest, rates, _ = self._memory
+        sizes = tables[3]
+        lo, top = lowest[group], (sizes[group] - 1).astype(np.float64)
+        mem = np.clip(self._stored - lo, 0.0, top)  # NaN stays NaN: drawn from the steady state
+        fstate = self._state.fstate
+        pend = np.flatnonzero(np.isfinite(fstate[:, PEND_TAU]))
+        if pend.size:  # an event pending from the last interval keeps its new state as a count
+            code = fstate[pend, PEND_ON]
+            new = np.clip(self._pending_count[pend] - lo[pend], 0.0, top[pend])
+            fstate[pend, PEND_ON] = code % 2.0 + 2.0 * (new + 1.0)
+        j_min = _first_trial_at_or_after(self._t_rel, dt)
+        discard = _first_trial_at_or_after(t_end, dt)
+        parts = memory_step(self._state, mem, self.shape[1], group, tables, dt, p.refractory_us, j_min, float(t_end),
+                            discard, self._t0, self.threads, rates[group] * ((t_end - self._t_rel) * 1e-6))
+        out = sorted_window(parts, self._t0 + self._t_rel, self._t0 + t_end)
+        self._stored = mem + lo
+        code = fstate[:, PEND_ON]
+        self._pending_count = np.where(np.isfinite(fstate[:, PEND_TAU]), code // 2.0 - 1.0 + lo, np.nan)
+        self._t_rel = t_end
+        return out
+
+
+def _memory_spans(levels, group, stored, pending) -> list:
+    """Per light level, the states ``(lo, n_states)`` its tables need: :func:`~evnoise.terms.memory.state_range`'s,
+    widened to hold the stored counts (and pending events' new counts) its pixels bring from another light,
+    up to :data:`~evnoise.terms.memory.MAX_STATES` states (counts beyond are clamped into the range: only a
+    step of the light by many times its own photon noise at hundreds of photons per trial goes that far)."""
+    from .terms.memory import MAX_STATES, state_range
+
+    low = np.full(len(levels), np.inf)
+    high = np.full(len(levels), -np.inf)
+    for counts in (stored, pending):  # each level's lowest and highest count brought (NaN: none)
+        known = np.isfinite(counts)
+        np.minimum.at(low, group[known], counts[known])
+        np.maximum.at(high, group[known], counts[known])
+    spans = []
+    for g, lam in enumerate(levels):
+        lo, n, _ = state_range(lam)
+        hi = lo + n - 1
+        if np.isfinite(low[g]):
+            room = max(0, MAX_STATES - n)
+            lo_w = max(int(low[g]), lo - room)
+            hi_w = min(int(high[g]), hi + room)
+            lo, hi = min(lo, lo_w), max(hi, hi_w)
+            if hi - lo + 1 > max(MAX_STATES, n):
+                hi = lo + max(MAX_STATES, n) - 1
+        spans.append((int(lo), int(hi - lo + 1)))
+    return spans
 
 
 def _first_trial_at_or_after(t_us: float, dt: float) -> float:

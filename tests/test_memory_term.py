@@ -224,8 +224,8 @@ def test_what_is_not_modelled_yet_is_refused(what):
             ev.simulate_video(np.stack([lux, 2 * lux]), [0.0, 0.1], MEM, rng=1)
         elif what == "counts":
             ev.sample_counts(lux, MEM, 1.0, rng=1)
-        elif what == "stream":
-            ev.NoiseStream((4, 4), MEM, rng=1)
+        elif what == "stream":  # a stream with memory is modelled, with mismatch not yet
+            ev.NoiseStream((4, 4), MEM.replace(eps_sigma=0.05), rng=1)
         elif what == "tonic":
             from evnoise.plugins.tonic import PhotonNoise
 
@@ -324,3 +324,88 @@ def test_kernel_against_the_closed_form_at_dvs128_like_parameters():
         frac, se = _ratio(np.bincount(first[m], weights=pb[m], minlength=n_pix), np.bincount(first[m], minlength=n_pix))
         want = weight[a, 1] / weight[a].sum()
         assert abs(frac - want) < K_SIGMA * se, (a, frac, want, se)
+
+
+def _stream_events(stream, lux_until, seed):
+    """Advance ``stream`` through intervals of random lengths (not aligned to trials) under the light
+    ``lux_until = [(lux, t_end_us), ...]``; returns ``(pix, t, p)`` like :func:`_events`."""
+    rng = np.random.default_rng(seed)
+    chunks = []
+    for lux, t_end in lux_until:
+        while stream.t_us < t_end:
+            chunks.append(stream.advance(lux, min(t_end, stream.t_us + int(rng.integers(1, 90_000)))))
+    e = np.concatenate(chunks)
+    assert np.all(np.diff(e["t"].astype(np.int64)) >= 0)  # each interval sorted, and inside its interval
+    return e["y"].astype(np.int64) * lux_until[0][0].shape[1] + e["x"], e["t"].astype(np.float64), e["p"]
+
+
+def test_noise_stream_with_memory_against_the_closed_form():
+    """NoiseStream with reset memory, advanced through irregular intervals: rates, ON share, alternation,
+    transition matrix and mean intervals of the stationary closed form (the pixels keep their stored level
+    across interval boundaries), and the intervals' distribution (KS) per polarity pair."""
+    lux = np.full((20, 30), 2.0)
+    duration_s = 10.0
+    stream = ev.NoiseStream(lux.shape, MEM, rng=21)
+    pix, t, p = _stream_events(stream, [(lux, int(duration_s * 1e6))], seed=4)
+    st = memory.memory_statistics(2.0, MEM)
+    s = _summaries(pix, t, p, lux.size)
+    _check_against_closed_form(s, st, duration_s, lux.size)
+    for a in (0, 1):
+        for b in (0, 1):
+            gaps = s["gaps", a, b] * 1e-6
+            p_ks = stats.kstest(gaps, lambda x: memory.memory_iei_cdf(x, 2.0, MEM)[a, b]).pvalue
+            assert p_ks > 1e-3, (a, b, p_ks)
+
+
+def test_noise_stream_with_memory_through_changes_of_light_against_the_per_trial_reference():
+    """The light steps 0.5 -> 0 -> 2 lux (at 2 s and 3 s): per-pixel counts, ON share and alternation in each
+    phase and right after each step (the stored levels of the old light meet the new one: a transient; in the
+    dark the stored-level comparison still fires once), against the plain per-trial simulation of the same
+    schedule (two-sample, k-sigma from the per-pixel spread of each)."""
+    shape, steps = (20, 20), [(0.5, 2000), (0.0, 1000), (2.0, 2000)]
+    n_pix = shape[0] * shape[1]
+    dt = MEM.trial_us
+    lam = np.concatenate([np.full(n, lux) for lux, n in steps]) * MEM.photons_per_lux
+    ref = _reference_schedule(lam, MEM, n_pix, seed=8)
+    stream = ev.NoiseStream(shape, MEM, rng=9)
+    ends = np.cumsum([n for _, n in steps]) * dt
+    got = _stream_events(stream, [(np.full(shape, lux), int(end)) for (lux, _), end in zip(steps, ends)], seed=5)
+    for lo_s, hi_s in ((1.0, 2.0), (2.0, 2.05), (2.05, 3.0), (3.0, 3.05), (3.05, 5.0)):
+        sums = []
+        for pix, t, p in (ref, got):
+            sel = (t >= lo_s * 1e6) & (t < hi_s * 1e6)
+            sums.append(_summaries(pix[sel], np.floor(t[sel]), p[sel], n_pix))
+        a, b = sums[0]["events"], sums[1]["events"]
+        se = math.sqrt(a.var() / n_pix + b.var() / n_pix)
+        assert abs(a.mean() - b.mean()) <= K_SIGMA * se, (lo_s, a.mean(), b.mean())
+        for num, den in (("opp", "trans"), ("on", "events")):
+            if sums[0][den].sum() < 100 or sums[1][den].sum() == 0:  # the dark phase: one event per pixel, at most
+                assert sums[1][den].sum() <= 2 * sums[0][den].sum() + 20, (lo_s, num)
+                continue
+            (ra, sa), (rb, sb) = _ratio(sums[0][num], sums[0][den]), _ratio(sums[1][num], sums[1][den])
+            assert abs(ra - rb) <= K_SIGMA * math.hypot(sa, sb), (lo_s, num, ra, rb)
+
+
+def _reference_schedule(lam, params, n_pix, seed):
+    """:func:`_reference` with a photon count per trial (``lam[j]`` for trial ``j``), started at ``lam[0]``."""
+    rng = np.random.default_rng(seed)
+    b, k, dt, refr = params.bias_pr, params.reset_memory, params.trial_us, params.refractory_us
+    stored = rng.poisson(lam[0], n_pix)
+    last = np.full(n_pix, -np.inf)
+    times, pols, pixels = [], [], []
+    for j, lam_j in enumerate(lam):
+        n = rng.poisson(lam_j, n_pix)
+        fresh = rng.poisson(lam_j, n_pix)
+        ref = np.where(rng.random(n_pix) < k, stored, fresh)
+        d = np.log(n + b) - np.log(ref + b)
+        on, off = d > params.eps_pos, -d > params.eps_neg
+        tau = (j + rng.random(n_pix)) * dt
+        fire = (on | off) & (j * dt >= last + refr)
+        idx = np.flatnonzero(fire)
+        if idx.size:
+            times.append(tau[idx])
+            pols.append(on[idx].astype(np.uint8))
+            pixels.append(idx)
+            stored[idx] = n[idx]
+            last[idx] = tau[idx]
+    return np.concatenate(pixels), np.concatenate(times), np.concatenate(pols)

@@ -133,9 +133,14 @@ def draw_event(s, table, itable, o, n_s, st):
 
 
 @kernel
-def memory_window(width, pix, group, offsets, sizes, table, itable, states, fstate, mem, dt, refr_us, w_end, t0_us,
-                  out, n, k_start, on_counts, off_counts, store):
+def memory_window(width, pix, group, offsets, sizes, table, itable, states, fstate, mem, dt, refr_us, j_min, w_end,
+                  discard_from_trial, t0_us, out, n, k_start, on_counts, off_counts, store):
     """Advance static pixels with reset memory up to time ``w_end`` (µs); the memory twin of ``renewal_window``.
+
+    No trial before ``j_min`` is drawn, and a drawn event beyond ``w_end`` whose trial starts at or after
+    ``discard_from_trial`` is dropped (with its polarity and new state) and redrawn next time, from the stored
+    state, which is exact because the gap in one state is geometric (used by :class:`evnoise.NoiseStream` when
+    the light changes between intervals; ``0`` and ``inf`` for one static run).
 
     Per pixel ``k`` of the chunk: ``group[k]`` its light level, whose states are the columns
     ``offsets[g] .. offsets[g] + sizes[g] - 1`` of ``table`` (rows ``ROW_*``) and ``itable``;
@@ -155,7 +160,9 @@ def memory_window(width, pix, group, offsets, sizes, table, itable, states, fsta
     s = np.empty(4, dtype=np.uint64)
     for k in range(k_start, n_pix):
         tau = fstate[k, PEND_TAU]
-        if tau >= w_end:
+        if tau >= w_end:  # (NaN compares false) an event pending beyond the window: nothing to draw
+            if fstate[k, PEND_TRIAL] >= discard_from_trial:
+                fstate[k, PEND_TAU] = NO_EVENT
             continue
         for w in range(4):
             s[w] = states[k, w]
@@ -183,6 +190,7 @@ def memory_window(width, pix, group, offsets, sizes, table, itable, states, fsta
                     j_e = lt + 1.0
                 else:
                     j_e = first_eligible_trial(lt, lta, refr_us, dt)
+                j_e = max(j_e, j_min)
                 gap = geometric(s, table[ROW_LOG1M_P, o + int(st)])
                 if gap == math.inf:
                     tau = math.inf
@@ -214,6 +222,8 @@ def memory_window(width, pix, group, offsets, sizes, table, itable, states, fsta
         off_counts[k] += n_off
         fstate[k, LAST_TAU] = lta
         fstate[k, LAST_TRIAL] = lt
+        if jp >= discard_from_trial and not full:
+            tau = NO_EVENT
         fstate[k, PEND_TAU] = tau
         fstate[k, PEND_TRIAL] = jp
         fstate[k, PEND_ON] = code

@@ -38,12 +38,13 @@ models' event streams (coupled) differ with probability at most ``2 J tail_mass`
 :func:`memory_statistics`) grows (2e-6 at ``lam = 1e5``); there events need
 counts tens of standard deviations from ``lam`` for any ``eps`` above ``~5 / sqrt(lam)`` and the rate is 0.
 
-Supported: :func:`evnoise.simulate_events` / :func:`evnoise.iter_events` of static scenes with nominal
-thresholds and no background. Refused with :class:`~evnoise.ParameterError` (not yet modelled):
-threshold mismatch (``eps_sigma > 0`` or given ``thresholds``), background and hot pixels, changing scenes
-(:func:`evnoise.simulate_video`), :func:`evnoise.sample_counts`, :class:`evnoise.NoiseStream`, the tonic
-plugin and the dataset generator's counts. The closed forms of :mod:`evnoise.rates`
-(:func:`evnoise.expected_rate`) are the memoryless ones; use :func:`memory_statistics`.
+Supported: :func:`evnoise.simulate_events` / :func:`evnoise.iter_events` of static scenes, and
+:class:`evnoise.NoiseStream` (light held per interval: each pixel keeps its stored count across intervals
+and through changes of light, its level's tables widened to hold it), with nominal thresholds and no
+background. Refused with :class:`~evnoise.ParameterError` (not yet modelled): threshold mismatch
+(``eps_sigma > 0`` or given ``thresholds``), background and hot pixels, :func:`evnoise.simulate_video`,
+:func:`evnoise.sample_counts`, the tonic plugin and the dataset generator's counts. The closed forms of
+:mod:`evnoise.rates` (:func:`evnoise.expected_rate`) are the memoryless ones; use :func:`memory_statistics`.
 """
 
 from __future__ import annotations
@@ -218,8 +219,11 @@ class LevelTables:
         return np.minimum(self.p_on + self.p_off, 1.0)
 
 
-def kernel_tables(levels, params):
+def kernel_tables(levels, params, spans=None):
     """The kernel's tables of the light levels ``levels`` (photons per trial) of one run (nominal thresholds).
+
+    ``spans``: optional ``(lo, n_states)`` per level replacing :func:`state_range`'s (a wider range, holding
+    stored counts of another light: :class:`evnoise.NoiseStream`).
 
     Returns ``(table, itable, offsets, sizes, rates)``: float rows ``ROW_*`` and integer rows ``ROW_IDX_*`` of
     :mod:`evnoise._kernels.memory` over all levels' states (level ``g``'s at ``offsets[g] .. + sizes[g]``) and
@@ -230,7 +234,7 @@ def kernel_tables(levels, params):
     from .._kernels import memory as km
     from ..errors import ParameterError
 
-    ranges = [state_range(lam) for lam in levels]
+    ranges = [state_range(lam) for lam in levels] if spans is None else list(spans)
     sizes = np.array([r[1] for r in ranges], dtype=np.int64)
     total = int(sizes.sum())
     if total > MAX_TABLE_STATES:
@@ -244,7 +248,8 @@ def kernel_tables(levels, params):
     dt_s = 1.0 / params.trial_rate_hz
     refr_s = params.refractory_us * 1e-6
     for g, lam in enumerate(levels):
-        t = level_tables(lam, params.eps_pos, params.eps_neg, params.bias_pr, params.reset_memory)
+        t = level_tables(lam, params.eps_pos, params.eps_neg, params.bias_pr, params.reset_memory,
+                         span=None if spans is None else ranges[g][:2])
         cols = slice(offsets[g], offsets[g] + sizes[g])
         p = t.p_event
         with np.errstate(divide="ignore"):
@@ -330,12 +335,15 @@ def initial_law(t: LevelTables, pi: np.ndarray, dt_s: float, refr_s: float):
     return weight / weight.sum(), dead
 
 
-def level_tables(lam: float, eps_on: float, eps_off: float, bias: float, k: float) -> LevelTables:
+def level_tables(lam: float, eps_on: float, eps_off: float, bias: float, k: float, span=None) -> LevelTables:
     """The chain of a pixel with ``lam`` photons per trial, thresholds ``eps_on``, ``eps_off``, bias ``bias``
-    (photons per trial) and reset memory ``k`` (module doc)."""
+    (photons per trial) and reset memory ``k`` (module doc); ``span = (lo, n_states)`` widens the states
+    beyond :func:`state_range`'s (which it must contain)."""
     from .._kernels.memory import fill_counts
 
     lo, n_s, tail_mass = state_range(lam)
+    if span is not None:
+        lo, n_s = int(span[0]), int(span[1])
     log_p = np.empty(n_s)
     k_on = np.empty(n_s)
     k_off = np.empty(n_s)
