@@ -226,10 +226,10 @@ def test_what_is_not_modelled_yet_is_refused(what):
             ev.sample_counts(lux, MEM, 1.0, rng=1)
         elif what == "stream":  # a stream with memory is modelled, with mismatch not yet
             ev.NoiseStream((4, 4), MEM.replace(eps_sigma=0.05), rng=1)
-        elif what == "tonic":
+        elif what == "tonic":  # the tonic plugin models memory, with mismatch not yet
             from evnoise.plugins.tonic import PhotonNoise
 
-            PhotonNoise((4, 4, 2), MEM, 1.0, rng=1)
+            PhotonNoise((4, 4, 2), MEM.replace(eps_sigma=0.05), 1.0, rng=1)
         elif what == "mismatch":
             ev.simulate_events(lux, MEM.replace(eps_sigma=0.05), 1.0, rng=1)
         elif what == "background":
@@ -409,3 +409,34 @@ def _reference_schedule(lam, params, n_pix, seed):
             stored[idx] = n[idx]
             last[idx] = tau[idx]
     return np.concatenate(pixels), np.concatenate(times), np.concatenate(pols)
+
+
+def test_tonic_transform_with_memory_against_the_closed_form():
+    """The tonic transform with reset memory: each sample's noise starts in the steady state of its light, so the
+    pooled noise of many samples has the closed form's rate, ON share and alternation; an int seed keeps a sample's
+    noise reproducible."""
+    from evnoise.plugins.tonic import PhotonNoise
+
+    transform = PhotonNoise((30, 20, 2), MEM, 2.0, rng=7)
+    dtype = np.dtype([("x", "<i8"), ("y", "<i8"), ("t", "<i8"), ("p", "<i8")])
+    duration_s, pix, t, p = 0.0, [], [], []
+    for k in range(20):
+        sample = np.zeros(2, dtype=dtype)
+        sample["t"] = [0, 500_000]
+        sample["x"] = k  # a different sample each time (an int seed hashes the sample)
+        noise = transform.noise(sample)
+        pix.append(noise["y"] * 30 + noise["x"] + k * 600)
+        t.append(noise["t"].astype(np.float64))
+        p.append(noise["p"].astype(np.uint8))
+        duration_s = 0.500001
+    assert np.array_equal(transform.noise(sample), noise)
+    s = _summaries(np.concatenate(pix), np.concatenate(t), np.concatenate(p), 20 * 600)
+    st = memory.memory_statistics(2.0, MEM)
+    rate = s["events"] / duration_s
+    assert abs(rate.mean() - st.rate_hz.sum()) < K_SIGMA * rate.std() / math.sqrt(rate.size)
+    for (num, den), want in ((("on", "events"), st.on_share), (("opp", "trans"), st.p_opposite),
+                             (((1, 1), None), st.transition[1, 1]), (((0, 1), None), st.transition[0, 1])):
+        den_counts = s[den] if den is not None else s[num[0], 0] + s[num[0], 1]
+        got, se = _ratio(s[num], den_counts)
+        assert abs(got - want) < K_SIGMA * se, (num, got, want)
+    # (the mean intervals are not compared: a 0.5 s sample cuts long intervals off, biasing their mean short)

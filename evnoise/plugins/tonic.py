@@ -135,10 +135,11 @@ class PhotonNoise:
         self._worker_gen = None  # (process identity, Generator) of that copy
         # the sensor's per-pixel maps (threshold mismatch, background spread, hot pixels): drawn once, here;
         # each sample's kernel key is drawn per call (_draw)
-        from ..terms.memory import refuse
+        from ..terms.memory import check_supported, memory_on
 
         self._setup = run_setup((height, width), params, map_rng, draw_key=False)
-        refuse(self._setup.params, "the tonic plugin (PhotonNoise)")
+        if memory_on(self._setup.params):
+            check_supported(self._setup.params)
         self.params = self._setup.params
         self._thresholds = self._setup.threshold_map() if self.params.eps_sigma > 0 else None
         self._background = self._setup.background_map()
@@ -147,12 +148,21 @@ class PhotonNoise:
     def _precompute(self):
         """The renewal kernel's per-pixel inputs at ``self.lux`` (what ``simulate_events`` computes per call)."""
         from .._engine import static_inputs
+        from ..terms.memory import kernel_tables, memory_on
 
         run = self._setup
         lam = self.params.photons_per_trial(self.lux).ravel()
+        self._pix = np.arange(self.lux.size, dtype=np.int64)
+        self._memory = None
+        if memory_on(self.params):  # reset memory: the state tables of the map's light levels (terms/memory.py)
+            levels, group = np.unique(lam, return_inverse=True)
+            table, itable, offsets, sizes, rates = kernel_tables(levels, self.params)
+            group = np.ascontiguousarray(group.ravel(), dtype=np.int64)
+            self._memory = (group, (table, itable, offsets, sizes))
+            self._nu = rates[group]
+            return
         self._log1m_p, self._q_on, self._timer, self._nu = static_inputs(lam, self.params, run.eps_on, run.eps_off,
                                                                          run.background)
-        self._pix = np.arange(self.lux.size, dtype=np.int64)
 
     @staticmethod
     def _lux_map(lux, height, width):
@@ -208,7 +218,7 @@ class PhotonNoise:
 
     def _draw(self, events):
         """The sample's noise as unsorted columns ``(t, x, y, on)`` (the kernel's order, chunk by chunk)."""
-        from .._engine import PixelState, renewal_step
+        from .._engine import PixelState, memory_step, renewal_step
 
         key = self._setup.keyed(self._generator(events)).key
         t = events["t"]
@@ -216,9 +226,15 @@ class PhotonNoise:
         span_us = int(np.ceil(t.max())) - t_first + 1
         threads = resolve_threads(self.threads)
         state = PixelState(self._pix, key, threads)
-        parts = renewal_step(state, self.sensor_size[0], self._log1m_p, self._q_on, self.params.trial_us,
-                             self.params.refractory_us, 0, span_us, math.inf, t_first, threads,
-                             expected=self._nu * (span_us * 1e-6), timer=self._timer)
+        if self._memory is not None:  # each sample starts in the steady state of its light (stored counts drawn)
+            group, tables = self._memory
+            parts = memory_step(state, np.full(self._pix.size, math.nan), self.sensor_size[0], group, tables,
+                                self.params.trial_us, self.params.refractory_us, 0.0, float(span_us), math.inf,
+                                t_first, threads, self._nu * (span_us * 1e-6))
+        else:
+            parts = renewal_step(state, self.sensor_size[0], self._log1m_p, self._q_on, self.params.trial_us,
+                                 self.params.refractory_us, 0, span_us, math.inf, t_first, threads,
+                                 expected=self._nu * (span_us * 1e-6), timer=self._timer)
         cols = [np.concatenate([p[i] for p in parts]) if len(parts) != 1 else parts[0][i].copy() for i in range(4)]
         return cols[0], cols[1], cols[2], cols[3] == 1
 
