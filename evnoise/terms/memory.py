@@ -266,9 +266,10 @@ def kernel_tables(levels, params, spans=None):
         itable[km.ROW_IDX_ON, cols] = t.idx_on
         itable[km.ROW_IDX_OFF, cols] = t.idx_off
         if len(levels) <= EXACT_RATE_LEVELS:
-            r_on, r_off, *_ = level_statistics(t, dt_s, refr_s)
+            stationary = _stationary(t)
+            r_on, r_off, *_ = level_statistics(t, dt_s, refr_s, stationary)
             rates[g] = r_on + r_off
-            pi = _stationary(t)[0]
+            pi = stationary[0]
         else:
             mean_p = float((t.pmf * p).sum())
             rates[g] = mean_p / (dt_s + mean_p * refr_s)
@@ -468,13 +469,14 @@ def _after(t: LevelTables, w_on, w_off):
     return after_on, after_off
 
 
-def level_statistics(t: LevelTables, dt_s: float, refr_s: float):
-    """The statistics of one level (trial length ``dt_s``, refractory period ``refr_s``).
+def level_statistics(t: LevelTables, dt_s: float, refr_s: float, stationary=None):
+    """The statistics of one level (trial length ``dt_s``, refractory period ``refr_s``; ``stationary``: the
+    ``(pi, p)`` of :func:`_stationary` when the caller has it already).
 
     Returns ``(rate_on, rate_off, transition (2, 2), iei_mean_s (2, 2), weights (2, 2, S), p)``: events/s, the
     polarity-transition matrix, the mean intervals per pair, and the mixture weights over the state after the
     first event and the per-state event probabilities of the inter-event intervals (:func:`memory_iei_cdf`)."""
-    pi, p = _stationary(t)
+    pi, p = _stationary(t) if stationary is None else stationary
     live = p > 0
     with np.errstate(divide="ignore", invalid="ignore"):
         w = np.where(live, pi / np.where(live, p, 1.0), np.where(pi > 0, np.inf, 0.0))  # trials per event
