@@ -721,6 +721,12 @@ def sample_counts(
     refuse(params, "sample_counts")
     lam = params.photons_per_trial(lux).ravel()
     if distribution == "exact":
+        from ._bracket import applies, bracketed_counts
+
+        if applies(lam, params, (eps_on, eps_off), bg):  # per-pixel thresholds: counts decided by brackets
+            found = bracketed_counts(lam, params, (eps_on, eps_off), key, duration_us, lux.shape[1], threads)
+            if found is not None:
+                return np.stack(found[:2]).reshape(2, *lux.shape)
         log1m_p, q_on, timer, _ = static_inputs(lam, params, eps_on, eps_off, bg)
         state = PixelState(np.arange(lux.size), key, threads)
         parts = renewal_step(state, lux.shape[1], log1m_p, q_on, params.trial_us, params.refractory_us, 0,
