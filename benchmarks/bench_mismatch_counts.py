@@ -21,9 +21,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _report import cpu_name, replace_section  # noqa: E402
-
 import evnoise as ev  # noqa: E402
+from _report import cpu_name, replace_section  # noqa: E402
 from evnoise import _bracket  # noqa: E402
 
 REPORT = Path(__file__).resolve().parent / "REPORT.md"
