@@ -115,8 +115,7 @@ def _ends(shares, on_bracket, off_bracket):
     return low, high, sure
 
 
-def _counts(pix, key, width, log1m_p, q_on, params, duration_us, threads):
-    state = PixelState(pix, key, threads)
+def _counts(state, width, log1m_p, q_on, params, duration_us, threads):
     parts = renewal_step(state, width, log1m_p, q_on, params.trial_us, params.refractory_us, 0, float(duration_us),
                          math.inf, 0, threads, store=False)
     return np.concatenate([p[4] for p in parts]), np.concatenate([p[5] for p in parts])
@@ -159,11 +158,14 @@ def bracketed_counts(lam, params, thresholds, key, duration_us: int, width: int,
     spread = -np.expm1(high[0] - low[0]) * np.exp(low[0])  # p_high - p_low from log(1 - p) at both ends
     if float(np.mean(np.exp(-trials * spread))) < MIN_DECIDED_SHARE:
         return None
-    pix = np.arange(lam.size)
-    on_low, off_low = _counts(pix, key, width, *low, params, duration_us, threads)
-    on, off = _counts(pix, key, width, *high, params, duration_us, threads)
+    state = PixelState(np.arange(lam.size), key, threads)
+    streams = state.states.copy()
+    on_low, off_low = _counts(state, width, *low, params, duration_us, threads)
+    state.restart(streams)  # the same draws at the other end
+    on, off = _counts(state, width, *high, params, duration_us, threads)
     todo = np.flatnonzero((on_low != on) | (off_low != off) | sure)
     if todo.size:
         log1m_p, q_on, _, _ = static_inputs(lam[todo], params, eps[0][todo], eps[1][todo], None)
-        on[todo], off[todo] = _counts(todo, key, width, log1m_p, q_on, params, duration_us, threads)
+        on[todo], off[todo] = _counts(PixelState(todo, key, threads), width, log1m_p, q_on, params, duration_us,
+                                      threads)
     return on, off, todo.size

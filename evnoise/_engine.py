@@ -74,6 +74,7 @@ class PixelState:
             self.fstate[lo:hi] = row
 
         map_chunks(init, n, threads)
+        self._row, self._threads = row, threads
         self.last_trial = self.fstate[:, k.LAST_TRIAL]
         self.last_tau = self.fstate[:, k.LAST_TAU]
         self.pend_trial = self.fstate[:, k.PEND_TRIAL]
@@ -91,6 +92,15 @@ class PixelState:
         # each chunk's event buffers, reused window after window (fresh pages cost page faults per event);
         # what a window kernel returns are views of them, valid until the next window
         self._buffers: dict[int, tuple] = {}
+
+    def restart(self, streams: np.ndarray) -> None:
+        """Back to the state of a fresh :class:`PixelState` whose random streams are ``streams`` (a copy of
+        ``states`` taken before a run): a second run on the same draws without seeding the streams again."""
+        def reset(lo, hi):
+            self.states[lo:hi] = streams[lo:hi]
+            self.fstate[lo:hi] = self._row
+
+        map_chunks(reset, self.pix.size, self._threads)
 
     def buffers(self, lo: int, capacity: int):
         """Event buffers of the chunk starting at pixel ``lo`` with room for at least ``capacity`` events."""
