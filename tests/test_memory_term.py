@@ -26,27 +26,7 @@ MEM = BASE.replace(reset_memory=0.7)
 def _reference(lam, params, n_pix, n_trials, seed):
     """Plain NumPy, trial by trial (the model as the module doc states it, in log comparisons): per pixel
     the event times (float µs) and polarities. Independent of the kernels' threshold counts and tables."""
-    rng = np.random.default_rng(seed)
-    b, k, dt, refr = params.bias_pr, params.reset_memory, params.trial_us, params.refractory_us
-    stored = rng.poisson(lam, n_pix)
-    last = np.full(n_pix, -np.inf)
-    times, pols, pixels = [], [], []
-    for j in range(n_trials):
-        n = rng.poisson(lam, n_pix)
-        fresh = rng.poisson(lam, n_pix)
-        ref = np.where(rng.random(n_pix) < k, stored, fresh)
-        d = np.log(n + b) - np.log(ref + b)
-        on, off = d > params.eps_pos, -d > params.eps_neg
-        tau = (j + rng.random(n_pix)) * dt
-        fire = (on | off) & (j * dt >= last + refr)
-        idx = np.flatnonzero(fire)
-        if idx.size:
-            times.append(tau[idx])
-            pols.append(on[idx].astype(np.uint8))
-            pixels.append(idx)
-            stored[idx] = n[idx]
-            last[idx] = tau[idx]
-    return np.concatenate(pixels), np.concatenate(times), np.concatenate(pols)
+    return _reference_schedule(np.full(n_trials, float(lam)), params, n_pix, seed)
 
 
 def _per_pixel(pix, t, p):
@@ -388,6 +368,7 @@ def test_noise_stream_with_memory_through_changes_of_light_against_the_per_trial
 
 def _reference_schedule(lam, params, n_pix, seed):
     """:func:`_reference` with a photon count per trial (``lam[j]`` for trial ``j``), started at ``lam[0]``."""
+    lam = np.asarray(lam, dtype=np.float64)
     rng = np.random.default_rng(seed)
     b, k, dt, refr = params.bias_pr, params.reset_memory, params.trial_us, params.refractory_us
     stored = rng.poisson(lam[0], n_pix)
