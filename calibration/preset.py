@@ -71,6 +71,10 @@ def result_to_toml(result, *, extra_provenance: dict | None = None, header: str 
         "date": _dt.date.today().isoformat(),
         "evnoise_version": __version__,
     }
+    lo, hi = float(result.measurements.lux.min()), float(result.measurements.lux.max())
+    if 0.0 <= lo < hi:  # the light range the fit saw: evnoise simulate warns outside it (params.light_range_warning)
+        prov["fitted_lux"] = [lo, hi]
+        prov["fitted_lux_note"] = f"measured: the light levels of the {result.measurements.kind} measurements"
     if extra_provenance:
         prov.update(extra_provenance)
     lines += toml_table("provenance", prov)

@@ -44,6 +44,7 @@ def open_h5(path):
     import h5py
 
     path = check_input_file(path, missing="event file", kind="an event file")
+    check_global_heaps(path)
     try:
         f = h5py.File(path, "r")
     except OSError as exc:
@@ -54,6 +55,76 @@ def open_h5(path):
         f.close()
         raise
     return f
+
+
+#: Largest number of objects in one HDF5 global heap collection (object indices are 16-bit).
+_MAX_HEAP_OBJECTS = 1 << 16
+#: Global heap collections already checked: ``(path, inode, size, mtime) -> None`` (a file is walked once).
+_HEAPS_CHECKED: dict = {}
+
+
+def _global_heap_damage(mm, at: int, size_len: int) -> str | None:
+    """Why the global heap collection whose ``GCOL`` signature is at ``at`` would stop HDF5, or None.
+
+    The layout (HDF5 file format, "Global Heap"): ``GCOL``, version 1, 3 reserved zero bytes, the
+    collection's size (``size_len`` bytes), then objects of a 16-bit index, 16-bit reference count,
+    4 reserved bytes, the object's size and its data padded to 8 bytes; index 0 is the free space.
+    HDF5 (2.0) walks these objects when it loads the collection and loops forever on an object that
+    does not advance the walk (index 0 and size 0, left by a damaged size before it).
+    """
+    head = 8 + size_len
+    if at + head > len(mm) or mm[at + 4] != 1 or mm[at + 5:at + 8] != b"\0\0\0":
+        return None  # not a collection HDF5 would accept (it refuses those itself): a chance "GCOL"
+    total = int.from_bytes(mm[at + 8:at + head], "little")
+    if total < head or at + total > len(mm):
+        return f"declares {total:,} bytes, past the end of the file"
+    end = at + total
+    obj_head = 8 + size_len
+    p = at + (head + 7) // 8 * 8
+    count = 0
+    while p < end:
+        if p + obj_head > end:
+            break  # too short for an object header: free space
+        idx = int.from_bytes(mm[p:p + 2], "little")
+        size = int.from_bytes(mm[p + 8:p + obj_head], "little")
+        need = obj_head + (size + 7) // 8 * 8 if idx > 0 else size
+        if need <= 0 or p + need > end:
+            return f"holds an object of {size:,} bytes at byte {p} that does not fit in it"
+        count += 1
+        if count > _MAX_HEAP_OBJECTS:
+            return f"holds more than {_MAX_HEAP_OBJECTS:,} objects"
+        p += need
+    return None
+
+
+def check_global_heaps(path) -> None:
+    """Refuse an HDF5 file with a damaged global heap collection (where variable-length strings, such
+    as evnoise's attributes, are stored) before HDF5 reads it: HDF5 hangs for good on some damage
+    (an object size that does not advance its walk). ``InputError`` naming the byte offset."""
+    import mmap
+    import os
+
+    try:
+        st = os.stat(path)
+        key = (os.fspath(path), st.st_ino, st.st_size, st.st_mtime_ns)
+        if key in _HEAPS_CHECKED or st.st_size < 8:
+            return
+        with open(path, "rb") as fh, mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
+            # size of lengths: superblock v0/v1 byte 14, v2/v3 byte 10 (a superblock at 0; 8 otherwise, the default)
+            size_len = 8
+            if mm[:8] == b"\x89HDF\r\n\x1a\n" and len(mm) > 14:
+                size_len = mm[14] if mm[8] in (0, 1) else mm[10]
+                if size_len not in (2, 4, 8, 16):
+                    size_len = 8
+            at = mm.find(b"GCOL")
+            while at >= 0:
+                why = _global_heap_damage(mm, at, size_len)
+                if why:
+                    raise InputError(f"{path}: the HDF5 global heap at byte {at} {why} (a damaged file)")
+                at = mm.find(b"GCOL", at + 4)
+    except (OSError, ValueError):
+        return  # unreadable here: h5py says why when it opens the file
+    _HEAPS_CHECKED[key] = None
 
 
 def _outside(obj, path) -> str | None:

@@ -372,6 +372,11 @@ def test_preset_round_trip(tmp_path, round_trip_fit):
     _, result = round_trip_fit
     path = result.write_preset(tmp_path / "p.toml")
     assert ev.load_preset(path) == result.params
+    # the light range the fit saw is recorded: evnoise simulate warns far outside it (issue 32, section 4)
+    light = ev.params.preset_light_range(str(path))
+    assert (light.lo, light.hi) == (min(LUX_LEVELS[1:]), max(LUX_LEVELS[1:])) and light.note.startswith("measured")
+    assert ev.params.light_range_warning(str(path), light.lo, 2 * light.hi) is None
+    assert "preset p was fitted on" in ev.params.light_range_warning(str(path), light.lo, 3 * light.hi)
     with pytest.raises(ev.OutputError):
         result.write_preset(path)
     from evnoise.params import load_preset_document

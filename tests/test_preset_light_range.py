@@ -115,3 +115,4 @@ def test_a_few_black_pixels_do_not_warn_but_a_dark_scene_does(tmp_path, capsys):
 
     assert light_outside_range("evk4", np.array([0.0, 0.074, 0.076, 50.0, 50.3])) == (3, 5)
     assert light_outside_range(load_preset("evk4").replace(eps_pos=0.3), np.zeros(3)) == (0, 3)  # no recorded range
+
