@@ -76,7 +76,9 @@ def _global_heap_damage(mm, at: int, size_len: int) -> str | None:
     if at + head > len(mm) or mm[at + 4] != 1 or mm[at + 5:at + 8] != b"\0\0\0":
         return None  # not a collection HDF5 would accept (it refuses those itself): a chance "GCOL"
     total = int.from_bytes(mm[at + 8:at + head], "little")
-    if total < head or at + total > len(mm):
+    if total < head:
+        return f"declares a size of {total:,} bytes, less than its own header"
+    if at + total > len(mm):
         return f"declares {total:,} bytes, past the end of the file"
     end = at + total
     obj_head = 8 + size_len
@@ -88,7 +90,9 @@ def _global_heap_damage(mm, at: int, size_len: int) -> str | None:
         idx = int.from_bytes(mm[p:p + 2], "little")
         size = int.from_bytes(mm[p + 8:p + obj_head], "little")
         need = obj_head + (size + 7) // 8 * 8 if idx > 0 else size
-        if need <= 0 or p + need > end:
+        if need <= 0:
+            return f"holds an empty object record at byte {p}, which HDF5 would step on forever"
+        if p + need > end:
             return f"holds an object of {size:,} bytes at byte {p} that does not fit in it"
         count += 1
         if count > _MAX_HEAP_OBJECTS:
@@ -116,14 +120,15 @@ def check_global_heaps(path) -> None:
                 size_len = mm[14] if mm[8] in (0, 1) else mm[10]
                 if size_len not in (2, 4, 8, 16):
                     size_len = 8
+            why = None
             at = mm.find(b"GCOL")
-            while at >= 0:
+            while at >= 0 and why is None:
                 why = _global_heap_damage(mm, at, size_len)
-                if why:
-                    raise InputError(f"{path}: the HDF5 global heap at byte {at} {why} (a damaged file)")
-                at = mm.find(b"GCOL", at + 4)
+                at = mm.find(b"GCOL", at + 4) if why is None else at
     except (OSError, ValueError):
         return  # unreadable here: h5py says why when it opens the file
+    if why:
+        raise InputError(f"{path}: the HDF5 global heap at byte {at} {why} (a damaged file)")
     _HEAPS_CHECKED[key] = None
 
 
@@ -266,7 +271,8 @@ def h5_metadata(f, ds) -> dict:
     """
     path = f.filename
     try:
-        meta = {k: decode_attr(v) for k, v in f.attrs.items()}
+        # a name that is not UTF-8 comes back as bytes: as text (with replacement characters)
+        meta = {decode_attr(k): decode_attr(v) for k, v in f.attrs.items()}
     except (OSError, RuntimeError, ValueError, TypeError, KeyError) as exc:
         raise InputError(f"cannot read the attributes of {path} ({exc})") from None
     json_keys = meta.pop("json_attrs", None)
@@ -293,6 +299,11 @@ def h5_metadata(f, ds) -> dict:
         raise InputError(f"{path} has only one of the width and height attributes")
     else:
         meta["shape"] = None
+    for key in ("t_end_us", "t_start_us"):  # evnoise's clock: read as integer µs by info and the recordings
+        if key in meta:
+            meta[key] = _int_attr(meta[key], f"the {key} attribute", path)
+            if abs(meta[key]) > MAX_T_OFFSET:
+                raise InputError(f"{path}: the {key} attribute {meta[key]} is beyond +-2^62 µs")
     meta["n_events"] = int(ds["t"].shape[0])
     offset = 0
     if "t_offset" in f:

@@ -135,7 +135,11 @@ class EventSource:
         """Combine the header's size with the caller's ``sensor`` (the caller wins, with a warning)."""
         user = self._user_shape
         if header_shape is not None:
-            header_shape = check_shape(header_shape)
+            try:
+                header_shape = check_shape(header_shape)
+            except InputError:
+                raise InputError(f"{self.path}: the {source} gives a {header_shape[1]}x{header_shape[0]} sensor; a "
+                                 f"width and height of 1 .. 65536 are needed (a damaged header?)") from None
         if user is not None:
             if self._user_tuple and header_shape is not None and header_shape != user and header_shape == user[::-1]:
                 # meta["shape"] is (H, W) and sensor is (W, H): one passed for the other swaps the sensor

@@ -13,6 +13,9 @@ from ..errors import InputError
 from ..events import make_events
 from ._base import EventSource
 
+#: Largest ``|t + t_offset|`` (µs) accepted: 2^62 (as ``t_offset`` itself), so that differences and ends
+#: computed from event times cannot wrap.
+MAX_ABS_T_US = 1 << 62
 #: Events read from the file at a time.
 CHUNK_EVENTS = 1 << 21
 
@@ -53,6 +56,9 @@ class H5Source(EventSource):
         for t in (first, last):
             if t is not None and not -(1 << 63) <= t + self.t_offset_us < (1 << 63):
                 raise InputError(f"{self.path}: /t_offset {self.t_offset_us} puts event times past the int64 range")
+            if t is not None and abs(t + self.t_offset_us) > MAX_ABS_T_US:
+                raise InputError(f"{self.path}: an event time of {t + self.t_offset_us} us is beyond +-2^62 us "
+                                 f"(about 146,000 years); the file is damaged")
         self.t_first_us = None if first is None else first + self.t_offset_us
         self.t_last_us = None if last is None else last + self.t_offset_us
         self.n_events = n
@@ -70,13 +76,31 @@ class H5Source(EventSource):
             for a in range(lo, hi, CHUNK_EVENTS):
                 b = min(a + CHUNK_EVENTS, hi)
                 try:
-                    t = ds["t"][a:b].astype(np.int64, copy=False)
-                    events = make_events(t + off if off else t, ds["x"][a:b], ds["y"][a:b], ds["p"][a:b])
+                    raw_t, x, y, p = ds["t"][a:b], ds["x"][a:b], ds["y"][a:b], ds["p"][a:b]
                 except (OSError, RuntimeError, ValueError, TypeError) as exc:
                     raise InputError(f"cannot read events from {self.path}: {exc}") from None
+                self._check_range(x, y, a)
+                t = raw_t.astype(np.int64, copy=False)
+                t = t + off if off else t
+                if t.size and (int(t.min()) < -MAX_ABS_T_US or int(t.max()) > MAX_ABS_T_US):
+                    k = int(np.flatnonzero((t < -MAX_ABS_T_US) | (t > MAX_ABS_T_US))[0])
+                    raise InputError(f"{self.path}: /events/t[{a + k}] puts an event at {int(t[k])} us, beyond "
+                                     f"+-2^62 us (about 146,000 years); the file is damaged")
+                events = make_events(t, x, y, p)
                 if events.size and int(events["p"].max()) > 1:
                     events["p"] = events["p"] != 0
                 yield events
+
+    def _check_range(self, x, y, first: int) -> None:
+        """``InputError`` for coordinates that evnoise's event type cannot hold (they would wrap silently
+        into pixels of the sensor): ``x`` or ``y`` outside 0 .. 65535."""
+        for name, v in (("x", x), ("y", y)):
+            if v.size and (v.dtype.kind == "i" or v.dtype.itemsize > 2):
+                bad = np.flatnonzero((v < 0) | (v > 65535))
+                if bad.size:
+                    k = int(bad[0])
+                    raise InputError(f"{self.path}: /events/{name}[{first + k}] = {v[k]} is not a pixel coordinate "
+                                     f"(0 .. 65535); the file is damaged")
 
 
 def is_hdf5(head: bytes) -> bool:

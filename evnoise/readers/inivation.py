@@ -158,6 +158,29 @@ _LZ4_MAGIC = b"\x04\x22\x4d\x18"
 _ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
 
 
+def check_aedat4_packets(path, end: int) -> None:
+    """Walk the packets of an AEDAT 4 file (after the IO header: a 32-bit stream id, a 32-bit size, then
+    that many bytes) up to byte ``end`` (the data table, or the end of the file): a packet whose size
+    runs past ``end`` is an :class:`InputError` (faery allocates the size it reads before it reads a
+    byte: a damaged size of 2 GiB aborted the process when that memory was not there)."""
+    with open(path, "rb") as fh:
+        fh.seek(14)
+        raw = fh.read(4)
+        i = 18 + int.from_bytes(raw, "little")
+        while i + 8 <= end:
+            fh.seek(i)
+            head = fh.read(8)
+            if len(head) < 8:
+                break
+            stream = int.from_bytes(head[:4], "little", signed=True)
+            size = int.from_bytes(head[4:], "little")
+            if i + 8 + size > end:
+                raise InputError(f"cannot read {path} as AEDAT 4: the packet at byte {i} (stream {stream}) declares "
+                                 f"{size:,} bytes, past {'its data table' if end < path.stat().st_size else 'the end'}"
+                                 f" at byte {end} (a damaged or truncated file)")
+            i += 8 + size
+
+
 def check_aedat4_end(path) -> None:
     """A cut or an appended tail of an AEDAT 4 file: its data table runs from ``dataTablePosition`` to the
     end of the file, so a table that ends before the file (stray bytes) or after it (a cut) is an error.
@@ -165,6 +188,7 @@ def check_aedat4_end(path) -> None:
     which does not say where it ends, is not checked."""
     compression, position = _aedat4_io_header(path)
     size = path.stat().st_size
+    check_aedat4_packets(path, position if 0 <= position <= size else size)
     if position < 0:
         log.warning("%s: the AEDAT 4 file has no data table (a recording that was not closed properly, or cut); "
                     "its packets are read in order", path)

@@ -29,18 +29,24 @@ def pixel_counts(chunks, shape=None):
     """
     height, width = shape if shape is not None else (1, 1)
     _check_maps(height, width)
-    counts = np.zeros((2, height, width), dtype=np.int64)
+    try:
+        counts = np.zeros((2, height, width), dtype=np.int64)
+    except MemoryError:
+        raise _maps_memory_error(height, width) from None
     n, t_first, t_last = 0, None, None
     for chunk in chunks:
         xm, ym = int(chunk["x"].max()), int(chunk["y"].max())
-        if shape is None and (xm >= width or ym >= height):
-            new_h, new_w = max(height, ym + 1), max(width, xm + 1)
-            _check_maps(new_h, new_w)
-            grown = np.zeros((2, new_h, new_w), dtype=np.int64)
-            grown[:, :height, :width] = counts
-            counts, height, width = grown, new_h, new_w
-        flat = polarity_index(chunk["p"]) * (height * width) + chunk["y"].astype(np.int64) * width + chunk["x"]
-        counts += np.bincount(flat, minlength=2 * height * width).reshape(2, height, width)
+        try:
+            if shape is None and (xm >= width or ym >= height):
+                new_h, new_w = max(height, ym + 1), max(width, xm + 1)
+                _check_maps(new_h, new_w)
+                grown = np.zeros((2, new_h, new_w), dtype=np.int64)
+                grown[:, :height, :width] = counts
+                counts, height, width = grown, new_h, new_w
+            flat = polarity_index(chunk["p"]) * (height * width) + chunk["y"].astype(np.int64) * width + chunk["x"]
+            counts += np.bincount(flat, minlength=2 * height * width).reshape(2, height, width)
+        except MemoryError:
+            raise _maps_memory_error(max(height, ym + 1), max(width, xm + 1)) from None
         n += int(chunk.size)
         if t_first is None:
             t_first = int(chunk["t"][0])
@@ -48,11 +54,36 @@ def pixel_counts(chunks, shape=None):
     return counts, (n, t_first, t_last)
 
 
+def _address_space_left() -> int | None:
+    """Bytes this process may still map under its address-space limit (``ulimit -v``), or None without one."""
+    try:
+        import resource
+
+        soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+        if soft == resource.RLIM_INFINITY:
+            return None
+        with open("/proc/self/statm") as fh:
+            used = int(fh.read().split()[0]) * resource.getpagesize()
+    except (ImportError, OSError, ValueError, IndexError):
+        return None
+    return max(0, soft - used)
+
+
 def _check_maps(height: int, width: int) -> None:
     # the two int64 maps, plus one bincount of the same size while a chunk is added
-    check_allocation(3 * 2 * int(height) * int(width) * 8,
-                     f"ON/OFF count maps of a {width}x{height} sensor",
-                     hint="give the real size with sensor='WxH' or raise EVNOISE_MAX_MEMORY")
+    nbytes = 3 * 2 * int(height) * int(width) * 8
+    what = f"ON/OFF count maps of a {width}x{height} sensor"
+    hint = "give the real size with sensor='WxH' or raise EVNOISE_MAX_MEMORY"
+    check_allocation(nbytes, what, hint=hint)
+    left = _address_space_left()
+    if left is not None and nbytes > left:
+        raise InputError(f"{what} would need {nbytes / 2**30:.1f} GiB of memory, more than the {left / 2**30:.1f} GiB "
+                         f"this process's address-space limit (ulimit -v) leaves; {hint}")
+
+
+def _maps_memory_error(height: int, width: int) -> InputError:
+    return InputError(f"out of memory for the ON/OFF count maps of a {width}x{height} sensor; give the real size "
+                      f"with sensor='WxH'")
 
 
 def noise_stats(counts, duration_s: float, *, hot_threshold: float | None = None) -> dict:

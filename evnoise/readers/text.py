@@ -45,6 +45,9 @@ _ALIASES = {
 BLOCK_BYTES = 1 << 23
 #: Longest line accepted (an event line has a few dozen bytes).
 MAX_LINE_BYTES = 1 << 20
+#: Largest ``|t|`` accepted, in µs (2^62, as for events.h5's ``t_offset``): past it a time cannot be held in
+#: int64 with room for differences.
+MAX_ABS_T_US = 1 << 62
 #: Bytes looked at for the header.
 _HEAD_BYTES = 1 << 16
 
@@ -247,6 +250,13 @@ class CsvSource(EventSource):
             k = int(np.flatnonzero(bad)[0])
             raise InputError(f"{self.path}: near line {line0 + k}: polarity {p[k]:g} is not 1 (ON), 0 or -1 (OFF)"
                              f"{self._hint()}")
+        bad = (t < -MAX_ABS_T_US) | (t > MAX_ABS_T_US)  # before the cast, which would wrap it silently
+        if bad.any():
+            k = int(np.flatnonzero(bad)[0])
+            shown = f"{t_raw[k]:g}" if rows.dtype.kind == "f" else str(int(t_raw[k]))
+            raise InputError(f"{self.path}: near line {line0 + k}: the time {shown}"
+                             f"{' s' if self._seconds else ' us'} is beyond +-2^62 us (about 146,000 years); a "
+                             f"damaged file{self._hint()}")
         t = t.astype(np.int64)
         back = np.flatnonzero(np.diff(t) < 0)
         if prev_t is not None and t.size and t[0] < prev_t:
