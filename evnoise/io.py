@@ -26,10 +26,10 @@ from pathlib import Path
 import numpy as np
 
 from ._atomic import AtomicFile, close_h5_discarding, os_error_text
-from ._h5 import READ_BLOCK, event_datasets, first_index, h5_metadata, open_h5
+from ._h5 import READ_BLOCK, event_datasets, h5_metadata, open_h5
 from ._version import __version__
 from .errors import EvnoiseError, InputError, OutputError, ParameterError
-from .events import ON, check_events, check_shape, make_events
+from .events import ON, check_events, check_shape
 
 __all__ = ["EventWriter", "EventFileWriter", "Aedat4FileWriter", "Evt3FileWriter", "DatFileWriter",  # noqa: F822
            "EsFileWriter", "CsvFileWriter", "open_event_writer", "import_faery", "output_format", "OUTPUT_FORMATS",
@@ -872,18 +872,12 @@ def read_events(path, t_start_us: int | None = None, t_end_us: int | None = None
     t_start_us, t_end_us = time_window(t_start, t_end, t_start_us, t_end_us)
     if sensor is not None or csv_columns is not None or detect_format(path) != "h5":
         return read_any(path, sensor=sensor, csv_columns=csv_columns, t_start_us=t_start_us, t_end_us=t_end_us)
+    from .readers.hdf5 import h5_events_window
+
     with open_h5(path) as f:
-        ds = event_datasets(f, path)
-        meta = _with_sensor(h5_metadata(f, ds))
-        n = meta["n_events"]
-        off = meta["t_offset"]
-        try:
-            lo = 0 if t_start_us is None else first_index(f, ds["t"], int(t_start_us) - off)
-            hi = n if t_end_us is None else first_index(f, ds["t"], int(t_end_us) - off)
-            hi = max(lo, hi)
-            t = ds["t"][lo:hi]
-            events = make_events(t + off if off else t, ds["x"][lo:hi], ds["y"][lo:hi], ds["p"][lo:hi])
-        except OSError as exc:
-            raise InputError(f"cannot read events from {path}: {exc}") from None
+        meta = _with_sensor(h5_metadata(f, event_datasets(f, path)))
+    # the events through the camera-file reader's checks (coordinates inside the sensor and 16 bits, times
+    # within +-2^62 us, in order): a damaged file is an InputError, not wrapped or absurd events
+    events, _ = h5_events_window(path, t_start_us, t_end_us)
     return events, meta
 

@@ -139,6 +139,27 @@ def test_h5_coordinates_past_16_bits_are_refused_not_wrapped(tmp_path):
         f["events/x"] = x - 70_000
     with pytest.raises(InputError, match="is not a pixel coordinate"):
         read_any(path)
+    with pytest.raises(InputError, match="is not a pixel coordinate"):  # the public reader too (it had its own path)
+        ev.read_events(path)
+
+
+def test_evnoise_read_events_of_h5_checks_what_the_readers_check(tmp_path):
+    """Found: ``evnoise.read_events`` read events.h5 through a path of its own, without the readers' checks: an
+    event outside the header's sensor, or at a time past 2^62 us, came back as if valid."""
+    path = _h5(tmp_path)
+    events, meta = ev.read_events(path)
+    assert events.size == 200 and meta["shape"] == (48, 64)
+    with h5py.File(path, "r+") as f:
+        f["events/y"][3] = 60
+    with pytest.raises(InputError, match="outside the 64x48 sensor"):
+        ev.read_events(path)
+    path = _h5(tmp_path, "t.h5")
+    with h5py.File(path, "r+") as f:
+        t = f["events/t"][...].astype(np.int64)
+        del f["events/t"]
+        f["events/t"] = np.concatenate([t[:-1], [(1 << 62) + 5]])
+    with pytest.raises(InputError, match="beyond"):
+        ev.read_events(path)
 
 
 # -- AEDAT 4 --------------------------------------------------------------------------------------------
