@@ -194,9 +194,20 @@ def test_count_maps_past_the_address_space_limit_are_one_error_line(tmp_path):
     traceback (the memory budget looked at the machine's free memory only). The same with a CSV file."""
     path = tmp_path / "far.csv"
     path.write_text("t,x,y,p\n10,1,2,1\n20,9000,9000,0\n")
-    proc = _cli(tmp_path, ["info", str(path)], address_space=int(1.5 * (1 << 30)))
+    proc = _cli(tmp_path, ["info", str(path), "--sensor", "9001x9001"], address_space=int(1.5 * (1 << 30)))
     line = _one_error_line(proc)
     assert "count maps of a 9001x9001 sensor" in line
+
+
+def test_a_stray_coordinate_of_a_file_without_a_sensor_size_is_refused_not_allocated(tmp_path, capsys):
+    """The same damage without a memory limit: maps sized by one stray event (9000 x 9000: 1.3 GB of maps for a
+    40-byte file) are refused past the largest side inferred from events, and the line says how to go on."""
+    path = tmp_path / "far.csv"
+    path.write_text("t,x,y,p\n10,1,2,1\n20,5000,5000,0\n")
+    assert main(["info", str(path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "beyond 4096 pixels" in err[0] and "--sensor WxH" in err[0]  # the CLI names its flag
+    assert main(["info", str(path), "--sensor", "5001x5001"]) == 0  # the caller says it is that large
 
 
 # -- CSV ----------------------------------------------------------------------------------------------------

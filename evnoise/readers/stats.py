@@ -19,13 +19,17 @@ HOT_FACTOR = 10.0
 HOT_MIN_COUNT = 10
 #: Quantiles of the per-pixel rate that are reported.
 QUANTILES = (0.5, 0.9, 0.99)
+#: Largest sensor side inferred from the events of a file whose header gives no size (the largest event
+#: sensors are 1280 x 960): beyond, an event is taken as damage unless the caller gives the sensor size.
+MAX_INFERRED_SIDE = 4096
 
 
 def pixel_counts(chunks, shape=None):
     """ON/OFF counts ``(2, H, W)`` int64 and ``(n, t_first_us, t_last_us)`` from event chunks.
 
-    Without ``shape`` the maps grow to the events' extent. The maps' size (which a file's header
-    declares) is checked against the memory budget before they are allocated.
+    Without ``shape`` the maps grow to the events' extent, up to :data:`MAX_INFERRED_SIDE` per side
+    (a damaged file's stray coordinate would otherwise size gigabytes of maps). The maps' size (which a
+    file's header declares) is checked against the memory budget before they are allocated.
     """
     height, width = shape if shape is not None else (1, 1)
     _check_maps(height, width)
@@ -39,6 +43,11 @@ def pixel_counts(chunks, shape=None):
         try:
             if shape is None and (xm >= width or ym >= height):
                 new_h, new_w = max(height, ym + 1), max(width, xm + 1)
+                if max(new_h, new_w) > MAX_INFERRED_SIDE:
+                    raise InputError(f"an event at x = {xm}, y = {ym} in a file whose header gives no sensor size "
+                                     f"lies beyond {MAX_INFERRED_SIDE} pixels (the largest side inferred from the "
+                                     f"events; the file may be damaged): give sensor='WxH' if the sensor is that "
+                                     f"large")
                 _check_maps(new_h, new_w)
                 grown = np.zeros((2, new_h, new_w), dtype=np.int64)
                 grown[:, :height, :width] = counts
