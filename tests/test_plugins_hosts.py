@@ -459,6 +459,28 @@ def test_v2e_frames_without_v2e_events_still_write_the_noise(tmp_path):
     assert np.concatenate(emulator.dvs_aedat2.us).size == wrapper.noise_count == emulator.num_events_total
 
 
+def test_v2e_noise_turned_on_after_the_wrapper_is_made_is_warned_about(tmp_path):
+    """``v2e.py --dvs_params noisy`` calls ``set_dvs_params`` after the emulator is made, which turns v2e's own noise
+    back on: the wrapper checked only at construction and said nothing while v2e added its noise beside evnoise's."""
+    import warnings
+
+    pytest.importorskip("h5py")
+    from evnoise.plugins.v2e import PhotonNoise
+
+    emulator = FakeV2eEmulator(tmp_path / "later.h5")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        wrapper = PhotonNoise(emulator, "evk3-hd", white_lux=10.0, rng=2)
+        wrapper.generate_events(np.full((40, 50), 90.0), 0.0)
+        assert not caught
+        emulator.shot_noise_rate_hz, emulator.leak_rate_hz = 5.0, 0.1  # what set_dvs_params('noisy') does
+        for k in (1, 2, 3):
+            wrapper.generate_events(np.full((40, 50), 90.0), k / 10)
+    own = [w for w in caught if "adds its own noise" in str(w.message)]
+    assert len(own) == 1 and "shot_noise_rate_hz=5" in str(own[0].message)  # once, naming the settings
+    emulator.dvs_h5.close()
+
+
 def _real_v2e():
     pytest.importorskip("v2ecore.emulator", reason="v2e is installed from https://github.com/SensorsINI/v2e")
     pytest.importorskip("h5py")

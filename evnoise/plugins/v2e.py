@@ -252,12 +252,26 @@ class PhotonNoise(EmulatorNoise):
             log_input = bool(getattr(emulator, "log_input", False))
         self.log_input = bool(log_input)
         super().__init__(emulator, params, self._to_lux, rng, threads=threads)
-        own = {name: getattr(emulator, name, 0) for name in ("shot_noise_rate_hz", "leak_rate_hz")}
+        self._warned_own_noise = False
+        self._check_own_noise(stacklevel=3)
+
+    def _check_own_noise(self, stacklevel: int) -> None:
+        """Warn (once) when v2e's own noise is on: at construction, and again at each frame, since v2e can turn
+        it on after the emulator is made (``v2e.py --dvs_params noisy`` calls ``set_dvs_params``)."""
+        if self._warned_own_noise:
+            return
+        own = {name: getattr(self.emulator, name, 0) for name in ("shot_noise_rate_hz", "leak_rate_hz")}
         own = {k: v for k, v in own.items() if isinstance(v, (int, float)) and v > 0}
         if own:
+            self._warned_own_noise = True
             settings = ", ".join(f"{k}={v:g}" for k, v in own.items())
             warnings.warn(f"the v2e emulator adds its own noise ({settings}); set them to 0 so that only "
-                          "evnoise's photon noise is added", UserWarning, stacklevel=2)
+                          "evnoise's photon noise is added", UserWarning, stacklevel=stacklevel)
+
+    def generate_events(self, new_frame, t_frame):
+        """As :meth:`EmulatorNoise.generate_events`, after checking that v2e's own noise is still off."""
+        self._check_own_noise(stacklevel=3)
+        return super().generate_events(new_frame, t_frame)
 
     def _to_lux(self, frame):
         return grey_to_lux(frame, self.white_lux, log_input=self.log_input)
