@@ -309,7 +309,7 @@ MODELS = """What each tool models (the two noise models differ; the times compar
   low (v2e warns only when `shot_noise_rate_hz * dt` > 1; at 30 fps it is 3e-5 for `davis` and
   0.17 for `noisy`), while its photoreceptor filter at the `davis`
   `cutoff_hz` of 300 Hz would want `dt ≤ 0.3 / (2π · 300 Hz)` (≈ 6.3 kHz; v2e warns below that, harmless
-  on a still frame). Rows at 30 fps (v2e's default video rate, `--avi_frame_rate`) are v2e's cheapest
+  on a still frame). Rows at 30 fps (a video's own rate, as v2e feeds it with `--disable_slomo`) are v2e's cheapest
   sensible setting, a lower bound of its cost; 1000 fps gives 1 ms timestamps, the resolution v2e's help
   names as its slow example.
 - Reading the times: on a shared 2-core machine v2e's two torch threads slow down far more than evnoise
