@@ -122,12 +122,12 @@ def _counts(state, width, log1m_p, q_on, params, duration_us, threads):
 
 
 def applies(lam, params, thresholds, background) -> bool:
-    """Whether :func:`bracketed_counts` applies: per-pixel thresholds that differ, no background maps, no
-    regular timer, and light levels each shared by many pixels on average."""
+    """Whether :func:`bracketed_counts` applies: per-pixel thresholds that differ in both polarities, no background
+    maps, no regular timer, and light levels each shared by many pixels on average."""
     if background is not None or terms.regular_timer(params) or lam.size < 2 * MIN_PIXELS_PER_LEVEL:
         return False
     eps = [np.asarray(t) for t in thresholds]
-    if any(e.size != lam.size for e in eps) or all(e.min() == e.max() for e in eps):
+    if any(e.size != lam.size or e.min() == e.max() for e in eps):  # each polarity's lattice needs a spread
         return False
     if np.unique(lam).size * MIN_PIXELS_PER_LEVEL > lam.size:
         return False

@@ -83,9 +83,11 @@ def test_thresholds_given_by_the_caller(monkeypatch):
 
 def test_where_the_bracket_does_not_apply_the_plain_path_runs():
     lam = np.repeat(np.arange(4.0), 100)
-    eps = (np.full(lam.size, 0.2), np.linspace(0.1, 0.3, lam.size))
+    eps = (np.linspace(0.15, 0.25, lam.size), np.linspace(0.1, 0.3, lam.size))
     params = EVK3.replace(eps_sigma=0.03)
     assert _bracket.applies(lam, params, eps, None)
+    # one polarity at one threshold: no spread to build its lattice on (h would be 0)
+    assert not _bracket.applies(lam, params, (np.full(lam.size, 0.2), eps[1]), None)
     assert not _bracket.applies(lam, params, eps, (np.ones(lam.size), np.zeros(lam.size)))  # background maps
     assert not _bracket.applies(lam, params.replace(leak_regularity=0.5), eps, None)  # the regular timer
     assert not _bracket.applies(np.arange(400.0), params, eps, None)  # no shared light levels
