@@ -9,6 +9,7 @@ copied into the repository; the tests that need them skip when the folder is abs
 from __future__ import annotations
 
 import logging
+import re
 from pathlib import Path
 
 import numpy as np
@@ -244,6 +245,30 @@ def test_real_aedat4_cut_or_extended(tmp_path, capsys, change):
     with pytest.raises(InputError, match=match):
         read_events(tmp_path / "d.aedat4")
     _one_line(capsys, tmp_path / "d.aedat4")
+
+
+def test_real_aedat4_damaged_packet_is_named_and_the_events_before_it_read(tmp_path, capsys):
+    """A packet whose LZ4 data is damaged: the message names the packet, what failed and the time reached
+    (faery's own words alone, "LZ4 error: ERROR_decompressionFailed", said none of it), and a window ending
+    at that time reads the events ahead of the damage, as the message says."""
+    pytest.importorskip("faery")
+    data = bytearray(_real("tonic/sample.aedat4").read_bytes())
+    whole = read_events(_real("tonic/sample.aedat4"))[0]
+    middle = len(data) // 2
+    data[middle:middle + 8] = bytes(b ^ 0xFF for b in data[middle:middle + 8])
+    path = tmp_path / "mid.aedat4"
+    path.write_bytes(bytes(data))
+    with pytest.raises(InputError) as err:
+        read_events(path)
+    text = str(err.value)
+    m = re.search(r"packet (\d+) is damaged \(its LZ4-compressed data cannot be decompressed: .*\), after events up "
+                  r"to t = (\d+) us on the file's clock", text)
+    assert m, text
+    reached = int(m.group(2))
+    assert whole["t"][0] <= reached < whole["t"][-1]
+    before = read_events(path, t_end_us=reached)[0]
+    assert before.size > 0 and np.array_equal(before, whole[whole["t"] < reached])
+    _one_line(capsys, path)
 
 
 @pytest.mark.parametrize("compression", [("lz4", 1), ("zstd", 1)])

@@ -247,13 +247,51 @@ class Aedat4Source(EventSource):
     def _chunks(self, t_start_us, t_end_us):
         from faery.extension import aedat
 
+        done = {"packets": 0, "t": None}
+
+        def counted(dec):
+            for track, packet in dec:
+                done["packets"] += 1
+                if track.id == self._track and len(packet):
+                    done["t"] = int(packet["t"][-1])
+                    yield packet
+                elif track.id == self._track:
+                    yield packet
+
         try:
             with aedat.Decoder(self.path) as dec:
-                packets = (packet for track, packet in dec if track.id == self._track)
-                for packet in packets_in_window(packets, t_start_us, t_end_us):
+                for packet in packets_in_window(counted(dec), t_start_us, t_end_us):
                     yield from_faery(packet)
         except BaseException as exc:  # noqa: BLE001 - see decoder_error
-            raise decoder_error(self.path, "AEDAT 4", exc) from None
+            raise _packet_error(self.path, exc, done["packets"], done["t"]) from None
+
+
+#: what the AEDAT 4 decoder's (faery's) messages about a damaged packet mean, in words
+_DECODER_WORDS = (
+    ("LZ4 error", "its LZ4-compressed data cannot be decompressed"),
+    ("zstd", "its Zstandard-compressed data cannot be decompressed"),
+    ("Zstd", "its Zstandard-compressed data cannot be decompressed"),
+    ("flatbuffer", "its content is not a valid packet (FlatBuffers)"),
+    ("Flatbuffer", "its content is not a valid packet (FlatBuffers)"),
+)
+
+
+def _packet_error(path, exc: BaseException, packets_read: int, last_t_us) -> InputError:
+    """One-line error for a packet the decoder rejects: which packet (counted from 1), the time reached,
+    what the decoder's message means, and the message itself (interrupts re-raised, as :func:`decoder_error`)."""
+    plain = decoder_error(path, "AEDAT 4", exc)  # re-raises interrupts and evnoise's own errors
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    meaning = next((words for key, words in _DECODER_WORDS if key in text), None)
+    if meaning is None:
+        return plain
+    if last_t_us is None:
+        reached = "before any event of the track"
+        hint = ""
+    else:
+        reached = f"after events up to t = {last_t_us} us on the file's clock"
+        hint = " (a time window that ends by then reads the events ahead of the damage)"
+    return InputError(f"cannot read {path} as AEDAT 4: packet {packets_read + 1} is damaged ({meaning}: {text}), "
+                      f"{reached}; the file is corrupt{hint}")
 
 
 # --------------------------------------------------------------------------------------
