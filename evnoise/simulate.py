@@ -226,32 +226,28 @@ def _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, t
     return _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, threads, progress, sink, bg)
 
 
-def _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, threads, progress, sink=None,
-                 bg=None):
-    height, width = lux.shape
-    lam = params.photons_per_trial(lux).ravel()
-    log1m_p, q_on, timer, nu = static_inputs(lam, params, eps_on, eps_off, bg)
-    dt = params.trial_us
-    refr = params.refractory_us
-    del lam  # not needed while the windows run: keep the per-pixel memory small
-    total = float(nu.sum()) * duration_us * 1e-6
-    # window ends are made one at a time (exact integers): any duration streams in bounded memory
+def _static_windows(n_pixels, key, threads, total, t_start_us, duration_us, progress, sink, reserve, step):
+    """The windows of a static scene, whatever advances its pixels (the body :func:`_iter_static` and
+    :func:`_iter_memory` share).
+
+    ``total`` is the expected number of events; the run is cut into windows of about
+    :data:`TARGET_EVENTS_PER_WINDOW` events (and at most :data:`MAX_WINDOW_US` long), their ends whole
+    microseconds made one at a time, so any duration streams in bounded memory. ``reserve``: the events a
+    ``sink`` is sized for. ``step(state, t_prev_us, w_end_us)`` advances every pixel (``state``: their
+    :class:`PixelState`) to ``w_end_us`` and returns the window's unsorted parts.
+    """
     n_win = max(1, math.ceil(total / TARGET_EVENTS_PER_WINDOW), -(-duration_us // MAX_WINDOW_US))
     if sink is not None:
         _check_memory(total)
-        # counts are under-dispersed against Poisson (renewal with dead time): 8 sigma is ample
-        sink.__init__(int(math.ceil(total + 8.0 * math.sqrt(total) + 4096)))
+        sink.__init__(int(math.ceil(reserve)))
 
     def gen():
-        state = PixelState(np.arange(lux.size), key, threads)
+        state = PixelState(np.arange(n_pixels), key, threads)
         bar = _time_bar(duration_us, progress)
         t_prev = 0
         for k in range(n_win):
             w_end = duration_us * (k + 1) // n_win
-            expected = nu * (w_end - t_prev) * 1e-6
-            parts = renewal_step(state, width, log1m_p, q_on, dt, refr, 0, w_end, math.inf,
-                                  t_start_us, threads, expected=expected, timer=timer)
-            del expected
+            parts = step(state, t_prev, w_end)
             window = sorted_window(parts, t_start_us + t_prev, t_start_us + w_end, sink=sink)
             del parts  # not held while the caller has the window
             yield window
@@ -265,6 +261,25 @@ def _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, thr
     return EventWindows(gen(), expected_events=total, t_start_us=t_start_us, duration_us=duration_us)
 
 
+def _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, threads, progress, sink=None,
+                 bg=None):
+    width = lux.shape[1]
+    lam = params.photons_per_trial(lux).ravel()
+    log1m_p, q_on, timer, nu = static_inputs(lam, params, eps_on, eps_off, bg)
+    dt = params.trial_us
+    refr = params.refractory_us
+    del lam  # not needed while the windows run: keep the per-pixel memory small
+    total = float(nu.sum()) * duration_us * 1e-6
+
+    def step(state, t_prev, w_end):
+        return renewal_step(state, width, log1m_p, q_on, dt, refr, 0, w_end, math.inf, t_start_us, threads,
+                            expected=nu * (w_end - t_prev) * 1e-6, timer=timer)
+
+    # counts are under-dispersed against Poisson (renewal with dead time): 8 sigma is ample
+    return _static_windows(lux.size, key, threads, total, t_start_us, duration_us, progress, sink,
+                           total + 8.0 * math.sqrt(total) + 4096, step)
+
+
 def _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, sink=None):
     """The windows of a static scene with reset memory (:mod:`evnoise.terms.memory`): pixels grouped by light
     level, each advanced event by event over its level's state tables (:mod:`evnoise._kernels.memory`)."""
@@ -274,36 +289,20 @@ def _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, s
     lam = params.photons_per_trial(lux).ravel()
     levels, group = np.unique(lam, return_inverse=True)
     group = np.ascontiguousarray(group.ravel(), dtype=np.int64)
-    table, itable, offsets, sizes, level_rates = kernel_tables(levels, params)
+    tables = kernel_tables(levels, params)
+    level_rates = tables[4]
     nu = level_rates[group]
     dt = params.trial_us
     refr = float(params.refractory_us)
     total = float(nu.sum()) * duration_us * 1e-6
-    n_win = max(1, math.ceil(total / TARGET_EVENTS_PER_WINDOW), -(-duration_us // MAX_WINDOW_US))
-    if sink is not None:
-        _check_memory(total)
-        sink.__init__(int(math.ceil(1.2 * total + 8.0 * math.sqrt(total) + 4096)))
+    mem = np.full(lux.size, math.nan)  # each pixel's stored state (NaN: drawn at its first window)
 
-    def gen():
-        state = PixelState(np.arange(lux.size), key, threads)
-        mem = np.full(lux.size, math.nan)  # each pixel's stored state (NaN: drawn at its first window)
-        bar = _time_bar(duration_us, progress)
-        t_prev = 0
-        for k in range(n_win):
-            w_end = duration_us * (k + 1) // n_win
-            parts = memory_step(state, mem, width, group, (table, itable, offsets, sizes), dt, refr, 0.0, float(w_end),
-                                math.inf, np.int64(t_start_us), threads, nu * ((w_end - t_prev) * 1e-6))
-            window = sorted_window(parts, t_start_us + t_prev, t_start_us + w_end, sink=sink)
-            del parts
-            yield window
-            del window
-            if bar is not None:
-                bar.update(w_end - t_prev)
-            t_prev = w_end
-        if bar is not None:
-            bar.close()
+    def step(state, t_prev, w_end):
+        return memory_step(state, mem, width, group, tables[:4], dt, refr, 0.0, float(w_end), math.inf,
+                           np.int64(t_start_us), threads, nu * ((w_end - t_prev) * 1e-6))
 
-    return EventWindows(gen(), expected_events=total, t_start_us=t_start_us, duration_us=duration_us)
+    return _static_windows(lux.size, key, threads, total, t_start_us, duration_us, progress, sink,
+                           1.2 * total + 8.0 * math.sqrt(total) + 4096, step)
 
 
 def _time_bar(duration_us: int, enabled: bool):
