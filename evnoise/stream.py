@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from . import terms
@@ -150,12 +152,21 @@ class NoiseStream:
         return out
 
 
+@functools.lru_cache(maxsize=4096)
+def _state_range(lam: float):
+    """:func:`~evnoise.terms.memory.state_range`, remembered: a stream asks for the same light levels at every
+    interval (a Poisson tail sum per level, ~0.1 ms each, per interval before)."""
+    from .terms.memory import state_range
+
+    return state_range(lam)
+
+
 def _memory_spans(levels, group, stored, pending) -> list:
     """Per light level, the states ``(lo, n_states)`` its tables need: :func:`~evnoise.terms.memory.state_range`'s,
     widened to hold the stored counts (and pending events' new counts) its pixels bring from another light,
     up to :data:`~evnoise.terms.memory.MAX_STATES` states (counts beyond are clamped into the range: only a
     step of the light by many times its own photon noise at hundreds of photons per trial goes that far)."""
-    from .terms.memory import MAX_STATES, state_range
+    from .terms.memory import MAX_STATES
 
     low = np.full(len(levels), np.inf)
     high = np.full(len(levels), -np.inf)
@@ -165,7 +176,7 @@ def _memory_spans(levels, group, stored, pending) -> list:
         np.maximum.at(high, group[known], counts[known])
     spans = []
     for g, lam in enumerate(levels):
-        lo, n, _ = state_range(lam)
+        lo, n, _ = _state_range(float(lam))
         hi = lo + n - 1
         if np.isfinite(low[g]):
             room = max(0, MAX_STATES - n)
