@@ -717,7 +717,10 @@ def sample_counts(
     run = run_setup(lux.shape, params, rng, thresholds=thresholds, background=background,
                     draw_key=distribution == "exact")
     params, gen, key, (eps_on, eps_off), bg = run.params, run.gen, run.key, run.thresholds, run.background
-    refuse(params, "sample_counts")
+    if memory_on(params):
+        check_supported(params, thresholds, background)
+        return _memory_counts(lux, params, key, duration_us, threads, distribution, gen, r if
+                              distribution == "negative-binomial" else None)
     lam = params.photons_per_trial(lux).ravel()
     if distribution == "exact":
         from ._bracket import applies, bracketed_counts
@@ -740,6 +743,26 @@ def sample_counts(
         return gen.poisson(mean).astype(np.int64)
     rate = gen.gamma(r, mean / r)
     return gen.poisson(rate).astype(np.int64)
+
+
+def _memory_counts(lux, params, key, duration_us, threads, distribution, gen, nb_shape):
+    """:func:`sample_counts` with reset memory. ``"exact"``: the counts of the reset-memory tier's own events
+    (the stream :func:`simulate_events` makes with the same seed, counted window by window: memory stays that
+    of one window); ``"poisson"`` / ``"negative-binomial"``: about the stationary rate of
+    :func:`~evnoise.terms.memory.memory_statistics` (the memory model's closed form)."""
+    height, width = lux.shape
+    if distribution == "exact":
+        counts = np.zeros(2 * lux.size, dtype=np.int64)
+        for window in _iter_memory(lux, params, key, 0, duration_us, threads, False):
+            cell = window["y"].astype(np.int64) * width + window["x"]
+            counts += np.bincount(np.where(window["p"] == 1, cell, lux.size + cell), minlength=2 * lux.size)
+        return counts.reshape(2, height, width)
+    from .terms.memory import memory_statistics
+
+    mean = memory_statistics(lux, params).rate_hz * (duration_us * 1e-6)
+    if distribution == "poisson":
+        return gen.poisson(mean).astype(np.int64)
+    return gen.poisson(gen.gamma(nb_shape, mean / nb_shape)).astype(np.int64)
 
 
 # --------------------------------------------------------------------------------------

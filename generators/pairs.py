@@ -18,8 +18,8 @@ is ``srgb_encode(mean_2x2(lux) / white_lux)`` clipped to ``[0, 1]``: what a pers
 display whose white is ``white_lux``; ``lux = srgb_decode(image) * white_lux`` recovers the
 binned illuminance (where the image is below 1).
 
-Counts. ``mode="counts"`` with no refractory period and no per-pixel draws (threshold mismatch,
-background spread, hot pixels; a uniform background is fine) draws each
+Counts. ``mode="counts"`` with no refractory period, no reset memory and no per-pixel draws (threshold
+mismatch, background spread, hot pixels; a uniform background is fine) draws each
 pixel's counts exactly from its i.i.d. trials (:func:`._kernels.trial_counts_binned`, with the
 per-trial probabilities of each illuminance level from the exact closed form, evaluated once
 per level); otherwise it calls :func:`evnoise.sample_counts`. ``mode="events"`` simulates the
@@ -40,6 +40,7 @@ from evnoise import terms
 from evnoise._run import run_setup
 from evnoise.errors import ParameterError
 from evnoise.radiometry import block_sum, srgb_encode
+from evnoise.terms.memory import memory_on
 
 from .config import COUNT_MAX, LEVELS, PairConfig
 
@@ -194,11 +195,8 @@ class CountSampler:
         p = self.params
         # per-pixel draws (threshold mismatch, background spread, hot pixels) go through sample_counts
         per_pixel = terms.maps_needed(p)
-        if config.mode == "counts":  # mode="events" goes through simulate_events, which models reset memory
-            from evnoise.terms.memory import refuse
-
-            refuse(p, "the dataset generator's counts mode (use mode='events')")
-        self.direct = config.mode == "counts" and p.refractory_s == 0 and not per_pixel
+        # reset memory: trials are not independent, so counts come from sample_counts (the memory tier's events)
+        self.direct = config.mode == "counts" and p.refractory_s == 0 and not per_pixel and not memory_on(p)
         self._levels = 0
         self._p_on = self._p_off = None
         self._n_tables: dict = {}

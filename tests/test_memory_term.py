@@ -196,14 +196,12 @@ def test_state_range_bound():
     assert 0 < memory.state_range(1e5)[2] < 1e-4
 
 
-@pytest.mark.parametrize("what", ["video", "counts", "stream", "tonic", "mismatch", "background", "trials"])
+@pytest.mark.parametrize("what", ["video", "stream", "tonic", "mismatch", "background", "trials"])
 def test_what_is_not_modelled_yet_is_refused(what):
     lux = np.full((4, 4), 1.0)
     with pytest.raises(ev.ParameterError, match="reset_memory"):
         if what == "video":
             ev.simulate_video(np.stack([lux, 2 * lux]), [0.0, 0.1], MEM, rng=1)
-        elif what == "counts":
-            ev.sample_counts(lux, MEM, 1.0, rng=1)
         elif what == "stream":  # a stream with memory is modelled, with mismatch not yet
             ev.NoiseStream((4, 4), MEM.replace(eps_sigma=0.05), rng=1)
         elif what == "tonic":  # the tonic plugin models memory, with mismatch not yet

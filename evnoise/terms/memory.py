@@ -41,11 +41,11 @@ counts tens of standard deviations from ``lam`` for any ``eps`` above ``~5 / sqr
 Supported: :func:`evnoise.simulate_events` / :func:`evnoise.iter_events` of static scenes, and
 :class:`evnoise.NoiseStream` (light held per interval: each pixel keeps its stored count across intervals
 and through changes of light, its level's tables widened to hold it; the v2e plugin runs on it) and the
-tonic plugin (each sample starts in the steady state), with nominal thresholds and no background. Refused
-with :class:`~evnoise.ParameterError` (not yet modelled): threshold mismatch (``eps_sigma > 0`` or given
-``thresholds``), background and hot pixels, :func:`evnoise.simulate_video`, :func:`evnoise.sample_counts`
-and the dataset generator's counts. The closed forms of
-:mod:`evnoise.rates` (:func:`evnoise.expected_rate`) are the memoryless ones; use :func:`memory_statistics`.
+tonic plugin (each sample starts in the steady state), and :func:`evnoise.sample_counts` (the counts of
+those events; its Poisson / negative-binomial variants about :func:`memory_statistics`' rate) with the dataset
+generator's counts mode, all with nominal thresholds and no background. :func:`evnoise.expected_rate` gives
+:func:`memory_statistics`' rate. Refused with :class:`~evnoise.ParameterError` (not yet modelled): threshold
+mismatch (``eps_sigma > 0`` or given ``thresholds``), background and hot pixels, :func:`evnoise.simulate_video`.
 """
 
 from __future__ import annotations
