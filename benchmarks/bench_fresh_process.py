@@ -57,8 +57,15 @@ def run_process(cmd, env, cwd) -> tuple[float, float, int]:
     return wall, usage.ru_utime + usage.ru_stime, proc.returncode
 
 
+#: dropped from the children's environment: a warm install has its modules' bytecode (pip compiles it at install
+#: time; a checkout writes it at its first import), so the uncounted warm-up run must be free to write it. With
+#: ``PYTHONDONTWRITEBYTECODE`` set (as on some CI machines and containers) every run would compile each module
+#: changed since its bytecode was last written, which no user's second run does.
+NOT_INHERITED = ("EVNOISE_TABLE_CACHE", "PYTHONPATH", "PYTHONDONTWRITEBYTECODE")
+
+
 def environment(tree: Path | None, numba_dir: Path, table_dir: Path) -> dict:
-    env = {k: v for k, v in os.environ.items() if k not in ("EVNOISE_TABLE_CACHE", "PYTHONPATH")}
+    env = {k: v for k, v in os.environ.items() if k not in NOT_INHERITED}
     env.update(NUMBA_CACHE_DIR=str(numba_dir), EVNOISE_CACHE=str(table_dir), PYTHONHASHSEED="0")
     if tree is not None:
         env["PYTHONPATH"] = str(tree)

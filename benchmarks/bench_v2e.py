@@ -20,6 +20,16 @@ command line, ``v2ecore/v2e_args.py``, whose help calls them typical of a DAVIS 
 take turns (evnoise, then each v2e setting, per repeat), after uncounted runs that fill the caches
 (Numba's and evnoise's tables in a temporary folder; v2e's imports). The table goes to stdout and, unless
 ``--no-report``, into ``REPORT.md`` under ``TITLE``.
+
+Per simulated second. A 1 s job's wall is mostly start-up (imports, set-up of the pixels), which neither tool
+pays again for a longer job. So each tool also runs the same job for ``--long-duration`` seconds (default 4 s,
+for the settings up to ``--marginal-max-fps``, default 100 fps: v2e at 1000 fps would take minutes per run), and
+the *marginal* cost per simulated second is ``(work(long) - work(1 s)) / (long - 1 s)`` (medians), where *work*
+is the time each job measures around its own work after its imports (evnoise: the ``simulate_events`` call,
+after a tiny one that loads its kernels; v2e:
+the emulator made and fed): the processes' start-up varies by more than evnoise's whole marginal cost, so a
+difference of walls cannot show it. The ratio of the two tools' marginal costs is the speed-up per simulated
+second of a long job.
 """
 
 from __future__ import annotations
@@ -64,28 +74,34 @@ V2E_PARAMS = {
               "shot_noise_rate_hz": 5.0, "refractory_period_s": 0.0},
 }
 
-#: the evnoise run: argv = lux seed height width duration; prints the number of events
+#: the evnoise run: argv = lux seed height width duration; prints the number of events and the seconds of the
+#: work itself (the call, after the imports and a tiny call that loads the kernels and the closed form's table)
 EVNOISE_JOB = (
-    "import sys, numpy as np, evnoise as ev\n"
+    "import sys, time, numpy as np, evnoise as ev\n"
     "lux, seed, h, w, duration = float(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), "
     "float(sys.argv[5])\n"
-    f"print(ev.simulate_events(np.full((h, w), lux), {PRESET!r}, duration, rng=seed).size)\n"
+    f"ev.simulate_events(np.full((8, 8), lux), {PRESET!r}, 0.01, rng=seed)  # kernels and tables loaded\n"
+    "t0 = time.perf_counter()\n"
+    f"n = ev.simulate_events(np.full((h, w), lux), {PRESET!r}, duration, rng=seed).size\n"
+    "print(n, time.perf_counter() - t0)\n"
 )
 
-#: the v2e run: argv = grey fps seed height width duration options-json; prints the number of events
+#: the v2e run: argv = grey fps seed height width duration options-json; prints the number of events and the
+#: seconds of the work itself (the emulator made and fed, after the imports)
 V2E_JOB = (
-    "import json, sys\n"
+    "import json, sys, time\n"
     "import numpy as np\n"
     "from v2ecore.emulator import EventEmulator\n"
     "grey, fps, seed = float(sys.argv[1]), float(sys.argv[2]), int(sys.argv[3])\n"
     "h, w, duration, options = int(sys.argv[4]), int(sys.argv[5]), float(sys.argv[6]), json.loads(sys.argv[7])\n"
+    "t0 = time.perf_counter()\n"
     "emulator = EventEmulator(seed=seed, device='cpu', **options)\n"
     "frame = np.full((h, w), grey)\n"
     "count = 0\n"
     "for k in range(int(round(fps * duration)) + 1):\n"
     "    rows = emulator.generate_events(frame, k / fps)\n"
     "    count += 0 if rows is None else len(rows)\n"
-    "print(count)\n"
+    "print(count, time.perf_counter() - t0)\n"
 )
 
 #: what every run of each tool pays before any work
@@ -183,20 +199,23 @@ def run_process(cmd: list[str], env: dict, cwd: Path) -> dict:
 
 def environment(scratch: Path) -> dict:
     """The children's environment: this one, with Numba's cache and evnoise's table cache in ``scratch``."""
-    env = {k: v for k, v in os.environ.items() if k != "EVNOISE_TABLE_CACHE"}
+    # PYTHONDONTWRITEBYTECODE dropped: the warm-up runs write the bytecode a warm install has (bench_fresh_process)
+    env = {k: v for k, v in os.environ.items() if k not in ("EVNOISE_TABLE_CACHE", "PYTHONDONTWRITEBYTECODE")}
     env.update(NUMBA_CACHE_DIR=str(scratch / "numba"), EVNOISE_CACHE=str(scratch / "tables"), PYTHONHASHSEED="0")
     return env
 
 
-def jobs(lux: float, settings: list[tuple[str, float]], v2e_python: str, seed: int) -> dict:
-    """The commands of one lux level: ``{"evnoise": cmd, ("davis", 30.0): cmd, ...}``."""
+def jobs(lux: float, settings: list[tuple[str, float]], v2e_python: str, seed: int,
+         duration_s: float = DURATION_S, tag: str | None = None) -> dict:
+    """The commands of one lux level: ``{"evnoise": cmd, ("davis", 30.0): cmd, ...}`` (keys prefixed by ``tag``
+    as ``(tag, key)`` when given: the long runs)."""
     size = [str(HEIGHT), str(WIDTH)]
-    out = {"evnoise": [sys.executable, "-c", EVNOISE_JOB, repr(lux), str(seed), *size, repr(DURATION_S)]}
+    out = {"evnoise": [sys.executable, "-c", EVNOISE_JOB, repr(lux), str(seed), *size, repr(duration_s)]}
     grey = 255.0 * lux / WHITE_LUX
     for name, fps in settings:
         out[(name, fps)] = [v2e_python, "-c", V2E_JOB, repr(grey), repr(fps), str(seed + 1), *size,
-                            repr(DURATION_S), json.dumps(V2E_PARAMS[name])]
-    return out
+                            repr(duration_s), json.dumps(V2E_PARAMS[name])]
+    return out if tag is None else {(tag, key): cmd for key, cmd in out.items()}
 
 
 def warm_up(v2e_python: str, env: dict, cwd: Path) -> None:
@@ -215,13 +234,15 @@ def time_jobs(commands: dict, repeats: int, env: dict, cwd: Path) -> dict:
     dict
         Per key of ``commands``: lists ``wall``, ``cpu``, ``events`` and ``load``.
     """
-    times = {key: {"wall": [], "cpu": [], "events": [], "load": []} for key in commands}
+    times = {key: {"wall": [], "cpu": [], "events": [], "work": [], "load": []} for key in commands}
     for _ in range(repeats):
         for key, cmd in commands.items():
             r = run_process(cmd, env, cwd)
             times[key]["wall"].append(r["wall"])
             times[key]["cpu"].append(r["cpu"])
-            times[key]["events"].append(int(r["out"].split()[-1]))
+            events, work = r["out"].split()[-2:]
+            times[key]["events"].append(int(events))
+            times[key]["work"].append(float(work))
             times[key]["load"].extend(r["load"])
             print(f"  {key}: {r['wall']:.2f} s, {times[key]['events'][-1]:,} events, load "
                   f"{r['load'][0]:.2f} -> {r['load'][1]:.2f}", flush=True)
@@ -279,6 +300,49 @@ def table(results: dict, settings: list[tuple[str, float]]) -> str:
     return "\n".join(lines)
 
 
+def marginal(short: dict, long: dict, long_s: float, what: str = "work") -> float:
+    """Seconds of ``what`` (the in-process work time) per simulated second beyond the 1 s job: difference of the
+    medians over the difference of the durations."""
+    return float((np.median(long[what]) - np.median(short[what])) / (long_s - DURATION_S))
+
+
+def marginal_table(results: dict, settings: list[tuple[str, float]], long_s: float) -> str:
+    """Markdown table of the marginal cost per simulated second, per v2e setting (with long runs) and lux."""
+    lines = [f"| v2e setting | lux | evnoise work at 1 s, {long_s:g} s | evnoise s per simulated s | "
+             f"v2e work at 1 s, {long_s:g} s | v2e s per simulated s | v2e / evnoise per simulated s |",
+             "|---|---|---|---|---|---|---|"]
+    for key in settings:
+        for lux in LUX:
+            r = results[lux]
+            ev_s, ev_l, v_s, v_l = r["evnoise"], r[("long", "evnoise")], r[key], r[("long", key)]
+            ew, vw = marginal(ev_s, ev_l, long_s), marginal(v_s, v_l, long_s)
+            ratio_w = f"{vw / ew:.0f}×" if ew > 0 else "not measurable (evnoise's difference ≤ 0)"
+            lines.append(f"| {key[0]}, {key[1]:g} fps | {lux:g} | {_fmt(ev_s['work'])}, {_fmt(ev_l['work'])} | "
+                         f"{ew:.4f} | {_fmt(v_s['work'])}, {_fmt(v_l['work'])} | {vw:.2f} | {ratio_w} |")
+    return "\n".join(lines)
+
+
+def marginal_verdicts(results: dict, settings: list[tuple[str, float]], long_s: float) -> list[str]:
+    """One line per setting with long runs: is the marginal (wall) ratio at least :data:`GOAL` at every lux?"""
+    out = []
+    for key in settings:
+        ratios = {}
+        for lux in LUX:
+            r = results[lux]
+            ew = marginal(r["evnoise"], r[("long", "evnoise")], long_s)
+            vw = marginal(r[key], r[("long", key)], long_s)
+            ratios[lux] = vw / ew if ew > 0 else float("nan")
+        if any(np.isnan(list(ratios.values()))):
+            out.append(f"- per simulated second against v2e `{key[0]}` at {key[1]:g} fps: not measurable (evnoise's "
+                       "work did not grow with the duration in this run); the goal is **not shown**.")
+            continue
+        worst = min(ratios, key=ratios.get)
+        met = "met" if ratios[worst] >= GOAL else "NOT met"
+        out.append(f"- per simulated second against v2e `{key[0]}` at {key[1]:g} fps: smallest ratio "
+                   f"{ratios[worst]:.0f}× (at {worst:g} lux); the goal (≥ {GOAL:g}× at every lux) is **{met}**.")
+    return out
+
+
 def verdicts(results: dict, settings: list[tuple[str, float]]) -> list[str]:
     """One line per v2e setting: is evnoise at least :data:`GOAL` times faster at every lux?"""
     out = []
@@ -319,6 +383,24 @@ MODELS = """What each tool models (the two noise models differ; the times compar
   300 lux white; v2e's noise depends on the grey level only through its shot-noise scaling."""
 
 
+def long_settings(settings: list[tuple[str, float]], args) -> list[tuple[str, float]]:
+    """The settings that also run for ``--long-duration`` (frame rate up to ``--marginal-max-fps``)."""
+    return [key for key in settings if key[1] <= args.marginal_max_fps] if args.long_duration > DURATION_S else []
+
+
+def marginal_lines(results, settings, args) -> list[str]:
+    """The per-simulated-second part of the section (empty without long runs)."""
+    keys = long_settings(settings, args)
+    if not keys:
+        return []
+    return [f"**Per simulated second** (the same jobs run for {args.long_duration:g} s too, in the same turns; "
+            f"marginal cost = (median work at {args.long_duration:g} s − median work at 1 s) / "
+            f"{args.long_duration - 1:g} s, work = the time each run measures around its own job after its imports, "
+            "median (min–max); what a long job costs per simulated second once both tools have started):", "",
+            marginal_table(results, keys, args.long_duration), "", *marginal_verdicts(results, keys,
+                                                                                      args.long_duration), ""]
+
+
 def section(results, floors, settings, args, loads, v2e_versions) -> str:
     """The report's section: machine, command, table, start-up floors, verdicts and what each tool models."""
     import numba
@@ -350,6 +432,7 @@ def section(results, floors, settings, args, loads, v2e_versions) -> str:
         "",
         *verdicts(results, settings),
         "",
+        *marginal_lines(results, settings, args),
         MODELS,
         "",
     ]
@@ -367,7 +450,11 @@ def measure(args, settings) -> tuple[dict, dict]:
         warm_up(args.v2e_python, env, cwd)
         for lux in LUX:
             print(f"{lux:g} lux", flush=True)
-            results[lux] = time_jobs(jobs(lux, settings, args.v2e_python, args.seed), args.repeats, env, cwd)
+            commands = jobs(lux, settings, args.v2e_python, args.seed)
+            keys = long_settings(settings, args)
+            if keys:
+                commands.update(jobs(lux, keys, args.v2e_python, args.seed, args.long_duration, tag="long"))
+            results[lux] = time_jobs(commands, args.repeats, env, cwd)
         floors = floor_times(args.v2e_python, args.repeats, env, cwd)
     return results, floors
 
@@ -383,6 +470,10 @@ def main(argv=None) -> int:
                     help=f"v2e's noise parameters ({', '.join(V2E_PARAMS)}) and frame rate, repeatable "
                     f"(default: {' '.join(DEFAULT_SETTINGS)})")
     ap.add_argument("--repeats", type=int, default=3, help="timed runs per tool, setting and lux (default 3)")
+    ap.add_argument("--long-duration", type=float, default=4.0, help="simulated seconds of the long runs that give "
+                    "the cost per simulated second (default 4; 1 or less: no long runs)")
+    ap.add_argument("--marginal-max-fps", type=float, default=100.0, help="v2e settings up to this frame rate get "
+                    "long runs (default 100)")
     ap.add_argument("--seed", type=int, default=1, help="seed of both tools' noise (v2e gets seed + 1, not 0)")
     ap.add_argument("--report", type=Path, default=HERE / "REPORT.md", help="report to write the section into")
     ap.add_argument("--no-report", action="store_true", help="print the section only")
