@@ -247,6 +247,19 @@ def test_real_aedat4_cut_or_extended(tmp_path, capsys, change):
     _one_line(capsys, tmp_path / "d.aedat4")
 
 
+def test_real_dat_with_a_damaged_version_line_says_so(tmp_path, capsys):
+    """A DAT header whose "% Version" line is damaged: the decoder's own words ("no versions fallback was
+    provided") are kept, after what they mean."""
+    pytest.importorskip("faery")
+    data = _real("tonic/sample_ncars.dat").read_bytes()
+    assert b"% Version 2" in data[:200]
+    path = tmp_path / "v.dat"
+    path.write_bytes(data.replace(b"% Version 2", b"% Xersion 2", 1))
+    with pytest.raises(InputError, match="the header's version line is missing or damaged"):
+        read_events(path)
+    _one_line(capsys, path)
+
+
 def test_real_aedat4_damaged_packet_is_named_and_the_events_before_it_read(tmp_path, capsys):
     """A packet whose LZ4 data is damaged: the message names the packet, what failed and the time reached
     (faery's own words alone, "LZ4 error: ERROR_decompressionFailed", said none of it), and a window ending
@@ -261,8 +274,8 @@ def test_real_aedat4_damaged_packet_is_named_and_the_events_before_it_read(tmp_p
     with pytest.raises(InputError) as err:
         read_events(path)
     text = str(err.value)
-    m = re.search(r"packet (\d+) is damaged \(its LZ4-compressed data cannot be decompressed: .*\), after events up "
-                  r"to t = (\d+) us on the file's clock", text)
+    m = re.search(r"packet (\d+) is unreadable: compressed data cannot be decompressed \(LZ4\): the file is damaged "
+                  r"\[decoder: .*\]; events read up to t = (\d+) us on the file's clock", text)
     assert m, text
     reached = int(m.group(2))
     assert whole["t"][0] <= reached < whole["t"][-1]

@@ -95,7 +95,25 @@ def decoder_error(path, what: str, exc: BaseException) -> InputError:
     if isinstance(exc, (KeyboardInterrupt, SystemExit, GeneratorExit, InputError)):
         raise exc
     text = " ".join(str(exc).split()) or type(exc).__name__
-    return InputError(f"cannot read {path} as {what}: {text}")
+    meaning = decoder_words(text)
+    return InputError(f"cannot read {path} as {what}: " + (f"{meaning} ({text})" if meaning else text))
+
+
+#: what third-party decoders' messages mean, in words (first match; the decoder's own text is kept beside it)
+DECODER_WORDS = (
+    ("LZ4 error", "compressed data cannot be decompressed (LZ4): the file is damaged"),
+    ("zstd", "compressed data cannot be decompressed (Zstandard): the file is damaged"),
+    ("Zstd", "compressed data cannot be decompressed (Zstandard): the file is damaged"),
+    ("missing packet size prefix", "a packet's size is missing: the file is cut or damaged"),
+    ("no version information", "the header's version line is missing or damaged"),
+    ("overflow (", "an event lies outside the sensor size the header gives: the file is damaged or was written "
+                   "with the wrong size"),
+)
+
+
+def decoder_words(text: str) -> str | None:
+    """What a decoder's message ``text`` means (:data:`DECODER_WORDS`), or None when it is not a known one."""
+    return next((words for key, words in DECODER_WORDS if key in text), None)
 
 
 class EventSource:

@@ -26,6 +26,7 @@ from ._base import (
     EventSource,
     check_whole_records,
     decoder_error,
+    decoder_words,
     from_faery,
     header_lines,
     log,
@@ -266,32 +267,21 @@ class Aedat4Source(EventSource):
             raise _packet_error(self.path, exc, done["packets"], done["t"]) from None
 
 
-#: what the AEDAT 4 decoder's (faery's) messages about a damaged packet mean, in words
-_DECODER_WORDS = (
-    ("LZ4 error", "its LZ4-compressed data cannot be decompressed"),
-    ("zstd", "its Zstandard-compressed data cannot be decompressed"),
-    ("Zstd", "its Zstandard-compressed data cannot be decompressed"),
-    ("flatbuffer", "its content is not a valid packet (FlatBuffers)"),
-    ("Flatbuffer", "its content is not a valid packet (FlatBuffers)"),
-)
-
-
 def _packet_error(path, exc: BaseException, packets_read: int, last_t_us) -> InputError:
     """One-line error for a packet the decoder rejects: which packet (counted from 1), the time reached,
     what the decoder's message means, and the message itself (interrupts re-raised, as :func:`decoder_error`)."""
     plain = decoder_error(path, "AEDAT 4", exc)  # re-raises interrupts and evnoise's own errors
     text = " ".join(str(exc).split()) or type(exc).__name__
-    meaning = next((words for key, words in _DECODER_WORDS if key in text), None)
+    meaning = decoder_words(text)
     if meaning is None:
         return plain
     if last_t_us is None:
-        reached = "before any event of the track"
-        hint = ""
+        reached = "no event of the track before it"
     else:
-        reached = f"after events up to t = {last_t_us} us on the file's clock"
-        hint = " (a time window that ends by then reads the events ahead of the damage)"
-    return InputError(f"cannot read {path} as AEDAT 4: packet {packets_read + 1} is damaged ({meaning}: {text}), "
-                      f"{reached}; the file is corrupt{hint}")
+        reached = (f"events read up to t = {last_t_us} us on the file's clock (a time window that ends by then reads "
+                   "the events ahead of it)")
+    return InputError(f"cannot read {path} as AEDAT 4: packet {packets_read + 1} is unreadable: {meaning} "
+                      f"[decoder: {text}]; {reached}")
 
 
 # --------------------------------------------------------------------------------------
