@@ -253,13 +253,9 @@ class NoiseParams:
 
     @property
     def has_background(self) -> bool:
-        """True when any background term (leak, hot pixels, or a registered term with ``background``) is on.
-
-        The terms themselves decide (:func:`evnoise.terms.background_on`): one home for what "on" means.
-        """
-        from .terms import background_on
-
-        return background_on(self)
+        """True when any background term (leak or hot pixels) is on."""
+        return (self.leak_on_hz > 0 or self.leak_off_hz > 0 or self.leak_on_hz_per_lux > 0
+                or self.leak_off_hz_per_lux > 0 or (self.hot_pixel_fraction > 0 and self.hot_pixel_rate_hz > 0))
 
     @property
     def regular_background(self) -> bool:

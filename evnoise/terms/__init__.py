@@ -59,8 +59,8 @@ def term(name: str) -> NoiseTerm:
 
 
 def background_on(params) -> bool:
-    """True when a term adds background intensity for ``params`` (what :attr:`NoiseParams.has_background`
-    returns)."""
+    """True when a term adds background intensity for ``params`` (for the built-in terms this is
+    :attr:`NoiseParams.has_background`)."""
     return any(t.background and t.is_on(params) for t in TERMS)
 
 
