@@ -16,8 +16,9 @@ is only ever a speed-up, never trusted:
 - **Written atomically**: to a unique temporary name in the same folder, then ``os.replace``: a reader
   sees an old file or a new one, never half of one; of concurrent writers the last one wins, and what
   the others added is rebuilt when it is next needed.
-- **Bounded**: at most :data:`MAX_TABLE_FILES` tables (a table is about 35 kB: ~70 MB). A save that finds
-  more removes the least recently used (a load marks its file used) down to :data:`PRUNE_TO_FILES`, and
+- **Bounded**: at most :data:`MAX_TABLE_FILES` tables and :data:`MAX_TABLE_BYTES` bytes (a log-spaced table is
+  about 35 kB, a table's certified panels above lam = 1e4 about 150 kB). A save that finds more removes the
+  least recently used (a load marks its file used) down to :data:`PRUNE_TO_FILES` and :data:`PRUNE_TO_BYTES`, and
   temporary files older than :data:`STALE_TEMPORARY_S` (left by a writer that was killed). A sweep over
   thresholds, as calibration does, so never fills a disk; a removed table is rebuilt when next needed.
 """
@@ -43,6 +44,9 @@ _OFF = ("0", "off", "no", "false")
 #: Most tables kept in the folder; a save beyond removes the least recently used down to PRUNE_TO_FILES.
 MAX_TABLE_FILES = 2000
 PRUNE_TO_FILES = 1800
+#: Most bytes of tables kept in the folder; a save beyond removes the least recently used down to PRUNE_TO_BYTES.
+MAX_TABLE_BYTES = 200 << 20
+PRUNE_TO_BYTES = 180 << 20
 #: Age (seconds) after which a temporary file in the folder is a killed writer's (a save takes milliseconds).
 STALE_TEMPORARY_S = 3600.0
 
@@ -170,8 +174,9 @@ def save_arrays(key: dict, arrays: dict) -> Path | None:
 
 
 def prune(folder: Path) -> list:
-    """Keep the table folder bounded: when it holds more than :data:`MAX_TABLE_FILES` tables, remove the
-    least recently used (oldest modification time; a load updates it) down to :data:`PRUNE_TO_FILES`;
+    """Keep the table folder bounded: when it holds more than :data:`MAX_TABLE_FILES` tables or
+    :data:`MAX_TABLE_BYTES` bytes of them, remove the least recently used (oldest modification time; a load
+    updates it) down to :data:`PRUNE_TO_FILES` and :data:`PRUNE_TO_BYTES`;
     remove temporary files older than :data:`STALE_TEMPORARY_S` seconds. Only plain files of the cache's
     own naming are touched (never a link, nothing outside ``folder``). Returns the paths removed; errors
     (a file another process removed first, a read-only folder) are ignored."""
@@ -195,12 +200,19 @@ def prune(folder: Path) -> list:
         if not stat.S_ISREG(info.st_mode):
             continue
         if table_name.fullmatch(entry.name):
-            tables.append((info.st_mtime_ns, entry.name, entry.path))
+            tables.append((info.st_mtime_ns, entry.name, entry.path, info.st_size))
         elif temporary_name.fullmatch(entry.name) and now - info.st_mtime > STALE_TEMPORARY_S:
             removed.append(entry.path)
-    if len(tables) > MAX_TABLE_FILES:
+    total = sum(size for *_, size in tables)
+    if len(tables) > MAX_TABLE_FILES or total > MAX_TABLE_BYTES:
         tables.sort()
-        removed.extend(path for _, _, path in tables[: len(tables) - PRUNE_TO_FILES])
+        kept = len(tables)
+        for _, _, path, size in tables:  # oldest first, until both bounds hold
+            if kept <= PRUNE_TO_FILES and total <= PRUNE_TO_BYTES:
+                break
+            removed.append(path)
+            kept -= 1
+            total -= size
     gone = []
     for path in removed:
         try:

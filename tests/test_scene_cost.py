@@ -116,7 +116,8 @@ def test_serial_and_parallel_table_evaluation_agree():
     table = model._table_for(float(np.expm1(0.1)), 5.0)
     table.evaluate(lam)
     serial, parallel = np.empty(lam.size), np.empty(lam.size)
-    args = (*table._arrays, table.first_unit, table.c, table.b)
+    certify = np.ones(table.last_unit - table.first_unit + 1, dtype=np.bool_)  # certified panels where built
+    args = (*table._arrays, certify, table.first_unit, table.c, table.b)
     for skip in ((-np.inf, np.inf), (-760.0, 100.0)):
         chebyshev._evaluate_serial(lam, *args, *skip, serial)
         chebyshev._evaluate(lam, *args, *skip, parallel)

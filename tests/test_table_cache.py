@@ -304,3 +304,21 @@ def test_the_folder_stays_bounded_and_keeps_the_recently_used_tables(cache, monk
     assert left == expected
     assert not stale.exists() and fresh.exists() and other.read_text() == "not the cache's" and link.is_symlink()
     assert _cache.load_arrays(keys[1], ("units",)) is None  # a removed table is only a miss (rebuilt by its caller)
+
+
+def test_the_folder_stays_bounded_in_bytes_too(cache, monkeypatch):
+    """Few but large tables (certified panels are ~150 kB each) are bounded by size: the least recently used go
+    first until the folder is back under the byte bound, whatever the count bound says."""
+    arrays = {"units": np.arange(4000.0)}  # ~32 kB a file
+    path0 = _cache.save_arrays({"eps": "0"}, arrays)
+    size = path0.stat().st_size
+    monkeypatch.setattr(_cache, "MAX_TABLE_BYTES", 5 * size + size // 2)  # room for five
+    monkeypatch.setattr(_cache, "PRUNE_TO_BYTES", 3 * size + size // 2)  # pruned down to three
+    keys = [{"eps": str(k)} for k in range(5)]
+    for age, key in enumerate(keys):
+        path = _cache.save_arrays(key, arrays)
+        os.utime(path, (1e9 + age, 1e9 + age))
+    assert len(list(cache.glob("table-*.npz"))) == 5  # key 0 was saved again: five files, under the bound
+    _cache.save_arrays({"eps": "new"}, arrays)  # the sixth: over the bound, the three newest stay
+    left = {p.name for p in cache.glob("table-*.npz")}
+    assert left == {_cache.table_path(k, cache).name for k in (keys[3], keys[4], {"eps": "new"})}

@@ -8,6 +8,10 @@ or cost too much, so panels are refined adaptively: a panel's series is accepted
 it reproduces the exact kernel at check points between its nodes to within the tolerance,
 otherwise it is halved (down to a minimum width, below which the panel is evaluated with
 the exact kernel directly). Evaluation does a binary search for the panel and Clenshaw.
+
+A unit left to the exact kernel gets, from ``lam = 1e4`` up to :data:`CERT_LAST_UNIT`, certified
+panels in ``lam`` (:mod:`evnoise._kernels.certified`: Chebyshev interpolation of a rescaled ``p`` with
+a proven error bound); the units that the log-spaced panels tabulate keep them, bit for bit.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ from pathlib import Path
 import numpy as np
 from numba import prange
 
+from . import certified
 from ._jit import kernel
 from .bounds import chernoff_bracket, log_chernoff_bound
 from .poisson import log_event_probability_exact
@@ -33,6 +38,15 @@ DIRECT = -1  # marker of a panel evaluated with the exact kernel
 #: Fewer values than this are evaluated in one thread: waking the thread pool costs ~10 us on an idle machine
 #: and milliseconds on a busy one, more than a few hundred table look-ups (the result is the same bit for bit).
 SERIAL_BELOW = 1024
+#: last unit of ``u = log lam`` whose direct panels are replaced by certified panels (lam < e^14 = 1.2e6):
+#: above, a unit would cost a minute or more to certify, and stays with the exact sum (and the skip bound)
+CERT_LAST_UNIT = 13
+#: a direct unit's certified panels are used only for a call that asks for at least this many values in it:
+#: building (or reading) them costs seconds once (2-6 s per unit here, then cached on disk), the exact sum
+#: 0.1-1 ms per value, so a few hundred distinct levels (an 8-bit image, a preset curve) are summed exactly.
+#: The rule looks at the call's own values only, never at what is cached, so the same values always give
+#: the same bits.
+CERT_MIN_VALUES = 20_000
 
 
 @kernel
@@ -124,7 +138,7 @@ def _build_signature() -> dict:
 
     here = Path(__file__).resolve().parent
     source = hashlib.sha256()
-    for name in ("chebyshev.py", "poisson.py", "bounds.py", "_jit.py"):
+    for name in ("chebyshev.py", "certified.py", "poisson.py", "bounds.py", "_jit.py"):
         source.update((here / name).read_bytes())
     features = config.CPU_FEATURES if config.CPU_FEATURES is not None else llvm.get_host_cpu_features().flatten()
     from .._version import __version__
@@ -199,13 +213,68 @@ class LogPTable:
         self.first_unit = first_unit
         self.last_unit = last_unit
         self._units: dict[int, list] = {}
+        self._certified: dict[int, list] = {}
         self._arrays = None
         self._disk_read = False
+        self._cert_disk_read = False
 
     def cache_key(self) -> dict:
         """The on-disk cache key of this table (:mod:`evnoise._cache`)."""
         return {**_build_signature(), "c": self.c.hex(), "b": self.b.hex(), "units": [self.first_unit, self.last_unit],
                 "degree": DEGREE, "max_depth": MAX_DEPTH, "abs_tol": ABS_TOL.hex(), "rel_tol": REL_TOL.hex()}
+
+    def certified_cache_key(self) -> dict:
+        """The on-disk cache key of this table's certified panels."""
+        return {**self.cache_key(), "what": "evnoise certified panels of p", "cert_degree": certified.DEGREE,
+                "cert_tol": certified.CERT_TOL.hex(), "cert_lam_min": certified.LAM_MIN.hex(),
+                "cert_last_unit": CERT_LAST_UNIT}
+
+    def _read_cert_disk(self) -> dict:
+        from .._cache import load_arrays
+
+        try:
+            arrays = load_arrays(self.certified_cache_key(), certified.CACHED)
+            found = None if arrays is None else certified.arrays_to_units(arrays, self.first_unit, CERT_LAST_UNIT)
+        except Exception:  # noqa: BLE001 -- whatever is wrong with a cached file, the panels are built instead
+            found = None
+        return found or {}
+
+    def _write_cert_disk(self) -> None:
+        from .._cache import save_arrays
+
+        merged = {**self._read_cert_disk(), **self._certified}
+        try:
+            save_arrays(self.certified_cache_key(), certified.units_to_arrays(merged))
+        except Exception:  # noqa: BLE001 -- the cache is only a speed-up
+            pass
+
+    def certifiable(self, unit: int) -> bool:
+        """Whether ``unit`` is (once built) a direct unit that gets certified panels."""
+        panels = self._units.get(unit)
+        return (panels is not None and len(panels) == 1 and panels[0][2] is None and unit <= CERT_LAST_UNIT
+                and math.exp(unit + 1) > certified.LAM_MIN)
+
+    def ensure_certified(self, units) -> None:
+        """Build (or read from disk) the certified panels of the direct units among ``units``."""
+        new = [u for u in units if self.certifiable(u) and u not in self._certified]
+        if not new:
+            return
+        if not self._cert_disk_read:
+            self._cert_disk_read = True
+            for u, panels in self._read_cert_disk().items():
+                if u not in self._certified and self.certifiable(u):
+                    self._certified[u] = panels
+            new = [u for u in new if u not in self._certified]
+        for u in new:
+            self._certified[u] = certified.build_unit(u, self.c, self.b)
+        if new:
+            self._write_cert_disk()
+        self._arrays = self._pack()
+
+    def certified_panels(self) -> dict:
+        """``{unit: [(coef | None, par), ...]}`` of the certified panels built so far (see
+        :data:`evnoise._kernels.certified.N_PAR`; ``par[6] + par[7]`` bounds the relative error of p)."""
+        return dict(self._certified)
 
     def _read_disk(self) -> dict:
         from .._cache import load_arrays
@@ -262,7 +331,17 @@ class LogPTable:
         panel_bound = np.full(direct.size, math.inf)
         for i in np.flatnonzero(direct):
             panel_bound[i] = panel_log_bound(math.exp(bounds[i, 0]), math.exp(bounds[i, 1]), self.c, self.b)
-        return unit_start, bounds, coef_arr, direct, panel_bound
+        cert_start = np.zeros(n_units + 1, dtype=np.int64)
+        pars, cert_coefs = [], []
+        for i in range(n_units):
+            cert = self._certified.get(self.first_unit + i, [])
+            cert_start[i + 1] = cert_start[i] + len(cert)
+            for cf, par in cert:
+                pars.append(par)
+                cert_coefs.append(np.full(certified.DEGREE + 1, np.nan) if cf is None else cf)
+        cert_par = np.array(pars, dtype=np.float64).reshape(-1, certified.N_PAR)
+        cert_coef = np.array(cert_coefs, dtype=np.float64).reshape(-1, certified.DEGREE + 1)
+        return unit_start, bounds, coef_arr, direct, panel_bound, cert_start, cert_par, cert_coef
 
     def evaluate(self, lam: np.ndarray, skip_below: float = -math.inf, skip_min_lam: float = math.inf) -> np.ndarray:
         """``log p`` at the 1-D float64 array ``lam`` (units outside the table use the exact kernel).
@@ -278,15 +357,28 @@ class LogPTable:
             hi = int(min(units.max(), self.last_unit))
             if lo <= hi:
                 present = np.bincount((np.clip(units, lo, hi) - lo).astype(np.int64), minlength=hi - lo + 1)
-                self.ensure(lo + int(i) for i in np.flatnonzero(present))
+                wanted = [lo + int(i) for i in np.flatnonzero(present)]
+                self.ensure(wanted)
+                # certified panels where a direct unit has many values and is not skipped as a whole by its bound
+                many = {u for u in wanted if present[u - lo] >= CERT_MIN_VALUES}
+                need = [u for u in many if self.certifiable(u) and u not in self._certified
+                        and not self._unit_bound(u) < skip_below]
+                self.ensure_certified(need)
+                certify = np.array([u in many for u in range(self.first_unit, self.last_unit + 1)], dtype=np.bool_)
+            else:
+                certify = np.zeros(self.last_unit - self.first_unit + 1, dtype=np.bool_)
+        else:
+            certify = np.zeros(self.last_unit - self.first_unit + 1, dtype=np.bool_)
         if self._arrays is None:
             self._arrays = self._pack()
         out = np.empty_like(lam)
-        unit_start, bounds, coef, direct, panel_bound = self._arrays
         run = _evaluate_serial if lam.shape[0] < SERIAL_BELOW else _evaluate
-        run(lam, unit_start, bounds, coef, direct, panel_bound, self.first_unit, self.c, self.b,
-            float(skip_below), float(skip_min_lam), out)
+        run(lam, *self._arrays, certify, self.first_unit, self.c, self.b, float(skip_below), float(skip_min_lam), out)
         return out
+
+    def _unit_bound(self, unit: int) -> float:
+        """The Chernoff bound on log p over a direct unit (as the evaluation uses it to skip the unit)."""
+        return panel_log_bound(math.exp(unit), math.exp(unit + 1), self.c, self.b)
 
 
 @kernel
@@ -312,7 +404,8 @@ def _exact_or_skip(x, c, b, skip_below, skip_min_lam):
 
 
 @kernel(inline=True)
-def _evaluate_one(x, unit_start, bounds, coef, direct, panel_bound, first_unit, c, b, skip_below, skip_min_lam):
+def _evaluate_one(x, unit_start, bounds, coef, direct, panel_bound, cert_start, cert_par, cert_coef, certify,
+                  first_unit, c, b, skip_below, skip_min_lam):
     """``log p`` at one ``x`` from the table (the body of :func:`_evaluate` and :func:`_evaluate_serial`)."""
     n_units = unit_start.shape[0] - 1
     if not x > 0.0 or x == math.inf:
@@ -332,6 +425,10 @@ def _evaluate_one(x, unit_start, bounds, coef, direct, panel_bound, first_unit, 
     if direct[lo]:
         if panel_bound[lo] < skip_below:
             return -math.inf
+        if certify[unit] and x >= certified.LAM_MIN:
+            v = certified.evaluate_one(x, cert_start[unit], cert_start[unit + 1], cert_par, cert_coef)
+            if not math.isnan(v):
+                return v
         return _exact_or_skip(x, c, b, skip_below, skip_min_lam)
     u_lo = bounds[lo, 0]
     u_hi = bounds[lo, 1]
@@ -340,16 +437,17 @@ def _evaluate_one(x, unit_start, bounds, coef, direct, panel_bound, first_unit, 
 
 
 @kernel(parallel=True)
-def _evaluate(lam, unit_start, bounds, coef, direct, panel_bound, first_unit, c, b, skip_below, skip_min_lam, out):
+def _evaluate(lam, unit_start, bounds, coef, direct, panel_bound, cert_start, cert_par, cert_coef, certify, first_unit,
+              c, b, skip_below, skip_min_lam, out):
     for i in prange(lam.shape[0]):
-        out[i] = _evaluate_one(lam[i], unit_start, bounds, coef, direct, panel_bound, first_unit, c, b, skip_below,
-                               skip_min_lam)
+        out[i] = _evaluate_one(lam[i], unit_start, bounds, coef, direct, panel_bound, cert_start, cert_par, cert_coef,
+                               certify, first_unit, c, b, skip_below, skip_min_lam)
 
 
 @kernel
-def _evaluate_serial(lam, unit_start, bounds, coef, direct, panel_bound, first_unit, c, b, skip_below, skip_min_lam,
-                     out):
+def _evaluate_serial(lam, unit_start, bounds, coef, direct, panel_bound, cert_start, cert_par, cert_coef, certify,
+                     first_unit, c, b, skip_below, skip_min_lam, out):
     """:func:`_evaluate` in one thread (same body, same bits): for few values, where waking threads costs more."""
     for i in range(lam.shape[0]):
-        out[i] = _evaluate_one(lam[i], unit_start, bounds, coef, direct, panel_bound, first_unit, c, b, skip_below,
-                               skip_min_lam)
+        out[i] = _evaluate_one(lam[i], unit_start, bounds, coef, direct, panel_bound, cert_start, cert_par, cert_coef,
+                               certify, first_unit, c, b, skip_below, skip_min_lam)
