@@ -45,7 +45,8 @@ CERT_LAST_UNIT = 13
 #: building (or reading) them costs seconds once (2-6 s per unit here, then cached on disk), the exact sum
 #: 0.1-1 ms per value, so a few hundred distinct levels (an 8-bit image, a preset curve) are summed exactly.
 #: The rule looks at the call's own values only, never at what is cached, so the same values always give
-#: the same bits.
+#: the same bits. The values counted are the distinct ones the table is asked for (:mod:`evnoise.model`
+#: evaluates a field once per distinct lam), since their number is what the exact sum's cost follows.
 CERT_MIN_VALUES = 20_000
 
 
