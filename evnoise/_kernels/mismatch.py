@@ -1,4 +1,7 @@
-"""Numba kernels of the calibration: the exact distribution of the event probability across pixels.
+"""Numba kernels of threshold mismatch: the exact distribution of the event probability across pixels (calibration),
+and the counts of pixels with their own thresholds decided by brackets (:mod:`evnoise._bracket`, the second part
+of this module: level tables, lattice sums, and the pass over the pixels that runs the renewal kernel's draws at
+both ends of each pixel's bracket).
 
 With a per-pixel threshold ``eps ~ N(mu, s)`` truncated to ``eps > 0`` (the model of
 :func:`evnoise.draw_thresholds`), the per-trial probability of a pixel,
@@ -33,7 +36,9 @@ import math
 import numpy as np
 
 from ._jit import kernel
-from .poisson import log_event_probability_exact, log_pmf
+from .poisson import log_event_probability_exact, log_pmf, log_sf, threshold_count
+from .rng import seed_state, uniform, uniform_pos
+from .simulate import first_eligible_trial
 
 _SQRT1_2 = 1.0 / math.sqrt(2.0)
 _LUMP_X = 9.0  # breakpoints more than this many sigma above mu count as +inf
@@ -292,3 +297,455 @@ def mean_probability_double_sum(lam, b, mu, s, n_max):
                 xb = math.inf
             total += w * phi_interval(x0, xb)
     return total / q_norm
+
+
+# --------------------------------------------------------------------------------------
+# counts of pixels with their own thresholds, decided by brackets (evnoise._bracket)
+#
+# p = sum_m pmf(m) P(N > k(m)), k(m) = m + floor(c (m + b)), c = expm1(eps), as the closed form sums it
+# (evnoise._kernels.poisson); each k(m) is monotone in c bit for bit (a product and a floor), so sums at two
+# thresholds bracket the closed form's p at every threshold between them, up to the rounding of two separately
+# computed sums (BRACKET_WIDEN) and the photon counts left out of the window (bounded, added to the upper end).
+# --------------------------------------------------------------------------------------
+#: bracket ends are widened by this (relative) for the rounding of two separately computed sums
+BRACKET_WIDEN = 1e-9
+#: bracket upper ends also get this (absolute) for terms that underflow in the sums
+BRACKET_ABS = 1e-290
+#: relative margin on each end of a bracket of ``log1p(-p)`` (a few ulps of any libm's log1p, and more)
+LOG_MARGIN = 1e-14
+#: a lattice point's threshold ``c = expm1(e)`` is moved by this (relative) either way: covers two libm's expm1
+C_MARGIN = 1e-13
+#: the photon-count window of a sum leaves out at most this much probability on either side (added to the upper
+#: ends: the width it adds to a bracket, times the trials, is the chance it leaves a pixel undecided)
+WINDOW_ATOL = 1e-12
+#: a level's pmf / tail table longer than this is not built (its pixels take the closed form)
+BRACKET_MAX_TABLE = 1 << 20
+#: pixels whose lattice brackets are looked up together (:func:`bracket_counts`)
+_BLOCK = 64
+#: status of a pixel: decided by the lattice bracket, by its own sums, or left to the closed form
+DECIDED_LATTICE, DECIDED_OWN, UNDECIDED = 0, 1, 2
+#: a level's kind: photon counts tabulated, no photons (p = 0 exactly), or not handled here
+LEVEL_TABLE, LEVEL_DARK, LEVEL_NONE = 0, 1, 2
+
+
+@kernel
+def lattice_cell(e, h, inv_h):
+    """``j`` (a float) with ``j h <= e <= (j + 1) h`` as computed in floating point (``e >= 0``, ``h > 0``,
+    ``inv_h`` about ``1 / h``)."""
+    j = np.floor(e * inv_h)
+    for _ in range(8):  # the division may round across a lattice point: step back inside
+        if j * h > e:
+            j -= 1.0
+        elif (j + 1.0) * h < e:
+            j += 1.0
+        else:
+            break
+    return j
+
+
+@kernel
+def _log_lower_tail(m, lam):
+    """Bound on ``log P(M < m)`` for ``M ~ Poisson(lam)``, ``m <= lam`` (``-inf`` at ``m = 0``): the pmf
+    ratio ``pmf(k - 1) / pmf(k) = k / lam <= (m - 1) / lam`` below ``m``, a geometric series."""
+    if m <= 0.0:
+        return -math.inf
+    return log_pmf(m - 1.0, lam) - math.log1p(-(m - 1.0) / lam)
+
+
+@kernel
+def _log_upper_tail(m, lam):
+    """Bound on ``log P(M > m)`` for ``M ~ Poisson(lam)``: ``pmf(m + 1) / (1 - lam / (m + 2))`` where the
+    ratio is below 1, else 0 (the trivial bound)."""
+    r = lam / (m + 2.0)
+    if r >= 1.0:
+        return 0.0
+    return min(log_pmf(m + 1.0, lam) - math.log1p(-r), 0.0)
+
+
+@kernel
+def level_geometry(lam, b, c_min, c_max, atol, out_int, out_t):
+    """The photon-count window and table of one light level for both polarities.
+
+    ``c_min[q]``, ``c_max[q]`` (``q`` = 0 ON, 1 OFF) are the smallest and largest ``c = expm1(eps)`` the
+    level's sums are taken at (already widened). Fills ``out_int = [kind, m_lo, m_hi_on, m_hi_off, j1]`` and
+    ``out_t = [T, T]``: the sums (:func:`window_sums`) start at ``m_lo``, leaving out at most ``T = P(M < m_lo)
+    <= atol`` of ``p``; they stop by ``m_hi_q``, where the terms above, at most ``P(M > m_hi) P(N > k(m_hi + 1))``
+    at the smallest ``c``, are below ``atol``; the table covers the counts ``m_lo .. j1``. ``kind``:
+    :data:`LEVEL_DARK` at ``lam = 0`` (``p = 0``), :data:`LEVEL_NONE` where the table would be too long.
+    """
+    out_t[0] = 0.0
+    out_t[1] = 0.0
+    if lam == 0.0:
+        out_int[0] = LEVEL_DARK
+        return
+    if not (lam > 0.0 and lam < 1e12):
+        out_int[0] = LEVEL_NONE
+        return
+    log_atol = math.log(atol)
+    mode = np.floor(lam)
+    # m_lo: the largest m <= mode with P(M < m) <= atol (the bound grows with m: bisection, bound(0) = 0)
+    if _log_lower_tail(mode, lam) <= log_atol:
+        m_lo = mode
+    else:
+        a = 0.0
+        z = mode
+        while z - a > 1.0:
+            mid = np.floor(0.5 * (a + z))
+            if _log_lower_tail(mid, lam) <= log_atol:
+                a = mid
+            else:
+                z = mid
+        m_lo = a
+    t_lo = math.exp(_log_lower_tail(m_lo, lam)) * (1.0 + 1e-6)
+    j1 = m_lo
+    for q in range(2):
+        c = c_min[q]
+        # m_hi: the smallest m >= mode with P(M > m) P(N > k(m + 1)) <= atol (falls as m grows)
+        lo_m = mode
+        step = max(1.0, np.floor(math.sqrt(lam)))
+        hi_m = mode + step
+        for _ in range(200):
+            k = threshold_count(hi_m + 1.0, c, b)
+            if _log_upper_tail(hi_m, lam) + _log_upper_tail(k, lam) <= log_atol:
+                break
+            lo_m = hi_m
+            step *= 2.0
+            hi_m = mode + step
+        while hi_m - lo_m > 1.0:
+            mid = np.floor(0.5 * (lo_m + hi_m))
+            k = threshold_count(mid + 1.0, c, b)
+            if _log_upper_tail(mid, lam) + _log_upper_tail(k, lam) <= log_atol:
+                hi_m = mid
+            else:
+                lo_m = mid
+        m_hi = hi_m
+        out_t[q] = t_lo
+        out_int[2 + q] = int(m_hi)
+        j1 = max(j1, threshold_count(m_hi, c_max[q], b) + 2.0)
+    if not (j1 - m_lo + 1.0 <= BRACKET_MAX_TABLE):
+        out_int[0] = LEVEL_NONE
+        return
+    out_int[0] = LEVEL_TABLE
+    out_int[1] = int(m_lo)
+    out_int[4] = int(j1)
+
+
+@kernel
+def fill_level_table(lam, j0, pmf, sf):
+    """``pmf[i] = P(M = j0 + i)`` and ``sf[i] = P(M > j0 + i)`` for ``M ~ Poisson(lam)``: exact ``log_pmf`` at
+    every 32nd entry and the ratio recurrence between (values near underflow recomputed exactly); the tails
+    summed downwards from an exact last one, so they only grow (no cancellation)."""
+    n = pmf.shape[0]
+    for a in range(0, n, 32):
+        v = math.exp(log_pmf(float(j0 + a), lam))
+        pmf[a] = v
+        top = min(a + 32, n)
+        if v < 1e-280:
+            for j in range(a + 1, top):
+                pmf[j] = math.exp(log_pmf(float(j0 + j), lam))
+            continue
+        for j in range(a + 1, top):
+            v *= lam / float(j0 + j)
+            pmf[j] = v
+    sf[n - 1] = math.exp(log_sf(float(j0 + n - 1), lam))
+    for j in range(n - 2, -1, -1):
+        sf[j] = sf[j + 1] + pmf[j + 1]
+
+
+@kernel
+def window_sums(c_up, c_dn, b, m_lo, m_hi, pmf, sf, atol):
+    """Bracket ends of ``p = sum_m pmf(m) P(N > k(m, c))`` for ``c_up <= c <= c_dn`` from a level's table (which
+    starts at ``m_lo``): ``(upper, lower)``, the sums over ``m >= m_lo`` at ``c_up`` plus a bound on the terms
+    left out above, and at ``c_dn``; ``k(m, c) = m + floor(c (m + b))`` is computed as the closed form computes
+    it (:func:`evnoise._kernels.poisson.threshold_count`), so that ``k`` is monotone in ``c`` bit for bit.
+
+    The sum stops past ``m`` once the terms above it, at most ``P(M > m) P(N > k(m, c_up))`` (``k`` grows with
+    ``m``), are below ``atol`` (both factors from the table), and at ``m_hi`` at the latest. A term whose ``k``
+    is the same at both ends (all but those whose ``c (m + b)`` lies within the two ends of an integer) is added
+    once, to a sum both ends share."""
+    common = 0.0
+    d_up = 0.0
+    d_dn = 0.0
+    n = m_hi - m_lo + 1
+    i = 0
+    k = 0
+    while i < n:
+        top = min(i + 8, n)
+        for ii in range(i, top):
+            x = float(m_lo + ii) + b
+            f = np.floor(c_up * x)
+            k = ii + int(f)
+            t = pmf[ii] * sf[k]
+            if c_dn * x < f + 1.0:  # the same floor at c_dn (which is >= c_up: never below it)
+                common += t
+            else:
+                d_up += t
+                d_dn += pmf[ii] * sf[ii + int(np.floor(c_dn * x))]
+        i = top
+        tail = sf[i - 1] * sf[k]
+        if tail <= atol:
+            break
+    return (common + d_up) + tail * 1.01, common + d_dn
+
+
+@kernel
+def level_sums(g_lo, g_hi, levels, b, kind, geo, tab_off, pmf, sf, h, j_first, n_cells, atol, s_up, s_dn):
+    """Tables and lattice sums of levels ``g_lo <= g < g_hi``.
+
+    Fills each level's ``pmf``, ``sf`` (from ``tab_off[g]``, :func:`fill_level_table`) and, for polarity ``q``
+    (lattice step ``h[q]``) and its lattice points ``j = j_first[q] + i``, ``0 <= i <= n_cells[q]``:
+    ``s_up[q, g, i]`` the upper end of :func:`window_sums` at ``expm1(j h) (1 - C_MARGIN)`` (the upper end of the
+    cell that starts there, but for the level's lower tail) and ``s_dn[q, g, i]`` its lower end at
+    ``expm1(j h) (1 + C_MARGIN)`` (the lower end of the cell that ends there); zeros for a level without table."""
+    for g in range(g_lo, g_hi):
+        if kind[g] != LEVEL_TABLE:
+            s_up[:, g, :] = 0.0
+            s_dn[:, g, :] = 0.0
+            continue
+        m_lo = geo[g, 1]
+        lo = tab_off[g]
+        hi = tab_off[g + 1]
+        tp = pmf[lo:hi]
+        ts = sf[lo:hi]
+        fill_level_table(levels[g], m_lo, tp, ts)
+        for q in range(2):
+            m_hi = geo[g, 2 + q]
+            for i in range(n_cells[q] + 1):
+                c = math.expm1((j_first[q] + i) * h[q])
+                s_up[q, g, i], s_dn[q, g, i] = window_sums(c * (1.0 - C_MARGIN), c * (1.0 + C_MARGIN), b, m_lo,
+                                                           m_hi, tp, ts, atol)
+
+
+@kernel
+def _log1m_low(p, exact):
+    """``l >= log1p(-p')`` for every ``p' >= p`` as any libm computes it (within a few ulps): ``log1p`` moved by
+    :data:`LOG_MARGIN`, or (``exact`` false, ``p <= 0.1``) the series bound ``log1p(-p) <= -p - p^2/2``, which
+    costs no logarithm and is wider by a relative ``p^2 / 3`` at most. ``p = 0`` gives 0 (no event, no draw)."""
+    if exact or p > 0.1:
+        return math.log1p(-p) * (1.0 - LOG_MARGIN)
+    return -(p + 0.5 * p * p) * (1.0 - LOG_MARGIN)
+
+
+@kernel
+def _log1m_high(p, exact):
+    """``l <= log1p(-p')`` for every ``p' <= p < 1``, as :func:`_log1m_low` (the series bound
+    ``log1p(-p) >= -p - p^2/2 - p^3 / (3 (1 - p))``, and ``1 / (3 (1 - p)) <= 0.375`` for ``p <= 0.1``)."""
+    if exact or p > 0.1:
+        return math.log1p(-p) * (1.0 + LOG_MARGIN)
+    return -(p + p * p * (0.5 + 0.375 * p)) * (1.0 + LOG_MARGIN)
+
+
+@kernel
+def _with_background(p_on, p_off, a_on, a_off):
+    """``(P_on, P_off)``: :func:`evnoise.background.with_background` at arrival shares ``a_on``, ``a_off``."""
+    quiet = 1.0 - p_on - p_off
+    return p_on + quiet * a_on, p_off + quiet * a_off
+
+
+@kernel
+def _on_share(p_on, p_off, a_on, a_off):
+    """The ON share ``P_on / (P_on + P_off)`` of :func:`_with_background` (0.5 where both are 0)."""
+    a, c = _with_background(p_on, p_off, a_on, a_off)
+    return a / (a + c) if a + c > 0.0 else 0.5
+
+
+@kernel
+def _first_trial(lt, lta, refr_us, dt):
+    """The renewal kernel's first eligible trial after an event at trial ``lt``, time ``lta`` (``j_min = 0``)."""
+    if lta == -math.inf or refr_us == 0.0:
+        j_e = lt + 1.0
+    else:
+        j_e = first_eligible_trial(lt, lta, refr_us, dt)
+    return max(j_e, 0.0)
+
+
+#: what :func:`dual_counts` found: the two ends part, give the same counts, or the upper end is ``p = 1``
+DUAL_PARTED, DUAL_SAME, DUAL_SURE = 0, 1, 2
+
+
+@kernel(inline=True)
+def dual_counts(s, lo_on, hi_on, lo_off, hi_off, a_on, a_off, exact, dt, refr_us, w_end):
+    """ON and OFF counts that the renewal kernel (:func:`evnoise._kernels.simulate.renewal_window`, counts only,
+    one window from 0 to ``w_end``, no timer) draws on the stream ``s`` for every ``(p_on, p_off)`` in the bracket
+    ``lo_* <= p_* <= hi_*``: ``(on, off, DUAL_SAME)`` when they are the same all over the bracket, else
+    :data:`DUAL_PARTED` (or :data:`DUAL_SURE` where the upper end reaches ``p = 1``, whose draws differ in kind).
+
+    The renewal inputs at the bracket's two ends ``a`` (lower ``p``) and ``b`` (higher): with background each
+    polarity's total is ``p + (1 - p_on - p_off) a`` (arrival shares ``a_on``, ``a_off``, zero without), so the
+    total ``P`` grows with both ``p`` (``a_on + a_off <= 1``) and the ON share ``P_on / P`` grows with ``p_on`` and
+    falls with ``p_off``: their extremes lie at the corners ``(lo, lo)``, ``(hi, hi)`` and ``(lo_on, hi_off)``,
+    ``(hi_on, lo_off)``; each is widened by :data:`BRACKET_WIDEN`, and ``log1p(-P)`` bounded by :func:`_log1m_low`,
+    :func:`_log1m_high` (``exact``: by ``log1p`` itself). Both ends are run in lockstep, stopping as soon as they
+    part: while both have their events inside the window they take the same draws (one ``uniform_pos`` for the
+    gap, one ``uniform`` for the time in the trial and one for the polarity), and every event of ``b`` comes at or
+    before ``a``'s (gaps shrink as ``p`` grows, the first eligible trial follows the last event), so ``b``'s next
+    event beyond the window ends both. The lower end and the ON shares are only worked out once ``b`` has an
+    event in the window (most pixels have none)."""
+    p_on, p_off = _with_background(hi_on, hi_off, a_on, a_off)
+    p_hi = (p_on + p_off) * (1.0 + BRACKET_WIDEN)
+    if p_hi >= 1.0:
+        return 0, 0, DUAL_SURE
+    l_b = _log1m_high(p_hi, exact)
+    if l_b == 0.0:  # p = 0 at the upper end: no draw, no event, at every p in between
+        return 0, 0, DUAL_SAME
+    la = math.log(uniform_pos(s))
+    g_b = np.floor(la / l_b) + 1.0
+    if g_b == math.inf:
+        return 0, 0, DUAL_SAME
+    jp_b = g_b - 1.0  # the first eligible trial is 0
+    u = uniform(s)
+    tau_b = (jp_b + u) * dt
+    if tau_b >= w_end:
+        return 0, 0, DUAL_SAME
+    p_on, p_off = _with_background(lo_on, lo_off, a_on, a_off)
+    l_a = _log1m_low(max((p_on + p_off) * (1.0 - BRACKET_WIDEN), 0.0), exact)
+    q_a = min(max(_on_share(lo_on, hi_off, a_on, a_off) * (1.0 - BRACKET_WIDEN), 0.0), 1.0)
+    q_b = min(max(_on_share(hi_on, lo_off, a_on, a_off) * (1.0 + BRACKET_WIDEN), 0.0), 1.0)
+    j_a = 0.0
+    n_on = 0
+    n_off = 0
+    while True:  # b's event of this step (its gap from la, its time from u) is inside the window
+        if l_a == 0.0:  # p = 0 at the lower end: no draw, no event
+            return n_on, n_off, DUAL_PARTED
+        g_a = np.floor(la / l_a) + 1.0
+        if g_a == math.inf:
+            return n_on, n_off, DUAL_PARTED
+        jp_a = j_a + g_a - 1.0
+        tau_a = (jp_a + u) * dt
+        if tau_a >= w_end:
+            return n_on, n_off, DUAL_PARTED
+        u = uniform(s)
+        on_a = u < q_a
+        if on_a != (u < q_b):
+            return n_on, n_off, DUAL_PARTED
+        if on_a:
+            n_on += 1
+        else:
+            n_off += 1
+        j_a = _first_trial(jp_a, tau_a, refr_us, dt)
+        j_b = _first_trial(jp_b, tau_b, refr_us, dt)
+        la = math.log(uniform_pos(s))
+        g_b = np.floor(la / l_b) + 1.0
+        if g_b == math.inf:  # then g_a is too: neither draws again
+            return n_on, n_off, DUAL_SAME
+        jp_b = j_b + g_b - 1.0
+        u = uniform(s)
+        tau_b = (jp_b + u) * dt
+        if tau_b >= w_end:
+            return n_on, n_off, DUAL_SAME
+
+
+@kernel
+def _own_bracket(e, g, q, b, geo, t_tail, tab_off, pmf, sf, atol):
+    """``(ok, upper, lower)``: the bracket of one polarity's ``p`` of a pixel at threshold ``e`` from its level's
+    table (:func:`window_sums` at its own ``c = expm1(e)``, moved by :data:`C_MARGIN` either way); ``ok`` false
+    where the sums would run past the table (not for thresholds inside the level's lattice)."""
+    m_lo = geo[g, 1]
+    m_hi = geo[g, 2 + q]
+    lo = tab_off[g]
+    hi = tab_off[g + 1]
+    c = math.expm1(e)
+    if threshold_count(float(m_hi), c * (1.0 + C_MARGIN), b) > m_lo + (hi - lo) - 1:
+        return False, 0.0, 0.0
+    up, dn = window_sums(c * (1.0 - C_MARGIN), c * (1.0 + C_MARGIN), b, m_lo, m_hi, pmf[lo:hi], sf[lo:hi], atol)
+    return True, (up + t_tail[g, q]) * (1.0 + BRACKET_WIDEN) + BRACKET_ABS, (
+        dn * (1.0 - BRACKET_WIDEN) if dn > 1e-280 else 0.0)
+
+
+@kernel
+def bracket_counts(first, group, eps_on, eps_off, key, inv_h, h, j_first, n_cells, cells, kind, geo, t_tail, tab_off,
+                   pmf, sf, b, a_on, a_off, dt, refr_us, w_end, atol, on_counts, off_counts, status):
+    """Counts of the pixels ``first, first + 1, ...`` (flat indices; their level ``group``, thresholds ``eps_on``,
+    ``eps_off``), each decided by its lattice bracket, else by brackets of its own sums (the polarity whose
+    lattice bracket is wider first), else marked :data:`UNDECIDED` (counts left 0) for the closed form.
+
+    ``cells[q, g, j - j_first[q]] = (upper, lower)`` is the bracket of polarity ``q``'s ``p`` over lattice cell
+    ``j`` (step ``h[q]``, ``inv_h[q] = 1 / h[q]``, ``0 <= j - j_first[q] < n_cells[q]``; a threshold outside the
+    lattice takes its own sums at once) of level ``g``; ``geo``, ``t_tail``, ``tab_off``, ``pmf``, ``sf``
+    the level windows and tables (:func:`level_geometry`, :func:`level_sums`); ``a_on``, ``a_off`` the levels'
+    background arrival shares (zeros without background); ``status`` says how each pixel was decided. Returns how
+    many pixels the lattice left undecided, and how many of those their own sums did not decide either."""
+    s = np.empty(4, dtype=np.uint64)
+    ends = np.empty((_BLOCK, 4))
+    n_pix = group.shape[0]
+    n_own = 0
+    n_left = 0
+    for i0 in range(0, n_pix, _BLOCK):
+        i1 = min(i0 + _BLOCK, n_pix)
+        # the lattice brackets of a block first, in a loop of their own (measured faster than pixel by pixel)
+        for i in range(i0, i1):
+            k = i - i0
+            g = group[i]
+            ends[k, 0] = 1.0  # beyond the lattice: a bracket that decides nothing
+            ends[k, 1] = 0.0
+            ends[k, 2] = 1.0
+            ends[k, 3] = 0.0
+            if kind[g] == LEVEL_DARK:  # no photons: p = 0 exactly at every threshold
+                ends[k, 0] = 0.0
+                ends[k, 2] = 0.0
+            elif kind[g] == LEVEL_TABLE:
+                jf = lattice_cell(eps_on[i], h[0], inv_h[0]) - j_first[0]
+                if 0.0 <= jf < n_cells[0]:
+                    ends[k, 0] = cells[0, g, int(jf), 0]
+                    ends[k, 1] = cells[0, g, int(jf), 1]
+                jf = lattice_cell(eps_off[i], h[1], inv_h[1]) - j_first[1]
+                if 0.0 <= jf < n_cells[1]:
+                    ends[k, 2] = cells[1, g, int(jf), 0]
+                    ends[k, 3] = cells[1, g, int(jf), 1]
+        for i in range(i0, i1):
+            k = i - i0
+            g = group[i]
+            on_counts[i] = 0
+            off_counts[i] = 0
+            status[i] = UNDECIDED
+            if kind[g] == LEVEL_NONE:
+                n_left += 1
+                continue
+            seed_state(key, np.int64(first + i), s)
+            n_on, n_off, found = dual_counts(s, ends[k, 1], ends[k, 0], ends[k, 3], ends[k, 2], a_on[g], a_off[g],
+                                             False, dt, refr_us, w_end)
+            if found == DUAL_SAME:
+                on_counts[i] = n_on
+                off_counts[i] = n_off
+                status[i] = DECIDED_LATTICE
+                continue
+            n_own += 1
+            if kind[g] == LEVEL_TABLE:
+                status[i], on_counts[i], off_counts[i] = _own_counts(
+                    np.int64(first + i), g, eps_on[i], eps_off[i], ends[k, 0], ends[k, 1], ends[k, 2], ends[k, 3],
+                    key, s, geo, t_tail, tab_off, pmf, sf, b, a_on[g], a_off[g], dt, refr_us, w_end, atol)
+            if status[i] == UNDECIDED:
+                n_left += 1
+    return n_own, n_left
+
+
+@kernel
+def _own_counts(pix, g, e_on, e_off, hi_on, lo_on, hi_off, lo_off, key, s, geo, t_tail, tab_off, pmf, sf, b, a_on,
+                a_off, dt, refr_us, w_end, atol):
+    """A pixel that its lattice brackets (``hi_on``, ``lo_on``, ``hi_off``, ``lo_off``) left undecided, decided by
+    the brackets of its own sums (the polarity whose lattice bracket is wider first): ``(status, on, off)``, the
+    counts 0 unless decided."""
+    first_q = 0 if hi_on - lo_on >= hi_off - lo_off else 1
+    for step in range(2):
+        q = first_q if step == 0 else 1 - first_q
+        ok, up, dn = _own_bracket(e_on if q == 0 else e_off, g, q, b, geo, t_tail, tab_off, pmf, sf, atol)
+        if not ok:
+            break
+        if q == 0:
+            hi_on = up
+            lo_on = dn
+        else:
+            hi_off = up
+            lo_off = dn
+        seed_state(key, pix, s)
+        n_on, n_off, found = dual_counts(s, lo_on, hi_on, lo_off, hi_off, a_on, a_off, True, dt, refr_us, w_end)
+        if found == DUAL_SAME:
+            return DECIDED_OWN, n_on, n_off
+    return UNDECIDED, 0, 0
+
+
+@kernel
+def levels_geometry(levels, b, c_min, c_max, atol, geo, t_tail):
+    """:func:`level_geometry` of every level: ``geo[g] = [kind, m_lo, m_hi_on, m_hi_off, j1]``, ``t_tail[g]``."""
+    for g in range(levels.shape[0]):
+        level_geometry(levels[g], b, c_min[g], c_max[g], atol, geo[g], t_tail[g])
