@@ -34,13 +34,18 @@ def _marginal_pmf(v, model, gi, grp, wi, pol, kmax):
     comps = component_rates(v, gi, model, grp)
     fractions = [1.0 - v["hot_fraction"], v["hot_fraction"]]
     out = np.zeros(kmax + 1)
-    for (rates, share_on, weights), frac in zip(comps, fractions):
+    for (rates, share_on, weights), frac, reg in zip(comps, fractions, _regularities(v)):
         keep = weights > 1e-14 * weights.max()
-        pmf_n = count_pmf(n_cap, rates[keep, wi], w.duration_s, v["regularity"])  # (M, N)
+        pmf_n = count_pmf(n_cap, rates[keep, wi], w.duration_s, reg)  # (M, N)
         q = share_on[keep, wi] if pol == 0 else 1.0 - share_on[keep, wi]
         thin = binom.pmf(k[None, :, None], n[None, None, :], q[:, None, None])  # (M, K, N)
         out += frac * np.einsum("mkn,mn,m->k", thin, pmf_n, weights[keep] / weights[keep].sum())
     return out
+
+
+def _regularities(v):
+    """The regularity of the ordinary and of the hot pixels (the same unless the fit gave the hot their own)."""
+    return v["regularity"], v.get("hot_regularity", v["regularity"])
 
 
 def goodness_of_fit(v, model, groups, n_fitted):
@@ -98,13 +103,13 @@ def interval_cdf(x, v, model, gi, grp, wi):
     num = np.zeros(x.shape)
     den = 0.0
     fractions = [1.0 - v["hot_fraction"], v["hot_fraction"]]
-    for (rates, _share, weights), frac in zip(component_rates(v, gi, model, grp), fractions):
+    for (rates, _share, weights), frac, reg in zip(component_rates(v, gi, model, grp), fractions, _regularities(v)):
         if frac <= 0:
             continue
         lam = rates[:, wi]
         wgt = frac * weights / weights.sum() * lam
-        cdf, part = _gap_parts(x, lam, v["regularity"])
-        cdf_t, part_t = _gap_parts(np.array([T]), lam, v["regularity"])
+        cdf, part = _gap_parts(x, lam, reg)
+        cdf_t, part_t = _gap_parts(np.array([T]), lam, reg)
         num += wgt @ (T * cdf - part)
         den += float(wgt @ (T * cdf_t - part_t)[:, 0])
     return np.clip(num / den, 0.0, 1.0) if den > 0 else np.zeros(x.shape)
@@ -144,7 +149,11 @@ def timing_tests(v, model, groups, *, p_opposite: float | None = None) -> list:
             model_cdf = interval_cdf(xs, v, model, gi, grp, wi)
             stat = float(max(np.max((ranks + 1) / n - model_cdf), np.max(model_cdf - ranks / n)))
             pv = float(kstwo.sf(stat, n))
-            med = brentq(lambda x: interval_cdf(np.array([x]), v, model, gi, grp, wi)[0] - 0.5, 0.0, w.duration_s)
+            def half(x):
+                return interval_cdf(np.array([x]), v, model, gi, grp, wi)[0] - 0.5
+
+            # a model without intervals in the window (every rate ~0: its CDF is 0) has no median
+            med = brentq(half, 0.0, w.duration_s) if half(0.0) < 0.0 < half(w.duration_s) else math.nan
             emp_med = float(np.interp((n - 1) / 2, ranks, xs))
             row.update(statistic=stat, p_value=pv, median_s=emp_med, model_median_s=float(med),
                        detail=(f"KS D = {stat:.3g} over {n} same-pixel intervals, median {emp_med:.4g} s against "
