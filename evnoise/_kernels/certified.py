@@ -90,7 +90,9 @@ def _node_values(mid, half, c, b, n):
 
 
 @kernel
-def _dct(values):
+def dct(values):
+    """Chebyshev coefficients of the values at the first-kind points ``cos(pi (k + 1/2) / n)`` (also the
+    log-spaced table's, :mod:`.chebyshev`)."""
     n = values.shape[0]
     a = np.zeros(n)
     for j in range(n):
@@ -104,6 +106,7 @@ def _dct(values):
 
 @kernel
 def clenshaw(coef, t):
+    """The Chebyshev series ``coef`` at ``t`` in [-1, 1] (Clenshaw's recurrence; also :mod:`.chebyshev`'s)."""
     b1 = 0.0
     b2 = 0.0
     for j in range(coef.shape[0] - 1, 0, -1):
@@ -180,7 +183,7 @@ def certify_panel(lo, hi, c, b, n):
         q[k] = math.exp(d - e)
         eta = max(eta, NODE_REL_ERR + 2.0 * _U * (abs(d) + abs(e)) + 2.0 * _U * abs(d - e) + 4.0 * _U)
         vmax = max(vmax, abs(v[k]))
-    coef = _dct(q)
+    coef = dct(q)
     qmax = 0.0
     for k in range(n + 1):
         qmax = max(qmax, q[k])

@@ -27,6 +27,8 @@ from numba import prange
 from . import certified
 from ._jit import kernel
 from .bounds import chernoff_bracket, log_chernoff_bound
+from .certified import clenshaw as _clenshaw
+from .certified import dct as _coefficients
 from .poisson import log_event_probability_exact
 
 DEGREE = 16
@@ -58,30 +60,6 @@ def _exact_on_nodes(u_lo, u_hi, c, b, degree):
         u = 0.5 * (u_lo + u_hi) + 0.5 * (u_hi - u_lo) * x
         out[k] = log_event_probability_exact(math.exp(u), c, b)
     return out
-
-
-@kernel
-def _coefficients(values):
-    n = values.shape[0]
-    a = np.zeros(n)
-    for j in range(n):
-        s = 0.0
-        for k in range(n):
-            s += values[k] * math.cos(math.pi * j * (k + 0.5) / n)
-        a[j] = 2.0 * s / n
-    a[0] *= 0.5
-    return a
-
-
-@kernel
-def _clenshaw(coef, t):
-    b1 = 0.0
-    b2 = 0.0
-    for j in range(coef.shape[0] - 1, 0, -1):
-        b0 = coef[j] + 2.0 * t * b1 - b2
-        b2 = b1
-        b1 = b0
-    return coef[0] + t * b1 - b2
 
 
 @kernel
