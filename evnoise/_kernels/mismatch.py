@@ -36,7 +36,7 @@ import math
 import numpy as np
 
 from ._jit import kernel
-from .poisson import _pmf_run, log_event_probability_exact, log_pmf, log_sf, threshold_count
+from .poisson import log_event_probability_exact, log_pmf, log_sf, pmf_run, threshold_count
 from .rng import seed_state, uniform, uniform_pos
 from .simulate import first_eligible_trial
 
@@ -433,10 +433,10 @@ def level_geometry(lam, b, c_min, c_max, atol, out_int, out_t):
 @kernel
 def fill_level_table(lam, j0, pmf, sf):
     """``pmf[i] = P(M = j0 + i)`` and ``sf[i] = P(M > j0 + i)`` for ``M ~ Poisson(lam)``: the pmf as
-    :func:`.poisson._pmf_run` makes it (exact ``log_pmf`` at every 32nd entry, the ratio recurrence between);
+    :func:`.poisson.pmf_run` makes it (exact ``log_pmf`` at every 32nd entry, the ratio recurrence between);
     the tails summed downwards from an exact last one, so they only grow (no cancellation)."""
     n = pmf.shape[0]
-    _pmf_run(lam, j0, pmf)
+    pmf_run(lam, j0, pmf)
     sf[n - 1] = math.exp(log_sf(float(j0 + n - 1), lam))
     for j in range(n - 2, -1, -1):
         sf[j] = sf[j + 1] + pmf[j + 1]

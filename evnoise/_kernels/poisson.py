@@ -493,7 +493,7 @@ def _grouped_pixel(lam, ci, b, j0, j1, pmf, sf, m_start, tol):
 
 
 @kernel
-def _pmf_run(lam, j0, pmf):
+def pmf_run(lam, j0, pmf):
     """``pmf[j] = P(N = j0 + j)``: exact ``log_pmf`` at every 32nd entry, the ratio recurrence
     ``pmf(j + 1) = pmf(j) lam / (j + 1)`` in between (relative error below ~32 ulps; values that
     underflow are recomputed from the anchors, never carried as 0)."""
@@ -558,7 +558,7 @@ def event_probability_grouped(lam_levels, starts, order, c, b, out):
                 out[order[q]] = math.nan
             continue
         pmf = np.empty(n + 1)
-        _pmf_run(lam, j0, pmf)
+        pmf_run(lam, j0, pmf)
         sf = np.empty(n)
         sf[n - 1] = math.exp(log_sf(float(j1), lam))
         for j in range(n - 2, -1, -1):
