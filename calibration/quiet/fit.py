@@ -41,7 +41,7 @@ windows with fewer than 100 intervals report "not enough intervals"; otherwise *
 whose counts the model reproduces but whose timing it does not is not accepted.
 
 Timing (``fit_quiet(timing="auto")``, opt-in and experimental, see the parameter; windows read with their
-events by :func:`.window.quiet_window`): the
+events by :func:`~evnoise.calibration.quiet_window`): the
 likelihood is that of each pixel's event *times* in the window (a stationary renewal process with the
 simulator's gap law, :mod:`.likelihood`), which holds the counts' likelihood and the intervals' too; the
 periodic-timer explanation of under-dispersed counts is then tested against the intervals it implies (a
@@ -361,7 +361,7 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
         ratio test at :data:`LR_P` says the data carry it.
     timing : {"off", "auto", "on"}
         Fit the event times (the timing likelihood of :mod:`.likelihood`), not only the counts: ``"auto"``
-        where every window carries its events (:func:`.window.quiet_window` keeps them), ``"on"`` requires it.
+        where every window carries its events (:func:`~evnoise.calibration.quiet_window` keeps them), ``"on"`` requires it.
         Default ``"off"`` (the counts are fitted, the timing *tested*): the timing fit is experimental — on
         data simulated from the model its standard errors are not available (the observed information is not
         positive definite, ``tests/test_quiet_timing_fit.py``), the documentation's example (a regular leak
