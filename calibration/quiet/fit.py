@@ -361,7 +361,8 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
         ratio test at :data:`LR_P` says the data carry it.
     timing : {"off", "auto", "on"}
         Fit the event times (the timing likelihood of :mod:`.likelihood`), not only the counts: ``"auto"``
-        where every window carries its events (:func:`~evnoise.calibration.quiet_window` keeps them), ``"on"`` requires it.
+        where every window carries its events (:func:`~evnoise.calibration.quiet_window` keeps them),
+        ``"on"`` requires it.
         Default ``"off"`` (the counts are fitted, the timing *tested*): the timing fit is experimental — on
         data simulated from the model its standard errors are not available (the observed information is not
         positive definite, ``tests/test_quiet_timing_fit.py``), the documentation's example (a regular leak
