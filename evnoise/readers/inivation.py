@@ -253,10 +253,9 @@ class Aedat4Source(EventSource):
         def counted(dec):
             for track, packet in dec:
                 done["packets"] += 1
-                if track.id == self._track and len(packet):
-                    done["t"] = int(packet["t"][-1])
-                    yield packet
-                elif track.id == self._track:
+                if track.id == self._track:
+                    if len(packet):
+                        done["t"] = int(packet["t"][-1])
                     yield packet
 
         try:
