@@ -287,7 +287,7 @@ example has 245). With a cold Numba cache, the table cache saves compiling the t
 kernel and the panel fit): only the kernels a run calls are compiled. The pixel state (~20 ns per pixel) is
 the 12-column float state the renewal kernel takes (96-byte rows, faulted in by both threads); a narrower
 state for renewal-only pixels needs a change in the kernel's column layout (`evnoise/_kernels/simulate.py`).
-Not covered here: items 3 (large-lam certified expansion) and 4 (threshold-mismatch counts) of issue 33."""
+Items 3 (large-lam certified panels) and 4 (threshold-mismatch counts) of issue 33 have their own sections below."""
 
 
 def plot(fresh, path: Path) -> None:
