@@ -463,7 +463,7 @@ def main(argv=None):
                         help="train a small U-Net this long for the dynamic-scene section (default: 0 with "
                              "--tiny, 3 with --quick, 10 otherwise; 0 evaluates the model-based inversion only)")
     parser.add_argument("--only-closed-forms", action="store_true",
-                        help="rerun section 1 only and replace it in the existing REPORT.md (with its own machine line)")
+                        help="rerun section 1 only, in place in the existing REPORT.md (with its own machine line)")
     args = parser.parse_args(argv)
     size = SIZES["tiny" if args.tiny else "quick" if args.quick else "full"]
     args.out.mkdir(parents=True, exist_ok=True)

@@ -54,6 +54,7 @@ import numpy as np
 from . import terms
 from ._checks import as_generator, check_lux, check_params
 from .errors import InputError
+from .terms.arrivals import arrival_shares, lux_of_photons  # noqa: F401  (their home; imported from here too)
 from .terms.bandwidth import alpha_per_photon as pr_alpha_per_photon
 from .terms.timer import regular_rates, timer_shape
 
@@ -99,27 +100,12 @@ def background_rate(lux, params, *, background=None) -> np.ndarray:
     return np.stack(terms.intensities(lux, params, scale, hot))
 
 
-def arrival_shares(l_on, l_off, trial_rate_hz: float):
-    """Per-trial background probabilities ``(a_on, a_off)``: ``a * l_on / l`` and ``a * l_off / l``."""
-    l_all = l_on + l_off
-    with np.errstate(divide="ignore", invalid="ignore"):
-        # (1 - exp(-l / N)) / l, with its limit 1 / N at l = 0
-        g = np.where(l_all > 0, -np.expm1(-l_all / trial_rate_hz) / np.where(l_all > 0, l_all, 1.0),
-                     1.0 / trial_rate_hz)
-    return g * l_on, g * l_off
-
-
 def with_background(p_on, p_off, lux, params, scale=None, hot=None):
     """Per-trial ``(P_on, P_off)``: photon-noise probabilities with the background added (module doc)."""
     l_on, l_off = terms.intensities(lux, params, scale, hot)
     a_on, a_off = arrival_shares(l_on, l_off, params.trial_rate_hz)
     quiet = 1.0 - p_on - p_off
     return p_on + quiet * a_on, p_off + quiet * a_off
-
-
-def lux_of_photons(lam, params):
-    """Illuminance ``lux`` back from mean photons per trial (``>= 0``)."""
-    return np.maximum(np.asarray(lam, dtype=np.float64) / params.photons_per_lux - params.dark_lux, 0.0)
 
 
 def pr_tau_s(lux, params) -> np.ndarray:

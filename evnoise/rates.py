@@ -92,12 +92,16 @@ def expected_rate(lux, params, *, thresholds=None, background=None, mismatch: st
         raise ParameterError(f"mismatch must be 'nominal' or 'mean', got {mismatch!r}")
     if params.reset_memory > 0:
         # a pixel with memory is not a sequence of independent trials: its rate is the Markov renewal closed form
-        # (nominal thresholds, no background: what that form and its simulator cover so far)
-        if thresholds is not None or background is not None or params.has_background or (
-                mismatch == "mean" and params.eps_sigma > 0):
-            raise ParameterError("the rate with reset_memory > 0 is known for nominal thresholds without background "
-                                 "terms only (evnoise.terms.memory.memory_statistics)")
-        from .terms.memory import memory_statistics
+        # (nominal thresholds, a uniform Poisson background: what that form and its simulator cover so far)
+        from .terms.memory import memory_statistics, unsupported
+
+        missing = unsupported(params, thresholds, background)
+        if thresholds is None and mismatch == "nominal" and params.eps_sigma > 0:
+            missing.remove("threshold mismatch (eps_sigma > 0 or given thresholds)")  # the nominal pixel's rate
+        if missing:
+            raise ParameterError(f"the rate with reset_memory > 0 is known for nominal thresholds and a uniform "
+                                 f"Poisson background only, not for {' and '.join(missing)} "
+                                 f"(evnoise.terms.memory.memory_statistics)")
 
         return memory_statistics(lux, params).rate_hz
     if mismatch == "mean":

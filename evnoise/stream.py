@@ -49,8 +49,9 @@ class NoiseStream:
     level between intervals, so polarities alternate across interval boundaries as within one; the first
     interval starts in the steady state of its light. When a pixel's light changes, its stored photon count
     is kept (clamped into the new light's state range, which spans the new ``lam`` ± many standard
-    deviations: only a jump of the light beyond that range moves it). Threshold mismatch and background
-    activity are not modelled with reset memory yet (:class:`~evnoise.ParameterError`).
+    deviations: only a jump of the light beyond that range moves it). A uniform Poisson background is part of
+    the memory model; threshold mismatch, hot pixels, a background spread over pixels and the regular timer are
+    not modelled with reset memory yet (:class:`~evnoise.ParameterError`).
     """
 
     def __init__(self, shape, params: NoiseParams, rng=None, *, t_start_us: int = 0, thresholds=None,

@@ -49,7 +49,7 @@ def test_counts_with_memory_still_refuse_what_the_memory_tier_lacks():
     with pytest.raises(ev.ParameterError, match="reset_memory"):
         ev.sample_counts(lux, MEM.replace(eps_sigma=0.05), 1.0, rng=1)
     with pytest.raises(ev.ParameterError, match="reset_memory"):
-        ev.sample_counts(lux, MEM.replace(leak_on_hz=0.1), 1.0, rng=1)
+        ev.sample_counts(lux, MEM.replace(leak_on_hz=0.1, leak_regularity=0.5), 1.0, rng=1)
 
 
 def test_dataset_counts_mode_with_memory_counts_the_memory_tier():

@@ -21,6 +21,10 @@ K_SIGMA = 5.0
 BASE = ev.NoiseParams(eps_pos=0.5, eps_neg=0.6, bias_pr=1.0, trial_rate_hz=1000.0, photons_per_lux=5.0,
                       refractory_s=3e-4)
 MEM = BASE.replace(reset_memory=0.7)
+#: with a uniform Poisson background; thresholds high enough that photon noise and background are of the same order
+#: (~1-3 events/s each)
+BG = BASE.replace(eps_pos=1.5, eps_neg=1.5, reset_memory=0.8, leak_on_hz=2.0, leak_off_hz=0.5)
+BG_LUX = 2.0
 
 
 def _reference(lam, params, n_pix, n_trials, seed):
@@ -210,8 +214,9 @@ def test_what_is_not_modelled_yet_is_refused(what):
             PhotonNoise((4, 4, 2), MEM.replace(eps_sigma=0.05), 1.0, rng=1)
         elif what == "mismatch":
             ev.simulate_events(lux, MEM.replace(eps_sigma=0.05), 1.0, rng=1)
-        elif what == "background":
-            ev.simulate_events(lux, MEM.replace(leak_on_hz=0.1), 1.0, rng=1)
+        elif what == "background":  # a uniform Poisson background is modelled; hot pixels not yet
+            ev.simulate_events(lux, MEM.replace(leak_on_hz=0.1, hot_pixel_fraction=0.1, hot_pixel_rate_hz=5.0), 1.0,
+                               rng=1)
         else:
             ev.simulate_events(lux, MEM, 1.0, rng=1, method="trials")
 
@@ -228,7 +233,7 @@ def test_expected_rate_of_a_pixel_with_memory_is_the_markov_renewal_rate():
     memoryless = ev.expected_rate(lux, p.replace(reset_memory=0.0))
     assert not np.allclose(got, memoryless, rtol=1e-3)  # the memory changes the rate
     with pytest.raises(ev.ParameterError, match="reset_memory"):
-        ev.expected_rate(lux, p.replace(leak_on_hz=0.1))
+        ev.expected_rate(lux, p.replace(leak_on_hz=0.1, leak_sigma=0.5))
     with pytest.raises(ev.ParameterError, match="reset_memory"):
         ev.expected_rate(lux, p, thresholds=np.full((2, 2, 2), 0.5))
 
@@ -335,17 +340,18 @@ def test_noise_stream_with_memory_against_the_closed_form():
             assert p_ks > 1e-3, (a, b, p_ks)
 
 
-def test_noise_stream_with_memory_through_changes_of_light_against_the_per_trial_reference():
+@pytest.mark.parametrize("params, background_hz", [(MEM, (0.0, 0.0)), (BG, (2.0, 0.5))])
+def test_noise_stream_with_memory_through_changes_of_light_against_the_per_trial_reference(params, background_hz):
     """The light steps 0.5 -> 0 -> 2 lux (at 2 s and 3 s): per-pixel counts, ON share and alternation in each
     phase and right after each step (the stored levels of the old light meet the new one: a transient; in the
     dark the stored-level comparison still fires once), against the plain per-trial simulation of the same
-    schedule (two-sample, k-sigma from the per-pixel spread of each)."""
+    schedule (two-sample, k-sigma from the per-pixel spread of each); without and with a background."""
     shape, steps = (20, 20), [(0.5, 2000), (0.0, 1000), (2.0, 2000)]
     n_pix = shape[0] * shape[1]
-    dt = MEM.trial_us
-    lam = np.concatenate([np.full(n, lux) for lux, n in steps]) * MEM.photons_per_lux
-    ref = _reference_schedule(lam, MEM, n_pix, seed=8)
-    stream = ev.NoiseStream(shape, MEM, rng=9)
+    dt = params.trial_us
+    lam = np.concatenate([np.full(n, lux) for lux, n in steps]) * params.photons_per_lux
+    ref = _reference_schedule(lam, params, n_pix, seed=8, background_hz=background_hz)
+    stream = ev.NoiseStream(shape, params, rng=9)
     ends = np.cumsum([n for _, n in steps]) * dt
     got = _stream_events(stream, [(np.full(shape, lux), int(end)) for (lux, _), end in zip(steps, ends)], seed=5)
     for lo_s, hi_s in ((1.0, 2.0), (2.0, 2.05), (2.05, 3.0), (3.0, 3.05), (3.05, 5.0)):
@@ -364,10 +370,16 @@ def test_noise_stream_with_memory_through_changes_of_light_against_the_per_trial
             assert abs(ra - rb) <= K_SIGMA * math.hypot(sa, sb), (lo_s, num, ra, rb)
 
 
-def _reference_schedule(lam, params, n_pix, seed):
-    """:func:`_reference` with a photon count per trial (``lam[j]`` for trial ``j``), started at ``lam[0]``."""
+def _reference_schedule(lam, params, n_pix, seed, background_hz=(0.0, 0.0)):
+    """:func:`_reference` with a photon count per trial (``lam[j]`` for trial ``j``), started at ``lam[0]``.
+
+    ``background_hz``: a uniform Poisson background ``(ON, OFF)`` events/s: in a trial without photon event an
+    arrival with probability ``1 - exp(-l / N)``, ON with probability ``l_on / l``, storing the trial's count."""
     lam = np.asarray(lam, dtype=np.float64)
     rng = np.random.default_rng(seed)
+    l_all = float(sum(background_hz))
+    a_bg = -math.expm1(-l_all / params.trial_rate_hz)
+    share_on = background_hz[0] / l_all if l_all > 0 else 0.0
     b, k, dt, refr = params.bias_pr, params.reset_memory, params.trial_us, params.refractory_us
     stored = rng.poisson(lam[0], n_pix)
     last = np.full(n_pix, -np.inf)
@@ -378,6 +390,10 @@ def _reference_schedule(lam, params, n_pix, seed):
         ref = np.where(rng.random(n_pix) < k, stored, fresh)
         d = np.log(n + b) - np.log(ref + b)
         on, off = d > params.eps_pos, -d > params.eps_neg
+        if l_all > 0:
+            arrival = ~(on | off) & (rng.random(n_pix) < a_bg)
+            bg_on = rng.random(n_pix) < share_on
+            on, off = on | (arrival & bg_on), off | (arrival & ~bg_on)
         tau = (j + rng.random(n_pix)) * dt
         fire = (on | off) & (j * dt >= last + refr)
         idx = np.flatnonzero(fire)
@@ -390,27 +406,30 @@ def _reference_schedule(lam, params, n_pix, seed):
     return np.concatenate(pixels), np.concatenate(times), np.concatenate(pols)
 
 
-def test_tonic_transform_with_memory_against_the_closed_form():
+@pytest.mark.parametrize("params, sample_us", [(MEM, 500_000), (BG, 20_000_000)],
+                         ids=["memory", "memory-and-background"])
+def test_tonic_transform_with_memory_against_the_closed_form(params, sample_us):
     """The tonic transform with reset memory: each sample's noise starts in the steady state of its light, so the
     pooled noise of many samples has the closed form's rate, ON share and alternation; an int seed keeps a sample's
-    noise reproducible."""
+    noise reproducible. (Samples hold many events per pixel: the transitions inside a short sample favour short
+    intervals, which are mostly of opposite polarity.)"""
     from evnoise.plugins.tonic import PhotonNoise
 
-    transform = PhotonNoise((30, 20, 2), MEM, 2.0, rng=7)
+    transform = PhotonNoise((30, 20, 2), params, 2.0, rng=7)
     dtype = np.dtype([("x", "<i8"), ("y", "<i8"), ("t", "<i8"), ("p", "<i8")])
     duration_s, pix, t, p = 0.0, [], [], []
     for k in range(20):
         sample = np.zeros(2, dtype=dtype)
-        sample["t"] = [0, 500_000]
+        sample["t"] = [0, sample_us]
         sample["x"] = k  # a different sample each time (an int seed hashes the sample)
         noise = transform.noise(sample)
         pix.append(noise["y"] * 30 + noise["x"] + k * 600)
         t.append(noise["t"].astype(np.float64))
         p.append(noise["p"].astype(np.uint8))
-        duration_s = 0.500001
+        duration_s = (sample_us + 1) * 1e-6
     assert np.array_equal(transform.noise(sample), noise)
     s = _summaries(np.concatenate(pix), np.concatenate(t), np.concatenate(p), 20 * 600)
-    st = memory.memory_statistics(2.0, MEM)
+    st = memory.memory_statistics(2.0, params)
     rate = s["events"] / duration_s
     assert abs(rate.mean() - st.rate_hz.sum()) < K_SIGMA * rate.std() / math.sqrt(rate.size)
     for (num, den), want in ((("on", "events"), st.on_share), (("opp", "trans"), st.p_opposite),
@@ -419,3 +438,84 @@ def test_tonic_transform_with_memory_against_the_closed_form():
         got, se = _ratio(s[num], den_counts)
         assert abs(got - want) < K_SIGMA * se, (num, got, want)
     # (the mean intervals are not compared: a 0.5 s sample cuts long intervals off, biasing their mean short)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# reset memory with a uniform Poisson background (leak): a background event stores the count of its trial
+# --------------------------------------------------------------------------------------------------------------
+
+
+def test_background_with_memory_closed_form_against_an_independent_per_trial_simulation():
+    lam, n_pix, n_trials = BG_LUX * BG.photons_per_lux, 600, 40_000
+    pix, t, p = _reference_schedule(np.full(n_trials, lam), BG, n_pix, seed=21, background_hz=(2.0, 0.5))
+    st = memory.memory_statistics(BG_LUX, BG)
+    st_photon = memory.memory_statistics(BG_LUX, BG.replace(leak_on_hz=0.0, leak_off_hz=0.0))
+    # the background is a large share of the events, and changes the statistics the checks test
+    assert st.rate_hz.sum() > 1.2 * st_photon.rate_hz.sum()
+    assert abs(float(st.on_share) - float(st_photon.on_share)) > 0.05
+    s = _summaries(pix, np.floor(t), p, n_pix)
+    _check_against_closed_form(s, st, n_trials * BG.trial_us * 1e-6, n_pix)
+
+
+def test_background_with_memory_fast_kernel_against_the_reference_and_the_closed_form():
+    lam, n_pix, n_trials = BG_LUX * BG.photons_per_lux, 600, 40_000
+    duration_s = n_trials * BG.trial_us * 1e-6
+    rp, rt, rpol = _reference_schedule(np.full(n_trials, lam), BG, n_pix, seed=22, background_hz=(2.0, 0.5))
+    lux = np.full((20, 30), BG_LUX)
+    kp, kt, kpol = _events(lux, BG, duration_s, seed=23)
+    ref, fast = _summaries(rp, np.floor(rt), rpol, n_pix), _summaries(kp, kt, kpol, n_pix)
+    table = np.array([[ref[a, b].sum() for a in (0, 1) for b in (0, 1)],
+                      [fast[a, b].sum() for a in (0, 1) for b in (0, 1)]])
+    assert stats.chi2_contingency(table).pvalue > 1e-3
+    st = memory.memory_statistics(BG_LUX, BG)
+    _check_against_closed_form(fast, st, duration_s, n_pix)
+    for a in (0, 1):
+        for b in (0, 1):
+            assert stats.ks_2samp(ref["gaps", a, b], fast["gaps", a, b]).pvalue > 1e-3, (a, b)
+            gaps = fast["gaps", a, b] * 1e-6
+            p_ks = stats.kstest(gaps, lambda x: memory.memory_iei_cdf(x, BG_LUX, BG)[a, b]).pvalue
+            assert p_ks > 1e-3, (a, b, p_ks)
+
+
+def test_background_with_memory_starts_in_the_steady_state_and_is_exact_elsewhere():
+    """The first tenth of a run has the closed-form rate (the steady state includes the background); the exact
+    counts are those of the event stream; the dense and the iterative stationary solves agree."""
+    lux = np.full((48, 48), BG_LUX)
+    duration_s = 4.0
+    e = ev.simulate_events(lux, BG, duration_s, rng=31)
+    pix = e["y"].astype(np.int64) * lux.shape[1] + e["x"]
+    rate = float(memory.memory_statistics(BG_LUX, BG).rate_hz.sum())
+    first = np.bincount(pix[e["t"] < 0.1 * duration_s * 1e6], minlength=lux.size) / (0.1 * duration_s)
+    assert abs(first.mean() - rate) < K_SIGMA * first.std() / math.sqrt(lux.size)
+    counts = ev.sample_counts(lux, BG, duration_s, rng=31)
+    np.testing.assert_array_equal(counts, ev.count_events(e, lux.shape))
+    lam = BG_LUX * BG.photons_per_lux
+    a_on, a_off = memory.level_background([lam], BG)
+    t = memory.level_tables(lam, BG.eps_pos, BG.eps_neg, BG.bias_pr, BG.reset_memory, a_on=a_on[0], a_off=a_off[0])
+    dense = memory._stationary(t)[0]
+    old = memory.DENSE_STATES
+    try:
+        memory.DENSE_STATES = 1  # the GMRES route with the chain's O(S log S) product
+        iterative = memory._stationary(t)[0]
+    finally:
+        memory.DENSE_STATES = old
+    np.testing.assert_allclose(iterative, dense, rtol=1e-8, atol=1e-14)
+
+
+def test_background_off_keeps_the_memory_streams():
+    """A background of rate 0 adds zero-weight branches only: the same events as without background terms."""
+    lux = np.full((30, 30), 1.5)
+    a = ev.simulate_events(lux, MEM, 1.0, rng=41)
+    b = ev.simulate_events(lux, MEM.replace(leak_on_hz=0.0, leak_off_hz=0.0), 1.0, rng=41)
+    assert a.size > 1000 and np.array_equal(a, b)
+
+
+def test_background_with_memory_in_a_noise_stream():
+    """NoiseStream with a background through irregular intervals: the closed form's rate, ON share, alternation,
+    transitions and mean intervals."""
+    lux = np.full((20, 30), BG_LUX)
+    duration_s = 20.0
+    stream = ev.NoiseStream(lux.shape, BG, rng=51)
+    pix, t, p = _stream_events(stream, [(lux, int(duration_s * 1e6))], seed=6)
+    st = memory.memory_statistics(BG_LUX, BG)
+    _check_against_closed_form(_summaries(pix, t, p, lux.size), st, duration_s, lux.size)

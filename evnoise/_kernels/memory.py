@@ -28,9 +28,12 @@ NO_EVENT = math.nan
 #: ``ROW_CUM_INIT``: cumulative (unnormalised) time-stationary law of the state at ``t = 0``; ``ROW_DEAD``: the
 #: probability, given the state, that ``t = 0`` falls in the refractory period after the last event
 #: (:func:`evnoise.terms.memory.initial_law`).
+#: ``ROW_BG_ON``, ``ROW_BG_OFF``: per-trial probability of a background event (a trial without photon event);
+#: ``ROW_CUM_NONE``: cumulative ``(1 - k) Poisson(j) P(no fresh event | j)``; ``ROW_K_HEAD``: ``k P(lo <= N <= j)``
+#: (the two laws a background event's stored count is drawn from, :func:`draw_event`).
 (ROW_LOG1M_P, ROW_FRESH_ON, ROW_FRESH_OFF, ROW_STORED_ON, ROW_STORED_OFF, ROW_CUM_FRESH_ON, ROW_CUM_FRESH_OFF,
- ROW_TAIL, ROW_HEAD, ROW_CUM_INIT, ROW_DEAD) = range(11)
-N_ROWS = 11
+ ROW_TAIL, ROW_HEAD, ROW_CUM_INIT, ROW_DEAD, ROW_BG_ON, ROW_BG_OFF, ROW_CUM_NONE, ROW_K_HEAD) = range(15)
+N_ROWS = 15
 #: Rows of the per-state integer table ``(2, total states)``: first state above the ON threshold, last state
 #: below the OFF threshold (local indices; ``S`` and ``-1`` for none).
 ROW_IDX_ON, ROW_IDX_OFF = range(2)
@@ -92,31 +95,64 @@ def draw_initial(s, table, o, n_s, refr_us):
 
 
 @kernel
+def _quiet_count(table, itable, o, n_s, i, w):
+    """The count (local index) a background event stores from state ``i`` (global column): the trial's count
+    given no photon event, by inversion of ``F(j) = CUM_NONE(j) + k (HEAD(min(j, a - 1)) - HEAD(b))`` for
+    ``j > b`` (``a``, ``b``: the state's ``ROW_IDX_ON``, ``ROW_IDX_OFF``; the stored branch not beaten
+    between them), nondecreasing in ``j``, at ``w`` times its total."""
+    a = itable[ROW_IDX_ON, i]
+    b = itable[ROW_IDX_OFF, i]
+    cum = table[ROW_CUM_NONE, o:o + n_s]
+    khead = table[ROW_K_HEAD, o:o + n_s]
+    base = khead[b] if b >= 0 else 0.0
+
+    def f(j):
+        top = min(j, a - 1)
+        return cum[j] + (khead[top] - base if top > b else 0.0)
+
+    target = w * f(n_s - 1)
+    lo_j = 0
+    hi_j = n_s - 1
+    while lo_j < hi_j:
+        mid = (lo_j + hi_j) // 2
+        if f(mid) >= target:
+            hi_j = mid
+        else:
+            lo_j = mid + 1
+    return float(lo_j)
+
+
+@kernel
 def draw_event(s, table, itable, o, n_s, st):
     """Branch, polarity and new state of an event from state ``st`` (local index) of the group at offset ``o``.
 
-    Returns ``(on, new_state)``. One uniform picks the branch and polarity in proportion to the four
-    per-trial probabilities (fresh ON, fresh OFF, stored ON, stored OFF), one more the new state by
-    inversion of that branch's table.
+    Returns ``(on, new_state)``. One uniform picks the branch and polarity in proportion to the six
+    per-trial probabilities (fresh ON, fresh OFF, stored ON, stored OFF, then background ON and OFF, which
+    are 0 without background), one more the new state by inversion of that branch's table.
     """
     i = o + int(st)
     f_on = table[ROW_FRESH_ON, i]
     f_off = table[ROW_FRESH_OFF, i]
     s_on = table[ROW_STORED_ON, i]
     s_off = table[ROW_STORED_OFF, i]
-    v = uniform(s) * (f_on + f_off + s_on + s_off)
+    g_on = table[ROW_BG_ON, i]
+    g_off = table[ROW_BG_OFF, i]
+    v = uniform(s) * (f_on + f_off + s_on + s_off + g_on + g_off)
     w = uniform_pos(s)
     # the first branch whose cumulative weight passes v (a branch of weight 0 is never chosen, also
     # when rounding puts v at the total: then the last branch of positive weight)
     branch = -1
     acc = 0.0
-    for c in range(4):
-        wt = f_on if c == 0 else (f_off if c == 1 else (s_on if c == 2 else s_off))
+    for c in range(6):
+        wt = f_on if c == 0 else (f_off if c == 1 else (s_on if c == 2 else (s_off if c == 3 else (
+            g_on if c == 4 else g_off))))
         if wt > 0.0:
             acc += wt
             branch = c
             if v < acc:
                 break
+    if branch >= 4:
+        return branch == 4, _quiet_count(table, itable, o, n_s, i, w)
     if branch == 0:
         cum = table[ROW_CUM_FRESH_ON, o:o + n_s]
         return True, float(_search_up(cum, 0, n_s - 1, w * cum[n_s - 1]))

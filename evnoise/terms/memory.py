@@ -43,9 +43,23 @@ Supported: :func:`evnoise.simulate_events` / :func:`evnoise.iter_events` of stat
 and through changes of light, its level's tables widened to hold it; the v2e plugin runs on it) and the
 tonic plugin (each sample starts in the steady state), and :func:`evnoise.sample_counts` (the counts of
 those events; its Poisson / negative-binomial variants about :func:`memory_statistics`' rate) with the dataset
-generator's counts mode, all with nominal thresholds and no background. :func:`evnoise.expected_rate` gives
+generator's counts mode, all with nominal thresholds. :func:`evnoise.expected_rate` gives
 :func:`memory_statistics`' rate. Refused with :class:`~evnoise.ParameterError` (not yet modelled): threshold
-mismatch (``eps_sigma > 0`` or given ``thresholds``), background and hot pixels, :func:`evnoise.simulate_video`.
+mismatch (``eps_sigma > 0`` or given ``thresholds``), hot pixels, a background that differs between pixels
+(``leak_sigma > 0`` or given maps), the regular background timer, :func:`evnoise.simulate_video`.
+
+Background (a uniform Poisson background: the ``leak_*`` rates, the same for every pixel of a light level,
+:func:`level_background`). As in the memoryless model (:mod:`evnoise.background`) a trial without photon
+event has a background event with probability ``a = a_on + a_off``, ON with probability ``a_on / a``. The
+pixel then resets to the level of that trial: it stores the trial's count ``n``, whose law given state ``m``
+and no photon event is
+
+    P(n = j, no photon event | m) = (1 - k) Poisson(j) P(fresh reference not beaten | j)
+                                    + k Poisson(j) 1{idx_off(m) < j < idx_on(m)}
+
+(``none_fresh`` plus the stored branch not beaten). Per trial ``P_on(m) + (1 - P(m)) a_on`` (OFF alike), so the
+chain keeps its form: two more branches of the embedded chain (:func:`_after`), two more in the kernel's event
+draw. With ``a = 0`` the tables, and the event streams, are those of the model without background, bit for bit.
 """
 
 from __future__ import annotations
@@ -96,18 +110,52 @@ def refuse(params, where: str) -> None:
                              f"of static scenes model it); set reset_memory = 0")
 
 
+def unsupported(params, thresholds=None, background=None) -> list:
+    """What the reset-memory model does not cover yet for ``params`` (checked :class:`~evnoise.NoiseParams`),
+    in words (empty: all of it is covered; see the module doc)."""
+    missing = []
+    if params.eps_sigma > 0 or thresholds is not None:
+        missing.append("threshold mismatch (eps_sigma > 0 or given thresholds)")
+    if background is not None:
+        missing.append("given background maps")
+    if params.has_background:
+        if params.hot_pixel_fraction > 0 and params.hot_pixel_rate_hz > 0:
+            missing.append("hot pixels (hot_pixel_*)")
+        if params.leak_sigma > 0:
+            missing.append("a background that differs between pixels (leak_sigma > 0)")
+        if params.leak_regularity > 0:
+            missing.append("a regular background timer (leak_regularity > 0)")
+    return missing
+
+
 def check_supported(params, thresholds=None, background=None) -> None:
     """Refuse, naming it, what the reset-memory simulator does not support yet (see the module doc)."""
     from ..errors import ParameterError
 
-    missing = []
-    if params.eps_sigma > 0 or thresholds is not None:
-        missing.append("threshold mismatch (eps_sigma > 0 or given thresholds)")
-    if params.has_background or background is not None:
-        missing.append("background activity or hot pixels (leak_*, hot_pixel_*)")
+    missing = unsupported(params, thresholds, background)
     if missing:
-        raise ParameterError(f"reset_memory > 0 does not support {' and '.join(missing)} yet; set reset_memory = 0 "
+        raise ParameterError(f"reset_memory > 0 does not support {', '.join(missing)} yet; set reset_memory = 0 "
                              f"or turn them off")
+
+
+def level_background(levels, params):
+    """Per-trial background arrival probabilities ``(a_on, a_off)`` of each light level ``levels`` (photons per
+    trial): the same for every pixel of a level (a uniform Poisson background, :mod:`evnoise.background`), 0
+    without background."""
+    from ..errors import ParameterError
+    from .arrivals import arrival_shares, lux_of_photons
+    from .registry import background_on, intensities
+
+    lam = np.atleast_1d(np.asarray(levels, dtype=np.float64))
+    if not background_on(params):
+        return np.zeros(lam.shape), np.zeros(lam.shape)
+    if params.leak_regularity > 0:
+        raise ParameterError("reset_memory > 0 does not support a regular background timer (leak_regularity > 0) "
+                             "yet; set reset_memory = 0 or leak_regularity = 0")
+    l_on, l_off = intensities(lux_of_photons(lam, params), params)
+    a_on, a_off = arrival_shares(np.broadcast_to(l_on, lam.shape), np.broadcast_to(l_off, lam.shape),
+                                 params.trial_rate_hz)
+    return np.asarray(a_on, dtype=np.float64), np.asarray(a_off, dtype=np.float64)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -186,6 +234,13 @@ class LevelTables:
         Their sums (``(1 - k)`` times the paper's ``p_on``, ``p_off`` of the truncated model).
     stored_on, stored_off : numpy.ndarray
         ``k P(N > k_on(m))`` and ``k P(k_off(N) < m)`` per state.
+    none_fresh : numpy.ndarray
+        ``(1 - k) Poisson(j) P(fresh reference not beaten)``: the joint law of the trial's count ``j`` and no
+        fresh event (with the stored branch's ``k Poisson(j)`` on ``idx_off(m) < j < idx_on(m)``, the law of the
+        count of a trial without photon event: what a background event stores).
+    a_on, a_off : float
+        Per-trial background arrival probabilities (0: none): a trial without photon event has a background
+        event with probability ``a_on + a_off``, ON with probability ``a_on / (a_on + a_off)``.
     """
 
     k: float
@@ -203,16 +258,30 @@ class LevelTables:
     p_fresh_off: float
     stored_on: np.ndarray
     stored_off: np.ndarray
+    none_fresh: np.ndarray
+    a_on: float = 0.0
+    a_off: float = 0.0
+
+    @property
+    def photon_event(self) -> np.ndarray:
+        """Per-trial probability of a photon-noise event of each state (at most 1)."""
+        return np.minimum(self.p_fresh_on + self.stored_on + self.p_fresh_off + self.stored_off, 1.0)
 
     @property
     def p_on(self) -> np.ndarray:
-        """Per-trial ON probability of each state."""
-        return self.p_fresh_on + self.stored_on
+        """Per-trial ON probability of each state (photon noise, then background in a trial without)."""
+        photon_on = self.p_fresh_on + self.stored_on
+        if self.a_on == 0.0:
+            return photon_on
+        return photon_on + (1.0 - self.photon_event) * self.a_on
 
     @property
     def p_off(self) -> np.ndarray:
-        """Per-trial OFF probability of each state."""
-        return self.p_fresh_off + self.stored_off
+        """Per-trial OFF probability of each state (photon noise, then background in a trial without)."""
+        photon_off = self.p_fresh_off + self.stored_off
+        if self.a_off == 0.0:
+            return photon_off
+        return photon_off + (1.0 - self.photon_event) * self.a_off
 
     @property
     def p_event(self) -> np.ndarray:
@@ -248,9 +317,10 @@ def kernel_tables(levels, params, spans=None):
     rates = np.empty(len(levels))
     dt_s = 1.0 / params.trial_rate_hz
     refr_s = params.refractory_us * 1e-6
+    bg_on, bg_off = level_background(levels, params)
     for g, lam in enumerate(levels):
         t = level_tables(lam, params.eps_pos, params.eps_neg, params.bias_pr, params.reset_memory,
-                         span=None if spans is None else ranges[g][:2])
+                         span=None if spans is None else ranges[g][:2], a_on=bg_on[g], a_off=bg_off[g])
         cols = slice(offsets[g], offsets[g] + sizes[g])
         p = t.p_event
         with np.errstate(divide="ignore"):
@@ -265,6 +335,11 @@ def kernel_tables(levels, params, spans=None):
         table[km.ROW_HEAD, cols] = t.head
         itable[km.ROW_IDX_ON, cols] = t.idx_on
         itable[km.ROW_IDX_OFF, cols] = t.idx_off
+        quiet = 1.0 - t.photon_event
+        table[km.ROW_BG_ON, cols] = quiet * t.a_on
+        table[km.ROW_BG_OFF, cols] = quiet * t.a_off
+        table[km.ROW_CUM_NONE, cols] = np.cumsum(t.none_fresh)
+        table[km.ROW_K_HEAD, cols] = t.k * t.head
         if len(levels) <= EXACT_RATE_LEVELS:
             stationary = _stationary(t)
             r_on, r_off, *_ = level_statistics(t, dt_s, refr_s, stationary)
@@ -337,10 +412,12 @@ def initial_law(t: LevelTables, pi: np.ndarray, dt_s: float, refr_s: float):
     return weight / weight.sum(), dead
 
 
-def level_tables(lam: float, eps_on: float, eps_off: float, bias: float, k: float, span=None) -> LevelTables:
+def level_tables(lam: float, eps_on: float, eps_off: float, bias: float, k: float, span=None, a_on: float = 0.0,
+                 a_off: float = 0.0) -> LevelTables:
     """The chain of a pixel with ``lam`` photons per trial, thresholds ``eps_on``, ``eps_off``, bias ``bias``
     (photons per trial) and reset memory ``k`` (module doc); ``span = (lo, n_states)`` widens the states
-    beyond :func:`state_range`'s (which it must contain)."""
+    beyond :func:`state_range`'s (which it must contain); ``a_on``, ``a_off``: per-trial background arrival
+    probabilities (:func:`level_background`)."""
     from .._kernels.memory import fill_counts
 
     lo, n_s, tail_mass = state_range(lam)
@@ -359,10 +436,14 @@ def level_tables(lam: float, eps_on: float, eps_off: float, bias: float, k: floa
     head_ext = np.append(head, 0.0)  # index -1 reads the 0 at the end
     idx_on = np.searchsorted(m, k_on, side="right").astype(np.int64)
     idx_off = (np.searchsorted(k_off, m, side="left") - 1).astype(np.int64)
-    fresh_on = (1.0 - k) * pmf * head_ext[np.searchsorted(k_on, m, side="left") - 1]
-    fresh_off = (1.0 - k) * pmf * tail_ext[np.searchsorted(m, k_off, side="right")]
+    beaten_on = head_ext[np.searchsorted(k_on, m, side="left") - 1]  # P(k_on(N0) < j)
+    beaten_off = tail_ext[np.searchsorted(m, k_off, side="right")]  # P(N0 > k_off(j))
+    fresh_on = (1.0 - k) * pmf * beaten_on
+    fresh_off = (1.0 - k) * pmf * beaten_off
+    none_fresh = (1.0 - k) * pmf * np.maximum(head[-1] - beaten_on - beaten_off, 0.0)
     return LevelTables(float(k), lo, n_s, tail_mass, pmf, head, tail, idx_on, idx_off, fresh_on, fresh_off,
-                       float(fresh_on.sum()), float(fresh_off.sum()), k * tail_ext[idx_on], k * head_ext[idx_off])
+                       float(fresh_on.sum()), float(fresh_off.sum()), k * tail_ext[idx_on], k * head_ext[idx_off],
+                       none_fresh, float(a_on), float(a_off))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -435,6 +516,9 @@ def _stationary(t: LevelTables):
         m_t += j[:, None] <= t.idx_off[None, :]
         m_t *= (t.k * t.pmf)[:, None]
         m_t += (t.fresh_on + t.fresh_off)[:, None]
+        if t.a_on > 0.0 or t.a_off > 0.0:  # background events store a count of a trial without photon event
+            quiet = (j[:, None] > t.idx_off[None, :]) & (j[:, None] < t.idx_on[None, :])
+            m_t += (t.a_on + t.a_off) * (t.none_fresh[:, None] + (t.k * t.pmf)[:, None] * quiet)
         m_t[:, live] /= p[live]
         m_t[:, ~live] = 0.0
         m_t[j[~live], j[~live]] = 1.0  # absorbing
@@ -466,6 +550,14 @@ def _after(t: LevelTables, w_on, w_off):
     c_off = np.concatenate([[0.0], np.cumsum(w_off)])
     b = np.searchsorted(t.idx_off, j, side="left")
     after_off = t.fresh_off * w_off.sum() + k * t.pmf * (c_off[-1] - c_off[b])
+    if t.a_on > 0.0 or t.a_off > 0.0:
+        # background in a trial without photon event stores that trial's count j: fresh branch not beaten, or the
+        # stored one not beaten, i.e. idx_off(m) < j < idx_on(m): the m in [a, b) (both indices nondecreasing)
+        inside = b > a
+        for weight, c, arr in ((t.a_on, c_on, after_on), (t.a_off, c_off, after_off)):
+            if weight > 0.0:
+                stored = np.where(inside, c[np.maximum(b, a)] - c[a], 0.0)
+                arr += weight * (t.none_fresh * c[-1] + k * t.pmf * stored)
     return after_on, after_off
 
 
@@ -507,7 +599,8 @@ def memory_statistics(lux, params) -> MemoryStatistics:
         Illuminance at the sensor in lux (``>= 0``).
     params : NoiseParams or str
         Model parameters (``reset_memory`` may be 0: the memoryless model, evaluated the same way). Threshold
-        mismatch and background terms are not part of this closed form (nominal thresholds, no background).
+        mismatch is not part of this closed form (nominal thresholds); the background is the nominal pixel's
+        (uniform Poisson ``leak_*`` rates; spread factor 1, not hot).
 
     Returns
     -------
@@ -525,8 +618,10 @@ def memory_statistics(lux, params) -> MemoryStatistics:
            (("rate", (2,)), ("share", ()), ("trans", (2, 2)), ("opp", ()), ("iei", (2, 2)), ("tail", ()))}
     dt_s = 1.0 / params.trial_rate_hz
     refr_s = params.refractory_us * 1e-6
+    bg_on, bg_off = level_background(levels, params)
     for i, level in enumerate(levels):
-        t = level_tables(level, params.eps_pos, params.eps_neg, params.bias_pr, params.reset_memory)
+        t = level_tables(level, params.eps_pos, params.eps_neg, params.bias_pr, params.reset_memory,
+                         a_on=bg_on[i], a_off=bg_off[i])
         r_on, r_off, trans, iei, weights, _ = level_statistics(t, dt_s, refr_s)
         out["rate"][i] = (r_on, r_off)
         total = r_on + r_off
@@ -559,7 +654,9 @@ def memory_iei_cdf(t_s, lux: float, params) -> np.ndarray:
 
     params = check_params(params)
     lam = float(params.photons_per_trial(float(lux)))
-    t = level_tables(lam, params.eps_pos, params.eps_neg, params.bias_pr, params.reset_memory)
+    bg_on, bg_off = level_background([lam], params)
+    t = level_tables(lam, params.eps_pos, params.eps_neg, params.bias_pr, params.reset_memory, a_on=bg_on[0],
+                     a_off=bg_off[0])
     dt_s = 1.0 / params.trial_rate_hz
     refr_s = params.refractory_us * 1e-6
     *_, weights, p = level_statistics(t, dt_s, refr_s)
