@@ -95,12 +95,15 @@ def expected_rate(lux, params, *, thresholds=None, background=None, mismatch: st
         # (nominal thresholds, a uniform Poisson background: what that form and its simulator cover so far)
         from .terms.memory import memory_statistics, unsupported
 
-        missing = unsupported(params, thresholds, background)
+        # nominal: the nominal pixel (spread factor 1, not hot); mean: the population, which needs what differs
+        missing = unsupported(params, thresholds, background, per_pixel=mismatch == "nominal" and background is None)
         if thresholds is None and mismatch == "nominal" and params.eps_sigma > 0:
             missing.remove("threshold mismatch (eps_sigma > 0 or given thresholds)")  # the nominal pixel's rate
+        if background is not None and "given background maps" not in missing:
+            missing.append("given background maps")
         if missing:
-            raise ParameterError(f"the rate with reset_memory > 0 is known for nominal thresholds and a uniform "
-                                 f"Poisson background only, not for {' and '.join(missing)} "
+            raise ParameterError(f"the rate with reset_memory > 0 is known for the nominal pixel (nominal thresholds, "
+                                 f"a Poisson background) only, not for {', '.join(missing)} "
                                  f"(evnoise.terms.memory.memory_statistics)")
 
         return memory_statistics(lux, params).rate_hz

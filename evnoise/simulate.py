@@ -215,7 +215,7 @@ def _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, t
         if method == "trials":
             raise ParameterError("method='trials' does not model reset_memory > 0 yet; use method='auto' or "
                                  "'renewal' (the reset-memory renewal tier)")
-        return _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, sink)
+        return _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, sink, bg=bg)
     if method == "trials":
         frames = _FrameSource([lux], name="lux")
         windows = _iter_dynamic(frames, np.array([0.0, float(duration_us)]), params, key, eps_on, eps_off,
@@ -280,16 +280,16 @@ def _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, thr
                            total + 8.0 * math.sqrt(total) + 4096, step)
 
 
-def _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, sink=None):
+def _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, sink=None, bg=None):
     """The windows of a static scene with reset memory (:mod:`evnoise.terms.memory`): pixels grouped by light
-    level, each advanced event by event over its level's state tables (:mod:`evnoise._kernels.memory`)."""
-    from .terms.memory import kernel_tables
+    level and background (``bg``: the run's flat maps or None), each advanced event by event over its group's
+    state tables (:mod:`evnoise._kernels.memory`)."""
+    from .terms.memory import kernel_tables, pixel_groups
 
     width = lux.shape[1]
     lam = params.photons_per_trial(lux).ravel()
-    levels, group = np.unique(lam, return_inverse=True)
-    group = np.ascontiguousarray(group.ravel(), dtype=np.int64)
-    tables = kernel_tables(levels, params)
+    levels, a_on, a_off, group = pixel_groups(lam, params, bg)
+    tables = kernel_tables(levels, params, background=(a_on, a_off))
     level_rates = tables[4]
     nu = level_rates[group]
     dt = params.trial_us
@@ -720,7 +720,7 @@ def sample_counts(
     if memory_on(params):
         check_supported(params, thresholds, background)
         return _memory_counts(lux, params, key, duration_us, threads, distribution, gen, r if
-                              distribution == "negative-binomial" else None)
+                              distribution == "negative-binomial" else None, bg)
     lam = params.photons_per_trial(lux).ravel()
     if distribution == "exact":
         from ._bracket import applies, bracketed_counts
@@ -745,18 +745,23 @@ def sample_counts(
     return gen.poisson(rate).astype(np.int64)
 
 
-def _memory_counts(lux, params, key, duration_us, threads, distribution, gen, nb_shape):
+def _memory_counts(lux, params, key, duration_us, threads, distribution, gen, nb_shape, bg=None):
     """:func:`sample_counts` with reset memory. ``"exact"``: the counts of the reset-memory tier's own events
     (the stream :func:`simulate_events` makes with the same seed, counted window by window: memory stays that
     of one window); ``"poisson"`` / ``"negative-binomial"``: about the stationary rate of
-    :func:`~evnoise.terms.memory.memory_statistics` (the memory model's closed form)."""
+    :func:`~evnoise.terms.memory.memory_statistics` (the memory model's closed form, the nominal pixel's: not
+    with a background that differs between pixels)."""
     height, width = lux.shape
     if distribution == "exact":
         counts = np.zeros(2 * lux.size, dtype=np.int64)
-        for window in _iter_memory(lux, params, key, 0, duration_us, threads, False):
+        for window in _iter_memory(lux, params, key, 0, duration_us, threads, False, bg=bg):
             cell = window["y"].astype(np.int64) * width + window["x"]
             counts += np.bincount(np.where(window["p"] == 1, cell, lux.size + cell), minlength=2 * lux.size)
         return counts.reshape(2, height, width)
+    if bg is not None:
+        raise ParameterError(f"distribution={distribution!r} with reset_memory > 0 is known for the nominal pixel "
+                             f"only, not with a background that differs between pixels (hot pixels, leak_sigma > 0, "
+                             f"given maps); use distribution='exact'")
     from .terms.memory import memory_statistics
 
     mean = memory_statistics(lux, params).rate_hz * (duration_us * 1e-6)

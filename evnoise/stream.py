@@ -49,8 +49,8 @@ class NoiseStream:
     level between intervals, so polarities alternate across interval boundaries as within one; the first
     interval starts in the steady state of its light. When a pixel's light changes, its stored photon count
     is kept (clamped into the new light's state range, which spans the new ``lam`` ± many standard
-    deviations: only a jump of the light beyond that range moves it). A uniform Poisson background is part of
-    the memory model; threshold mismatch, hot pixels, a background spread over pixels and the regular timer are
+    deviations: only a jump of the light beyond that range moves it). A Poisson background (hot pixels and a
+    spread leak included) is part of the memory model; threshold mismatch and the regular background timer are
     not modelled with reset memory yet (:class:`~evnoise.ParameterError`).
     """
 
@@ -120,17 +120,17 @@ class NoiseStream:
         stored state is kept as a photon count between intervals (a level's tables index counts from its
         lowest one), and so is the new state of an event pending in a trial that started in the last interval."""
         from ._kernels.simulate import PEND_ON, PEND_TAU
-        from .terms.memory import kernel_tables
+        from .terms.memory import kernel_tables, pixel_groups
 
         p = self.params
         dt = p.trial_us
-        levels, group = np.unique(lam, return_inverse=True)
-        group = np.ascontiguousarray(group.ravel(), dtype=np.int64)
+        levels, a_on, a_off, group = pixel_groups(lam, p, self._bg)
         spans = _memory_spans(levels, group, self._stored, self._pending_count)
-        if self._memory is None or not np.array_equal(levels, self._memory[0]) or spans != self._memory[4]:
-            table, itable, offsets, sizes, rates = kernel_tables(levels, p, spans)
+        key = np.stack([levels, a_on, a_off])
+        if self._memory is None or not np.array_equal(key, self._memory[0]) or spans != self._memory[4]:
+            table, itable, offsets, sizes, rates = kernel_tables(levels, p, spans, background=(a_on, a_off))
             lowest = np.array([lo for lo, _ in spans], dtype=np.float64)
-            self._memory = (levels, (table, itable, offsets, sizes), lowest, rates, spans)
+            self._memory = (key, (table, itable, offsets, sizes), lowest, rates, spans)
         _, tables, lowest, rates, _ = self._memory
         sizes = tables[3]
         lo, top = lowest[group], (sizes[group] - 1).astype(np.float64)

@@ -214,9 +214,8 @@ def test_what_is_not_modelled_yet_is_refused(what):
             PhotonNoise((4, 4, 2), MEM.replace(eps_sigma=0.05), 1.0, rng=1)
         elif what == "mismatch":
             ev.simulate_events(lux, MEM.replace(eps_sigma=0.05), 1.0, rng=1)
-        elif what == "background":  # a uniform Poisson background is modelled; hot pixels not yet
-            ev.simulate_events(lux, MEM.replace(leak_on_hz=0.1, hot_pixel_fraction=0.1, hot_pixel_rate_hz=5.0), 1.0,
-                               rng=1)
+        elif what == "background":  # a Poisson background is modelled (hot pixels too); the regular timer not yet
+            ev.simulate_events(lux, MEM.replace(leak_on_hz=0.1, leak_regularity=0.5), 1.0, rng=1)
         else:
             ev.simulate_events(lux, MEM, 1.0, rng=1, method="trials")
 
@@ -232,8 +231,12 @@ def test_expected_rate_of_a_pixel_with_memory_is_the_markov_renewal_rate():
     np.testing.assert_array_equal(got, want)
     memoryless = ev.expected_rate(lux, p.replace(reset_memory=0.0))
     assert not np.allclose(got, memoryless, rtol=1e-3)  # the memory changes the rate
+    with pytest.raises(ev.ParameterError, match="reset_memory"):  # the population over a spread background
+        ev.expected_rate(lux, p.replace(leak_on_hz=0.1, leak_sigma=0.5), mismatch="mean")
     with pytest.raises(ev.ParameterError, match="reset_memory"):
-        ev.expected_rate(lux, p.replace(leak_on_hz=0.1, leak_sigma=0.5))
+        ev.expected_rate(lux, p.replace(leak_on_hz=0.1), background=np.stack([np.ones((2, 2)), np.zeros((2, 2))]))
+    spread = p.replace(leak_on_hz=0.1, leak_sigma=0.5, hot_pixel_fraction=0.1, hot_pixel_rate_hz=5.0)
+    np.testing.assert_array_equal(ev.expected_rate(lux, spread), ev.expected_rate(lux, p.replace(leak_on_hz=0.1)))
     with pytest.raises(ev.ParameterError, match="reset_memory"):
         ev.expected_rate(lux, p, thresholds=np.full((2, 2, 2), 0.5))
 
@@ -519,3 +522,67 @@ def test_background_with_memory_in_a_noise_stream():
     pix, t, p = _stream_events(stream, [(lux, int(duration_s * 1e6))], seed=6)
     st = memory.memory_statistics(BG_LUX, BG)
     _check_against_closed_form(_summaries(pix, t, p, lux.size), st, duration_s, lux.size)
+
+
+def _equivalent(params, scale, hot):
+    """``params`` with the background of a pixel of spread factor ``scale`` and hot rate ``hot`` as a uniform one
+    (the leak's rates times ``scale`` plus the hot rate split by ``hot_pixel_on_fraction``; no maps)."""
+    q = params.hot_pixel_on_fraction
+    return params.replace(leak_on_hz=params.leak_on_hz * scale + hot * q,
+                          leak_off_hz=params.leak_off_hz * scale + hot * (1.0 - q), leak_sigma=0.0,
+                          hot_pixel_fraction=0.0, hot_pixel_rate_hz=0.0)
+
+
+def test_memory_with_per_pixel_background_groups_pixels_by_their_chain():
+    """Given maps where every pixel has the same spread factor and hot rate give the events of the equivalent
+    uniform background (bit for bit); a field of two kinds of pixels (ordinary, and hot with a doubled leak) has
+    each kind's closed-form statistics; drawn maps (leak_sigma, hot pixels) run too."""
+    params = BG.replace(leak_sigma=0.5, hot_pixel_fraction=0.2, hot_pixel_rate_hz=6.0, hot_pixel_on_fraction=0.75)
+    lux = np.full((24, 30), BG_LUX)
+    same = np.stack([np.full(lux.shape, 2.0), np.full(lux.shape, 6.0)])
+    a = ev.simulate_events(lux, params, 2.0, rng=61, background=same)
+    b = ev.simulate_events(lux, _equivalent(params, 2.0, 6.0), 2.0, rng=61)
+    assert a.size > 1000 and np.array_equal(a, b)
+
+    maps = np.stack([np.ones(lux.shape), np.zeros(lux.shape)])
+    maps[0, ::2] = 2.0
+    maps[1, ::2] = 6.0  # even rows: hot, with twice the leak
+    duration_s = 30.0
+    e = ev.simulate_events(lux, params, duration_s, rng=62, background=maps)
+    pix, t, p = e["y"].astype(np.int64) * lux.shape[1] + e["x"], e["t"].astype(np.float64), e["p"]
+    row = pix // lux.shape[1]
+    n_kind = lux.size // 2
+    for kind, (scale, hot) in enumerate([(2.0, 6.0), (1.0, 0.0)]):
+        sel = row % 2 == kind
+        local = (row[sel] // 2) * lux.shape[1] + pix[sel] % lux.shape[1]
+        st = memory.memory_statistics(BG_LUX, _equivalent(params, scale, hot))
+        _check_against_closed_form(_summaries(local, t[sel], p[sel], n_kind), st, duration_s, n_kind)
+    drawn = ev.simulate_events(lux, params, 1.0, rng=63)
+    assert drawn.size > 0
+    counts = ev.sample_counts(lux, params, 1.0, rng=63)
+    np.testing.assert_array_equal(counts, ev.count_events(drawn, lux.shape))
+    with pytest.raises(ev.ParameterError, match="exact"):
+        ev.sample_counts(lux, params, 1.0, rng=63, distribution="poisson")
+
+
+def test_memory_with_per_pixel_background_in_a_stream_and_the_tonic_transform():
+    """NoiseStream with given maps equal everywhere gives the equivalent uniform background's events through
+    irregular intervals (bit for bit); the tonic transform runs with drawn hot pixels and a spread leak, its hot
+    pixels firing more."""
+    from evnoise.plugins.tonic import PhotonNoise
+
+    params = BG.replace(leak_sigma=0.5, hot_pixel_fraction=0.2, hot_pixel_rate_hz=6.0)
+    lux = np.full((12, 16), BG_LUX)
+    same = np.stack([np.full(lux.shape, 0.5), np.full(lux.shape, 6.0)])
+    got = _stream_events(ev.NoiseStream(lux.shape, params, rng=71, background=same), [(lux, 3_000_000)], seed=7)
+    want = _stream_events(ev.NoiseStream(lux.shape, _equivalent(params, 0.5, 6.0), rng=71), [(lux, 3_000_000)],
+                          seed=7)
+    assert got[0].size > 500 and all(np.array_equal(g, w) for g, w in zip(got, want))
+    transform = PhotonNoise((16, 12, 2), params, BG_LUX, rng=72)
+    dtype = np.dtype([("x", "<i8"), ("y", "<i8"), ("t", "<i8"), ("p", "<i8")])
+    sample = np.zeros(2, dtype=dtype)
+    sample["t"] = [0, 20_000_000]
+    noise = transform.noise(sample)
+    counts = np.bincount(noise["y"] * 16 + noise["x"], minlength=lux.size)
+    hot = transform._background[1].ravel() > 0 if transform._background is not None else None
+    assert hot is not None and hot.any() and counts[hot].mean() > counts[~hot].mean() + 3 * 6.0

@@ -148,16 +148,15 @@ class PhotonNoise:
     def _precompute(self):
         """The renewal kernel's per-pixel inputs at ``self.lux`` (what ``simulate_events`` computes per call)."""
         from .._engine import static_inputs
-        from ..terms.memory import kernel_tables, memory_on
+        from ..terms.memory import kernel_tables, memory_on, pixel_groups
 
         run = self._setup
         lam = self.params.photons_per_trial(self.lux).ravel()
         self._pix = np.arange(self.lux.size, dtype=np.int64)
         self._memory = None
         if memory_on(self.params):  # reset memory: the state tables of the map's light levels (terms/memory.py)
-            levels, group = np.unique(lam, return_inverse=True)
-            table, itable, offsets, sizes, rates = kernel_tables(levels, self.params)
-            group = np.ascontiguousarray(group.ravel(), dtype=np.int64)
+            levels, a_on, a_off, group = pixel_groups(lam, self.params, run.background)
+            table, itable, offsets, sizes, rates = kernel_tables(levels, self.params, background=(a_on, a_off))
             self._memory = (group, (table, itable, offsets, sizes))
             self._nu = rates[group]
             return

@@ -45,12 +45,13 @@ tonic plugin (each sample starts in the steady state), and :func:`evnoise.sample
 those events; its Poisson / negative-binomial variants about :func:`memory_statistics`' rate) with the dataset
 generator's counts mode, all with nominal thresholds. :func:`evnoise.expected_rate` gives
 :func:`memory_statistics`' rate. Refused with :class:`~evnoise.ParameterError` (not yet modelled): threshold
-mismatch (``eps_sigma > 0`` or given ``thresholds``), hot pixels, a background that differs between pixels
-(``leak_sigma > 0`` or given maps), the regular background timer, :func:`evnoise.simulate_video`.
+mismatch (``eps_sigma > 0`` or given ``thresholds``), the regular background timer, :func:`evnoise.simulate_video`.
 
-Background (a uniform Poisson background: the ``leak_*`` rates, the same for every pixel of a light level,
-:func:`level_background`). As in the memoryless model (:mod:`evnoise.background`) a trial without photon
-event has a background event with probability ``a = a_on + a_off``, ON with probability ``a_on / a``. The
+Background (Poisson: the ``leak_*`` rates and hot pixels, :func:`level_background` for the nominal pixel; the
+simulators group pixels by ``(lam, background)``, :func:`pixel_groups`, so hot pixels and a spread leak
+(``leak_sigma``) have chains of their own; :func:`memory_statistics` is the nominal pixel's). As in the
+memoryless model (:mod:`evnoise.background`) a trial without photon event has a background event with
+probability ``a = a_on + a_off``, ON with probability ``a_on / a``. The
 pixel then resets to the level of that trial: it stores the trial's count ``n``, whose law given state ``m``
 and no photon event is
 
@@ -110,21 +111,23 @@ def refuse(params, where: str) -> None:
                              f"of static scenes model it); set reset_memory = 0")
 
 
-def unsupported(params, thresholds=None, background=None) -> list:
+def unsupported(params, thresholds=None, background=None, per_pixel: bool = True) -> list:
     """What the reset-memory model does not cover yet for ``params`` (checked :class:`~evnoise.NoiseParams`),
-    in words (empty: all of it is covered; see the module doc)."""
+    in words (empty: all of it is covered; see the module doc). ``per_pixel``: whether the caller handles a
+    background that differs between pixels (hot pixels, ``leak_sigma``, given maps: the simulators group pixels by
+    their chain); a closed form for one pixel or the population does not."""
     missing = []
     if params.eps_sigma > 0 or thresholds is not None:
         missing.append("threshold mismatch (eps_sigma > 0 or given thresholds)")
-    if background is not None:
-        missing.append("given background maps")
-    if params.has_background:
-        if params.hot_pixel_fraction > 0 and params.hot_pixel_rate_hz > 0:
+    if params.has_background and params.leak_regularity > 0:
+        missing.append("a regular background timer (leak_regularity > 0)")
+    if not per_pixel:
+        if background is not None:
+            missing.append("given background maps")
+        if params.has_background and params.hot_pixel_fraction > 0 and params.hot_pixel_rate_hz > 0:
             missing.append("hot pixels (hot_pixel_*)")
-        if params.leak_sigma > 0:
+        if params.has_background and params.leak_sigma > 0:
             missing.append("a background that differs between pixels (leak_sigma > 0)")
-        if params.leak_regularity > 0:
-            missing.append("a regular background timer (leak_regularity > 0)")
     return missing
 
 
@@ -136,6 +139,29 @@ def check_supported(params, thresholds=None, background=None) -> None:
     if missing:
         raise ParameterError(f"reset_memory > 0 does not support {', '.join(missing)} yet; set reset_memory = 0 "
                              f"or turn them off")
+
+
+def pixel_groups(lam, params, background=None):
+    """Pixels grouped by their chain: ``(levels, a_on, a_off, group)``, the distinct ``(lam, a_on, a_off)`` (photons
+    per trial and per-trial background arrival probabilities, :func:`level_background`) and each pixel's index
+    into them. ``background``: the run's flat ``(scale, hot)`` maps (:class:`evnoise._run.RunSetup`) or None (every
+    pixel the nominal one: the groups are the distinct ``lam``). A background spread over pixels
+    (``leak_sigma > 0``) makes every pixel a group of its own (see :data:`MAX_TABLE_STATES`)."""
+    from .arrivals import arrival_shares, lux_of_photons
+    from .registry import background_on, intensities
+
+    lam = np.asarray(lam, dtype=np.float64).ravel()
+    if background is None or not background_on(params):
+        levels, group = np.unique(lam, return_inverse=True)
+        a_on, a_off = level_background(levels, params)
+        return levels, a_on, a_off, np.ascontiguousarray(group.ravel(), dtype=np.int64)
+    scale, hot = background
+    l_on, l_off = intensities(lux_of_photons(lam, params), params, scale, hot)
+    a_on, a_off = arrival_shares(np.broadcast_to(l_on, lam.shape), np.broadcast_to(l_off, lam.shape),
+                                 params.trial_rate_hz)
+    rows, group = np.unique(np.stack([lam, a_on, a_off], axis=1), axis=0, return_inverse=True)
+    return (np.ascontiguousarray(rows[:, 0]), np.ascontiguousarray(rows[:, 1]), np.ascontiguousarray(rows[:, 2]),
+            np.ascontiguousarray(group.ravel(), dtype=np.int64))
 
 
 def level_background(levels, params):
@@ -289,11 +315,12 @@ class LevelTables:
         return np.minimum(self.p_on + self.p_off, 1.0)
 
 
-def kernel_tables(levels, params, spans=None):
+def kernel_tables(levels, params, spans=None, background=None):
     """The kernel's tables of the light levels ``levels`` (photons per trial) of one run (nominal thresholds).
 
     ``spans``: optional ``(lo, n_states)`` per level replacing :func:`state_range`'s (a wider range, holding
-    stored counts of another light: :class:`evnoise.NoiseStream`).
+    stored counts of another light: :class:`evnoise.NoiseStream`). ``background``: optional ``(a_on, a_off)`` per
+    level (:func:`pixel_groups`), else the nominal pixel's (:func:`level_background`).
 
     Returns ``(table, itable, offsets, sizes, rates)``: float rows ``ROW_*`` and integer rows ``ROW_IDX_*`` of
     :mod:`evnoise._kernels.memory` over all levels' states (level ``g``'s at ``offsets[g] .. + sizes[g]``) and
@@ -317,7 +344,7 @@ def kernel_tables(levels, params, spans=None):
     rates = np.empty(len(levels))
     dt_s = 1.0 / params.trial_rate_hz
     refr_s = params.refractory_us * 1e-6
-    bg_on, bg_off = level_background(levels, params)
+    bg_on, bg_off = level_background(levels, params) if background is None else background
     for g, lam in enumerate(levels):
         t = level_tables(lam, params.eps_pos, params.eps_neg, params.bias_pr, params.reset_memory,
                          span=None if spans is None else ranges[g][:2], a_on=bg_on[g], a_off=bg_off[g])
