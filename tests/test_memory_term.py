@@ -586,3 +586,20 @@ def test_memory_with_per_pixel_background_in_a_stream_and_the_tonic_transform():
     counts = np.bincount(noise["y"] * 16 + noise["x"], minlength=lux.size)
     hot = transform._background[1].ravel() > 0 if transform._background is not None else None
     assert hot is not None and hot.any() and counts[hot].mean() > counts[~hot].mean() + 3 * 6.0
+
+
+def test_chains_of_one_level_iterated_together_are_those_iterated_alone():
+    """The initial laws of many chains of one light level (hot pixels, a spread leak) come from one batched
+    iteration: each row equals the chain's own iteration bit for bit (so the events do not depend on which other
+    pixels share the level)."""
+    import dataclasses
+
+    base = memory.level_tables(BG_LUX * BG.photons_per_lux, BG.eps_pos, BG.eps_neg, BG.bias_pr, BG.reset_memory)
+    a_on = np.array([0.0, 1e-4, 3e-3, 0.2])
+    a_off = np.array([0.0, 5e-5, 1e-3, 0.0])
+    together = memory._embedded_iterate(base, memory.ITERATED_STEPS, a_on[:, None], a_off[:, None])
+    for i in range(a_on.size):
+        alone = memory._embedded_iterate(dataclasses.replace(base, a_on=a_on[i], a_off=a_off[i]),
+                                         memory.ITERATED_STEPS)
+        np.testing.assert_array_equal(together[i], alone)
+    assert not np.allclose(together[0], together[3])  # the background changes the law

@@ -293,21 +293,26 @@ class LevelTables:
         """Per-trial probability of a photon-noise event of each state (at most 1)."""
         return np.minimum(self.p_fresh_on + self.stored_on + self.p_fresh_off + self.stored_off, 1.0)
 
+    def probabilities(self, a_on, a_off):
+        """Per-trial ``(P_on, P_off)`` of each state with background arrival probabilities ``a_on``, ``a_off``
+        (scalars, or ``(G, 1)`` arrays for ``G`` pixels of this level with backgrounds of their own): photon noise,
+        then background in a trial without photon event."""
+        photon_on = self.p_fresh_on + self.stored_on
+        photon_off = self.p_fresh_off + self.stored_off
+        if np.all(np.asarray(a_on) == 0.0) and np.all(np.asarray(a_off) == 0.0):
+            return photon_on, photon_off
+        quiet = 1.0 - self.photon_event
+        return photon_on + quiet * a_on, photon_off + quiet * a_off
+
     @property
     def p_on(self) -> np.ndarray:
         """Per-trial ON probability of each state (photon noise, then background in a trial without)."""
-        photon_on = self.p_fresh_on + self.stored_on
-        if self.a_on == 0.0:
-            return photon_on
-        return photon_on + (1.0 - self.photon_event) * self.a_on
+        return self.probabilities(self.a_on, self.a_off)[0]
 
     @property
     def p_off(self) -> np.ndarray:
         """Per-trial OFF probability of each state (photon noise, then background in a trial without)."""
-        photon_off = self.p_fresh_off + self.stored_off
-        if self.a_off == 0.0:
-            return photon_off
-        return photon_off + (1.0 - self.photon_event) * self.a_off
+        return self.probabilities(self.a_on, self.a_off)[1]
 
     @property
     def p_event(self) -> np.ndarray:
@@ -331,7 +336,11 @@ def kernel_tables(levels, params, spans=None, background=None):
     from .._kernels import memory as km
     from ..errors import ParameterError
 
-    ranges = [state_range(lam) for lam in levels] if spans is None else list(spans)
+    if spans is None:
+        by_lam = {lam: state_range(lam) for lam in set(np.asarray(levels, dtype=np.float64).tolist())}
+        ranges = [by_lam[float(lam)] for lam in levels]
+    else:
+        ranges = list(spans)
     sizes = np.array([r[1] for r in ranges], dtype=np.int64)
     total = int(sizes.sum())
     if total > MAX_TABLE_STATES:
@@ -345,9 +354,16 @@ def kernel_tables(levels, params, spans=None, background=None):
     dt_s = 1.0 / params.trial_rate_hz
     refr_s = params.refractory_us * 1e-6
     bg_on, bg_off = level_background(levels, params) if background is None else background
+    exact = len(levels) <= EXACT_RATE_LEVELS
+    shared = {}  # (lam, span) -> the photon-noise tables, which groups of one level with other backgrounds share
+    iterate = {}  # (lam, span) -> the groups whose initial law comes from the iterated embedded chain
     for g, lam in enumerate(levels):
-        t = level_tables(lam, params.eps_pos, params.eps_neg, params.bias_pr, params.reset_memory,
-                         span=None if spans is None else ranges[g][:2], a_on=bg_on[g], a_off=bg_off[g])
+        span = None if spans is None else tuple(ranges[g][:2])
+        base = shared.get((lam, span))
+        if base is None:
+            base = shared[(lam, span)] = level_tables(lam, params.eps_pos, params.eps_neg, params.bias_pr,
+                                                      params.reset_memory, span=span)
+        t = dataclasses.replace(base, a_on=float(bg_on[g]), a_off=float(bg_off[g]))
         cols = slice(offsets[g], offsets[g] + sizes[g])
         p = t.p_event
         with np.errstate(divide="ignore"):
@@ -367,41 +383,64 @@ def kernel_tables(levels, params, spans=None, background=None):
         table[km.ROW_BG_OFF, cols] = quiet * t.a_off
         table[km.ROW_CUM_NONE, cols] = np.cumsum(t.none_fresh)
         table[km.ROW_K_HEAD, cols] = t.k * t.head
-        if len(levels) <= EXACT_RATE_LEVELS:
+        if exact:
             stationary = _stationary(t)
             r_on, r_off, *_ = level_statistics(t, dt_s, refr_s, stationary)
             rates[g] = r_on + r_off
-            pi = stationary[0]
+            _write_initial(table, cols, t, stationary[0], dt_s, refr_s)
         else:
             mean_p = float((t.pmf * p).sum())
             rates[g] = mean_p / (dt_s + mean_p * refr_s)
-            pi = _embedded_iterate(t, ITERATED_STEPS)
-        weight, dead = initial_law(t, pi, dt_s, refr_s)
-        table[km.ROW_CUM_INIT, cols] = np.cumsum(weight)
-        table[km.ROW_DEAD, cols] = dead
+            iterate.setdefault((lam, span), []).append(g)
+    for key, groups in iterate.items():  # the chains of one level together, in blocks of bounded memory
+        base = shared[key]
+        for start in range(0, len(groups), ITERATE_BLOCK):
+            block = groups[start:start + ITERATE_BLOCK]
+            a_on = np.asarray(bg_on, dtype=np.float64)[block][:, None]
+            a_off = np.asarray(bg_off, dtype=np.float64)[block][:, None]
+            laws = _embedded_iterate(base, ITERATED_STEPS, a_on, a_off) if len(block) > 1 else None
+            for i, g in enumerate(block):
+                t = dataclasses.replace(base, a_on=float(bg_on[g]), a_off=float(bg_off[g]))
+                pi = _embedded_iterate(t, ITERATED_STEPS) if laws is None else laws[i]
+                _write_initial(table, slice(offsets[g], offsets[g] + sizes[g]), t, pi, dt_s, refr_s)
     return table, itable, offsets, sizes, rates
+
+
+def _write_initial(table, cols, t: LevelTables, pi, dt_s: float, refr_s: float) -> None:
+    """The rows ``ROW_CUM_INIT`` and ``ROW_DEAD`` of one group (:func:`initial_law` of its embedded law ``pi``)."""
+    from .._kernels import memory as km
+
+    weight, dead = initial_law(t, pi, dt_s, refr_s)
+    table[km.ROW_CUM_INIT, cols] = np.cumsum(weight)
+    table[km.ROW_DEAD, cols] = dead
 
 
 #: Beyond :data:`EXACT_RATE_LEVELS` levels the embedded stationary law of :func:`initial_law` is this many steps
 #: of the embedded chain from ``Poisson(lam)`` (each ``O(S log S)``), not a linear solve.
 ITERATED_STEPS = 40
+#: Chains of one light level iterated together (:func:`_embedded_iterate`; ``(block, S)`` arrays).
+ITERATE_BLOCK = 2048
 
 
-def _embedded_iterate(t: LevelTables, steps: int) -> np.ndarray:
+def _embedded_iterate(t: LevelTables, steps: int, a_on=None, a_off=None) -> np.ndarray:
     """The embedded chain's law after ``steps`` events from a state drawn from ``Poisson(lam)`` (normalised):
-    the stationary law of :func:`_stationary` up to the chain's mixing after ``steps`` steps."""
-    p = t.p_on + t.p_off
+    the stationary law of :func:`_stationary` up to the chain's mixing after ``steps`` steps. With ``a_on``,
+    ``a_off`` (``(G, 1)``) the laws ``(G, S)`` of ``G`` chains of this level with backgrounds of their own."""
+    if a_on is None:
+        a_on, a_off = t.a_on, t.a_off
+    p_on, p_off = t.probabilities(a_on, a_off)
+    p = p_on + p_off
     live = p > 0
     p_safe = np.where(live, p, 1.0)
-    x = t.pmf / t.pmf.sum()
+    x = np.broadcast_to(t.pmf / t.pmf.sum(), np.broadcast_shapes(np.shape(p), np.shape(a_on)[:-1] + (t.n_states,)))
+    done = np.zeros(x.shape[:-1] + (1,), dtype=bool)  # a chain whose law vanished: Poisson(lam), as it started
     for _ in range(steps):
         w = np.where(live, x / p_safe, 0.0)
-        a_on, a_off = _after(t, w, w)
-        x = a_on + a_off + np.where(live, 0.0, x)
-        total = x.sum()
-        if not total > 0:
-            return t.pmf / t.pmf.sum()
-        x = x / total
+        after_on, after_off = _after(t, w, w, a_on, a_off)
+        x_new = after_on + after_off + np.where(live, 0.0, x)
+        total = x_new.sum(axis=-1, keepdims=True)
+        done = done | ~(total > 0)
+        x = np.where(done, t.pmf / t.pmf.sum(), x_new / np.where(done, 1.0, total))
     return x
 
 
@@ -563,28 +602,35 @@ def _stationary(t: LevelTables):
     return pi, p
 
 
-def _after(t: LevelTables, w_on, w_off):
+def _after(t: LevelTables, w_on, w_off, a_on=None, a_off=None):
     """Per state ``j``: ``sum_m w_on(m) E_on(m, j)`` and ``sum_m w_off(m) E_off(m, j)`` (``w = pi / P``),
-    the stationary laws of the state just after an ON and an OFF event (unnormalised), in O(S log S)."""
+    the stationary laws of the state just after an ON and an OFF event (unnormalised), in O(S log S).
+
+    ``w_on``, ``w_off``: ``(S,)``, or ``(G, S)`` for ``G`` chains of this level that differ in their background
+    ``a_on``, ``a_off`` (``(G, 1)``; default: the tables' own)."""
     k = t.k
     n_s = t.n_states
     j = np.arange(n_s)
+    a_on = t.a_on if a_on is None else a_on
+    a_off = t.a_off if a_off is None else a_off
+    zero = np.zeros(np.shape(w_on)[:-1] + (1,))
     # ON: stored branch reaches j from the m with idx_on(m) <= j (idx_on nondecreasing: a prefix of m)
-    c_on = np.concatenate([[0.0], np.cumsum(w_on)])
+    c_on = np.concatenate([zero, np.cumsum(w_on, axis=-1)], axis=-1)
     a = np.searchsorted(t.idx_on, j, side="right")
-    after_on = t.fresh_on * w_on.sum() + k * t.pmf * c_on[a]
+    after_on = t.fresh_on * w_on.sum(axis=-1, keepdims=True) + k * t.pmf * c_on[..., a]
     # OFF: from the m with idx_off(m) >= j (a suffix)
-    c_off = np.concatenate([[0.0], np.cumsum(w_off)])
+    c_off = np.concatenate([zero, np.cumsum(w_off, axis=-1)], axis=-1)
     b = np.searchsorted(t.idx_off, j, side="left")
-    after_off = t.fresh_off * w_off.sum() + k * t.pmf * (c_off[-1] - c_off[b])
-    if t.a_on > 0.0 or t.a_off > 0.0:
+    after_off = t.fresh_off * w_off.sum(axis=-1, keepdims=True) + k * t.pmf * (c_off[..., -1:] - c_off[..., b])
+    if np.any(np.asarray(a_on) > 0.0) or np.any(np.asarray(a_off) > 0.0):
         # background in a trial without photon event stores that trial's count j: fresh branch not beaten, or the
         # stored one not beaten, i.e. idx_off(m) < j < idx_on(m): the m in [a, b) (both indices nondecreasing)
         inside = b > a
-        for weight, c, arr in ((t.a_on, c_on, after_on), (t.a_off, c_off, after_off)):
-            if weight > 0.0:
-                stored = np.where(inside, c[np.maximum(b, a)] - c[a], 0.0)
-                arr += weight * (t.none_fresh * c[-1] + k * t.pmf * stored)
+        top = np.maximum(b, a)
+        after_on = after_on + a_on * (t.none_fresh * c_on[..., -1:]
+                                      + k * t.pmf * np.where(inside, c_on[..., top] - c_on[..., a], 0.0))
+        after_off = after_off + a_off * (t.none_fresh * c_off[..., -1:]
+                                         + k * t.pmf * np.where(inside, c_off[..., top] - c_off[..., a], 0.0))
     return after_on, after_off
 
 
