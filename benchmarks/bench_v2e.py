@@ -475,12 +475,18 @@ def main(argv=None) -> int:
     ap.add_argument("--marginal-max-fps", type=float, default=100.0, help="v2e settings up to this frame rate get "
                     "long runs (default 100)")
     ap.add_argument("--seed", type=int, default=1, help="seed of both tools' noise (v2e gets seed + 1, not 0)")
+    ap.add_argument("--lux", type=float, action="append", default=None, metavar="LUX",
+                    help=f"illuminance of the flat scene, repeatable (default: {' '.join(f'{x:g}' for x in LUX)})")
     ap.add_argument("--report", type=Path, default=HERE / "REPORT.md", help="report to write the section into")
     ap.add_argument("--no-report", action="store_true", help="print the section only")
     args = ap.parse_args(argv)
     args.argv = argv
     if args.repeats < 1:
         ap.error("--repeats must be >= 1")
+    if args.lux:
+        if not all(x >= 0 and np.isfinite(x) for x in args.lux):
+            ap.error("--lux must be finite and >= 0")
+        globals()["LUX"] = tuple(args.lux)  # the module's lux list, read by every table and verdict
     problem = v2e_problem(args.v2e_python)
     if problem:
         print(f"bench_v2e.py: {problem}", file=sys.stderr)
