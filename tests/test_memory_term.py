@@ -180,7 +180,10 @@ def test_zero_memory_is_the_memoryless_simulator(monkeypatch):
 @pytest.mark.parametrize("changes, lux", [
     ({}, 1e-12), ({}, 0.0), ({"photons_per_lux": 5e4}, 2.0), ({"eps_pos": 1e-3, "eps_neg": 1e-3}, 1.0),
     ({"eps_pos": 15.0, "eps_neg": 15.0}, 1.0), ({"bias_pr": 0.0}, 0.1), ({"reset_memory": 1.0}, 1.0),
-    ({"reset_memory": 1.0, "bias_pr": 0.0}, 0.02)])
+    ({"reset_memory": 1.0, "bias_pr": 0.0}, 0.02),
+    # with a background: dark (only background events), saturating (an arrival in nearly every trial), tiny
+    ({"leak_on_hz": 5.0}, 0.0), ({"leak_on_hz": 1e6, "leak_off_hz": 1e6}, 1.0), ({"leak_off_hz": 1e-9}, 1.0),
+    ({"leak_on_hz": 3.0, "reset_memory": 1.0, "bias_pr": 0.0}, 0.0), ({"leak_on_hz_per_lux": 2.0}, 50.0)])
 def test_hard_cases_are_finite_and_quiet(changes, lux):
     params = MEM.replace(**changes)
     with warnings.catch_warnings():

@@ -700,7 +700,10 @@ def memory_statistics(lux, params) -> MemoryStatistics:
         total = r_on + r_off
         out["share"][i] = r_on / total if total > 0 else math.nan
         out["trans"][i] = trans
-        out["opp"][i] = (trans[1, 0] * r_on + trans[0, 1] * r_off) / total if total > 0 else math.nan
+        # a polarity that never fires (an ON-only background in the dark) has no transitions of its own
+        opp_on = trans[1, 0] * r_on if r_on > 0 else 0.0
+        opp_off = trans[0, 1] * r_off if r_off > 0 else 0.0
+        out["opp"][i] = (opp_on + opp_off) / total if total > 0 else math.nan
         out["iei"][i] = iei
         out["tail"][i] = t.tail_mass
 
