@@ -72,7 +72,8 @@ def expected_rate(lux, params, *, thresholds=None, background=None, mismatch: st
     mismatch : {"nominal", "mean"}
         ``"nominal"`` (default): the rate of a pixel at the nominal (or the given) thresholds.
         ``"mean"``: the mean rate over the population of pixels whose thresholds are spread by
-        ``params.eps_sigma`` (exact, :func:`evnoise.mismatch.population_rate`): what a
+        ``params.eps_sigma`` (:func:`evnoise.mismatch.population_rate`; exact up to about 1e5 photons per
+        trial, beyond within about 1e-10 without dead time and 1e-5 with it: :mod:`evnoise.mismatch`): what a
         measurement averaged over many pixels sees (threshold mismatch, background spread and
         hot pixels). The two agree when ``eps_sigma``, ``leak_sigma`` and ``hot_pixel_fraction`` are 0.
     background : array_like, optional

@@ -22,7 +22,10 @@ exactly pair by pair, but for the rest of the distribution the steps are gathere
 like ``lam``: about 0.1 ms at ``lam ~ 1``, 1 ms at ``lam ~ 20``, a few ms at ``lam ~ 1000``. The
 pairs are not stored: they are visited once to count them and find their range, then again to store
 the few or bin the many, so memory stays at the photon-count window and the bins (storing every pair
-took 2.1 GB at ``lam ~ 2e5``, evk4 at 3000 lux, and failed at 10,000 lux).
+took 2.1 GB at ``lam ~ 2e5``, evk4 at 3000 lux, and failed at 10,000 lux). The number of pairs grows like
+``s lam^1.5`` (1e8 .. 1e9 at ``lam ~ 1e5 .. 1e6``: 50 s and 280 s with evk4 at 3000 and 10,000 lux), so at large
+``lam`` :func:`threshold_atoms_grid` brackets ``p`` on a grid of thresholds instead (the middle part of this module;
+the choice is :func:`evnoise.mismatch.uses_threshold_grid`).
 
 Everything is in scaled arithmetic (values relative to ``exp(ref)``), so tiny probabilities
 do not underflow. Unit-free, no checking: the checked entry points are in
@@ -34,9 +37,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import prange
 
 from ._jit import kernel
-from .poisson import log_event_probability_exact, log_pmf, log_sf, pmf_run, threshold_count
+from .bounds import chernoff_bracket
+from .poisson import log_event_probability_exact, log_pmf, log_sf, logaddexp, pmf_run, threshold_count
 from .rng import seed_state, uniform, uniform_pos
 from .simulate import first_eligible_trial
 
@@ -298,6 +303,514 @@ def mean_probability_double_sum(lam, b, mu, s, n_max):
             total += w * phi_interval(x0, xb)
     return total / q_norm
 
+
+# --------------------------------------------------------------------------------------
+# the same distribution at large lam, from p on a grid of thresholds (issue 33)
+#
+# Enumerating the breakpoints costs about s lam^1.5 pairs (1e8 .. 1e9 at lam ~ 1e5 .. 1e6). p is non-increasing in
+# the threshold (each k(m) = m + floor(c (m + b)) grows with c = expm1(eps)), so the pixels whose threshold lies in
+# a cell (t_i, t_i+1] of a grid have p in [p(t_i+1), p(t_i)]: the grid gives two-sided brackets of E[p] and E[p^2]
+# and an atom per cell, from one sum per grid point (tables of log pmf and log P(N > k) shared by the grid).
+# --------------------------------------------------------------------------------------
+#: grid step in units of the threshold's standard deviation (the resolution of the binned breakpoints above)
+GRID_PER_SIGMA = 1024.0
+#: bracket ends of the grid are widened by this (relative) for the rounding of the sums at the grid points
+GRID_WIDEN = 1e-9
+#: the grid's lowest threshold leaves out pixels whose share of E[p] and E[p^2] is below exp(-GRID_CUT)
+GRID_CUT = 40.0
+#: a table sum stops once a bound on the terms left is below exp(-GRID_TOL_LOG) of the sum
+GRID_TOL_LOG = 41.0
+#: tables longer than this are not built (each grid point then takes the exact windowed sum)
+GRID_MAX_TABLE = 1 << 23
+_LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
+# 6-point Gauss-Legendre nodes and weights on [0, 1]
+_GL_U = np.array([0.033765242898423975, 0.16939530676686776, 0.3806904069584015, 0.6193095930415985,
+                  0.8306046932331322, 0.966234757101576])
+_GL_W = np.array([0.08566224618958517, 0.1803807865240693, 0.23395696728634552, 0.23395696728634552,
+                  0.1803807865240693, 0.08566224618958517])
+
+
+@kernel
+def _peak(lam, c, b):
+    """Roughly where ``pmf(m) P(N > k(m))`` peaks in ``m``: the mean of ``n0`` under the Chernoff tilt."""
+    lo, hi = chernoff_bracket(lam, c, b, 40)
+    return lam * math.exp(-(1.0 + c) * 0.5 * (lo + hi))
+
+
+@kernel
+def grid_tables(lam, b, c_min, c_max):
+    """``(j0, lpmf, lsf)``: ``lpmf[i] = log P(M = j0 + i)``, ``lsf[i] = log P(M > j0 + i)`` for ``M ~ Poisson(lam)``
+    over the counts that the sums of :func:`log_p_table` visit for ``c_min <= c <= c_max`` (empty when too long).
+
+    The tails are summed downwards from an exact last one in scaled linear arithmetic (they only grow: relative
+    error at most a few ulps per entry), so only ``log`` of each stored value is rounded."""
+    width = 14.0 * math.sqrt(lam) + 64.0
+    m_a = max(0.0, np.floor(_peak(lam, c_max, b) - width))
+    m_b = np.ceil(_peak(lam, c_min, b) + width)
+    k_b = m_b + np.floor(c_max * (m_b + b)) + width
+    if not k_b - m_a + 1.0 <= GRID_MAX_TABLE:
+        return 0, np.empty(0), np.empty(0)
+    j0 = int(m_a)
+    n = int(k_b - m_a) + 1
+    lpmf = np.empty(n)
+    for i in range(n):
+        lpmf[i] = log_pmf(float(j0 + i), lam)
+    lsf = np.empty(n)
+    top = log_sf(float(j0 + n - 1), lam)
+    lsf[n - 1] = top
+    scale = top  # P(M > j) = v exp(scale)
+    v = 1.0
+    for i in range(n - 2, -1, -1):
+        v += math.exp(lpmf[i + 1] - scale)
+        if v > 1e100:
+            scale += math.log(v)
+            v = 1.0
+        lsf[i] = scale + math.log(v)
+    return j0, lpmf, lsf
+
+
+@kernel
+def log_p_table(lam, c, b, j0, lpmf, lsf):
+    """``log p`` at ``c = expm1(eps)`` from the tables of :func:`grid_tables`: ``sum_m pmf(m) P(N > k(m))`` summed
+    outwards from the peak until a bound on the rest is below ``exp(-GRID_TOL_LOG)`` of the sum (NaN where the
+    terms run past the tables).
+
+    The bound (as :func:`evnoise._kernels.poisson.event_probability_grouped` uses it): ``pmf(m + j) <= pmf(m)
+    (lam / (m + 1))^j``, ``pmf(m - j) <= pmf(m) (m / lam)^j``; ``k(m +- j) - k(m)`` lies within ``j (1 + c) -+ 1``;
+    the Poisson law is log-concave, so ``P(N > k + x) <= P(N > k) q^x`` and ``P(N > k - x) <= P(N > k) r^x``
+    (``q``, ``r`` the ratios of neighbouring tails at ``k``): the rest is below a geometric series."""
+    n = lpmf.shape[0]
+    j1 = j0 + n - 1
+    a_hi = 1.0 + c * (1.0 + 1e-8)
+    a_lo = 1.0 + c * (1.0 - 1e-8)
+    m0 = min(max(np.floor(_peak(lam, c, b)), float(j0)), float(j1))
+    ref = -math.inf
+    acc = 0.0
+    m = m0
+    steps = 0
+    while True:  # upwards from the peak
+        k = threshold_count(m, c, b)
+        if not (k + 1.0 <= j1 and m <= j1):
+            return math.nan
+        ik = int(k) - j0
+        lt = lpmf[int(m) - j0] + lsf[ik]
+        if ref == -math.inf:
+            ref = lt
+        if lt - ref > 300.0:
+            acc *= math.exp(ref - lt)
+            ref = lt
+        acc += math.exp(lt - ref)
+        steps += 1
+        if steps % 8 == 0:
+            lq = lsf[ik + 1] - lsf[ik]
+            lrho = math.log(lam / (m + 1.0)) + a_lo * lq
+            if lrho < 0.0 and lt - lq + lrho - math.log(-math.expm1(lrho)) <= ref + math.log(acc) - GRID_TOL_LOG:
+                break
+        m += 1.0
+    m = m0 - 1.0
+    steps = 0
+    while m >= 0.0:  # downwards
+        if m < j0:
+            return math.nan
+        k = threshold_count(m, c, b)
+        if k < j0 or k > j1:
+            return math.nan
+        ik = int(k) - j0
+        lt = lpmf[int(m) - j0] + lsf[ik]
+        if lt - ref > 300.0:
+            acc *= math.exp(ref - lt)
+            ref = lt
+        acc += math.exp(lt - ref)
+        steps += 1
+        if steps % 8 == 0 and m > 0.0:
+            if ik == 0:
+                if j0 > 0:
+                    return math.nan
+                lr = -lsf[0]  # P(N > -1) = 1
+            else:
+                lr = lsf[ik - 1] - lsf[ik]
+            lrho = math.log(m / lam) + a_hi * lr
+            if lrho < 0.0 and lt + 2.0 * lr + lrho - math.log(-math.expm1(lrho)) <= ref + math.log(acc) - GRID_TOL_LOG:
+                break
+        m -= 1.0
+    return ref + math.log(acc)
+
+
+@kernel
+def log_p_thresholds(lam, b, eps, out):
+    """``out[i] = log p`` at threshold ``eps[i] >= 0`` (``lam > 0``): :func:`log_p_table` on tables shared by all
+    thresholds, the exact windowed sum (:func:`evnoise._kernels.poisson.log_event_probability_exact`) where the
+    tables do not reach. Returns how many thresholds took the windowed sum."""
+    n = eps.shape[0]
+    e_min = math.inf
+    e_max = 0.0
+    for i in range(n):
+        e_min = min(e_min, eps[i])
+        e_max = max(e_max, eps[i])
+    j0, lpmf, lsf = grid_tables(lam, b, math.expm1(e_min), math.expm1(e_max))
+    n_exact = 0
+    for i in range(n):
+        c = math.expm1(eps[i])
+        v = log_p_table(lam, c, b, j0, lpmf, lsf) if lpmf.shape[0] > 0 else math.nan
+        if v != v:
+            v = log_event_probability_exact(lam, c, b)
+            n_exact += 1
+        out[i] = v
+    return n_exact
+
+
+@kernel(parallel=True)
+def _grid_log_p(lam, b, theta, j0, lpmf, lsf, out):
+    """``out[i] = log p`` at threshold ``theta[i]``: :func:`log_p_table`, else the exact windowed sum (each value on
+    its own, so the same whatever the number of threads)."""
+    for i in prange(theta.shape[0]):
+        c = math.expm1(theta[i])
+        v = log_p_table(lam, c, b, j0, lpmf, lsf) if lpmf.shape[0] > 0 else math.nan
+        if v != v:
+            v = log_event_probability_exact(lam, c, b)
+        out[i] = v
+
+
+@kernel
+def _log_cell(x, dx, dl):
+    """``log`` of ``int_0^1 exp(dl u - x dx u - dx^2 u^2 / 2) du`` (6-point Gauss-Legendre on pieces where the
+    exponent changes by at most 1/2): the Gaussian density's shape over a cell ``dx`` wide (in sigmas) from ``x``,
+    times ``p`` log-linear across it (``log p`` changes by ``dl``)."""
+    g = dl - x * dx
+    pieces = 1 + int(abs(g) / 0.5)
+    top = max(0.0, g)
+    acc = 0.0
+    for j in range(pieces):
+        for q in range(6):
+            u = (j + _GL_U[q]) / pieces
+            acc += _GL_W[q] * math.exp(g * u - 0.5 * dx * dx * u * u - top)
+    return top + math.log(acc / pieces)
+
+
+@kernel
+def threshold_atoms_grid(lam, b, mu, s, delta):
+    """:func:`threshold_atoms` from ``p`` on a grid of thresholds, for large ``lam`` (cost independent of ``lam``
+    but for the ``sqrt(lam)`` terms of each sum).
+
+    The grid runs in steps of ``s / GRID_PER_SIGMA`` (the resolution of :func:`threshold_atoms`' binned
+    breakpoints) from ``t_0`` to ``mu + 9 s``; ``t_0`` is 0 or the threshold below which the pixels' share of
+    ``E[p]`` and ``E[p^2]`` is at most ``exp(-GRID_CUT)`` (``P(eps < t_0) <= exp(-GRID_CUT)`` times a lower bound
+    on each moment, as ``p <= 1``). A cell's pixels have ``p`` between its ends' values, so
+
+        sum_i P(cell i) p(t_i+1)  <=  E[p]  <=  sum_i P(cell i) p(t_i) + P(eps < t_0) + P(eps > mu + 9 s) p(mu + 9 s)
+
+    (and the same for ``p^2``), each end widened by :data:`GRID_WIDEN` for the rounding of the sums (the
+    bracket's width is about ``|d log p / d eps| s / GRID_PER_SIGMA`` of the moment where it is dominated: 7e-4 to
+    2e-2 with ``evk4`` from 30 to 10,000 lux). Inside it, the grid's estimates take ``log p`` linear across each
+    cell (integrated against the normal density by Gauss-Legendre): ``E[p^2]`` is that estimate (measured within
+    about 1e-4 of the enumeration: the staircase of ``p`` between grid points limits it, not the grid step);
+    ``E[p]`` is :func:`mean_probability_smooth` where that is defined and inside the bracket (measured within 1e-11
+    of the enumeration at ``lam <= 6.4e4``, 1.3e-10 at ``6.4e5``), else the grid's (about 1e-4). Each cell is an
+    atom (``E[p | cell]``, scaled to the mean taken), merged into bins ``delta`` wide in ``log p`` as in
+    :func:`threshold_atoms`; atoms below ``LOG_ZERO`` are set to it. A pixel's ``p`` is thus represented by a
+    value within its cell's bracket, a cell ``s / 1024`` wide as the binned breakpoints of :func:`threshold_atoms`.
+
+    Returns
+    -------
+    (log_p, mass, log_m1, log_m2, info, n_grid)
+        As :func:`threshold_atoms`, then ``info = [lo_m1, hi_m1, lo_m2, hi_m2, grid_m1, smooth_m1]``: the logs of
+        the brackets' ends, the grid's estimate of ``log E[p]`` and :func:`mean_probability_smooth`'s (NaN where
+        it is not defined); and the number of grid points.
+    """
+    x0 = -mu / s
+    q_norm = phi_interval(x0, math.inf)
+    log_q = math.log(q_norm)
+    h = s / GRID_PER_SIGMA
+    t_hi = mu + 9.0 * s
+    j0, lpmf, lsf = grid_tables(lam, b, 0.0, math.expm1(t_hi + h))
+    # lower bounds on E[p] and E[p^2]: p(e)^k P(0 < eps < e), p non-increasing, at e = mu, mu - s, ...
+    log_lb = -math.inf
+    i = 0
+    while True:
+        e = mu - i * s
+        if e <= 0.0:
+            break
+        lf = math.log(phi_interval(x0, (e - mu) / s) / q_norm)
+        c = math.expm1(e)
+        lp_e = log_p_table(lam, c, b, j0, lpmf, lsf) if lpmf.shape[0] > 0 else math.nan
+        if lp_e != lp_e:
+            lp_e = log_event_probability_exact(lam, c, b)
+        log_lb = max(log_lb, 2.0 * lp_e + lf)  # a lower bound on E[p^2], so also on E[p]
+        i += 1
+    need = log_lb - GRID_CUT
+    t_lo = 0.0
+    xi = 0.0
+    while True:
+        x = -xi
+        if mu + x * s <= 0.0:
+            break
+        if log_ndtr(x) - log_q <= need:
+            t_lo = mu + x * s
+            break
+        xi += 1.0
+    n_cell = int(math.ceil((t_hi - t_lo) / h))
+    theta = np.empty(n_cell + 1)
+    for i in range(n_cell + 1):
+        theta[i] = t_lo + i * h
+    lp = np.empty(n_cell + 1)
+    _grid_log_p(lam, b, theta, j0, lpmf, lsf, lp)
+    # cells: log mass, log E[p 1_cell], log E[p^2 1_cell] (all relative to P(eps > 0))
+    lmass = np.empty(n_cell + 1)
+    lc1 = np.empty(n_cell + 1)
+    lc2 = np.empty(n_cell + 1)
+    dx = h / s
+    lo1 = -math.inf
+    hi1 = -math.inf
+    lo2 = -math.inf
+    hi2 = -math.inf
+    for i in range(n_cell):
+        x = (theta[i] - mu) / s
+        base = math.log(dx) - 0.5 * x * x - _LOG_SQRT_2PI - log_q
+        lmass[i] = base + _log_cell(x, dx, 0.0)
+        dl = lp[i + 1] - lp[i]
+        lc1[i] = base + lp[i] + _log_cell(x, dx, dl)
+        lc2[i] = base + 2.0 * lp[i] + _log_cell(x, dx, 2.0 * dl)
+        lo1 = logaddexp(lo1, lmass[i] + lp[i + 1])
+        hi1 = logaddexp(hi1, lmass[i] + lp[i])
+        lo2 = logaddexp(lo2, lmass[i] + 2.0 * lp[i + 1])
+        hi2 = logaddexp(hi2, lmass[i] + 2.0 * lp[i])
+    # above the grid: P(eps > t_hi) (below 1e-19), p at most p(t_hi)
+    x = (theta[n_cell] - mu) / s
+    l_top = math.log(0.5 * math.erfc(x * _SQRT1_2)) - log_q
+    lmass[n_cell] = l_top
+    lc1[n_cell] = l_top + lp[n_cell]
+    lc2[n_cell] = l_top + 2.0 * lp[n_cell]
+    hi1 = logaddexp(hi1, lc1[n_cell])
+    hi2 = logaddexp(hi2, lc2[n_cell])
+    # below the grid: P(0 < eps < t_lo), p at most 1 (its mass joins the first cell, at that cell's p)
+    l_bot = -math.inf
+    if t_lo > 0.0:
+        l_bot = math.log(phi_interval(x0, (t_lo - mu) / s)) - log_q
+        hi1 = logaddexp(hi1, l_bot)
+        hi2 = logaddexp(hi2, l_bot)
+    r1 = lc1[0] - lmass[0]
+    r2 = lc2[0] - lmass[0]
+    lmass[0] = logaddexp(lmass[0], l_bot)
+    lc1[0] = lmass[0] + r1
+    lc2[0] = lmass[0] + r2
+    widen = math.log1p(GRID_WIDEN)
+    lo1 -= widen
+    hi1 += widen
+    # the estimates; the atoms E[p | cell], merged into bins delta wide in log p (log p non-increasing)
+    n_all = n_cell + 1
+    m1 = -math.inf
+    m2 = -math.inf
+    i_peak = 0
+    for i in range(n_all):
+        m1 = logaddexp(m1, lc1[i])
+        m2 = logaddexp(m2, lc2[i])
+        if lc1[i] > lc1[i_peak]:
+            i_peak = i
+    m1_grid = m1
+    # E[p] by the smooth double sum where it lies inside the bracket: the atoms are scaled to it
+    m1_smooth = mean_probability_smooth(lam, b, mu, s, theta[min(i_peak, n_cell)])
+    if lo1 <= m1_smooth <= hi1:
+        m1 = m1_smooth
+        for i in range(n_all):
+            lc1[i] += m1_smooth - m1_grid
+    info = np.array([lo1, hi1, lo2 - widen, hi2 + widen, m1_grid, m1_smooth])
+    out_lp = np.empty(n_all)
+    out_mass = np.empty(n_all)
+    n_out = 0
+    k = 0
+    while k < n_all:
+        top = lc1[k] - lmass[k]
+        am = lmass[k]
+        av = lc1[k]
+        k += 1
+        while k < n_all and top - (lc1[k] - lmass[k]) < delta:
+            am = logaddexp(am, lmass[k])
+            av = logaddexp(av, lc1[k])
+            k += 1
+        out_lp[n_out] = max(av - am, LOG_ZERO)
+        out_mass[n_out] = am
+        n_out += 1
+    big = -math.inf
+    for i in range(n_out):
+        big = max(big, out_mass[i])
+    total = 0.0
+    n_keep = 0
+    for i in range(n_out):  # atoms of mass below 1e-300 are left out (threshold_atoms: those that underflow)
+        w = math.exp(out_mass[i] - big)
+        if w > 1e-300:
+            out_lp[n_keep] = out_lp[i]
+            out_mass[n_keep] = w
+            total += w
+            n_keep += 1
+    for i in range(n_keep):
+        out_mass[i] /= total
+    return out_lp[:n_keep].copy(), out_mass[:n_keep].copy(), m1, m2, info, n_cell + 1
+
+
+@kernel
+def log_ndtr(z):
+    """``log Phi(z)`` for a standard normal, full relative accuracy for every finite ``z`` (``erfc`` down to
+    ``z = -37``, below it the asymptotic series to ``z^-14``, whose next term is below 1e-18)."""
+    if z > 0.0:
+        return math.log1p(-0.5 * math.erfc(z * _SQRT1_2))
+    if z > -37.0:
+        return math.log(0.5 * math.erfc(-z * _SQRT1_2))
+    iz2 = 1.0 / (z * z)
+    ser = 1.0 + iz2 * (-1.0 + iz2 * (3.0 + iz2 * (-15.0 + iz2 * (105.0 + iz2 * (-945.0 + iz2 * (
+        10395.0 - iz2 * 135135.0))))))
+    return -0.5 * z * z - math.log(-z) - _LOG_SQRT_2PI + math.log(ser)
+
+
+@kernel
+def _log_f_inner(x, m, lam, b, mu, s, l0):
+    """``log[pmf(m + x) P(0 < eps < log1p(x / (m + b)))]`` for real ``x > 0`` (the pmf extended by the gamma
+    function; ``l0 = log Phi(-mu / s)``), relative to ``P(eps > 0)``."""
+    z = (math.log1p(x / (m + b)) - mu) / s
+    lz = log_ndtr(z)
+    if not lz > l0:
+        return -math.inf
+    return log_pmf(m + x, lam) + lz + math.log(-math.expm1(l0 - lz))
+
+
+#: :func:`mean_probability_smooth` needs its summands smooth on this many counts at least (``s (m + b)``, and a
+#: quarter of it for the width of each inner integrand); below, it returns NaN
+EM_MIN_SCALE = 30.0
+#: Gauss-Legendre nodes and weights on [0, 1] for the inner integrals of :func:`mean_probability_smooth`
+_EM_NODES = 24
+_EM_PANELS = 6
+_EM_HALF = 15.0  # the inner integral covers the mode +- this many widths (log-concave: the rest is below e^-100)
+_GL24_U = 0.5 * (np.polynomial.legendre.leggauss(_EM_NODES)[0] + 1.0)
+_GL24_W = 0.5 * np.polynomial.legendre.leggauss(_EM_NODES)[1]
+
+
+@kernel
+def mean_probability_smooth(lam, b, mu, s, eps_peak):
+    """``log E[p]`` by the double sum ``sum_m pmf(m) sum_{j >= 1} pmf(m + j) P(0 < eps < log1p(j / (m + b)))`` with
+    each inner sum over ``j`` replaced by its Euler-Maclaurin form (``lam`` large, ``m >= 16``): the integral over
+    a real ``j`` (the pmf extended by the gamma function), minus ``g'(0) / 12`` at the end ``j = 0`` where the
+    summand ``g`` vanishes. The summand is smooth on the scale of ``min(sqrt(lam), s (m + b))`` counts, so the
+    sum and the integral differ by far less than the next term (about ``g'''(0) / 720``, a relative
+    ``(s (m + b))^-2`` of the first, itself only there when the truncation at ``eps = 0`` matters). The integrand
+    is log-concave in ``j`` (log-concave pmf, and the normal's ``log Phi`` of a concave argument), so each integral
+    is taken by Gauss-Legendre over its mode +- ``_EM_HALF`` widths. The outer sum runs outwards from the ``m`` that
+    dominates at threshold ``eps_peak`` until its terms fall below ``exp(-45)`` of the largest for 16 steps.
+
+    Not a bound: an estimate whose error is far below the grid's bracket (tested against the enumeration);
+    :func:`threshold_atoms_grid` uses it only inside its rigorous bracket. Returns NaN where ``m`` would go below
+    16 (small ``lam``).
+    """
+    x0 = -mu / s
+    l0 = log_ndtr(x0)
+    log_q = math.log1p(-math.exp(l0))
+    # d/dj P(0 < eps < log1p(j / (m + b))) at j = 0 is phi(x0) / (s (m + b))
+    log_dens0 = -0.5 * x0 * x0 - _LOG_SQRT_2PI - math.log(s)
+    m_start = np.floor(_peak(lam, math.expm1(eps_peak), b))
+    best = -math.inf
+    total_ref = -math.inf
+    acc = 0.0
+    x_first = -1.0
+    for direction in range(2):
+        m = m_start if direction == 0 else m_start - 1.0
+        xm = max(1.0, (m_start + b) * math.expm1(eps_peak)) if direction == 0 else x_first
+        small = 0
+        while True:
+            if m < 16.0 or s * (m + b) < EM_MIN_SCALE:
+                return math.nan
+            # the inner integrand's mode: Newton on central differences, kept inside a bracket of the mode
+            lo = 0.0
+            hi = math.inf
+            for _ in range(200):
+                d = 1.0 if xm > 4.0 else 0.25 * xm
+                f0 = _log_f_inner(xm, m, lam, b, mu, s, l0)
+                fp = _log_f_inner(xm + d, m, lam, b, mu, s, l0)
+                fm = _log_f_inner(xm - d, m, lam, b, mu, s, l0)
+                if fm == -math.inf or fp > fm:
+                    lo = xm
+                else:
+                    hi = xm
+                g1 = (fp - fm) / (2.0 * d)
+                g2 = (fp - 2.0 * f0 + fm) / (d * d)
+                xn = xm - g1 / g2 if (g2 < 0.0 and fm > -math.inf) else math.nan
+                if not (lo < xn < hi):
+                    xn = 0.5 * (lo + hi) if hi < math.inf else 2.0 * xm + 1.0
+                if abs(xn - xm) < 0.01:
+                    xm = xn
+                    break
+                xm = xn
+            f0 = _log_f_inner(xm, m, lam, b, mu, s, l0)
+            d = 1.0 if xm > 4.0 else 0.25 * xm
+            g2 = (_log_f_inner(xm + d, m, lam, b, mu, s, l0) - 2.0 * f0
+                  + _log_f_inner(xm - d, m, lam, b, mu, s, l0)) / (d * d)
+            w = 1.0 / math.sqrt(-g2) if g2 < 0.0 else 0.25 * xm
+            if not w >= EM_MIN_SCALE / 4.0:
+                return math.nan
+            a = max(0.0, xm - _EM_HALF * w)
+            z = xm + _EM_HALF * w
+            pw = (z - a) / _EM_PANELS
+            inner = 0.0
+            for panel in range(_EM_PANELS):
+                pa = a + pw * panel
+                for q in range(_EM_NODES):
+                    inner += _GL24_W[q] * pw * math.exp(_log_f_inner(pa + pw * _GL24_U[q], m, lam, b, mu, s, l0) - f0)
+            # Euler-Maclaurin at j = 0: sum_{j >= 1} g(j) = int_0^inf g - g'(0) / 12 + ...
+            corr = math.exp(log_pmf(m, lam) + log_dens0 - math.log(m + b) - f0) / 12.0 if a == 0.0 else 0.0
+            lt = log_pmf(m, lam) + f0 + math.log(inner - corr) if inner > corr else -math.inf
+            if x_first < 0.0:
+                x_first = xm
+            if total_ref == -math.inf:
+                total_ref = lt
+            if lt - total_ref > 300.0:
+                acc *= math.exp(total_ref - lt)
+                total_ref = lt
+            acc += math.exp(lt - total_ref)
+            best = max(best, lt)
+            if lt < best - 45.0:
+                small += 1
+                if small >= 16:
+                    break
+            else:
+                small = 0
+            m += 1.0 if direction == 0 else -1.0
+            if direction == 0 and m > lam + 60.0 * math.sqrt(lam) + 100.0:
+                break
+    return total_ref + math.log(acc) - log_q
+
+@kernel
+def enumeration_size(lam, b, mu, s):
+    """``(pairs, grid)``: about how many breakpoints :func:`threshold_atoms` visits (the pairs ``n > m`` of its
+    photon-count window whose breakpoint lies between the lowest threshold that can matter and ``mu + 9 s``),
+    and about how many grid points :func:`threshold_atoms_grid` takes; ``(0, 0)`` where the mean is far below
+    the smallest double (:func:`threshold_atoms` then returns at once)."""
+    x0 = -mu / s
+    q_norm = phi_interval(x0, math.inf)
+    # threshold_atoms' lower bound on the mean, with p from the paper's Gaussian form (an estimate is enough here,
+    # and it costs no sum): p ~ Phi(-(lam + b) c / sqrt(lam (1 + (1 + c)^2)))
+    log_lb = -math.inf
+    for i in range(13):
+        e = mu - i * s
+        if e <= 0.0:
+            break
+        lf = math.log(phi_interval(x0, (e - mu) / s) / q_norm)
+        c = math.expm1(e)
+        log_lb = max(log_lb, log_ndtr(-(lam + b) * c / math.sqrt(lam * (1.0 + (1.0 + c) ** 2))) + lf)
+    if log_lb < -750.0:
+        return 0.0, 0.0
+    lp_max = log_pmf(math.floor(lam), lam)
+    cut = log_lb - _CUT
+    lo, hi = _window(lam, cut - 2.0 * lp_max)
+    c_top = math.expm1(mu + _LUMP_X * s)
+    # P(eps < L) >= exp(cut - 2 lp_max) P(eps > 0) is needed, and P(eps < L) <= phi(x) / |x| below x = -1
+    x_low = -math.sqrt(max(2.0 * (2.0 * lp_max - cut), 1.0))
+    c_low = math.expm1(max(mu + x_low * s, 0.0))
+    total = 0.0
+    m = lo
+    while m < hi:
+        n_top = min(hi, np.floor(m + c_top * (m + b)))
+        n_low = max(m, np.floor(m + c_low * (m + b)))
+        if n_top > n_low:
+            total += n_top - n_low
+        m += 1.0
+    return total, (_LUMP_X + min(-x_low, mu / s)) * GRID_PER_SIGMA
 
 # --------------------------------------------------------------------------------------
 # counts of pixels with their own thresholds, decided by brackets (evnoise._bracket)

@@ -200,7 +200,8 @@ def _log_block_sum(n_low, n_high, lam):
 
 
 @kernel
-def _logaddexp(x, y):
+def logaddexp(x, y):
+    """``log(exp(x) + exp(y))`` of two floats (``-inf`` allowed), without overflow."""
     if x < y:
         x, y = y, x
     if y == -math.inf:
@@ -240,7 +241,7 @@ def _sweep(m_hi, m_star, lam, c, b, ref):
             break
         k_new = threshold_count(m - 1.0, c, b)
         if k_new < k_m:
-            s_log = _logaddexp(s_log, _log_block_sum(k_new + 1.0, k_m, lam))
+            s_log = logaddexp(s_log, _log_block_sum(k_new + 1.0, k_m, lam))
         k_m = k_new
         m -= 1.0
     return ref + math.log(acc), first
