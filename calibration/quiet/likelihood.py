@@ -14,8 +14,10 @@ stationary forward-recurrence law, the last interval censored by the window's en
 probability ``rate int_T^inf S = 1 - rate T`` for ``T <= d``, ``(1 - r) exp(-(T - d) / theta)`` beyond.
 Each event is ON with the pixel's ON share. This density integrated over the count of the window is the
 count likelihood, so the timing likelihood holds all of it and more. The ordinary pixels and the hot
-pixels may have their own regularity (``Model.hot_regular``: ``hot_regularity``). The rate spread is
-integrated on a finer grid (:data:`GRID_TIMING`), since a pixel's gaps make its integrand narrower.
+pixels may have their own regularity (``Model.hot_regular``: ``hot_regularity``). The density depends on a
+pixel's times only through its first event, its last, its shortest gap and its counts, and each pixel's
+integral over the spread is taken on nodes of its own (:mod:`.timing`): with many gaps and a regular timer
+the integrand is a spike far narrower than any fixed grid over the spread.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import numpy as np
 from evnoise.errors import InputError
 
 from .counts import count_survival
+from .timing import log_point_density, log_spread_integral, timing_statistics
 
 #: Grid points of the standard normal (over +-7 sd) for the integrals over the spread.
 GRID = 241
@@ -43,12 +46,6 @@ HOT_MIN_RATIO = 5.0
 #: any sensor gets there (a long step in a log rate, a hot-pixel rate that overflows); the log-likelihood
 #: is -inf there, where the arithmetic would overflow to inf and NaN.
 RATE_MAX_HZ = 1e300
-#: Grid points of the standard normal for the timing likelihood (over +-7 sd).
-GRID_TIMING = 241
-_ZT = np.linspace(-7.0, 7.0, GRID_TIMING)
-_WZT = np.exp(-0.5 * _ZT * _ZT)
-_WZT /= _WZT.sum()
-
 
 @dataclass
 class _Group:
@@ -58,40 +55,8 @@ class _Group:
     vectors: np.ndarray  # (U, n_windows, 2) counts
     weight: np.ndarray   # (U,) number of pixels with that vector
     log_binom: np.ndarray  # (U,) sum over windows of log C(k_on + k_off, k_on)
-    #: per window, the event times of the pixels with events (:func:`_timing_data`), or None (counts only)
-    timing: list | None = None
-    n_silent: int = 0  # pixels without an event in any window of the group
-
-
-def _timing_data(ws, n_pix):
-    """Per window: the pixels with events in any window (``active``), their counts, first times, censored
-    tails and gaps (with each gap's pixel), for :func:`_log_timing`. None if a window has no events kept."""
-    if any(w.events is None for w in ws):
-        return None, 0
-    active = np.unique(np.concatenate([w.events["pixel"] for w in ws]))
-    out = []
-    for w in ws:
-        ev = w.events
-        a = np.searchsorted(active, ev["pixel"])
-        k = np.bincount(a, minlength=active.size)
-        k_on = np.bincount(a, weights=ev["on"].astype(np.float64), minlength=active.size)
-        first = np.zeros(active.size)
-        last = np.zeros(active.size)
-        if ev["pixel"].size:
-            start = np.r_[True, ev["pixel"][1:] != ev["pixel"][:-1]]
-            stop = np.r_[ev["pixel"][1:] != ev["pixel"][:-1], True]
-            first[a[start]] = ev["t_s"][start]
-            last[a[stop]] = ev["t_s"][stop]
-        same = ev["pixel"][1:] == ev["pixel"][:-1]
-        gaps = np.maximum(np.diff(ev["t_s"])[same], 0.0)
-        gap_pix = a[1:][same]
-        gap_start = np.flatnonzero(np.r_[True, gap_pix[1:] != gap_pix[:-1]]) if gap_pix.size else gap_pix
-        T = float(w.duration_s)
-        out.append({"k": k.astype(np.float64), "k_on": k_on, "k_off": k - k_on, "first": first,
-                    "tail": np.maximum(T - last, 0.0), "gaps": gaps, "gap_pix": gap_pix, "T": T,
-                    "gap_start": gap_start, "gap_owner": gap_pix[gap_start] if gap_pix.size else gap_pix,
-                    "has": k > 0})
-    return out, int(n_pix - active.size)
+    #: the timing likelihood's per-pixel statistics (:func:`.timing.timing_statistics`), or None (counts only)
+    timing: dict | None = None
 
 
 def window_groups(windows) -> list:
@@ -111,8 +76,10 @@ def window_groups(windows) -> list:
         vec = uniq.reshape(-1, len(ws), 2)
         tot = vec.sum(axis=2)
         log_binom = (gammaln(tot + 1.0) - gammaln(vec[..., 0] + 1.0) - gammaln(vec[..., 1] + 1.0)).sum(axis=1)
-        timing, silent = _timing_data(ws, stack.shape[0])
-        out.append(_Group(ws, vec, mult.astype(np.float64), log_binom, timing, silent))
+        timing = None
+        if all(w.events is not None for w in ws):
+            timing = timing_statistics([w.events for w in ws], [w.duration_s for w in ws], stack.shape[0])
+        out.append(_Group(ws, vec, mult.astype(np.float64), log_binom, timing))
     return out
 
 
@@ -165,10 +132,9 @@ def unpack(theta, model: Model):
     return v
 
 
-def component_rates(v, group_index, model: Model, grp: _Group, fine: bool = False):
-    """Per component: total rates (M, W) events/s and ON shares (M, W) over its grid (``fine``: the timing
-    likelihood's :data:`GRID_TIMING` nodes)."""
-    z, wz = (_ZT, _WZT) if fine else (_Z, _WZ)
+def component_rates(v, group_index, model: Model, grp: _Group):
+    """Per component: total rates (M, W) events/s and ON shares (M, W) over its grid."""
+    z, wz = _Z, _WZ
     T = np.array([w.duration_s for w in grp.windows])
     shot = model.shot[group_index]
     lux = model.lux[group_index] if model.growth else np.zeros(len(T))
@@ -240,75 +206,48 @@ def _rates_in_range(v, model: Model) -> bool:
     return v["hot_fraction"] == 0.0 or _log_peak_rate(v["hot_rate_hz"], v["hot_sigma"]) <= log_max
 
 
-def _renewal_logs(rate, r):
-    """``(log rate, d, theta, log theta)`` of the renewal gaps ``d + Exp(theta)`` at rates ``rate``."""
-    with np.errstate(divide="ignore"):
-        mu = 1.0 / np.maximum(rate, 1e-300)
-        d = r * mu
-        theta = np.maximum((1.0 - r) * mu, 1e-300)
-        return np.log(np.maximum(rate, 1e-300)), d, theta, np.log(theta)
+def timing_components(v, group_index, model: Model, grp: _Group):
+    """Per component (ordinary, then hot pixels if any): its rates per window and polarity as ``a exp(sigma z) +
+    c`` (``a_on``, ``a_off``, ``c_on``, ``c_off`` (W,) events/s, ``sigma``; ``z`` standard normal) and its
+    regularity, for :func:`.timing.log_spread_integral` (``sigma`` 0: the rates are ``c``)."""
+    shot = np.asarray(model.shot[group_index], dtype=np.float64)
+    lux = model.lux[group_index] if model.growth else np.zeros(shot.shape[0])
+    base_on = v["rate_on_hz"] + v["growth_on"] * lux
+    base_off = v["rate_off_hz"] + v["growth_off"] * lux
+    sigma = v["sigma"]
+    scale = math.exp(-0.5 * sigma * sigma) if sigma > 0 else 0.0
+    comps = [dict(a_on=scale * base_on, a_off=scale * base_off, c_on=shot[:, 0] + (sigma <= 0) * base_on,
+                  c_off=shot[:, 1] + (sigma <= 0) * base_off, sigma=sigma, regularity=v["regularity"])]
+    if v["hot_fraction"] > 0:
+        sh = v["hot_sigma"]
+        h = v["hot_rate_hz"] * (math.exp(-0.5 * sh * sh) if sh > 0 else 1.0)
+        q = v["hot_on_fraction"]
+        c_on, c_off = base_on + shot[:, 0], base_off + shot[:, 1]
+        hot_on, hot_off = np.full(c_on.shape, h * q), np.full(c_on.shape, h * (1.0 - q))
+        comps.append(dict(a_on=hot_on if sh > 0 else 0.0 * hot_on, a_off=hot_off if sh > 0 else 0.0 * hot_off,
+                          c_on=c_on + (sh <= 0) * hot_on, c_off=c_off + (sh <= 0) * hot_off, sigma=sh,
+                          regularity=v["hot_regularity"]))
+    return comps
 
 
-def _log_surv(x, d, theta):
-    """``log S(x) = -max(x - d, 0) / theta`` (broadcast)."""
-    with np.errstate(over="ignore", invalid="ignore"):
-        return -np.maximum(x - d, 0.0) / theta
-
-
-def _log_timing_component(rates, share_on, weights, grp: _Group, r):
-    """Per pixel with events (A,) and for a silent pixel (scalar): log of the mean over the component's grid
-    of the event-time density (module doc) over every window of the group."""
-    from scipy.special import logsumexp
-
-    n_act = grp.timing[0]["k"].size
-    acc = np.zeros((rates.shape[0], n_act))
-    silent = np.zeros(rates.shape[0])
-    for wi, td in enumerate(grp.timing):
-        lam = rates[:, wi]
-        log_lam, d, theta, log_theta = _renewal_logs(lam, r)
-        T = td["T"]
-        with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
-            p0 = np.where(T <= d, -np.expm1(np.log(np.maximum(lam, 1e-300)) + math.log(T)) if T > 0 else 1.0,
-                          (1.0 - r) * np.exp(_log_surv(T, d, theta)))
-            log_p0 = np.log(np.maximum(p0, 0.0))
-            lq = np.log(np.maximum(share_on[:, wi], 1e-300))
-            l1q = np.log(np.maximum(1.0 - share_on[:, wi], 1e-300))
-        silent += log_p0
-        has = td["has"]
-        dd, th = d[:, None], theta[:, None]
-        ev = (log_lam[:, None] + _log_surv(td["first"][None, :], dd, th) + _log_surv(td["tail"][None, :], dd, th)
-              + np.outer(lq, td["k_on"]) + np.outer(l1q, td["k_off"]))
-        if td["gaps"].size:
-            x = td["gaps"][None, :]
-            with np.errstate(over="ignore", invalid="ignore"):
-                lg = np.where(x > dd, -log_theta[:, None] - (x - dd) / th, -np.inf)
-            # the gaps are sorted by pixel: sum each pixel's run
-            ev[:, td["gap_owner"]] += np.add.reduceat(lg, td["gap_start"], axis=1)
-        acc += np.where(has[None, :], ev, log_p0[:, None])
-    lw = np.log(weights)
-    return _logsumexp0(acc + lw[:, None]), float(logsumexp(silent + lw))
-
-
-def _logsumexp0(a):
-    """``log(sum(exp(a), axis=0))`` of a (M, A) array, columns all ``-inf`` giving ``-inf`` (no warnings)."""
-    top = a.max(axis=0)
-    safe = np.where(np.isfinite(top), top, 0.0)
-    with np.errstate(divide="ignore"):
-        return np.log(np.exp(a - safe[None, :]).sum(axis=0)) + safe
+def _log_timing_component(comp, st):
+    """log-likelihood of each pixel column's event times under one component (its spread integrated)."""
+    if comp["sigma"] > 0:
+        return log_spread_integral(comp, st, comp["regularity"])
+    return log_point_density(comp["c_on"], comp["c_off"], st, comp["regularity"])
 
 
 def _log_timing(v, model, gi, grp):
     """Timing log-likelihood of one group (module doc), the hot pixels mixed in."""
-    comps = component_rates(v, gi, model, grp, fine=True)
-    regs = (v["regularity"], v["hot_regularity"])
-    parts = [_log_timing_component(*c, grp, r) for c, r in zip(comps, regs)]
+    st = grp.timing
+    parts = [_log_timing_component(c, st) for c in timing_components(v, gi, model, grp)]
     if len(parts) == 1:
-        act, sil = parts[0]
+        act = parts[0]
     else:
         f = min(max(v["hot_fraction"], 1e-300), 0.5)
-        act = np.logaddexp(math.log1p(-f) + parts[0][0], math.log(f) + parts[1][0])
-        sil = float(np.logaddexp(math.log1p(-f) + parts[0][1], math.log(f) + parts[1][1]))
-    return float(np.sum(act)) + grp.n_silent * sil
+        act = np.logaddexp(math.log1p(-f) + parts[0], math.log(f) + parts[1])
+    # a column of weight 0 is never there (timing_statistics leaves the silent column out when none is silent)
+    return float(np.dot(st["weight"], act)) if np.all(np.isfinite(act)) else -math.inf
 
 
 def timing_available(groups) -> bool:
@@ -338,22 +277,65 @@ def mixture_log_likelihood(theta, model: Model, groups) -> float:
 INFEASIBLE_NLL = 1e12
 
 
+#: BFGS's gradient tolerance for a timing model: the timing likelihood's gradients are finite differences of a
+#: quadrature (its nodes found to a tolerance), good to about 1e-2 near the maximum; a gradient of 0.1 leaves the
+#: maximum by ``0.1 / information``, far below a standard error (``information^-1/2``) wherever the information
+#: exceeds 1.
+TIMING_GTOL = 0.1
+#: A timing model runs BFGS from this many of its starts, the best first (each run costs as much as a whole count
+#: fit): one from the count fit's maximum, one near Poisson (a real sensor's times can disagree with its counts).
+TIMING_STARTS = 2
+
+
 def maximise(model, groups, start):
-    """BFGS from every start (numerical gradients of a smooth likelihood), a Nelder-Mead polish of the best."""
+    """BFGS from every start (numerical gradients of a smooth likelihood), a Nelder-Mead polish of the best.
+
+    A timing model (``model.timing``) runs BFGS from its :data:`TIMING_STARTS` best starts and is not polished: its
+    likelihood is smooth (:mod:`.timing`) and each evaluation integrates every pixel, where the counts' takes the
+    few distinct count vectors.
+    """
     from scipy.optimize import minimize
 
     def nll(theta):
         val = -mixture_log_likelihood(theta, model, groups)
         return val if math.isfinite(val) else INFEASIBLE_NLL
 
+    start = [np.asarray(x0, dtype=np.float64) for x0 in start]
+    if model.timing:
+        # the TIMING_STARTS best starts, BFGS's first steps scaled by the curvature there: the identity of a plain
+        # BFGS start sends the first step far beyond the sensor (the gradients are of the order of the events' number)
+        values = [nll(x0) for x0 in start]
+        best = None
+        for i in np.argsort(values, kind="stable")[:TIMING_STARTS]:
+            if values[i] >= INFEASIBLE_NLL and best is not None:
+                continue
+            res = minimize(nll, start[i], method="BFGS",
+                           options=dict(gtol=TIMING_GTOL, maxiter=150,
+                                        hess_inv0=_diagonal_scale(nll, start[i], values[i])))
+            if best is None or res.fun < best.fun:
+                best = res
+        return best
     best = None
     for x0 in start:
-        res = minimize(nll, np.asarray(x0, dtype=np.float64), method="BFGS", options=dict(gtol=1e-3, maxiter=150))
+        res = minimize(nll, x0, method="BFGS", options=dict(gtol=1e-3, maxiter=150))
         if best is None or res.fun < best.fun:
             best = res
     polished = minimize(nll, best.x, method="Nelder-Mead", options=dict(xatol=1e-5, fatol=1e-6, maxfev=400,
                                                                        adaptive=True))
     return polished if polished.fun < best.fun else best
+
+
+def _diagonal_scale(fun, x, f0, step=1e-3):
+    """A diagonal inverse Hessian of ``fun`` at ``x`` (``f0 = fun(x)``) from second differences (1 where one is not
+    positive)."""
+    d = np.ones(x.size)
+    for i in range(x.size):
+        e = np.zeros(x.size)
+        e[i] = step
+        curv = (fun(x + e) - 2.0 * f0 + fun(x - e)) / (step * step)
+        if math.isfinite(curv) and curv > 0:
+            d[i] = 1.0 / curv
+    return np.diag(d)
 
 
 def hessian(fun, x, step=1e-3):

@@ -51,8 +51,8 @@ def add_arguments(p) -> None:
     g.add_argument("--regularity", choices=("auto", "on", "off"), default="auto",
                    help="regular (near-periodic) arrivals (default: auto)")
     g.add_argument("--timing", choices=("auto", "on", "off"), default="off",
-                   help="fit the pixels' event times, not only their counts (experimental, minutes per window; "
-                        "default: off, the counts are fitted and the timing tested)")
+                   help="fit the pixels' event times, not only their counts (several times the count fit's "
+                        "time; default: off, the counts are fitted and the timing tested)")
     g.add_argument("--no-checks", dest="checks", action="store_false",
                    help="skip the checks that each window is pure stationary noise (OFF/ON pairs, drift, a changing "
                         "pattern; about 15 s per million events)")
