@@ -96,12 +96,11 @@ def expected_rate(lux, params, *, thresholds=None, background=None, mismatch: st
         # (nominal thresholds, a uniform Poisson background: what that form and its simulator cover so far)
         from .terms.memory import memory_statistics, unsupported
 
-        # nominal: the nominal pixel (spread factor 1, not hot); mean: the population, which needs what differs
-        missing = unsupported(params, thresholds, background, per_pixel=mismatch == "nominal" and background is None)
-        if thresholds is None and mismatch == "nominal" and params.eps_sigma > 0:
-            missing.remove("threshold mismatch (eps_sigma > 0 or given thresholds)")  # the nominal pixel's rate
-        if background is not None and "given background maps" not in missing:
-            missing.append("given background maps")
+        # nominal: the nominal pixel (nominal thresholds, spread factor 1, not hot); mean: the population, which
+        # needs what differs between pixels; given maps: per-pixel rates, which the closed form does not give
+        nominal = mismatch == "nominal"
+        missing = unsupported(params.replace(eps_sigma=0.0) if nominal else params, thresholds, background,
+                              per_pixel=nominal and background is None)
         if missing:
             raise ParameterError(f"the rate with reset_memory > 0 is known for the nominal pixel (nominal thresholds, "
                                  f"a Poisson background) only, not for {', '.join(missing)} "

@@ -147,27 +147,21 @@ def pixel_groups(lam, params, background=None):
     into them. ``background``: the run's flat ``(scale, hot)`` maps (:class:`evnoise._run.RunSetup`) or None (every
     pixel the nominal one: the groups are the distinct ``lam``). A background spread over pixels
     (``leak_sigma > 0``) makes every pixel a group of its own (see :data:`MAX_TABLE_STATES`)."""
-    from .arrivals import arrival_shares, lux_of_photons
-    from .registry import background_on, intensities
-
     lam = np.asarray(lam, dtype=np.float64).ravel()
-    if background is None or not background_on(params):
+    if background is None:
         levels, group = np.unique(lam, return_inverse=True)
         a_on, a_off = level_background(levels, params)
         return levels, a_on, a_off, np.ascontiguousarray(group.ravel(), dtype=np.int64)
-    scale, hot = background
-    l_on, l_off = intensities(lux_of_photons(lam, params), params, scale, hot)
-    a_on, a_off = arrival_shares(np.broadcast_to(l_on, lam.shape), np.broadcast_to(l_off, lam.shape),
-                                 params.trial_rate_hz)
+    a_on, a_off = level_background(lam, params, *background)
     rows, group = np.unique(np.stack([lam, a_on, a_off], axis=1), axis=0, return_inverse=True)
     return (np.ascontiguousarray(rows[:, 0]), np.ascontiguousarray(rows[:, 1]), np.ascontiguousarray(rows[:, 2]),
             np.ascontiguousarray(group.ravel(), dtype=np.int64))
 
 
-def level_background(levels, params):
-    """Per-trial background arrival probabilities ``(a_on, a_off)`` of each light level ``levels`` (photons per
-    trial): the same for every pixel of a level (a uniform Poisson background, :mod:`evnoise.background`), 0
-    without background."""
+def level_background(levels, params, scale=None, hot=None):
+    """Per-trial background arrival probabilities ``(a_on, a_off)`` at the light levels ``levels`` (photons per
+    trial; a Poisson background, :mod:`evnoise.background`), 0 without background: the nominal pixel's, or with
+    ``scale``, ``hot`` (arrays like ``levels``) each pixel's of the background maps."""
     from ..errors import ParameterError
     from .arrivals import arrival_shares, lux_of_photons
     from .registry import background_on, intensities
@@ -178,7 +172,7 @@ def level_background(levels, params):
     if params.leak_regularity > 0:
         raise ParameterError("reset_memory > 0 does not support a regular background timer (leak_regularity > 0) "
                              "yet; set reset_memory = 0 or leak_regularity = 0")
-    l_on, l_off = intensities(lux_of_photons(lam, params), params)
+    l_on, l_off = intensities(lux_of_photons(lam, params), params, scale, hot)
     a_on, a_off = arrival_shares(np.broadcast_to(l_on, lam.shape), np.broadcast_to(l_off, lam.shape),
                                  params.trial_rate_hz)
     return np.asarray(a_on, dtype=np.float64), np.asarray(a_off, dtype=np.float64)
@@ -398,11 +392,10 @@ def kernel_tables(levels, params, spans=None, background=None):
             block = groups[start:start + ITERATE_BLOCK]
             a_on = np.asarray(bg_on, dtype=np.float64)[block][:, None]
             a_off = np.asarray(bg_off, dtype=np.float64)[block][:, None]
-            laws = _embedded_iterate(base, ITERATED_STEPS, a_on, a_off) if len(block) > 1 else None
+            laws = _embedded_iterate(base, ITERATED_STEPS, a_on, a_off)  # row i: chain i's own, bit for bit
             for i, g in enumerate(block):
                 t = dataclasses.replace(base, a_on=float(bg_on[g]), a_off=float(bg_off[g]))
-                pi = _embedded_iterate(t, ITERATED_STEPS) if laws is None else laws[i]
-                _write_initial(table, slice(offsets[g], offsets[g] + sizes[g]), t, pi, dt_s, refr_s)
+                _write_initial(table, slice(offsets[g], offsets[g] + sizes[g]), t, laws[i], dt_s, refr_s)
     return table, itable, offsets, sizes, rates
 
 
