@@ -370,6 +370,20 @@ def grid_tables(lam, b, c_min, c_max):
 
 
 @kernel
+def scaled_add(acc, ref, lt):
+    """``acc e^ref + e^lt`` kept as ``(acc, ref)``: the reference follows a term ``e^300`` larger (no overflow);
+    a term ``e^-inf`` adds nothing (also before the first finite one)."""
+    if lt == -math.inf:
+        return acc, ref
+    if ref == -math.inf:
+        ref = lt
+    if lt - ref > 300.0:
+        acc *= math.exp(ref - lt)
+        ref = lt
+    return acc + math.exp(lt - ref), ref
+
+
+@kernel
 def log_p_table(lam, c, b, j0, lpmf, lsf):
     """``log p`` at ``c = expm1(eps)`` from the tables of :func:`grid_tables`: ``sum_m pmf(m) P(N > k(m))`` summed
     outwards from the peak until a bound on the rest is below ``exp(-GRID_TOL_LOG)`` of the sum (NaN where the
@@ -394,12 +408,7 @@ def log_p_table(lam, c, b, j0, lpmf, lsf):
             return math.nan
         ik = int(k) - j0
         lt = lpmf[int(m) - j0] + lsf[ik]
-        if ref == -math.inf:
-            ref = lt
-        if lt - ref > 300.0:
-            acc *= math.exp(ref - lt)
-            ref = lt
-        acc += math.exp(lt - ref)
+        acc, ref = scaled_add(acc, ref, lt)
         steps += 1
         if steps % 8 == 0:
             lq = lsf[ik + 1] - lsf[ik]
@@ -417,10 +426,7 @@ def log_p_table(lam, c, b, j0, lpmf, lsf):
             return math.nan
         ik = int(k) - j0
         lt = lpmf[int(m) - j0] + lsf[ik]
-        if lt - ref > 300.0:
-            acc *= math.exp(ref - lt)
-            ref = lt
-        acc += math.exp(lt - ref)
+        acc, ref = scaled_add(acc, ref, lt)
         steps += 1
         if steps % 8 == 0 and m > 0.0:
             if ik == 0:
@@ -757,12 +763,7 @@ def mean_probability_smooth(lam, b, mu, s, eps_peak):
             lt = log_pmf(m, lam) + f0 + math.log(inner - corr) if inner > corr else -math.inf
             if x_first < 0.0:
                 x_first = xm
-            if total_ref == -math.inf:
-                total_ref = lt
-            if lt - total_ref > 300.0:
-                acc *= math.exp(total_ref - lt)
-                total_ref = lt
-            acc += math.exp(lt - total_ref)
+            acc, total_ref = scaled_add(acc, total_ref, lt)
             best = max(best, lt)
             if lt < best - 45.0:
                 small += 1
