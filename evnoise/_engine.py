@@ -207,13 +207,13 @@ def renewal_inputs(p_on: np.ndarray, p_off: np.ndarray):
 def timer_arrays(lam, params: NoiseParams, bg):
     """``(3, n)`` ``[d, log1p(-a2), ON share]`` of the regular background timer (:mod:`evnoise._kernels.background`)."""
     from .background import lux_of_photons
-    from .terms.timer import timer_shape
+    from .terms.timer import pixel_regularity, timer_shape
 
     scale, hot = (None, None) if bg is None else bg
     l_on, l_off = terms.intensities(lux_of_photons(lam, params), params, scale, hot)
     l_on = np.broadcast_to(l_on, np.shape(lam))
     l_all = l_on + np.broadcast_to(l_off, np.shape(lam))
-    d, log1m_a2 = timer_shape(l_all, params.trial_us * 1e-6, params.leak_regularity)
+    d, log1m_a2 = timer_shape(l_all, params.trial_us * 1e-6, pixel_regularity(params, hot))
     has = l_all > 0
     with np.errstate(divide="ignore", invalid="ignore"):
         share = np.where(has, l_on / np.where(has, l_all, 1.0), 0.0)

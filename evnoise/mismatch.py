@@ -330,7 +330,14 @@ class LevelStats:
         self.bg_weight = weight
         self.bg_a = np.stack([a_on, a_off])  # (2, B, J)
         self.bg_l = np.stack([l_on, l_off])  # (2, B, J), events/s
-        self.regularity = params.leak_regularity if terms.regular_timer(params) else 0.0
+        self.regularity = 0.0
+        if terms.regular_timer(params):
+            from .terms.timer import pixel_regularity
+
+            # the largest (the timer is on where it is > 0); each node's own in node_regularity
+            self.regularity = max(params.leak_regularity, params.hot_regularity)
+            self.node_regularity = np.ascontiguousarray(
+                np.broadcast_to(pixel_regularity(params, hot), hot.shape), dtype=np.float64)
         m1, m2 = np.exp(self.log_m1), np.exp(self.log_m2)
         P1 = np.empty_like(m1)
         P2 = np.empty_like(m1)
@@ -414,7 +421,7 @@ class LevelStats:
                     np.exp(self.log_p[k][j]), np.ascontiguousarray(self.mass[k][j], dtype=np.float64),
                     math.exp(self.log_m1[1 - k, j]), np.ascontiguousarray(self.bg_l[k, :, j]),
                     np.ascontiguousarray(self.bg_l[1 - k, :, j]), weight, self.trial_rate_hz, self.refractory_s,
-                    self.regularity, k == 0)
+                    self.node_regularity, k == 0)
         return out
 
     def _check_not_regular(self, what):

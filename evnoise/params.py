@@ -92,9 +92,9 @@ class ParameterSpec:
 
 
 def _param(unit, group, *, high, positive=False, default=dataclasses.MISSING, high_note="", fit_role,
-           fit_bounds=None, fit_start=None, fit_low="flag"):
+           fit_bounds=None, fit_start=None, fit_low="flag", low=0.0):
     """A :class:`NoiseParams` field carrying its :class:`ParameterSpec` entries as metadata."""
-    meta = {"unit": unit, "group": group, "low": 0.0, "low_inclusive": not positive, "high": float(high),
+    meta = {"unit": unit, "group": group, "low": float(low), "low_inclusive": not positive, "high": float(high),
             "high_note": high_note, "fit_role": fit_role, "fit_bounds": fit_bounds,
             "fit_start": fit_start, "fit_low": fit_low}
     return dataclasses.field(default=default, metadata={"evnoise": meta})
@@ -179,6 +179,11 @@ class NoiseParams:
         memoryless model, ``k = 0``, the default). With ``k > 0`` a pixel that fired ON stored a high level and
         tends to fire OFF next: consecutive events alternate in polarity, as in real quiet pixels (see
         :mod:`evnoise.terms.memory`; static scenes through :func:`~evnoise.simulate_events` only, for now).
+    hot_pixel_regularity : float, optional
+        How regular the background arrivals of a *hot* pixel are, ``0 <= r <= 1`` as ``leak_regularity``;
+        ``-1`` (the default) means the same as ``leak_regularity`` (one regularity for every pixel). Real
+        sensors' hot pixels can be Poisson while the ordinary pixels' leak is close to periodic (the quiet-scene
+        calibration's ``hot_regularity="on"`` fits both; calibration/README.md).
 
     Every field also has an upper limit, where the physics of a pixel ends (:data:`PARAM_LIMITS`:
     thresholds up to 20, photon counts up to 1e12 per trial, background rates up to 1e9/s, times up to
@@ -227,6 +232,8 @@ class NoiseParams:
     pr_tau_s_at_1lux: float = _param("s", "photoreceptor", high=_TIME_S, default=0.0, fit_role="never",
                                      fit_bounds=(1e-9, 1e3))
     reset_memory: float = _param("1", "timing", high=1.0, default=0.0, fit_role="unmodelled")
+    hot_pixel_regularity: float = _param("1", "background", high=1.0, default=-1.0, low=-1.0,
+                                         fit_role="unmodelled")
 
     def __post_init__(self):
         specs = parameter_specs()
@@ -241,6 +248,9 @@ class NoiseParams:
             if not math.isfinite(value) or value < spec.low or (value == spec.low and not spec.low_inclusive):
                 raise ParameterError(f"NoiseParams.{name} must be finite and {spec.low_text}, got {value!r}")
             object.__setattr__(self, name, value)
+        if -1.0 < self.hot_pixel_regularity < 0.0:
+            raise ParameterError("NoiseParams.hot_pixel_regularity must be -1 (the same as leak_regularity) or "
+                                 f"between 0 and 1, got {self.hot_pixel_regularity!r}")
         for spec in specs:
             if getattr(self, spec.name) > spec.high:
                 raise ParameterError(f"NoiseParams.{spec.name} must be <= {spec.high:g}{spec.high_note}, "
@@ -258,9 +268,17 @@ class NoiseParams:
                 or self.leak_off_hz_per_lux > 0 or (self.hot_pixel_fraction > 0 and self.hot_pixel_rate_hz > 0))
 
     @property
+    def hot_regularity(self) -> float:
+        """The regularity of a hot pixel's background: ``hot_pixel_regularity``, or ``leak_regularity`` where that
+        is ``-1`` (tied, the default)."""
+        return self.leak_regularity if self.hot_pixel_regularity < 0 else self.hot_pixel_regularity
+
+    @property
     def regular_background(self) -> bool:
-        """True when background arrivals follow the regular timer (background on, ``leak_regularity > 0``)."""
-        return self.leak_regularity > 0 and self.has_background
+        """True when background arrivals follow the regular timer (background on, and ``leak_regularity > 0`` or
+        hot pixels with a regularity > 0 of their own)."""
+        hot_on = self.hot_pixel_fraction > 0 and self.hot_pixel_rate_hz > 0
+        return self.has_background and (self.leak_regularity > 0 or (hot_on and self.hot_regularity > 0))
 
     @property
     def trial_us(self) -> float:

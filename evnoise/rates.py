@@ -137,7 +137,7 @@ def pixel_rates(lam, params, thresholds=None, background=None):
         p_on, p_off = trial_probabilities(lam, params, thresholds, photon_only=True)
         scale, hot = (None, None) if background is None else background
         l_on, l_off = terms.intensities(lux_of_photons(lam, params), params, scale, hot)
-        return terms.TIMER.rates(p_on, p_off, l_on, l_off, params)
+        return terms.TIMER.rates(p_on, p_off, l_on, l_off, params, hot)
     p_on, p_off = trial_probabilities(lam, params, thresholds, background=background)
     nu_on = params.trial_rate_hz * p_on
     nu_off = params.trial_rate_hz * p_off

@@ -200,6 +200,20 @@ def test_regular_background_mean_matches_monte_carlo(lux):
         mismatch.nb_shape(np.array([lux]), params, 1.0)
 
 
+@pytest.mark.parametrize("leak_regularity, hot_regularity", [(0.7, 0.0), (0.0, 0.9)])
+def test_hot_pixels_own_regularity_mean_matches_monte_carlo(leak_regularity, hot_regularity):
+    """Hot pixels with a regularity of their own (``hot_pixel_regularity``): each background node its own timer."""
+    params = dataclasses.replace(PARAMS, eps_sigma=0.0, leak_regularity=leak_regularity, refractory_s=0.002,
+                                 hot_pixel_fraction=0.2, hot_pixel_regularity=hot_regularity)
+    n = 200_000
+    rates = _pixels(params, 2.0, n, seed=5)
+    mean = ev.expected_rate(np.array([2.0]), params, mismatch="mean")[:, 0]
+    mc, se = rates.mean(axis=1), rates.std(axis=1, ddof=1) / math.sqrt(n)
+    assert np.all(np.abs(mean - mc) < K * se), (mean, mc, se)
+    tied = ev.expected_rate(np.array([2.0]), dataclasses.replace(params, hot_pixel_regularity=-1.0), mismatch="mean")
+    assert np.any(np.abs(tied[:, 0] - mc) > 6 * se)  # the hot pixels' own timer matters at this precision
+
+
 def test_regular_background_with_mismatch_is_approximate_to_about_1_percent():
     """With threshold mismatch too, the other polarity at its mean: measured error ~1 % (OFF at 2 lux, 7 sigma
     with 400k pixels); the tolerance is K standard errors plus 2 % of the value."""
@@ -245,10 +259,13 @@ def test_regular_mean_rate_kernel_matches_the_broadcast_formula(regularity, refr
     weight = rng.random(l_own.size)
     weight /= weight.sum()
     n = 40.0
+    # each node its own regularity (hot pixels with one of their own): every third node Poisson
+    node_reg = np.where(np.arange(l_own.size) % 3 == 0, 0.0, regularity)
+    regularity = node_reg[:, None]
     for p_other in (0.0, 0.02, 0.3):
         po = np.full((1, p_own.size), p_other)
         for own_is_on in (True, False):
-            got = regular_mean_rate(p_own, mass, p_other, l_own, l_other, weight, n, refractory_s, regularity,
+            got = regular_mean_rate(p_own, mass, p_other, l_own, l_other, weight, n, refractory_s, node_reg,
                                     own_is_on)
             if own_is_on:
                 nu = background.regular_rates(p_own[None, :], po, l_own[:, None], l_other[:, None], n, refractory_s,

@@ -95,7 +95,8 @@ def test_parameter_metadata_is_the_one_home_of_units_limits_and_fit_ranges():
     assert P.parameter_names() == tuple(s.name for s in specs)
     for s in specs:
         assert s.group in P.GROUPS and s.fit_role in P.FIT_ROLES and s.unit
-        assert P.PARAM_LIMITS[s.name] == s.high and s.low == 0.0
+        # every lower limit is 0 but hot_pixel_regularity's: -1 stands for "leak_regularity's" (tied)
+        assert P.PARAM_LIMITS[s.name] == s.high and s.low == (-1.0 if s.name == "hot_pixel_regularity" else 0.0)
         assert (s.fit_bounds is None) == (s.fit_role == "unmodelled")
         field = next(f for f in dataclasses.fields(ev.NoiseParams) if f.name == s.name)
         assert s.default == (None if field.default is dataclasses.MISSING else field.default)
@@ -115,8 +116,24 @@ def test_messages_name_the_value_and_the_allowed_range(name):
     from evnoise.params import parameter_spec
 
     s = parameter_spec(name)
-    with pytest.raises(ev.ParameterError, match=rf"NoiseParams\.{name} must be finite and {s.low_text}, got -1\.0"):
-        ev.NoiseParams(**dict(GOOD, **{name: -1.0}))
+    below = s.low - 1.0  # -1 for every field but hot_pixel_regularity (where -1 means "tied")
+    with pytest.raises(ev.ParameterError,
+                       match=rf"NoiseParams\.{name} must be finite and {s.low_text}, got {re.escape(repr(below))}"):
+        ev.NoiseParams(**dict(GOOD, **{name: below}))
     with pytest.raises(ev.ParameterError, match=rf"NoiseParams\.{name} must be <= {re.escape(f'{s.high:g}')}.*, got"):
         ev.NoiseParams(**dict(GOOD, **{name: s.high * 2}))
     ev.NoiseParams(**dict(GOOD, **{name: s.high}))  # the limit itself is valid
+
+
+def test_hot_pixel_regularity_is_tied_by_default_and_valid_only_at_minus_one_or_in_0_1():
+    p = ev.NoiseParams(0.2, 0.2, 1.0, 100.0, 1.0, leak_on_hz=0.1, hot_pixel_fraction=0.01, hot_pixel_rate_hz=1.0,
+                       leak_regularity=0.7)
+    assert p.hot_pixel_regularity == -1.0 and p.hot_regularity == 0.7 and p.regular_background
+    assert p.replace(hot_pixel_regularity=0.0).hot_regularity == 0.0
+    # a timer for the hot pixels alone turns the regular background on
+    q = p.replace(leak_regularity=0.0, hot_pixel_regularity=0.9)
+    assert q.regular_background and q.hot_regularity == 0.9
+    assert not q.replace(hot_pixel_fraction=0.0).regular_background  # no hot pixels: nothing is regular
+    for bad in (-0.5, -1e-9, 1.5, -2.0):
+        with pytest.raises(ev.ParameterError, match="hot_pixel_regularity"):
+            p.replace(hot_pixel_regularity=bad)

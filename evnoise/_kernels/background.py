@@ -36,9 +36,10 @@ def timer_shape(l_all, dt_s, regularity):
 
 @kernel
 def timer_shapes(l_all, dt_s, regularity, d, log1m_a2):
-    """:func:`timer_shape` of every intensity of the 1-D array ``l_all``, into ``d`` and ``log1m_a2``."""
+    """:func:`timer_shape` of every intensity of the 1-D array ``l_all`` with its ``regularity`` (1-D, same
+    size), into ``d`` and ``log1m_a2``."""
     for i in range(l_all.size):
-        d[i], log1m_a2[i] = timer_shape(l_all[i], dt_s, regularity)
+        d[i], log1m_a2[i] = timer_shape(l_all[i], dt_s, regularity[i])
 
 
 @kernel
@@ -110,7 +111,8 @@ def regular_mean_rate(p_own, mass, p_other, l_own, l_other, weight, trial_rate_h
 
     ``sum_b weight[b] sum_a mass[a] nu_own(p_own[a], p_other, l_own[b], l_other[b])`` with ``nu_own``
     the rate of :func:`evnoise.background.regular_rates` (its module doc's formula): threshold atoms
-    ``a`` (``p_own``, ``mass``), background nodes ``b`` (``l_own``, ``l_other`` events/s, ``weight``).
+    ``a`` (``p_own``, ``mass``), background nodes ``b`` (``l_own``, ``l_other`` events/s, ``weight``,
+    the timer's ``regularity``).
     The two whole parts of the timer share their powers: ``E[min]`` at ``D = d0 + 1`` is
     ``head + q^(d0+1) + q tail`` of the one at ``d0``. Where ``p_own + p_other > 1`` the total is
     clipped to 1 and, as in ``regular_rates``, ON keeps ``p_on / p`` of the photon events and OFF the
@@ -138,7 +140,7 @@ def regular_mean_rate(p_own, mass, p_other, l_own, l_other, weight, trial_rate_h
     per_node = np.zeros(l_own.size)
     for b in prange(l_own.size):
         l_all = l_own[b] + l_other[b]
-        d, log1m_a2 = timer_shape(l_all, 1.0 / n, regularity)
+        d, log1m_a2 = timer_shape(l_all, 1.0 / n, regularity[b])
         acc = 0.0
         if d < math.inf:
             d0 = np.floor(d)  # a float: math.floor is an int64 in Numba and overflows beyond 9.2e18

@@ -352,7 +352,8 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
     from the intensity of that trial (the stationary draw before a pixel's first event); every event
     restarts it; when the intensity changes, the rest of a pending interval scales with old / new
     intensity (``BG_L`` holds the intensity it belongs to). (Pass ``fast_static`` false then: the
-    timer is not memoryless.)
+    timer is not memoryless.) A fifth row of ``bg``, where given, is each pixel's own regularity (hot
+    pixels with one of their own; ``regularity`` is then the largest, which turns the timer on).
 
     Photoreceptor bandwidth: with ``pr_alpha > 0`` the mean photon count a pixel compares
     (``LAM_PREV`` holds it between trials) follows the input through a first-order low-pass
@@ -374,6 +375,7 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
     max_signal = 1 << 20
     b, dt, refr_us, lux_per_photon, dark_lux, pr_alpha, regularity = model
     has_bg = bg.shape[1] > 0
+    own_reg = bg.shape[0] > 4  # a regularity per pixel (hot pixels with their own), row 4
     dt_s = dt * 1e-6
     for k in range(k_start, pix.shape[0]):
         n_before = n
@@ -526,7 +528,7 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
                     l_all = l_on + bg[2, k] + bg[3, k] * lux_j
                     if regularity > 0.0:
                         if not fstate[k, BG_NEXT] < math.inf and l_all > 0.0:  # none pending (NaN, or inf in the dark)
-                            d_t, l1m_t = timer_shape(l_all, dt_s, regularity)
+                            d_t, l1m_t = timer_shape(l_all, dt_s, bg[4, k] if own_reg else regularity)
                             if fstate[k, LAST_TAU] == -math.inf:
                                 p_st = (math.exp(log_event_probability_exact(lam, thr[0, k], b))
                                         + math.exp(log_event_probability_exact(lam, thr[1, k], b)))

@@ -119,8 +119,8 @@ def unsupported(params, thresholds=None, background=None, per_pixel: bool = True
     missing = []
     if params.eps_sigma > 0 or thresholds is not None:
         missing.append("threshold mismatch (eps_sigma > 0 or given thresholds)")
-    if params.has_background and params.leak_regularity > 0:
-        missing.append("a regular background timer (leak_regularity > 0)")
+    if params.regular_background:
+        missing.append("a regular background timer (leak_regularity > 0 or hot_pixel_regularity > 0)")
     if not per_pixel:
         if background is not None:
             missing.append("given background maps")
@@ -169,9 +169,9 @@ def level_background(levels, params, scale=None, hot=None):
     lam = np.atleast_1d(np.asarray(levels, dtype=np.float64))
     if not background_on(params):
         return np.zeros(lam.shape), np.zeros(lam.shape)
-    if params.leak_regularity > 0:
-        raise ParameterError("reset_memory > 0 does not support a regular background timer (leak_regularity > 0) "
-                             "yet; set reset_memory = 0 or leak_regularity = 0")
+    if params.regular_background:
+        raise ParameterError("reset_memory > 0 does not support a regular background timer (leak_regularity > 0 or "
+                             "hot_pixel_regularity > 0) yet; set reset_memory = 0 or the regularities to 0")
     l_on, l_off = intensities(lux_of_photons(lam, params), params, scale, hot)
     a_on, a_off = arrival_shares(np.broadcast_to(l_on, lam.shape), np.broadcast_to(l_off, lam.shape),
                                  params.trial_rate_hz)

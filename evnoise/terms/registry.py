@@ -126,7 +126,9 @@ def mean_intensities(lux, values):
 
 def kernel_coefficients(params, bg, sel) -> np.ndarray:
     """``(4, n)`` ``[l0_on, l1_on, l0_off, l1_off]`` of the trial kernel for pixels ``sel``: ``l = l0 + l1 * lux``
-    (``(4, 0)`` without background). ``bg``: the run's flat ``(scale, hot)`` maps or None."""
+    (``(4, 0)`` without background). ``bg``: the run's flat ``(scale, hot)`` maps or None. Where hot pixels have
+    a timer regularity of their own (:func:`evnoise.terms.timer.pixel_regularity`) a fifth row holds each
+    pixel's regularity."""
     if not background_on(params):
         return np.zeros((4, 0))
     if bg is None:
@@ -138,6 +140,12 @@ def kernel_coefficients(params, bg, sel) -> np.ndarray:
         c = t.coefficients(params, scale, hot) if t.background else None
         if c is not None:
             rows = list(c) if rows is None else [a + b for a, b in zip(rows, c)]
+    if regular_timer(params):
+        from .timer import pixel_regularity
+
+        reg = pixel_regularity(params, hot)
+        if np.ndim(reg):
+            rows.append(reg)
     rows = [np.broadcast_to(np.asarray(r, dtype=np.float64), (sel.size,)) for r in rows]
     return np.ascontiguousarray(np.stack(rows))
 

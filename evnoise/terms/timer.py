@@ -14,19 +14,41 @@ from .base import NoiseTerm
 
 
 class RegularTimer(NoiseTerm):
-    """``leak_regularity``: how regular the background arrivals are (0 Poisson, 1 periodic)."""
+    """``leak_regularity``: how regular the background arrivals are (0 Poisson, 1 periodic);
+    ``hot_pixel_regularity``: the same for hot pixels (``-1``: ``leak_regularity``'s)."""
 
     name = "timer"
-    fields = ("leak_regularity",)
+    fields = ("leak_regularity", "hot_pixel_regularity")
     modifies_background = True
 
-    def kernel_model(self, params) -> dict:
-        return {"regularity": float(params.leak_regularity)}
+    def is_on(self, params) -> bool:
+        return params.regular_background
 
-    def rates(self, p_on, p_off, l_on, l_off, params):
-        """Closed-form rates ``(nu_on, nu_off)`` events/s with the timer on (:func:`regular_rates`)."""
+    def kernel_model(self, params) -> dict:
+        # the trial kernel runs the timer wherever this is > 0; pixels of a regularity of their own read it
+        # from their coefficients (:func:`pixel_regularity`, row 4 of ``kernel_coefficients``)
+        return {"regularity": max(float(params.leak_regularity), float(params.hot_regularity))}
+
+    def rates(self, p_on, p_off, l_on, l_off, params, hot=None):
+        """Closed-form rates ``(nu_on, nu_off)`` events/s with the timer on (:func:`regular_rates`) of pixels
+        with hot-pixel map ``hot`` (None: the nominal pixel, which is not hot)."""
         return regular_rates(p_on, p_off, l_on, l_off, params.trial_rate_hz, params.refractory_us * 1e-6,
-                             params.leak_regularity)
+                             pixel_regularity(params, hot))
+
+
+def own_hot_regularity(params) -> bool:
+    """True when hot pixels have a regularity that differs from the ordinary pixels' (and hot pixels are on)."""
+    hot_on = params.hot_pixel_fraction > 0 and params.hot_pixel_rate_hz > 0
+    return hot_on and params.hot_regularity != params.leak_regularity
+
+
+def pixel_regularity(params, hot=None):
+    """The timer's regularity of pixels with hot-pixel map ``hot`` (events/s, 0 for an ordinary pixel): the
+    scalar ``leak_regularity`` where every pixel has it (no map, or hot pixels tied to it), else an array
+    (``hot_regularity`` where ``hot > 0``)."""
+    if hot is None or not own_hot_regularity(params):
+        return float(params.leak_regularity)
+    return np.where(np.asarray(hot) > 0, params.hot_regularity, params.leak_regularity)
 
 
 def timer_mean_min(log1m_p, p, d, log1m_a2):
@@ -42,28 +64,32 @@ def timer_mean_min(log1m_p, p, d, log1m_a2):
     return head + tail
 
 
-def timer_shape(l_all_hz, trial_s: float, regularity: float):
+def timer_shape(l_all_hz, trial_s: float, regularity):
     """``(d, log1p(-a2))`` of the regular timer for background intensities ``l_all_hz`` (events/s).
 
     The one home of the timer's shape (module doc; :func:`evnoise._kernels.background.timer_shape`
     element by element): ``d`` the mean fixed part in trials (``inf`` where there is no background),
     ``a2`` the per-trial probability of the geometric rest (``log1p(-a2)`` is 0 where there is none).
+    ``regularity``: a scalar or an array that broadcasts with ``l_all_hz`` (per pixel).
     """
     from .._kernels.background import timer_shapes
 
     l_all = np.asarray(l_all_hz, dtype=np.float64)
     flat = np.ascontiguousarray(l_all.ravel())
+    reg = np.empty_like(flat)
+    reg.reshape(l_all.shape)[...] = regularity  # a fresh array (a broadcast view is read-only for Numba)
     d = np.empty_like(flat)
     log1m_a2 = np.empty_like(flat)
-    timer_shapes(flat, float(trial_s), float(regularity), d, log1m_a2)
+    timer_shapes(flat, float(trial_s), reg, d, log1m_a2)
     return d.reshape(l_all.shape), log1m_a2.reshape(l_all.shape)
 
 
-def regular_rates(p_on, p_off, l_on, l_off, trial_rate_hz: float, refractory_s: float, regularity: float):
+def regular_rates(p_on, p_off, l_on, l_off, trial_rate_hz: float, refractory_s: float, regularity):
     """Rates ``(nu_on, nu_off)`` events/s of a pixel with photon noise and a regular background timer.
 
     ``p_on``, ``p_off``: the photon-noise per-trial probabilities; ``l_on``, ``l_off``: background
-    intensities (events/s); see the module doc for the formula. Arrays broadcast.
+    intensities (events/s); ``regularity`` a scalar or per pixel; see the module doc for the formula. Arrays
+    broadcast.
     """
     p_on, p_off, l_on, l_off = (np.asarray(x, dtype=np.float64) for x in (p_on, p_off, l_on, l_off))
     n = float(trial_rate_hz)
