@@ -38,6 +38,8 @@ intensity is the sum over the registered background terms, :func:`evnoise.terms.
       nu_on = nu (p_on E[min] + (1 - p E[min]) l_on / l)
 
   (``p E[min]`` is the share of photon events), exact in closed form (:func:`regular_rates`).
+  Hot pixels may have a regularity of their own (``hot_pixel_regularity``; -1, the default, is
+  ``leak_regularity``'s): a hot pixel's whole background then runs on a timer of that regularity.
   A pixel's first background arrival comes from the timer's stationary (length-biased)
   distribution, so the record starts in the steady state (exact without photon noise).
 - The growing term follows the photocurrent of the scene (parasitic junction leakage grows

@@ -332,10 +332,10 @@ class LevelStats:
         self.bg_l = np.stack([l_on, l_off])  # (2, B, J), events/s
         self.regularity = 0.0
         if terms.regular_timer(params):
-            from .terms.timer import pixel_regularity
+            from .terms.timer import largest_regularity, pixel_regularity
 
             # the largest (the timer is on where it is > 0); each node's own in node_regularity
-            self.regularity = max(params.leak_regularity, params.hot_regularity)
+            self.regularity = largest_regularity(params)
             self.node_regularity = np.ascontiguousarray(
                 np.broadcast_to(pixel_regularity(params, hot), hot.shape), dtype=np.float64)
         m1, m2 = np.exp(self.log_m1), np.exp(self.log_m2)
@@ -427,7 +427,8 @@ class LevelStats:
     def _check_not_regular(self, what):
         if self.regularity > 0:
             raise ParameterError(f"{what} needs i.i.d. trials: not available with a regular background "
-                                 f"(leak_regularity = {self.regularity:g} > 0); simulate the counts instead")
+                                 f"(leak_regularity or hot_pixel_regularity {self.regularity:g} > 0); simulate the "
+                                 "counts instead")
 
     def atom_q_nodes(self, k, j):
         """Per-trial event probabilities of each threshold atom at each background node.

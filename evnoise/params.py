@@ -181,7 +181,8 @@ class NoiseParams:
         :mod:`evnoise.terms.memory`; static scenes through :func:`~evnoise.simulate_events` only, for now).
     hot_pixel_regularity : float, optional
         How regular the background arrivals of a *hot* pixel are, ``0 <= r <= 1`` as ``leak_regularity``;
-        ``-1`` (the default) means the same as ``leak_regularity`` (one regularity for every pixel). Real
+        ``-1`` (the default) means the same as ``leak_regularity`` (one regularity for every pixel); it applies to
+        the hot pixels of the drawn map or of a map given as ``background=``. Real
         sensors' hot pixels can be Poisson while the ordinary pixels' leak is close to periodic (the quiet-scene
         calibration's ``hot_regularity="on"`` fits both; calibration/README.md).
 
@@ -237,6 +238,10 @@ class NoiseParams:
 
     def __post_init__(self):
         specs = parameter_specs()
+        tied = self.hot_pixel_regularity
+        if isinstance(tied, (int, float)) and not isinstance(tied, bool) and tied < 0 and tied != -1:
+            raise ParameterError("NoiseParams.hot_pixel_regularity must be -1 (the same as leak_regularity) or "
+                                 f"between 0 and 1, got {tied!r}")
         for spec in specs:
             name, value = spec.name, getattr(self, spec.name)
             if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -248,9 +253,6 @@ class NoiseParams:
             if not math.isfinite(value) or value < spec.low or (value == spec.low and not spec.low_inclusive):
                 raise ParameterError(f"NoiseParams.{name} must be finite and {spec.low_text}, got {value!r}")
             object.__setattr__(self, name, value)
-        if -1.0 < self.hot_pixel_regularity < 0.0:
-            raise ParameterError("NoiseParams.hot_pixel_regularity must be -1 (the same as leak_regularity) or "
-                                 f"between 0 and 1, got {self.hot_pixel_regularity!r}")
         for spec in specs:
             if getattr(self, spec.name) > spec.high:
                 raise ParameterError(f"NoiseParams.{spec.name} must be <= {spec.high:g}{spec.high_note}, "

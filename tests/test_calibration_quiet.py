@@ -265,3 +265,28 @@ def test_cli_quiet_errors(tmp_path, capsys):
     assert main(["calibrate", str(rec), "--window", "10:11", "--out", str(out)]) == 2  # no events there
     assert "no events in the window" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_cli_writes_the_hot_pixels_own_regularity(tmp_path, capsys):
+    """``--hot-regularity on`` reaches the fit, and the preset carries what it found as hot_pixel_regularity (the
+    fit's own value; its accuracy is tested in test_quiet_timing_selfconsistency.py)."""
+    from evnoise.cli import main
+
+    truth = ev.NoiseParams(eps_pos=5, eps_neg=5, bias_pr=2, trial_rate_hz=1000, photons_per_lux=1, leak_on_hz=0.4,
+                           leak_off_hz=0.1, hot_pixel_fraction=0.04, hot_pixel_rate_hz=6.0)
+    rec = _recording(tmp_path, truth, shape=(20, 25))
+    out = tmp_path / "hot.toml"
+    argv = ["calibrate", str(rec), "--t-start", "2", "--t-end", "8", "--out", str(out), "--base", "evk3-hd", "--hot",
+            "on", "--spread", "off", "--regularity", "off", "--timing", "on", "--hot-regularity", "on", "--no-checks",
+            "--accept-rejected"]
+    assert main(argv) == 0
+    doc = ev.params.load_preset_document(out)
+    values = doc["fit"]["values"]
+    assert "hot_regularity" in values and "hot_regularity" in doc["fit"]["status"]
+    params = ev.load_preset(out)
+    if abs(values["hot_regularity"] - values["regularity"]) > 1e-9:
+        assert params.hot_pixel_regularity == pytest.approx(values["hot_regularity"])
+    else:
+        assert params.hot_pixel_regularity == -1.0
+    assert params.leak_regularity == 0.0  # --regularity off: the ordinary pixels are Poisson
+    assert "hot_regularity" in capsys.readouterr().out

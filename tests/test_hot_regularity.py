@@ -127,3 +127,20 @@ def test_reset_memory_refuses_a_timer_of_the_hot_pixels():
     params = QUIET.replace(leak_regularity=0.0, hot_pixel_regularity=0.5, reset_memory=0.3)
     with pytest.raises(ev.ParameterError, match="hot_pixel_regularity"):
         ev.simulate_events(np.zeros((4, 4)), params, 1.0, rng=1)
+
+
+@pytest.mark.parametrize("off", [dict(hot_pixel_fraction=0.0), dict(hot_pixel_rate_hz=0.0)])
+def test_without_hot_pixels_every_pixel_keeps_the_leaks_regularity(off):
+    """A hot regularity with no hot pixels changes nothing: the trial kernel (changing scenes) once ran every pixel
+    at the hot value there (found in review)."""
+    params = QUIET.replace(leak_regularity=0.2, hot_pixel_regularity=0.95, **off)
+    shape, duration_s = (10, 10), 60.0
+    leak = params.leak_on_hz + params.leak_off_hz
+    for method in ("auto", "trials"):
+        events = ev.simulate_events(np.zeros(shape), params, duration_s, rng=21, method=method)
+        gaps, _ = gaps_by_pixel(events, shape[1])
+        check_gaps(gaps, leak, 0.2, params.trial_rate_hz, duration_s)
+    frames = np.zeros((2,) + shape)
+    events = ev.simulate_video(frames, np.array([0.0, duration_s]), params, rng=22)
+    gaps, _ = gaps_by_pixel(events, shape[1])
+    check_gaps(gaps, leak, 0.2, params.trial_rate_hz, duration_s)

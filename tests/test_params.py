@@ -116,9 +116,11 @@ def test_messages_name_the_value_and_the_allowed_range(name):
     from evnoise.params import parameter_spec
 
     s = parameter_spec(name)
-    below = s.low - 1.0  # -1 for every field but hot_pixel_regularity (where -1 means "tied")
-    with pytest.raises(ev.ParameterError,
-                       match=rf"NoiseParams\.{name} must be finite and {s.low_text}, got {re.escape(repr(below))}"):
+    # -1 for every field but hot_pixel_regularity (where -1 means "tied"; its own message below)
+    below = s.low - 1.0
+    allowed = ("-1 \\(the same as leak_regularity\\) or between 0 and 1" if name == "hot_pixel_regularity"
+               else f"finite and {s.low_text}")
+    with pytest.raises(ev.ParameterError, match=rf"NoiseParams\.{name} must be {allowed}, got {re.escape(repr(below))}"):
         ev.NoiseParams(**dict(GOOD, **{name: below}))
     with pytest.raises(ev.ParameterError, match=rf"NoiseParams\.{name} must be <= {re.escape(f'{s.high:g}')}.*, got"):
         ev.NoiseParams(**dict(GOOD, **{name: s.high * 2}))

@@ -236,3 +236,31 @@ def test_timing_fit_of_fast_regular_pixels_on_a_fine_trial_grid(tmp_path):
 def test_timing_fit_of_fast_regular_pixels_on_the_presets_trial_grid(tmp_path):
     fit = _fit_fast_regular(tmp_path, 424.0)
     assert abs(fit.values["regularity"] - 0.9) < K * fit.std_error["regularity"]
+
+
+
+@pytest.mark.slow
+def test_hot_pixels_own_regularity_round_trip(tmp_path):
+    """A sensor whose hot pixels are Poisson under a near-periodic leak (what the real DVS128 windows' timing fits
+    find): simulated with ``hot_pixel_regularity = 0``, fitted with ``hot_regularity="on"``, the fit finds the
+    ordinary regularity within K standard errors and the hot one at its Poisson bound, its counts pass, and its
+    preset carries both (~2 min)."""
+    truth = dict(TRUTH, hot_pixel_fraction=0.04, hot_pixel_rate_hz=1.5, hot_pixel_sigma=0.0,
+                 hot_pixel_on_fraction=0.5, hot_pixel_regularity=0.0)
+    shape, T = (30, 30), 40.0
+    params = ev.load_preset("davis346").replace(**truth)
+    events = ev.simulate_events(np.zeros(shape), params, T, rng=5)
+    w = qw.quiet_window(ev.write_events(tmp_path / "hot.h5", events, shape), 0.0, T)
+    fit = q.fit_quiet([w], base="davis346", hot="on", spread="on", regularity="on", timing="on",
+                      hot_regularity="on")
+    assert fit.fit_status == "accepted", fit.rejections
+    se = fit.std_error["regularity"]
+    assert se is not None and abs(fit.values["regularity"] - 0.9) < K * se, (fit.values["regularity"], se)
+    assert fit.values["hot_regularity"] < 0.05, fit.summary()
+    # the one-regularity fit is far worse: the hot pixels' short Poisson gaps forbid the ordinary pixels' timer
+    assert fit.tests["hot_regularity"]["p_value"] < q.LR_P
+    preset = fit.to_params("davis346")
+    assert preset.hot_pixel_regularity == pytest.approx(fit.values["hot_regularity"])
+    assert preset.leak_regularity == pytest.approx(fit.values["regularity"])
+    tied = q.fit_quiet([w], base="davis346", hot="on", spread="on", regularity="on", timing="off")
+    assert tied.to_params("davis346").hot_pixel_regularity == -1.0  # one regularity: tied, as before

@@ -183,11 +183,13 @@ def calibrate(measurements: Measurements, *, method: str = "poisson", distributi
             f"({', '.join(n for n in free if n != 'eps_sigma')}); measure more levels or fix some parameters"
         )
     background_on = NoiseParams(**values).has_background or any(n in free for n in FLOORS + GROWTH + SPREAD)
-    if values["leak_regularity"] > 0 and background_on and (meas.kind == "flat-field" or meas.nb_shape is not None):
+    regular = values["leak_regularity"] > 0 or values.get("hot_pixel_regularity", -1.0) > 0
+    if regular and background_on and (meas.kind == "flat-field" or meas.nb_shape is not None):
         what = "flat fields (per-pixel counts)" if meas.kind == "flat-field" else "a table's measured NB shapes"
         raise ParameterError(
-            f"a regular background (leak_regularity = {values['leak_regularity']:g}) is modelled in the mean rates "
-            f"only, not in {what}: fix leak_regularity=0, or calibrate the background from a quiet recording")
+            f"a regular background (leak_regularity = {values['leak_regularity']:g}, hot_pixel_regularity = "
+            f"{values.get('hot_pixel_regularity', -1.0):g}) is modelled in the mean rates only, not in {what}: fix "
+            "leak_regularity=0 and hot_pixel_regularity=-1, or calibrate the background from a quiet recording")
     bounds = check_bounds(bounds)
     assumed = ("eps_sigma" not in free and "eps_sigma" not in fixed and initial is None
                and values["eps_sigma"] == TABLE_SIGMA)

@@ -483,8 +483,9 @@ def _goodness(problem: Problem, theta, extras, n_free):
     gof["rate_max_relative_residual"] = float(np.max(np.abs(rel_res[ok]))) if ok.any() else math.nan
     disp = {"r_measured": meas.nb_shape, "r_model": None, "summary": ""}
     if stats.regularity > 0:  # counts of a timer are not negative binomial: no model shape to show
-        disp["summary"] = (f"no model over-dispersion: the background timer is regular (leak_regularity = "
-                           f"{stats.regularity:.6g}), which the mean rates allow but the NB shape does not")
+        disp["summary"] = (f"no model over-dispersion: the background timer is regular (leak_regularity or "
+                           f"hot_pixel_regularity {stats.regularity:.6g}), which the mean rates allow but the NB shape "
+                           "does not")
     elif meas.duration_s is not None and (meas.nb_shape is not None or stats.log_m1.size):
         inv = stats.inverse_shape(meas.duration_s)
         with np.errstate(divide="ignore"):

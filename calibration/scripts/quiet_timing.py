@@ -22,13 +22,13 @@ reproduce:
 Three fits per window (issue 32 section 2): *before*, the count fit (``timing="off"``: the per-pixel count
 histograms only, as the quiet fit was before it fitted timing); *after*, the timing fit (``timing="auto"``:
 the pixels' event times, :mod:`evnoise.calibration.quiet.likelihood`) with one regularity for ordinary and
-hot pixels, the model the simulator runs; *after, own hot regularity* (``hot_regularity="on"``), which the
-simulator cannot run yet. For each: its log-likelihood *of the event times* (the count fit's values
+hot pixels; *after, own hot regularity* (``hot_regularity="on"``), which the simulators run as the preset's
+``hot_pixel_regularity``. For each: its log-likelihood *of the event times* (the count fit's values
 evaluated under the timing likelihood, so all three compare), the count p-values, the timing tests and
 issue 32's done-when criteria (opposite share within 5 points of the model's, OFF->ON pair excess within
 30 % of the model's x1, IEI median within 30 %, IEI KS p >= 1e-3 where there are >= 100 intervals).
-The after fit's preset (:meth:`QuietFit.to_params` on the ``dvs128`` photon-noise base) is simulated on
-the window (``evnoise.simulate_events``, 4 replicas) and its counts and intervals set beside the real ones.
+The two after fits' presets (:meth:`QuietFit.to_params` on the ``dvs128`` photon-noise base) are simulated on
+the window (``evnoise.simulate_events``, 4 replicas) and their counts and intervals set beside the real ones.
 
 Writes the JSON (``--out``) and prints markdown tables. The recordings are third-party data: they are
 read, never copied. Readout doublets (:data:`evnoise.calibration.quiet.window.DOUBLET_US`) are merged.
@@ -206,8 +206,9 @@ def analyse(data: Path, rel: str, seg: dict, *, simulate: bool = True) -> dict:
     if simulate:
         from .fit_dvs128 import base_params
 
-        params = fits["after"].to_params(base_params())
-        row["after_preset_simulated"] = simulated_timing(params, w, xs)
+        row["after_preset_simulated"] = simulated_timing(fits["after"].to_params(base_params()), w, xs)
+        row["after_hot_preset_simulated"] = simulated_timing(fits["after_hot_regularity"].to_params(base_params()),
+                                                             w, xs)
     return row
 
 
@@ -253,13 +254,14 @@ def criteria_table(rows) -> str:
     hot regularity."""
     head = ("| window | IEI n | IEI median real / before / after / after-hot (s) | IEI KS p before / after / after-hot "
             "| counts p (ON) before / after / after-hot | log L(event times) before / after / after-hot "
-            "| done-when after: alternation, pairs, median, KS, counts |")
+            "| done-when after: alternation, pairs, median, KS, counts | done-when after-hot |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in rows:
         f = r["fits"]
         names = ("before", "after", "after_hot_regularity")
         name = Path(r["file"]).name.replace(".aedat", "")
-        c = f["after"]["criteria"]
+        keys = ("alternation_within_5_points", "pair_excess_within_30pct", "iei_median_within_30pct",
+                "iei_ks_not_rejected", "counts_not_rejected")
         lines.append(
             f"| {name} {r['from_s']:g}–{r['to_s']:g} s | {r['iei_real']['n']} "
             f"| {_f(r['iei_real']['median_s'], '.3f')} / "
@@ -269,9 +271,8 @@ def criteria_table(rows) -> str:
             # the timing fits' own maximum is already an event-time log-likelihood
             + " | " + " / ".join(_f(f[k]["log_likelihood_event_times" if k == "before" else "log_likelihood_fitted"],
                                     ".1f") for k in names)
-            + " | " + ", ".join(_mark(c[k]) for k in ("alternation_within_5_points", "pair_excess_within_30pct",
-                                                       "iei_median_within_30pct", "iei_ks_not_rejected",
-                                                       "counts_not_rejected")) + " |")
+            + " | " + " | ".join(", ".join(_mark(f[name]["criteria"][k]) for k in keys)
+                                 for name in ("after", "after_hot_regularity")) + " |")
     return "\n".join(lines)
 
 
@@ -297,6 +298,23 @@ def table(rows) -> str:
             f"| {_f(iei['real']['cv'], '.2f')} / {_f(iei['model']['cv'], '.2f')} "
             f"| {_f(g.get('ON', {}).get('p_value'), '.2g')} / {_f(g.get('OFF', {}).get('p_value'), '.2g')} "
             f"| {_f(a['p_value'], '.2g')} / {_f(iei['ks_p_value'], '.2g')} | {r['fit_status']}{why} |")
+    return "\n".join(lines)
+
+
+def simulated_table(rows) -> str:
+    """The two after fits' presets simulated on each window against the real events (4 sensors each)."""
+    head = ("| window | events real / after / after-hot (per sensor) | IEI median real / after / after-hot (s) "
+            "| IEI two-sample KS p after / after-hot |")
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for r in rows:
+        sims = [r.get("after_preset_simulated") or {}, r.get("after_hot_preset_simulated") or {}]
+        name = Path(r["file"]).name.replace(".aedat", "")
+        lines.append(
+            f"| {name} {r['from_s']:g}–{r['to_s']:g} s | {r['events']} / "
+            + " / ".join(_f((x.get("events_on_per_replica") or math.nan) + (x.get("events_off_per_replica") or 0.0),
+                            ".0f") for x in sims)
+            + f" | {_f(r['iei_real']['median_s'], '.3f')} / " + " / ".join(_f(x.get("median_s"), ".3f") for x in sims)
+            + " | " + " / ".join(_f(x.get("ks_2samp_p_value"), ".2g") for x in sims) + " |")
     return "\n".join(lines)
 
 
@@ -369,6 +387,8 @@ def main(argv=None) -> int:
     print(table(rows))
     print()
     print(criteria_table(rows))
+    print()
+    print(simulated_table(rows))
     print(f"\nwrote {args.out} ({out['runtime_s']} s)")
     return 0
 

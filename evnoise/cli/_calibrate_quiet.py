@@ -53,6 +53,9 @@ def add_arguments(p) -> None:
     g.add_argument("--timing", choices=("auto", "on", "off"), default="off",
                    help="fit the pixels' event times, not only their counts (several times the count fit's "
                         "time; default: off, the counts are fitted and the timing tested)")
+    g.add_argument("--hot-regularity", choices=("auto", "on", "off"), default="off",
+                   help="give the hot pixels a regularity of their own (the preset's hot_pixel_regularity; identified "
+                        "by the event times: use with --timing; default: off, one regularity for every pixel)")
     g.add_argument("--no-checks", dest="checks", action="store_false",
                    help="skip the checks that each window is pure stationary noise (OFF/ON pairs, drift, a changing "
                         "pattern; about 15 s per million events)")
@@ -120,7 +123,7 @@ def run(args, recordings) -> int:
             log.info("%s: %d events in %d pixels over %.3g s", w.describe(), int(w.counts.sum()),
                      int(w.counts[0].size), w.duration_s)
     fit = fit_quiet(windows, base=base, spread=args.spread, hot=args.hot, regularity=args.regularity,
-                    timing=args.timing, progress=not args.quiet)
+                    timing=args.timing, hot_regularity=args.hot_regularity, progress=not args.quiet)
     print(fit.summary())
     params = fit.to_params(base)
     height, width = windows[0].shape

@@ -25,9 +25,9 @@ class RegularTimer(NoiseTerm):
         return params.regular_background
 
     def kernel_model(self, params) -> dict:
-        # the trial kernel runs the timer wherever this is > 0; pixels of a regularity of their own read it
-        # from their coefficients (:func:`pixel_regularity`, row 4 of ``kernel_coefficients``)
-        return {"regularity": max(float(params.leak_regularity), float(params.hot_regularity))}
+        # the trial kernel runs the timer wherever this is > 0; with hot pixels of a regularity of their own each
+        # pixel reads its own from the coefficients (:func:`pixel_regularity`, row 4 of ``kernel_coefficients``)
+        return {"regularity": largest_regularity(params)}
 
     def rates(self, p_on, p_off, l_on, l_off, params, hot=None):
         """Closed-form rates ``(nu_on, nu_off)`` events/s with the timer on (:func:`regular_rates`) of pixels
@@ -37,9 +37,17 @@ class RegularTimer(NoiseTerm):
 
 
 def own_hot_regularity(params) -> bool:
-    """True when hot pixels have a regularity that differs from the ordinary pixels' (and hot pixels are on)."""
-    hot_on = params.hot_pixel_fraction > 0 and params.hot_pixel_rate_hz > 0
-    return hot_on and params.hot_regularity != params.leak_regularity
+    """True when hot pixels have a regularity that differs from the ordinary pixels'. Decided by the parameters
+    alone: a hot-pixel map given by the caller (``background=``) has it too, whatever ``hot_pixel_fraction``."""
+    return params.hot_regularity != params.leak_regularity
+
+
+def largest_regularity(params) -> float:
+    """The largest regularity any pixel's timer has: ``leak_regularity``, or ``hot_pixel_regularity`` where hot
+    pixels have their own (the trial kernel's switch for the timer; each pixel then reads its own)."""
+    if own_hot_regularity(params):
+        return max(float(params.leak_regularity), float(params.hot_regularity))
+    return float(params.leak_regularity)
 
 
 def pixel_regularity(params, hot=None):
