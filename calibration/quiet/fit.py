@@ -313,6 +313,29 @@ def _logit(x):
     return math.log(x / (1 - x))
 
 
+def fit_model(fit: QuietFit, timing: bool = False):
+    """``(model, groups)`` of a fit: the terms it kept (its status), with the timing likelihood or not, and its
+    windows' groups. For windows at an unknown illuminance (no shot noise in the model), as quiet recordings are."""
+    if any(w.lux is not None for w in fit.windows):
+        raise ParameterError("fit_model: the windows have an illuminance; only windows without lux are supported")
+
+    def kept(name):
+        return not fit.status[name].startswith(("not identified", "fixed", "tied"))
+
+    groups = window_groups(fit.windows)
+    model = Model(kept("sigma"), kept("hot_fraction"), [np.zeros((len(g.windows), 2)) for g in groups], False,
+                  [np.zeros(len(g.windows)) for g in groups], kept("regularity"), timing,
+                  kept("hot_fraction") and kept("hot_regularity"))
+    return model, groups
+
+
+def event_time_log_likelihood(fit: QuietFit) -> float:
+    """The log-likelihood of the windows' event *times* (the timing likelihood) at a fit's values, whichever
+    likelihood the fit maximised: a count fit and a timing fit compare on it (windows read with their events)."""
+    model, groups = fit_model(fit, timing=True)
+    return float(mixture_log_likelihood(np.array(theta_of(fit.values, model)), model, groups))
+
+
 def theta_of(values: dict, model: Model):
     """Fitted coordinates of a values dict (the inverse of :func:`_unpack`)."""
     x = [math.log(max(values["rate_on_hz"], 1e-12)), math.log(max(values["rate_off_hz"], 1e-12))]
@@ -332,31 +355,13 @@ def theta_of(values: dict, model: Model):
     return x
 
 
-#: Shares of the count fit's regularities tried as timing starts besides the count fit itself: counts pin a regular
-#: timer's rate well but overshoot its regularity, where a gap of the window shorter than ``r / rate`` makes the
-#: timing likelihood 0 (seen: counts r = 0.98 for a simulated 0.9; BFGS from the Poisson starts then stopped
-#: 8000 log-units below the truth)
-COUNT_START_REGULARITY_SHARES = (0.9, 0.7)
-
-
 def _with_count_start(model: Model, groups, starts):
     """``starts``, and for a timing model first the maximum of the same model's count likelihood (cheap: the
-    counts' likelihood takes the distinct count vectors, the timing likelihood every pixel) from them, also with
-    its regularities shrunk (:data:`COUNT_START_REGULARITY_SHARES`; the hot pixels' own also near 0);
-    :func:`.likelihood.maximise` runs the best."""
+    counts' likelihood takes the distinct count vectors, the timing likelihood every pixel) from them."""
     if not model.timing:
         return starts
     counts = maximise(dataclasses.replace(model, timing=False), groups, starts)
-    out = [counts.x]
-    v = unpack(counts.x, model)
-    for share in (1.0,) + COUNT_START_REGULARITY_SHARES if model.regular else ():
-        # the hot pixels' own regularity also near Poisson: counts cannot tell their timer from their spread
-        for hot_share in ((share, 1e-3) if model.hot and model.hot_regular else (share,)):
-            if share == hot_share == 1.0:
-                continue  # the count fit itself
-            out.append(np.array(theta_of(dict(v, regularity=share * v["regularity"],
-                                              hot_regularity=hot_share * v["hot_regularity"]), model)))
-    return out + list(starts)
+    return [counts.x] + list(starts)
 
 
 def _starts(model: Model, previous: dict, hot_guess):

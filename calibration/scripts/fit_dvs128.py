@@ -79,11 +79,11 @@ def main(argv=None) -> int:
     fit = fit_quiet(fit_windows, base=base_params())
     likelihoods = {}
     if args.timing:
-        from .quiet_timing import timing_log_likelihood
+        from ..quiet.fit import event_time_log_likelihood
 
         counts_fit = fit
         fit = fit_quiet(fit_windows, base=base_params(), timing="auto", hot_regularity="auto")
-        likelihoods = {"count_fit": timing_log_likelihood(counts_fit), "timing_fit": fit.log_likelihood}
+        likelihoods = {"count_fit": event_time_log_likelihood(counts_fit), "timing_fit": fit.log_likelihood}
         print(f"log-likelihood of the event times: count fit {likelihoods['count_fit']:.1f}, "
               f"timing fit {likelihoods['timing_fit']:.1f}")
     print(fit.summary())
@@ -164,7 +164,8 @@ def main(argv=None) -> int:
                           "(hot_pixel_regularity); the count fit's near-periodic leak (regularity ~1) makes gaps the "
                           "recordings have impossible",
             "log_likelihood_event_times": (f"count fit {likelihoods['count_fit']:.1f}, timing fit "
-                                           f"{likelihoods['timing_fit']:.1f} (natural log, the fit windows' event times)"),
+                                           f"{likelihoods['timing_fit']:.1f} (natural log, the fit windows' event "
+                                           "times)"),
             "method": "evnoise.calibration.quiet (timing=auto, hot_regularity=auto): the pixels' event times, "
                       "log-normal spread, hot pixels with their own regularity, likelihood-ratio selection; pixels not "
                       "tied across recordings"} if args.timing else {}),

@@ -53,27 +53,17 @@ OUT = HERE / "quiet-timing.json"
 
 
 def _model_of(fit, timing: bool = False):
-    """The fitted (memoryless) model of a one-window fit, for :func:`.goodness.interval_cdf` (and, with
-    ``timing``, the timing likelihood): the terms the fit kept, no shot noise (the windows have no lux)."""
-    from ..quiet.likelihood import Model, window_groups
+    """The fitted (memoryless) model of a fit and its window groups (``quiet.fit.fit_model``)."""
+    from ..quiet.fit import fit_model
 
-    def kept(name):
-        return not fit.status[name].startswith(("not identified", "fixed", "tied"))
-
-    groups = window_groups(fit.windows)
-    model = Model(kept("sigma"), kept("hot_fraction"), [np.zeros((len(g.windows), 2)) for g in groups], False,
-                  [np.zeros(len(g.windows)) for g in groups], kept("regularity"), timing,
-                  kept("hot_fraction") and kept("hot_regularity"))
-    return model, groups
+    return fit_model(fit, timing)
 
 
 def timing_log_likelihood(fit) -> float:
-    """The log-likelihood of the window's event times (the timing likelihood) at the fit's values."""
-    from ..quiet.fit import theta_of
-    from ..quiet.likelihood import mixture_log_likelihood
+    """The log-likelihood of the window's event times at the fit's values (``quiet.fit.event_time_log_likelihood``)."""
+    from ..quiet.fit import event_time_log_likelihood
 
-    model, groups = _model_of(fit, timing=True)
-    return float(mixture_log_likelihood(np.array(theta_of(fit.values, model)), model, groups))
+    return event_time_log_likelihood(fit)
 
 
 def simulated_timing(params, w, real_intervals, *, replicas: int = 4, seed: int = 0) -> dict:
