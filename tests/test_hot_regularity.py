@@ -80,7 +80,8 @@ def test_hot_pixels_follow_their_own_timer_and_the_others_theirs(method, shape, 
         want = rate[group].sum() * duration_s
         assert abs(counts[group].sum() - want) < K * math.sqrt(want), (counts[group].sum(), want)
     on_share_hot = np.mean(events["p"][hot[idx]] == 1)
-    q = (params.leak_on_hz + params.hot_pixel_rate_hz * params.hot_pixel_on_fraction) / (leak + params.hot_pixel_rate_hz)
+    q = params.leak_on_hz + params.hot_pixel_rate_hz * params.hot_pixel_on_fraction
+    q /= leak + params.hot_pixel_rate_hz
     n_hot = int(hot[idx].sum())
     assert abs(on_share_hot - q) < K * math.sqrt(q * (1 - q) / n_hot)
 

@@ -120,7 +120,8 @@ def test_messages_name_the_value_and_the_allowed_range(name):
     below = s.low - 1.0
     allowed = ("-1 \\(the same as leak_regularity\\) or between 0 and 1" if name == "hot_pixel_regularity"
                else f"finite and {s.low_text}")
-    with pytest.raises(ev.ParameterError, match=rf"NoiseParams\.{name} must be {allowed}, got {re.escape(repr(below))}"):
+    message = rf"NoiseParams\.{name} must be {allowed}, got {re.escape(repr(below))}"
+    with pytest.raises(ev.ParameterError, match=message):
         ev.NoiseParams(**dict(GOOD, **{name: below}))
     with pytest.raises(ev.ParameterError, match=rf"NoiseParams\.{name} must be <= {re.escape(f'{s.high:g}')}.*, got"):
         ev.NoiseParams(**dict(GOOD, **{name: s.high * 2}))
