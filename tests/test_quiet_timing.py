@@ -5,6 +5,7 @@ the model reproduces but whose timing it does not is not "accepted"."""
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -154,3 +155,30 @@ def test_counts_right_timing_wrong_is_rejected():
     assert iei["p_value"] < 1e-6 and iei["median_s"] < 0.5 * iei["model_median_s"]
     assert fit.fit_status == "rejected"
     assert any("inter-event intervals do not match" in r for r in fit.rejections)
+
+
+def test_compare_intervals_of_a_preset_on_its_own_window(tmp_path):
+    """A preset simulated on a window of its own events: totals within a few standard deviations, intervals not told
+    apart (two-sample KS, fixed seeds); the window's intervals are each pixel's consecutive gaps."""
+    from evnoise.calibration.quiet.goodness import compare_intervals, window_intervals
+    from evnoise.calibration.quiet.window import QuietWindow, quiet_window
+
+    params = ev.NoiseParams(eps_pos=5, eps_neg=5, bias_pr=2, trial_rate_hz=1000, photons_per_lux=1, leak_on_hz=0.6,
+                            leak_off_hz=0.3, leak_regularity=0.7, hot_pixel_fraction=0.05, hot_pixel_rate_hz=5.0,
+                            hot_pixel_regularity=0.0)
+    shape, T = (20, 20), 20.0
+    events = ev.simulate_events(np.zeros(shape), params, T, rng=3)
+    w = quiet_window(ev.write_events(tmp_path / "w.h5", events, shape), 0.0, T)
+    xs = window_intervals(w)
+    idx = events["y"].astype(np.int64) * shape[1] + events["x"]
+    direct = np.concatenate([np.diff(events["t"][idx == k]) * 1e-6 for k in np.unique(idx)])
+    np.testing.assert_allclose(np.sort(xs), np.sort(direct), rtol=0, atol=1e-9)
+    out = compare_intervals(params, w, replicas=4, seed=2)
+    total = out["events_on_per_replica"] + out["events_off_per_replica"]
+    assert abs(total - events.size) < 5 * math.sqrt(events.size)
+    assert out["real_intervals"] == xs.size and out["ks_2samp_p_value"] > 1e-3
+    # a Poisson leak instead is told apart by its intervals
+    poisson = compare_intervals(params.replace(leak_regularity=0.0, hot_pixel_regularity=-1.0), w, replicas=4, seed=2)
+    assert poisson["ks_2samp_p_value"] < 1e-3
+    with pytest.raises(ev.InputError, match="no events"):
+        window_intervals(QuietWindow(w.counts, T, "counts only"))

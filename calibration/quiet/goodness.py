@@ -12,7 +12,8 @@ from .counts import count_pmf
 from .likelihood import component_rates
 from .window import QuietWindow
 
-__all__ = ["GOF_MAX_COUNT", "simulate_window", "compare_to_recording", "interval_cdf", "timing_tests"]
+__all__ = ["GOF_MAX_COUNT", "simulate_window", "compare_to_recording", "interval_cdf", "timing_tests",
+           "window_intervals", "compare_intervals"]
 
 
 #: Largest count evaluated one by one in the goodness-of-fit histograms (higher ones form the tail bin).
@@ -233,3 +234,56 @@ def compare_to_recording(params, window: QuietWindow, *, replicas: int = 20, see
                     "simulated_events_per_replica": float(sim[:, pol].sum() / replicas),
                     "replicas": int(replicas)})
     return out
+
+
+def window_intervals(window: QuietWindow) -> np.ndarray:
+    """Same-pixel inter-event intervals (s) of a window read with its events (either polarity)."""
+    if window.events is None:
+        from evnoise.errors import InputError
+
+        raise InputError(f"{window.describe()}: no events (a QuietWindow made from counts alone; quiet_window "
+                         "reads them)")
+    t, pix = window.events["t_s"], window.events["pixel"]
+    order = np.lexsort((t, pix))
+    t, pix = t[order], pix[order]
+    return np.diff(t)[pix[1:] == pix[:-1]]
+
+
+def compare_intervals(params, window: QuietWindow, *, replicas: int = 4, seed: int = 0, real_intervals=None) -> dict:
+    """A preset simulated on a window (``replicas`` sensors at 0 lux for its duration) against its real events.
+
+    Returns events per replica, the simulated same-pixel intervals' count, median and CV, the share of consecutive
+    same-pixel events of opposite polarity, and a two-sample KS test of the intervals against the real ones
+    (``real_intervals``, else :func:`window_intervals`; NaN with fewer than 20 on either side); the real
+    intervals' median and CV beside them.
+    """
+    from scipy.stats import ks_2samp
+
+    import evnoise as ev
+
+    from .checks import same_pixel_timing
+
+    real = np.asarray(window_intervals(window) if real_intervals is None else real_intervals, dtype=np.float64)
+    lux = np.zeros(window.shape)
+    counts, ivals, opp, trans = [], [], 0, 0
+    for s in np.random.SeedSequence(seed).spawn(replicas):
+        events = ev.simulate_events(lux, params, window.duration_s, rng=np.random.default_rng(s))
+        counts.append([int(np.count_nonzero(events["p"] == 1)), int(np.count_nonzero(events["p"] == 0))])
+        sp = same_pixel_timing(events, window.shape)
+        ivals.append(np.asarray(sp["intervals_s"]))
+        opp += sp["opposite"]
+        trans += sp["transitions"]
+    xs = np.concatenate(ivals)
+    counts = np.array(counts, dtype=np.float64)
+
+    def cv(x):
+        return float(np.std(x, ddof=1) / np.mean(x)) if x.size > 1 and np.mean(x) > 0 else math.nan
+
+    return {"replicas": replicas, "events_on_per_replica": float(counts[:, 0].mean()),
+            "events_off_per_replica": float(counts[:, 1].mean()),
+            "events_sd_per_replica": float(counts.sum(axis=1).std(ddof=1)) if replicas > 1 else math.nan,
+            "intervals": int(xs.size), "median_s": float(np.median(xs)) if xs.size else math.nan, "cv": cv(xs),
+            "opposite_share": opp / trans if trans else math.nan,
+            "real_intervals": int(real.size), "real_median_s": float(np.median(real)) if real.size else math.nan,
+            "real_cv": cv(real),
+            "ks_2samp_p_value": float(ks_2samp(real, xs).pvalue) if real.size >= 20 and xs.size >= 20 else math.nan}

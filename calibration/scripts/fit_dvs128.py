@@ -40,6 +40,34 @@ def base_params():
                           trial_rate_hz=424.0, dark_lux=0.0, refractory_s=0.0)
 
 
+def _light_range(values) -> dict:
+    """``fitted_lux`` provenance (:func:`evnoise.params.preset_light_range`): assumed, from 0 lux (the recordings'
+    unknown light, fitted as lux 0) to where the assumed photon noise reaches the fitted background."""
+    import numpy as np
+    from scipy.optimize import brentq
+
+    import evnoise as ev
+
+    base = base_params()
+    background = values["rate_on_hz"] + values["rate_off_hz"]
+
+    def photon_minus_background(lux):
+        return float(ev.expected_rate(np.array([lux]), base).sum()) - background
+
+    top = float(f"{brentq(photon_minus_background, 1e-4, 1.0, xtol=1e-6):.1g}")
+    at_1 = float(ev.expected_rate(np.array([1.0]), base).sum())
+    return {
+        "fitted_lux": [0.0, top],
+        "fitted_lux_note": ("assumed: the quiet recordings' illuminance is unknown (a person standing in a room) and "
+                            f"the fit treats them as lux 0 (see lux); {top:g} lux is where the assumed photon noise "
+                            f"(photon_noise_scale) reaches the fitted background ({background:.2g} events/s per "
+                            "pixel), so above it the rates are mostly the assumed photon noise, not the fit"),
+        "fitted_lux_meaning": ("its rates there are extrapolated: its photon-noise scale is assumed, so rates at "
+                               f"ordinary light (e.g. {at_1:.0f} events/s per pixel at 1 lux) can be ~1000x those of "
+                               "the quiet recordings it was fitted to"),
+    }
+
+
 def load_windows(data: Path):
     from ..quiet.window import quiet_window
 
@@ -73,7 +101,7 @@ def main(argv=None) -> int:
 
     from ..preset import write_text_atomic
     from ..quiet.fit import fit_quiet, preset_toml
-    from ..quiet.goodness import compare_to_recording
+    from ..quiet.goodness import compare_intervals, compare_to_recording
 
     fit_windows, check = load_windows(args.data)
     fit = fit_quiet(fit_windows, base=base_params())
@@ -97,6 +125,23 @@ def main(argv=None) -> int:
             validation.append(row)
             print(f"  {row['file']} {seg['from_s']}-{seg['to_s']} s {row['polarity']}: chi2 {row['chi2']:.2f} on "
                   f"{row['dof']} dof, p = {row['p_value']:.3g}{' (fit)' if used else ''}")
+    # the event times: this preset's and the count fit's same-pixel intervals against each window's (4 sensors)
+    interval_validation = []
+    if args.timing:
+        count_params = counts_fit.to_params(base_params())
+        print("| window | events real / count fit / timing fit | IEI n | IEI median real / count fit / timing fit (s) "
+              "| IEI CV real / count fit / timing fit | IEI two-sample KS p count fit / timing fit |")
+        for w, seg in check:
+            a = compare_intervals(count_params, w, seed=1)
+            b = compare_intervals(params, w, seed=1)
+            row = (f"{w.source} {seg['from_s']}-{seg['to_s']} s: {int(w.counts.sum())} events / "
+                   f"{a['events_on_per_replica'] + a['events_off_per_replica']:.0f} / "
+                   f"{b['events_on_per_replica'] + b['events_off_per_replica']:.0f}; {a['real_intervals']} intervals, "
+                   f"median {a['real_median_s']:.3f} / {a['median_s']:.3f} / {b['median_s']:.3f} s, "
+                   f"CV {a['real_cv']:.2f} / {a['cv']:.2f} / {b['cv']:.2f}, "
+                   f"KS p {a['ks_2samp_p_value']:.2g} / {b['ks_2samp_p_value']:.2g}")
+            interval_validation.append(row)
+            print("  intervals:", row)
     # each window on its own: does the model family describe it, whatever the preset's compromise?
     per_window = []
     for w, seg in check:
@@ -159,7 +204,18 @@ def main(argv=None) -> int:
                                 "have a drifting rate (stationarity) or a pattern that changes (scene_motion: the "
                                 "person almost still), which the per-pixel count histograms do not see; the noise "
                                 "follows the scene everywhere (spatial_structure, information only)"),
-        **({"timing_fit": "fitted to the pixels' event times (renewal gaps of the regular timer, the first event from "
+        **({"summary": "DVS128 (128x128): background fitted to the event times of quiet-scene recordings of one "
+                       "camera (a moderately regular ON leak, Poisson hot pixels); photon-noise scale assumed",
+            "why_regular": (f"the event times: a leak of regularity {values['regularity']:.2f} with Poisson hot pixels "
+                            f"(hot_pixel_regularity {values['hot_regularity']:.2g}) explains both the under-dispersed "
+                            "counts of most pixels and the short same-pixel gaps of the active ones; the count fit's "
+                            "near-periodic leak (regularity ~1) forbids those gaps (log_likelihood_event_times)"),
+            "interval_validation": interval_validation,
+            "interval_validation_note": ("each window: real events / simulated per sensor with the count fit's "
+                                         "preset / with this preset (4 sensors); the same-pixel intervals' median, "
+                                         "CV and a two-sample KS test against the real ones, count fit / this "
+                                         "preset (nan: fewer than 20 intervals)"),
+            "timing_fit": "fitted to the pixels' event times (renewal gaps of the regular timer, the first event from "
                           "the stationary law, the last censored), the hot pixels with a regularity of their own "
                           "(hot_pixel_regularity); the count fit's near-periodic leak (regularity ~1) makes gaps the "
                           "recordings have impossible",
@@ -169,11 +225,14 @@ def main(argv=None) -> int:
             "method": "evnoise.calibration.quiet (timing=auto, hot_regularity=auto): the pixels' event times, "
                       "log-normal spread, hot pixels with their own regularity, likelihood-ratio selection; pixels not "
                       "tied across recordings"} if args.timing else {}),
+        **_light_range(values),
         "edvs_window": "the eDVS128 window (jaer_colleenpamchen) is another camera on a serial link, at a third of the "
                        "cam255 rate: it is checked against this preset anyway and is expected to differ",
     }
+    command = "python -m evnoise.calibration.scripts.fit_dvs128" + (" --timing" if args.timing else "")
+    provenance["command"] = command
     header = ("DVS128 (128x128): background activity fitted to quiet-scene recordings of one camera.\n"
-              "Regenerated by  python -m evnoise.calibration.scripts.fit_dvs128  (needs the real-data folder).\n"
+              f"Regenerated by  {command}  (needs the real-data folder).\n"
               "The photon-noise scale is assumed; see [provenance] and the [[validation]] tables.")
     text = preset_toml(params, sensor=(128, 128, "iniVation DVS128"), header=header, provenance=provenance, fit=fit,
                        validation=validation)

@@ -67,34 +67,10 @@ def timing_log_likelihood(fit) -> float:
 
 
 def simulated_timing(params, w, real_intervals, *, replicas: int = 4, seed: int = 0) -> dict:
-    """The preset simulated on the window (``replicas`` sensors at 0 lux for its duration): events per replica,
-    the same-pixel intervals' median and CV, and a two-sample KS test against the real intervals."""
-    from scipy.stats import ks_2samp
+    """The preset simulated on the window against the real intervals (:func:`..quiet.goodness.compare_intervals`)."""
+    from ..quiet.goodness import compare_intervals
 
-    import evnoise as ev
-
-    from ..quiet.checks import same_pixel_timing
-
-    lux = np.zeros(w.shape)
-    counts, ivals, opp, trans = [], [], 0, 0
-    for k, s in enumerate(np.random.SeedSequence(seed).spawn(replicas)):
-        events = ev.simulate_events(lux, params, w.duration_s, rng=np.random.default_rng(s))
-        counts.append([int(np.count_nonzero(events["p"] == 1)), int(np.count_nonzero(events["p"] == 0))])
-        sp = same_pixel_timing(events, w.shape)
-        ivals.append(np.asarray(sp["intervals_s"]))
-        opp += sp["opposite"]
-        trans += sp["transitions"]
-    xs = np.concatenate(ivals)
-    counts = np.array(counts, dtype=np.float64)
-    out = {"replicas": replicas, "events_on_per_replica": float(counts[:, 0].mean()),
-           "events_off_per_replica": float(counts[:, 1].mean()),
-           "events_sd_per_replica": float(counts.sum(axis=1).std(ddof=1)) if replicas > 1 else math.nan,
-           "intervals": int(xs.size), "median_s": float(np.median(xs)) if xs.size else math.nan,
-           "cv": float(np.std(xs, ddof=1) / np.mean(xs)) if xs.size > 1 else math.nan,
-           "opposite_share": opp / trans if trans else math.nan}
-    real = np.asarray(real_intervals, dtype=np.float64)
-    out["ks_2samp_p_value"] = float(ks_2samp(real, xs).pvalue) if real.size >= 20 and xs.size >= 20 else math.nan
-    return out
+    return compare_intervals(params, w, replicas=replicas, seed=seed, real_intervals=real_intervals)
 
 
 def model_interval_stats(fit) -> dict:
