@@ -134,8 +134,13 @@ class QuietFit:
         if base is None:
             raise ParameterError("to_params needs a base preset for the shot-noise parameters")
         v = self.values
-        # hot pixels with a regularity of their own run as hot_pixel_regularity (-1: tied to leak_regularity)
+        # hot pixels with a regularity of their own run as hot_pixel_regularity (-1: tied to leak_regularity); one on
+        # a bound of its range is written as the bound it stands for (0: Poisson, 1: periodic)
         own_hot = abs(v.get("hot_regularity", v["regularity"]) - v["regularity"]) > 1e-9
+        hot_regularity = v.get("hot_regularity", v["regularity"])
+        bound = self.status.get("hot_regularity", "")
+        if bound.startswith(("at lower bound (0", "at upper bound (1")):
+            hot_regularity = 0.0 if bound.startswith("at lower") else 1.0
         lux0 = min((w.lux for w in self.windows if w.lux is not None), default=0.0)
         floors = _floors_for(base, lux0, v["rate_on_hz"], v["rate_off_hz"], v.get("growth_on", 0.0),
                              v.get("growth_off", 0.0), v["regularity"])
@@ -144,7 +149,7 @@ class QuietFit:
                             leak_sigma=v["sigma"], hot_pixel_fraction=v["hot_fraction"],
                             hot_pixel_rate_hz=v["hot_rate_hz"], hot_pixel_sigma=v["hot_sigma"],
                             hot_pixel_on_fraction=v["hot_on_fraction"], leak_regularity=v["regularity"],
-                            hot_pixel_regularity=v["hot_regularity"] if own_hot else -1.0)
+                            hot_pixel_regularity=hot_regularity if own_hot else -1.0)
 
     def summary(self) -> str:
         lines = [f"quiet-scene calibration from {len(self.windows)} window(s), "
