@@ -267,7 +267,12 @@ class NoiseParams:
     def has_background(self) -> bool:
         """True when any background term (leak or hot pixels) is on."""
         return (self.leak_on_hz > 0 or self.leak_off_hz > 0 or self.leak_on_hz_per_lux > 0
-                or self.leak_off_hz_per_lux > 0 or (self.hot_pixel_fraction > 0 and self.hot_pixel_rate_hz > 0))
+                or self.leak_off_hz_per_lux > 0 or self.hot_pixels_on)
+
+    @property
+    def hot_pixels_on(self) -> bool:
+        """True when hot pixels are drawn and fire (``hot_pixel_fraction > 0`` and ``hot_pixel_rate_hz > 0``)."""
+        return self.hot_pixel_fraction > 0 and self.hot_pixel_rate_hz > 0
 
     @property
     def hot_regularity(self) -> float:
@@ -279,8 +284,7 @@ class NoiseParams:
     def regular_background(self) -> bool:
         """True when background arrivals follow the regular timer (background on, and ``leak_regularity > 0`` or
         hot pixels with a regularity > 0 of their own)."""
-        hot_on = self.hot_pixel_fraction > 0 and self.hot_pixel_rate_hz > 0
-        return self.has_background and (self.leak_regularity > 0 or (hot_on and self.hot_regularity > 0))
+        return self.has_background and (self.leak_regularity > 0 or (self.hot_pixels_on and self.hot_regularity > 0))
 
     @property
     def trial_us(self) -> float:

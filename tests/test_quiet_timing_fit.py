@@ -152,7 +152,7 @@ def test_the_count_fits_periodic_timer_is_impossible_for_the_event_times():
     # the spread's tail, beyond its 7th sd, could make them), a Poisson background does not
     import json
 
-    from evnoise.calibration.scripts.quiet_timing import timing_log_likelihood
+    from evnoise.calibration.quiet.fit import event_time_log_likelihood as timing_log_likelihood
 
     segments = json.loads((REALDATA / "quiet_segments.json").read_text(encoding="utf-8"))["segments"]
     rel = "dvs128dataanalysis/cam255_neal_standing_up2.aedat"

@@ -182,8 +182,11 @@ def calibrate(measurements: Measurements, *, method: str = "poisson", distributi
             f"{meas.n_levels} illuminance levels give {n_points} rates, too few to fit {needed - 1} parameters "
             f"({', '.join(n for n in free if n != 'eps_sigma')}); measure more levels or fix some parameters"
         )
-    background_on = NoiseParams(**values).has_background or any(n in free for n in FLOORS + GROWTH + SPREAD)
-    regular = values["leak_regularity"] > 0 or values.get("hot_pixel_regularity", -1.0) > 0
+    from evnoise.terms.timer import largest_regularity
+
+    candidate = NoiseParams(**values)
+    background_on = candidate.has_background or any(n in free for n in FLOORS + GROWTH + SPREAD)
+    regular = largest_regularity(candidate) > 0
     if regular and background_on and (meas.kind == "flat-field" or meas.nb_shape is not None):
         what = "flat fields (per-pixel counts)" if meas.kind == "flat-field" else "a table's measured NB shapes"
         raise ParameterError(

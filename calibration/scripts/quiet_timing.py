@@ -47,30 +47,11 @@ from pathlib import Path
 import numpy as np
 
 from ..quiet.checks import failed_checks
+from ..quiet.fit import event_time_log_likelihood, fit_model
+from ..quiet.goodness import compare_intervals
 
 HERE = Path(__file__).resolve().parents[1]  # calibration/: the scripts' outputs are kept there
 OUT = HERE / "quiet-timing.json"
-
-
-def _model_of(fit, timing: bool = False):
-    """The fitted (memoryless) model of a fit and its window groups (``quiet.fit.fit_model``)."""
-    from ..quiet.fit import fit_model
-
-    return fit_model(fit, timing)
-
-
-def timing_log_likelihood(fit) -> float:
-    """The log-likelihood of the window's event times at the fit's values (``quiet.fit.event_time_log_likelihood``)."""
-    from ..quiet.fit import event_time_log_likelihood
-
-    return event_time_log_likelihood(fit)
-
-
-def simulated_timing(params, w, real_intervals, *, replicas: int = 4, seed: int = 0) -> dict:
-    """The preset simulated on the window against the real intervals (:func:`..quiet.goodness.compare_intervals`)."""
-    from ..quiet.goodness import compare_intervals
-
-    return compare_intervals(params, w, replicas=replicas, seed=seed, real_intervals=real_intervals)
 
 
 def model_interval_stats(fit) -> dict:
@@ -78,7 +59,7 @@ def model_interval_stats(fit) -> dict:
     distribution the KS test compares with), by quadrature of its CDF on [0, T]."""
     from ..quiet.goodness import interval_cdf
 
-    model, groups = _model_of(fit)
+    model, groups = fit_model(fit)
     w = groups[0].windows[0]
     x = np.linspace(0.0, w.duration_s, 20001)
     cdf = interval_cdf(x, fit.values, model, 0, groups[0], 0)
@@ -125,7 +106,7 @@ def _fit_row(fit, w, same, pairs) -> dict:
         "counts_not_rejected": all(not (math.isfinite(g["p_value"]) and g["p_value"] < 1e-3) for g in fit.goodness),
     }
     return {
-        "log_likelihood_fitted": fit.log_likelihood, "log_likelihood_event_times": timing_log_likelihood(fit),
+        "log_likelihood_fitted": fit.log_likelihood, "log_likelihood_event_times": event_time_log_likelihood(fit),
         "alternation": {"model_share": opp_model, "p_value": trans.get("p_value", math.nan),
                         "testable": bool(trans.get("testable", False))},
         "iei": {"model": model_iei, "ks_p_value": ks.get("p_value", math.nan),
@@ -172,9 +153,8 @@ def analyse(data: Path, rel: str, seg: dict, *, simulate: bool = True) -> dict:
     if simulate:
         from .fit_dvs128 import base_params
 
-        row["after_preset_simulated"] = simulated_timing(fits["after"].to_params(base_params()), w, xs)
-        row["after_hot_preset_simulated"] = simulated_timing(fits["after_hot_regularity"].to_params(base_params()),
-                                                             w, xs)
+        for key, name in (("after_preset_simulated", "after"), ("after_hot_preset_simulated", "after_hot_regularity")):
+            row[key] = compare_intervals(fits[name].to_params(base_params()), w, seed=0, real_intervals=xs)
     return row
 
 

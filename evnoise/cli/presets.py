@@ -123,8 +123,7 @@ def rate_curves(params, lux) -> dict:
     shot = expected_rate(lux, params.replace(leak_on_hz=0.0, leak_off_hz=0.0, leak_on_hz_per_lux=0.0,
                                              leak_off_hz_per_lux=0.0, hot_pixel_fraction=0.0))
     curves = {"shot noise": shot, "background": background_rate(lux, params), "total": expected_rate(lux, params)}
-    spread = params.eps_sigma > 0 or (params.leak_sigma > 0 and params.has_background) or \
-        (params.hot_pixel_fraction > 0 and params.hot_pixel_rate_hz > 0)
+    spread = params.eps_sigma > 0 or (params.leak_sigma > 0 and params.has_background) or params.hot_pixels_on
     if spread:
         # the exact population mean costs seconds per point at many photons per trial: a coarse grid,
         # up to MEAN_MAX_PHOTONS (NaN beyond it and between the grid points is interpolated in log-log)

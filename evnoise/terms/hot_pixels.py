@@ -18,7 +18,7 @@ class HotPixels(NoiseTerm):
     map_name = "background"
 
     def is_on(self, params) -> bool:
-        return params.hot_pixel_fraction > 0 and params.hot_pixel_rate_hz > 0
+        return params.hot_pixels_on
 
     def needs_map(self, params) -> bool:
         return params.hot_pixel_fraction > 0

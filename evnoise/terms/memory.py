@@ -124,7 +124,7 @@ def unsupported(params, thresholds=None, background=None, per_pixel: bool = True
     if not per_pixel:
         if background is not None:
             missing.append("given background maps")
-        if params.has_background and params.hot_pixel_fraction > 0 and params.hot_pixel_rate_hz > 0:
+        if params.hot_pixels_on:
             missing.append("hot pixels (hot_pixel_*)")
         if params.has_background and params.leak_sigma > 0:
             missing.append("a background that differs between pixels (leak_sigma > 0)")
