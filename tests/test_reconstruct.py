@@ -6,6 +6,7 @@ test_reconstruct_slow.py.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import pickle
 import subprocess
@@ -525,3 +526,36 @@ def test_evaluate_table_has_every_method(trained, tmp_path):
     assert comparison_figure(result["examples"], tmp_path / "fig.png").is_file()
     with pytest.raises(ParameterError, match="max_lux"):
         evaluate(PairList([items[0]["counts"]], [items[0]["image"]], window_s=1.0), model, lpips=False)
+
+
+@pytest.mark.parametrize("distribution", ["exact", "poisson"])
+def test_resampled_pairs_draw_hot_pixels_and_the_leak_spread(distribution):
+    """A model whose pixels differ (hot pixels, leak spread): the counts' mean is the population's, from
+    ``expected_rate(..., mismatch="mean")``, not the nominal pixel's (which has no hot pixel: 2x lower here)."""
+    params = dataclasses.replace(PARAMS, leak_on_hz=0.5, leak_sigma=0.8, hot_pixel_fraction=0.1,
+                                 hot_pixel_rate_hz=20.0)
+    lux = np.full((64, 64), 0.05)
+    ds = ResampledPairs([lux], params, window_s=0.5, max_lux=MAX_LUX, binning=1, distribution=distribution)
+    counts = np.stack([ds.sample(0, item_seed(2, k), None)["counts"] for k in range(6)]).astype(float)
+    population = ev.expected_rate(np.array([0.05]), params, mismatch="mean")[:, 0] * 0.5
+    nominal = ev.expected_rate(np.array([0.05]), params)[:, 0] * 0.5
+    on = counts[:, 0].ravel()
+    # the hot pixels make the counts over-dispersed: the standard error from the sample's own variance
+    se = on.std() / math.sqrt(on.size)
+    assert population[0] - nominal[0] > 10 * se  # the test can tell the two apart
+    assert abs(on.mean() - population[0]) < 4 * se
+
+
+def test_resampled_poisson_counts_include_the_dead_time():
+    """Poisson counts about the expected count of the event process, dead time included."""
+    params = dataclasses.replace(PARAMS, eps_pos=0.3, eps_neg=0.3, refractory_s=0.05)  # ~3 events/s: 30 % dead
+    lux = np.full((64, 64), 15.0)
+    ds = ResampledPairs([lux], params, window_s=0.8, max_lux=MAX_LUX, binning=1, distribution="poisson")
+    counts = np.stack([ds.sample(0, item_seed(3, k), None)["counts"] for k in range(4)]).astype(float)
+    mean = ev.expected_rate(np.array([15.0]), params)[:, 0] * 0.8
+    no_dead_time = ev.expected_rate(np.array([15.0]), dataclasses.replace(params, refractory_s=0.0))[:, 0] * 0.8
+    for pol in (0, 1):
+        sample = counts[:, pol].ravel()
+        se = math.sqrt(mean[pol] / sample.size)
+        assert abs(no_dead_time[pol] - mean[pol]) > 10 * se  # the test can tell the two apart
+        assert abs(sample.mean() - mean[pol]) < 4 * se

@@ -198,10 +198,13 @@ class ResampledPairs:
         Base seed; item ``i`` of the fixed view (``ds[i]``) uses ``(seed, 0, i)``; the trainer
         draws with ``(seed, epoch, step, slot)`` through :meth:`sample`.
     distribution : {"exact", "poisson", "sample_counts"}
-        ``"exact"``: the count distribution of the event process (for ``refractory_s = 0`` and
-        ``eps_sigma = 0`` drawn directly from precomputed per-trial probabilities, which is exact
-        and fast; otherwise through :func:`evnoise.sample_counts`). ``"poisson"``: Poisson with
-        the expected count (the paper's synthetic data). ``"sample_counts"``: always call
+        ``"exact"``: the count distribution of the event process (drawn directly from precomputed
+        per-trial probabilities when every pixel's trials are i.i.d. and alike — no dead time, threshold
+        mismatch, background spread, hot pixels, regular timer or reset memory —, which is exact and
+        fast; otherwise through :func:`evnoise.sample_counts`). ``"poisson"``: Poisson with each pixel's
+        expected count (the paper's synthetic data; from precomputed rates when all pixels at one
+        illuminance are alike, else through ``sample_counts(..., distribution="poisson")``, which draws
+        each pixel's thresholds and background). ``"sample_counts"``: always call
         :func:`evnoise.sample_counts` (slow: it evaluates the closed form per call).
     """
 
@@ -237,7 +240,14 @@ class ResampledPairs:
         self._targets = [lux_to_display(bin_mean(lux, self.binning), self.max_lux).astype(np.float32)
                          for lux in self.lux]
         self._probs = {}
-        self._fast = params.refractory_s == 0 and params.eps_sigma == 0
+        from ..terms import maps_needed, regular_timer
+        from ..terms.memory import memory_on
+
+        # every pixel at one illuminance is the nominal pixel: per-value rates describe them all
+        self._alike = params.eps_sigma == 0 and not maps_needed(params)
+        # ... and its trials are i.i.d.: counts are binomial in the per-trial probabilities
+        self._fast = (self._alike and params.refractory_s == 0 and not regular_timer(params)
+                      and not memory_on(params))
 
     def __len__(self):
         return len(self.lux)
@@ -245,31 +255,38 @@ class ResampledPairs:
     def __getitem__(self, i):
         return self.sample(int(i), item_seed(self.seed, 0, int(i)))
 
-    def _trial_probs(self, i):
+    def _per_value(self, i):
+        """Image ``i``'s per-pixel ``(a_on, a_off)``, evaluated once per distinct illuminance: the per-trial
+        probabilities (``"exact"``) or the expected counts over the window (``"poisson"``)."""
         if i not in self._probs:
-            from ..rates import trial_probabilities
+            from ..rates import expected_rate, trial_probabilities
 
-            # the probabilities depend on the illuminance only: evaluate them once per value
             values, inverse = np.unique(self.lux[i], return_inverse=True)
-            p_on, p_off = trial_probabilities(self.params.photons_per_trial(values), self.params)
+            if self.distribution == "poisson":  # dead time, timer and memory included
+                a_on, a_off = expected_rate(values, self.params) * self.window_s
+            else:
+                a_on, a_off = trial_probabilities(self.params.photons_per_trial(values), self.params)
             shape = self.lux[i].shape
-            self._probs[i] = (np.asarray(p_on)[inverse].reshape(shape), np.asarray(p_off)[inverse].reshape(shape))
+            self._probs[i] = (np.asarray(a_on)[inverse].reshape(shape), np.asarray(a_off)[inverse].reshape(shape))
         return self._probs[i]
 
     def _draw(self, i, rows, cols, rng) -> np.ndarray:
         """Full-resolution counts (2, h, w) of image ``i`` over the window ``rows x cols``."""
         params = self.params
-        if self.distribution == "sample_counts" or (self.distribution == "exact" and not self._fast):
+        if (self.distribution == "sample_counts" or (self.distribution == "exact" and not self._fast)
+                or (self.distribution == "poisson" and not self._alike)):
             from ..simulate import sample_counts
 
+            how = "poisson" if self.distribution == "poisson" else "exact"
             return sample_counts(self.lux[i][rows, cols], params, self.window_s,
-                                 int(rng.integers(2**63 - 1)), threads=1)
-        p_on, p_off = self._trial_probs(i)
-        p_on, p_off = p_on[rows, cols], p_off[rows, cols]
+                                 int(rng.integers(2**63 - 1)), threads=1, distribution=how)
+        a_on, a_off = self._per_value(i)
+        a_on, a_off = a_on[rows, cols], a_off[rows, cols]
+        if self.distribution == "poisson":
+            return rng.poisson(np.stack([a_on, a_off])).astype(np.int64)
+        p_on, p_off = a_on, a_off
         duration_us = max(1, int(round(self.window_s * 1e6)))
         trials = duration_us / params.trial_us  # trials whose events can land in the window
-        if self.distribution == "poisson":
-            return rng.poisson(np.stack([p_on, p_off]) * trials).astype(np.int64)
         # exact, no dead time: i.i.d. trials, each ON (p_on), OFF (p_off) or nothing; event
         # times are uniform within their trial, so the last, partial trial counts with
         # probability frac
