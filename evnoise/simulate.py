@@ -215,7 +215,8 @@ def _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, t
         if method == "trials":
             raise ParameterError("method='trials' does not model reset_memory > 0 yet; use method='auto' or "
                                  "'renewal' (the reset-memory renewal tier)")
-        return _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, sink, bg=bg)
+        return _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, sink, bg=bg,
+                            thresholds=(eps_on, eps_off))
     if method == "trials":
         frames = _FrameSource([lux], name="lux")
         windows = _iter_dynamic(frames, np.array([0.0, float(duration_us)]), params, key, eps_on, eps_off,
@@ -280,16 +281,17 @@ def _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, thr
                            total + 8.0 * math.sqrt(total) + 4096, step)
 
 
-def _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, sink=None, bg=None):
+def _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, sink=None, bg=None, thresholds=None):
     """The windows of a static scene with reset memory (:mod:`evnoise.terms.memory`): pixels grouped by light
-    level and background (``bg``: the run's flat maps or None), each advanced event by event over its group's
-    state tables (:mod:`evnoise._kernels.memory`)."""
+    level, background and thresholds (``bg``: the run's flat maps or None; ``thresholds``: its flat per-pixel
+    ``(eps_on, eps_off)`` or None), each advanced event by event over its group's state tables
+    (:mod:`evnoise._kernels.memory`)."""
     from .terms.memory import kernel_tables, pixel_groups
 
     width = lux.shape[1]
     lam = params.photons_per_trial(lux).ravel()
-    levels, a_on, a_off, group = pixel_groups(lam, params, bg)
-    tables = kernel_tables(levels, params, background=(a_on, a_off))
+    levels, a_on, a_off, group, eps = pixel_groups(lam, params, bg, thresholds)
+    tables = kernel_tables(levels, params, background=(a_on, a_off), thresholds=eps)
     level_rates = tables[4]
     nu = level_rates[group]
     dt = params.trial_us
@@ -720,7 +722,7 @@ def sample_counts(
     if memory_on(params):
         check_supported(params, thresholds, background)
         return _memory_counts(lux, params, key, duration_us, threads, distribution, gen, r if
-                              distribution == "negative-binomial" else None, bg)
+                              distribution == "negative-binomial" else None, bg, (eps_on, eps_off), thresholds)
     lam = params.photons_per_trial(lux).ravel()
     if distribution == "exact":
         from ._bracket import applies, bracketed_counts
@@ -745,23 +747,24 @@ def sample_counts(
     return gen.poisson(rate).astype(np.int64)
 
 
-def _memory_counts(lux, params, key, duration_us, threads, distribution, gen, nb_shape, bg=None):
+def _memory_counts(lux, params, key, duration_us, threads, distribution, gen, nb_shape, bg=None, eps=None,
+                   given_thresholds=None):
     """:func:`sample_counts` with reset memory. ``"exact"``: the counts of the reset-memory tier's own events
     (the stream :func:`simulate_events` makes with the same seed, counted window by window: memory stays that
     of one window); ``"poisson"`` / ``"negative-binomial"``: about the stationary rate of
     :func:`~evnoise.terms.memory.memory_statistics` (the memory model's closed form, the nominal pixel's: not
-    with a background that differs between pixels)."""
+    with a background or thresholds that differ between pixels)."""
     height, width = lux.shape
     if distribution == "exact":
         counts = np.zeros(2 * lux.size, dtype=np.int64)
-        for window in _iter_memory(lux, params, key, 0, duration_us, threads, False, bg=bg):
+        for window in _iter_memory(lux, params, key, 0, duration_us, threads, False, bg=bg, thresholds=eps):
             cell = window["y"].astype(np.int64) * width + window["x"]
             counts += np.bincount(np.where(window["p"] == 1, cell, lux.size + cell), minlength=2 * lux.size)
         return counts.reshape(2, height, width)
-    if bg is not None:
+    if bg is not None or params.eps_sigma > 0 or given_thresholds is not None:
         raise ParameterError(f"distribution={distribution!r} with reset_memory > 0 is known for the nominal pixel "
-                             f"only, not with a background that differs between pixels (hot pixels, leak_sigma > 0, "
-                             f"given maps); use distribution='exact'")
+                             f"only, not with a background or thresholds that differ between pixels (hot pixels, "
+                             f"leak_sigma > 0, eps_sigma > 0, given maps); use distribution='exact'")
     from .terms.memory import memory_statistics
 
     mean = memory_statistics(lux, params).rate_hz * (duration_us * 1e-6)

@@ -50,7 +50,7 @@ class NoiseStream:
     interval starts in the steady state of its light. When a pixel's light changes, its stored photon count
     is kept (clamped into the new light's state range, which spans the new ``lam`` ± many standard
     deviations: only a jump of the light beyond that range moves it). A Poisson background (hot pixels and a
-    spread leak included) is part of the memory model; threshold mismatch and the regular background timer are
+    spread leak included) and threshold mismatch are part of the memory model; the regular background timer is
     not modelled with reset memory yet (:class:`~evnoise.ParameterError`).
     """
 
@@ -65,6 +65,7 @@ class NoiseStream:
             check_supported(run.params, thresholds, background)
         self.params = run.params
         self._eps_on, self._eps_off = run.thresholds
+        self._thresholds_given = thresholds is not None
         self._bg = run.background
         self._state = PixelState(np.arange(self.shape[0] * self.shape[1]), run.key, self.threads)
         self._t0 = check_t_start(t_start_us)
@@ -124,11 +125,21 @@ class NoiseStream:
 
         p = self.params
         dt = p.trial_us
-        levels, a_on, a_off, group = pixel_groups(lam, p, self._bg)
+        thresholds = (self._eps_on, self._eps_off)
+        class_spans = None
+        if p.eps_sigma > 0 or self._thresholds_given:
+            # pixels share a chain when their thresholds agree over the states their light's tables will hold
+            lam_levels, lam_group = np.unique(lam, return_inverse=True)
+            class_spans = dict(zip(lam_levels.tolist(), _memory_spans(lam_levels, lam_group.ravel(), self._stored,
+                                                                      self._pending_count)))
+        levels, a_on, a_off, group, eps = pixel_groups(lam, p, self._bg, thresholds, class_spans)
         spans = _memory_spans(levels, group, self._stored, self._pending_count)
-        key = np.stack([levels, a_on, a_off])
+        if class_spans is not None:  # within the states its thresholds were compared over (counts beyond: clamped)
+            spans = [_inside(span, class_spans[float(level)]) for span, level in zip(spans, levels)]
+        key = np.stack([levels, a_on, a_off, *eps])
         if self._memory is None or not np.array_equal(key, self._memory[0]) or spans != self._memory[4]:
-            table, itable, offsets, sizes, rates = kernel_tables(levels, p, spans, background=(a_on, a_off))
+            table, itable, offsets, sizes, rates = kernel_tables(levels, p, spans, background=(a_on, a_off),
+                                                                 thresholds=eps)
             lowest = np.array([lo for lo, _ in spans], dtype=np.float64)
             self._memory = (key, (table, itable, offsets, sizes), lowest, rates, spans)
         _, tables, lowest, rates, _ = self._memory
@@ -188,6 +199,13 @@ def _memory_spans(levels, group, stored, pending) -> list:
                 hi = lo + max(MAX_STATES, n) - 1
         spans.append((int(lo), int(hi - lo + 1)))
     return spans
+
+
+def _inside(span, outer):
+    """The states of ``span`` (``(lo, n_states)``) within ``outer``."""
+    lo = max(span[0], outer[0])
+    hi = min(span[0] + span[1], outer[0] + outer[1]) - 1
+    return int(lo), int(hi - lo + 1)
 
 
 def _first_trial_at_or_after(t_us: float, dt: float) -> float:

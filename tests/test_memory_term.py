@@ -203,22 +203,25 @@ def test_state_range_bound():
     assert 0 < memory.state_range(1e5)[2] < 1e-4
 
 
-@pytest.mark.parametrize("what", ["video", "stream", "tonic", "mismatch", "background", "trials"])
+@pytest.mark.parametrize("what", ["video", "stream", "tonic", "rate", "poisson", "background", "trials"])
 def test_what_is_not_modelled_yet_is_refused(what):
     lux = np.full((4, 4), 1.0)
+    timer = MEM.replace(leak_on_hz=0.1, leak_regularity=0.5)
     with pytest.raises(ev.ParameterError, match="reset_memory"):
         if what == "video":
             ev.simulate_video(np.stack([lux, 2 * lux]), [0.0, 0.1], MEM, rng=1)
-        elif what == "stream":  # a stream with memory is modelled, with mismatch not yet
-            ev.NoiseStream((4, 4), MEM.replace(eps_sigma=0.05), rng=1)
-        elif what == "tonic":  # the tonic plugin models memory, with mismatch not yet
+        elif what == "stream":  # a stream with memory is modelled (mismatch too), with the regular timer not yet
+            ev.NoiseStream((4, 4), timer, rng=1)
+        elif what == "tonic":  # the tonic plugin models memory (mismatch too), with the regular timer not yet
             from evnoise.plugins.tonic import PhotonNoise
 
-            PhotonNoise((4, 4, 2), MEM.replace(eps_sigma=0.05), 1.0, rng=1)
-        elif what == "mismatch":
-            ev.simulate_events(lux, MEM.replace(eps_sigma=0.05), 1.0, rng=1)
+            PhotonNoise((4, 4, 2), timer, 1.0, rng=1)
+        elif what == "rate":  # the closed form is the nominal pixel's: per-pixel thresholds are not
+            ev.expected_rate(lux, MEM, thresholds=np.full((2, 4, 4), 0.5))
+        elif what == "poisson":  # counts about the closed form: the nominal pixel's only
+            ev.sample_counts(lux, MEM.replace(eps_sigma=0.05), 1.0, rng=1, distribution="poisson")
         elif what == "background":  # a Poisson background is modelled (hot pixels too); the regular timer not yet
-            ev.simulate_events(lux, MEM.replace(leak_on_hz=0.1, leak_regularity=0.5), 1.0, rng=1)
+            ev.simulate_events(lux, timer, 1.0, rng=1)
         else:
             ev.simulate_events(lux, MEM, 1.0, rng=1, method="trials")
 
@@ -606,3 +609,120 @@ def test_chains_of_one_level_iterated_together_are_those_iterated_alone():
                                          memory.ITERATED_STEPS)
         np.testing.assert_array_equal(together[i], alone)
     assert not np.allclose(together[0], together[3])  # the background changes the law
+
+
+# -- threshold mismatch ---------------------------------------------------------------------------------------
+#: four pixel kinds, one per quadrant, with thresholds of their own (ON, OFF)
+QUADRANT_EPS = [(0.5, 0.6), (0.42, 0.7), (0.6, 0.45), (0.55, 0.55)]
+
+
+def _quadrant_thresholds(shape):
+    h, w = shape
+    thr = np.empty((2, h, w))
+    for q, (e_on, e_off) in enumerate(QUADRANT_EPS):
+        rows = slice(0, h // 2) if q < 2 else slice(h // 2, h)
+        cols = slice(0, w // 2) if q % 2 == 0 else slice(w // 2, w)
+        thr[0, rows, cols], thr[1, rows, cols] = e_on, e_off
+    return thr
+
+
+def _check_quadrants(pix, t, p, shape, duration_s, params, lux):
+    h, w = shape
+    row, col = pix // w, pix % w
+    n_q = (h // 2) * (w // 2)
+    for q, (e_on, e_off) in enumerate(QUADRANT_EPS):
+        sel = ((row < h // 2) == (q < 2)) & ((col < w // 2) == (q % 2 == 0))
+        local = (row[sel] % (h // 2)) * (w // 2) + col[sel] % (w // 2)
+        st = memory.memory_statistics(lux, params.replace(eps_pos=e_on, eps_neg=e_off, eps_sigma=0.0))
+        _check_against_closed_form(_summaries(local, t[sel], p[sel], n_q), st, duration_s, n_q)
+
+
+def test_memory_with_threshold_mismatch_has_each_pixels_closed_form():
+    """Given per-pixel thresholds (four kinds): each kind's rate, ON share, polarity transitions and mean intervals
+    are the closed form's with its own thresholds (:func:`memory_statistics`, validated against the per-trial
+    reference above); nominal thresholds given as a map are the run without them, bit for bit."""
+    lux = np.full((24, 24), 2.0)
+    duration_s = 20.0
+    e = ev.simulate_events(lux, MEM, duration_s, rng=81, thresholds=_quadrant_thresholds(lux.shape))
+    pix, t, p = e["y"].astype(np.int64) * lux.shape[1] + e["x"], e["t"].astype(np.float64), e["p"]
+    _check_quadrants(pix, t, p, lux.shape, duration_s, MEM, 2.0)
+    nominal = np.stack([np.full(lux.shape, MEM.eps_pos), np.full(lux.shape, MEM.eps_neg)])
+    a = ev.simulate_events(lux, MEM, 2.0, rng=82, thresholds=nominal)
+    assert a.size > 1000 and np.array_equal(a, ev.simulate_events(lux, MEM, 2.0, rng=82))
+
+
+def test_memory_with_threshold_mismatch_in_a_stream_and_the_tonic_transform():
+    """NoiseStream with per-pixel thresholds through irregular intervals and a change of light and back: the
+    constant-light stretch after it has each kind's closed form; the tonic transform runs with drawn mismatch and
+    its counts are those of the exact sampler's model (mean rate within k sigma of the kinds' average)."""
+    from evnoise.plugins.tonic import PhotonNoise
+
+    lux = np.full((16, 16), 2.0)
+    thr = _quadrant_thresholds(lux.shape)
+    stream = ev.NoiseStream(lux.shape, MEM, rng=83, thresholds=thr)
+    stream.advance(lux, 400_000)
+    stream.advance(4.0 * lux, 700_000)  # a brighter light, stored counts carried over
+    stream.advance(lux, 1_000_000)
+    parts = []
+    t_us = 1_000_000
+    for step in (333_333, 1_250_000, 7, 2_000_000, 3_416_660):
+        t_us += step
+        parts.append(stream.advance(lux, t_us))
+    e = np.concatenate(parts)
+    duration_s = (t_us - 1_000_000) * 1e-6
+    pix = e["y"].astype(np.int64) * lux.shape[1] + e["x"]
+    _check_quadrants(pix, e["t"].astype(np.float64), e["p"], lux.shape, duration_s, MEM, 2.0)
+
+    params = MEM.replace(eps_sigma=0.04)
+    transform = PhotonNoise((16, 16, 2), params, 2.0, rng=84)
+    dtype = np.dtype([("x", "<i8"), ("y", "<i8"), ("t", "<i8"), ("p", "<i8")])
+    sample = np.zeros(2, dtype=dtype)
+    sample["t"] = [0, 10_000_000]
+    noise = transform.noise(sample)
+    thresholds = transform._thresholds.reshape(2, -1)
+    expected = sum(memory.memory_statistics(2.0, params.replace(eps_pos=a, eps_neg=b, eps_sigma=0.0)).rate_hz.sum()
+                   for a, b in thresholds.T) * 10.0
+    counts = np.bincount(noise["y"] * 16 + noise["x"], minlength=256)
+    assert abs(counts.sum() - expected) < K_SIGMA * counts.std() * math.sqrt(256)
+
+
+def test_threshold_classes_are_the_pixels_with_equal_threshold_counts():
+    """Pixels share a chain exactly when their threshold counts agree at every state: classes from the breakpoints
+    against a brute-force comparison of the kernel's own counts, with thresholds on and one ulp beside breakpoints."""
+    from evnoise._kernels.memory import fill_counts
+
+    lo, n_s, bias = 3, 40, 1.7
+    x = lo + np.arange(n_s) + bias
+    rng = np.random.default_rng(5)
+    on_breaks = np.log1p(rng.integers(1, 30, 60) / rng.choice(x, 60))  # exp(eps) - 1 = j / x
+    eps = np.concatenate([rng.normal(0.5, 0.05, 300), on_breaks, np.nextafter(on_breaks, 0), np.nextafter(on_breaks, 9)])
+    cls = memory.threshold_classes(eps, lo, n_s, bias)
+    counts = np.empty((eps.size, n_s))
+    scratch = np.empty(n_s)
+    for i, e in enumerate(eps):
+        fill_counts(0.0, float(lo), n_s, math.expm1(e), math.expm1(e), bias, scratch, counts[i], scratch)
+    same_class = cls[:, None] == cls[None, :]
+    same_counts = (counts[:, None, :] == counts[None, :, :]).all(axis=-1)
+    assert not (same_class & ~same_counts).any()  # a class never holds two chains
+    # and merges all but the pixels beside a breakpoint, where rounding may split what has equal counts
+    n_chains = np.unique(counts, axis=0).shape[0]
+    assert n_chains <= np.unique(cls).size <= n_chains + on_breaks.size
+
+
+def test_chains_with_thresholds_of_their_own_iterated_together_are_those_iterated_alone():
+    """Chains of one light level whose thresholds (and backgrounds) differ, stacked and iterated together: each row
+    is the chain's own iteration, bit for bit."""
+    import dataclasses
+
+    lam = BG_LUX * BG.photons_per_lux
+    chains = [memory.level_tables(lam, e_on, e_off, BG.bias_pr, BG.reset_memory) for e_on, e_off in
+              [(1.5, 1.5), (1.2, 1.7), (1.9, 1.1), (1.5, 1.5)]]
+    a_on = np.array([0.0, 1e-4, 3e-3, 0.2])
+    a_off = np.array([0.0, 5e-5, 1e-3, 0.0])
+    together = memory._embedded_iterate(memory._stack_tables(chains), memory.ITERATED_STEPS, a_on[:, None],
+                                        a_off[:, None])
+    for i, chain in enumerate(chains):
+        alone = memory._embedded_iterate(dataclasses.replace(chain, a_on=a_on[i], a_off=a_off[i]),
+                                         memory.ITERATED_STEPS)
+        np.testing.assert_array_equal(together[i], alone)
+    assert not np.allclose(together[1], together[2])  # the thresholds change the law

@@ -155,8 +155,9 @@ class PhotonNoise:
         self._pix = np.arange(self.lux.size, dtype=np.int64)
         self._memory = None
         if memory_on(self.params):  # reset memory: the state tables of the map's light levels (terms/memory.py)
-            levels, a_on, a_off, group = pixel_groups(lam, self.params, run.background)
-            table, itable, offsets, sizes, rates = kernel_tables(levels, self.params, background=(a_on, a_off))
+            levels, a_on, a_off, group, eps = pixel_groups(lam, self.params, run.background, run.thresholds)
+            table, itable, offsets, sizes, rates = kernel_tables(levels, self.params, background=(a_on, a_off),
+                                                                 thresholds=eps)
             self._memory = (group, (table, itable, offsets, sizes))
             self._nu = rates[group]
             return

@@ -43,12 +43,20 @@ Supported: :func:`evnoise.simulate_events` / :func:`evnoise.iter_events` of stat
 and through changes of light, its level's tables widened to hold it; the v2e plugin runs on it) and the
 tonic plugin (each sample starts in the steady state), and :func:`evnoise.sample_counts` (the counts of
 those events; its Poisson / negative-binomial variants about :func:`memory_statistics`' rate) with the dataset
-generator's counts mode, all with nominal thresholds. :func:`evnoise.expected_rate` gives
-:func:`memory_statistics`' rate. Refused with :class:`~evnoise.ParameterError` (not yet modelled): threshold
-mismatch (``eps_sigma > 0`` or given ``thresholds``), the regular background timer, :func:`evnoise.simulate_video`.
+generator's counts mode, all with threshold mismatch (``eps_sigma > 0`` or given ``thresholds``: pixels are
+grouped by chain, :func:`pixel_groups`). :func:`evnoise.expected_rate` gives :func:`memory_statistics`' rate
+(the nominal pixel's). Refused with :class:`~evnoise.ParameterError` (not yet modelled): the regular background
+timer, :func:`evnoise.simulate_video`, and per-pixel rates or Poisson counts for pixels whose thresholds or
+background differ.
+
+Threshold mismatch. A pixel's chain reads its thresholds only through the threshold counts ``k_on(m)``,
+``k_off(m)`` over its light's states, so pixels whose thresholds give the same counts share one chain, exactly
+(:func:`threshold_classes`); at a few photons per trial and a bias of tens of photons a 3 % mismatch still gives
+hundreds of distinct chains per light level, each with tables of its own (set-up about 1 ms per pixel at tens
+of photons per trial, a few ms at thousands; :data:`MAX_TABLE_STATES` bounds the total).
 
 Background (Poisson: the ``leak_*`` rates and hot pixels, :func:`level_background` for the nominal pixel; the
-simulators group pixels by ``(lam, background)``, :func:`pixel_groups`, so hot pixels and a spread leak
+simulators group pixels by ``(lam, background, thresholds)``, :func:`pixel_groups`, so hot pixels and a spread leak
 (``leak_sigma``) have chains of their own; :func:`memory_statistics` is the nominal pixel's). As in the
 memoryless model (:mod:`evnoise.background`) a trial without photon event has a background event with
 probability ``a = a_on + a_off``, ON with probability ``a_on / a``. The
@@ -114,14 +122,14 @@ def refuse(params, where: str) -> None:
 def unsupported(params, thresholds=None, background=None, per_pixel: bool = True) -> list:
     """What the reset-memory model does not cover yet for ``params`` (checked :class:`~evnoise.NoiseParams`),
     in words (empty: all of it is covered; see the module doc). ``per_pixel``: whether the caller handles a
-    background that differs between pixels (hot pixels, ``leak_sigma``, given maps: the simulators group pixels by
-    their chain); a closed form for one pixel or the population does not."""
+    background or thresholds that differ between pixels (hot pixels, ``leak_sigma``, threshold mismatch, given maps:
+    the simulators group pixels by their chain); a closed form for one pixel or the population does not."""
     missing = []
-    if params.eps_sigma > 0 or thresholds is not None:
-        missing.append("threshold mismatch (eps_sigma > 0 or given thresholds)")
     if params.regular_background:
         missing.append("a regular background timer (leak_regularity > 0 or hot_pixel_regularity > 0)")
     if not per_pixel:
+        if params.eps_sigma > 0 or thresholds is not None:
+            missing.append("threshold mismatch (eps_sigma > 0 or given thresholds)")
         if background is not None:
             missing.append("given background maps")
         if params.hot_pixels_on:
@@ -141,21 +149,86 @@ def check_supported(params, thresholds=None, background=None) -> None:
                              f"or turn them off")
 
 
-def pixel_groups(lam, params, background=None):
-    """Pixels grouped by their chain: ``(levels, a_on, a_off, group)``, the distinct ``(lam, a_on, a_off)`` (photons
-    per trial and per-trial background arrival probabilities, :func:`level_background`) and each pixel's index
-    into them. ``background``: the run's flat ``(scale, hot)`` maps (:class:`evnoise._run.RunSetup`) or None (every
-    pixel the nominal one: the groups are the distinct ``lam``). A background spread over pixels
-    (``leak_sigma > 0``) makes every pixel a group of its own (see :data:`MAX_TABLE_STATES`)."""
+def pixel_groups(lam, params, background=None, thresholds=None, class_spans=None):
+    """Pixels grouped by their chain: ``(levels, a_on, a_off, group, eps)``, the distinct chains' photons per trial,
+    per-trial background arrival probabilities (:func:`level_background`) and thresholds ``eps = (eps_on,
+    eps_off)``, and each pixel's index ``group`` into them. ``background``: the run's flat ``(scale, hot)`` maps
+    (:class:`evnoise._run.RunSetup`) or None (every pixel the nominal one). ``thresholds``: the run's flat per-pixel
+    ``(eps_on, eps_off)`` or None (the nominal ones). A background spread over pixels (``leak_sigma > 0``) makes
+    every pixel a group of its own (see :data:`MAX_TABLE_STATES`).
+
+    Thresholds that differ between pixels (mismatch) split a light level only where the chain differs: the chain
+    reads a threshold through its counts ``k(m) = m + floor(expm1(eps) (m + b))`` over the level's states
+    (:func:`threshold_classes`), so pixels whose thresholds give the same counts share a chain exactly.
+    ``class_spans``: ``{lam: (lo, n_states)}``, the states over which they must agree (default
+    :func:`state_range`'s; :class:`evnoise.NoiseStream` widens them to hold counts stored under another light)."""
     lam = np.asarray(lam, dtype=np.float64).ravel()
+    eps_on = np.full(lam.shape, params.eps_pos) if thresholds is None else np.asarray(thresholds[0], np.float64).ravel()
+    eps_off = np.full(lam.shape, params.eps_neg) if thresholds is None else np.asarray(thresholds[1], np.float64).ravel()
+    lam_levels, lam_index = np.unique(lam, return_inverse=True)
+    lam_index = lam_index.ravel()
     if background is None:
-        levels, group = np.unique(lam, return_inverse=True)
-        a_on, a_off = level_background(levels, params)
-        return levels, a_on, a_off, np.ascontiguousarray(group.ravel(), dtype=np.int64)
-    a_on, a_off = level_background(lam, params, *background)
-    rows, group = np.unique(np.stack([lam, a_on, a_off], axis=1), axis=0, return_inverse=True)
+        a_on, a_off = (x[lam_index] for x in level_background(lam_levels, params))
+    else:
+        a_on, a_off = level_background(lam, params, *background)
+    class_on = np.zeros(lam.size, dtype=np.int64)
+    class_off = np.zeros(lam.size, dtype=np.int64)
+    if not (np.all(eps_on == eps_on[0]) and np.all(eps_off == eps_off[0])):
+        order = np.argsort(lam_index, kind="stable")
+        bounds = np.searchsorted(lam_index[order], np.arange(lam_levels.size + 1))
+        for j, level in enumerate(lam_levels):
+            sel = order[bounds[j]:bounds[j + 1]]
+            lo, n_states = (class_spans or {}).get(float(level)) or state_range(float(level))[:2]
+            class_on[sel] = threshold_classes(eps_on[sel], lo, n_states, params.bias_pr)
+            class_off[sel] = threshold_classes(eps_off[sel], lo, n_states, params.bias_pr)
+    rows, first, group = np.unique(np.stack([lam, a_on, a_off, class_on, class_off], axis=1), axis=0,
+                                   return_index=True, return_inverse=True)
+    # each group's thresholds: those of its first pixel (all of its pixels have the same counts)
     return (np.ascontiguousarray(rows[:, 0]), np.ascontiguousarray(rows[:, 1]), np.ascontiguousarray(rows[:, 2]),
-            np.ascontiguousarray(group.ravel(), dtype=np.int64))
+            np.ascontiguousarray(group.ravel(), dtype=np.int64),
+            (np.ascontiguousarray(eps_on[first]), np.ascontiguousarray(eps_off[first])))
+
+
+#: Most threshold-count breakpoints :func:`threshold_classes` sorts per light level; beyond, each distinct
+#: threshold is a class of its own.
+MAX_BREAKPOINTS = 1_000_000
+
+
+def threshold_classes(eps, lo: int, n_states: int, bias: float) -> np.ndarray:
+    """Class of each threshold ``eps`` (array) such that two thresholds share a class only if they give the same
+    threshold counts ``k(m) = m + floor(expm1(eps) (m + bias))`` at every state ``m = lo .. lo + n_states - 1``
+    (:func:`evnoise._kernels.poisson.threshold_count`, what the chain's tables read). ``floor(c x)`` changes
+    where ``c`` passes ``j / x``: the classes are the intervals between those breakpoints, each checked against
+    the kernel's own counts at its smallest and largest threshold (counts are monotone in ``c``); with more than
+    :data:`MAX_BREAKPOINTS` breakpoints, or a class that fails that check, every distinct threshold is a class."""
+    distinct, exact = np.unique(np.asarray(eps, dtype=np.float64), return_inverse=True)
+    exact = exact.ravel()
+    distinct = np.array([math.expm1(e) for e in distinct.tolist()])  # as level_tables computes it
+    if distinct.size == 1:
+        return exact
+    x = lo + np.arange(n_states, dtype=np.float64) + bias
+    x = x[x > 0]  # m + b = 0: k = m whatever the threshold
+    j_lo, j_hi = np.floor(distinct[0] * x), np.floor(distinct[-1] * x)
+    if not (np.all(np.isfinite(j_hi)) and float((j_hi - j_lo).sum()) <= MAX_BREAKPOINTS):
+        return exact
+    steps = (j_hi - j_lo).astype(np.int64)
+    xs = np.repeat(x, steps)
+    js = np.repeat(j_lo, steps) + 1.0 + (np.arange(xs.size) - np.repeat(np.cumsum(steps) - steps, steps))
+    breaks = np.unique(js / xs)
+    cls = np.unique(np.searchsorted(breaks, distinct, side="right"), return_inverse=True)[1].ravel()
+    # each class's counts at its smallest and largest threshold, computed as the kernel does: where float rounding
+    # near a breakpoint makes them differ, each threshold of that class is a class of its own
+    ends = np.flatnonzero(np.diff(cls, prepend=-1, append=cls[-1] + 1))
+    first, last = ends[:-1], ends[1:] - 1
+    step = max(1, 4_000_000 // max(x.size, 1))
+    split = np.zeros(first.size, dtype=bool)
+    for a in range(0, first.size, step):
+        low = np.floor(distinct[first[a:a + step], None] * x)
+        high = np.floor(distinct[last[a:a + step], None] * x)
+        split[a:a + step] = (low != high).any(axis=1)
+    alone = split[cls]
+    cls = np.where(alone, first.size + np.arange(distinct.size), cls)
+    return cls[exact]
 
 
 def level_background(levels, params, scale=None, hot=None):
@@ -314,12 +387,13 @@ class LevelTables:
         return np.minimum(self.p_on + self.p_off, 1.0)
 
 
-def kernel_tables(levels, params, spans=None, background=None):
-    """The kernel's tables of the light levels ``levels`` (photons per trial) of one run (nominal thresholds).
+def kernel_tables(levels, params, spans=None, background=None, thresholds=None):
+    """The kernel's tables of the light levels ``levels`` (photons per trial) of one run.
 
     ``spans``: optional ``(lo, n_states)`` per level replacing :func:`state_range`'s (a wider range, holding
     stored counts of another light: :class:`evnoise.NoiseStream`). ``background``: optional ``(a_on, a_off)`` per
-    level (:func:`pixel_groups`), else the nominal pixel's (:func:`level_background`).
+    level (:func:`pixel_groups`), else the nominal pixel's (:func:`level_background`). ``thresholds``: optional
+    ``(eps_on, eps_off)`` per level (:func:`pixel_groups`), else the nominal ones.
 
     Returns ``(table, itable, offsets, sizes, rates)``: float rows ``ROW_*`` and integer rows ``ROW_IDX_*`` of
     :mod:`evnoise._kernels.memory` over all levels' states (level ``g``'s at ``offsets[g] .. + sizes[g]``) and
@@ -338,9 +412,10 @@ def kernel_tables(levels, params, spans=None, background=None):
     sizes = np.array([r[1] for r in ranges], dtype=np.int64)
     total = int(sizes.sum())
     if total > MAX_TABLE_STATES:
-        raise ParameterError(f"reset_memory > 0: this scene's {len(levels):,} distinct light levels need "
-                             f"{total:,} table states, more than {MAX_TABLE_STATES:,}; use fewer distinct "
-                             f"illuminance values (e.g. quantise lux)")
+        raise ParameterError(f"reset_memory > 0: this scene's {len(levels):,} distinct chains (light levels, and "
+                             f"pixels whose thresholds or background differ) need {total:,} table states, more than "
+                             f"{MAX_TABLE_STATES:,}; use fewer distinct illuminance values (e.g. quantise lux), a "
+                             f"smaller sensor, or no threshold mismatch / leak spread")
     offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
     table = np.empty((km.N_ROWS, total))
     itable = np.empty((2, total), dtype=np.int64)
@@ -348,15 +423,19 @@ def kernel_tables(levels, params, spans=None, background=None):
     dt_s = 1.0 / params.trial_rate_hz
     refr_s = params.refractory_us * 1e-6
     bg_on, bg_off = level_background(levels, params) if background is None else background
+    n_levels = len(levels)
+    eps_on, eps_off = ((np.full(n_levels, params.eps_pos), np.full(n_levels, params.eps_neg)) if thresholds is None
+                       else thresholds)
     exact = len(levels) <= EXACT_RATE_LEVELS
-    shared = {}  # (lam, span) -> the photon-noise tables, which groups of one level with other backgrounds share
-    iterate = {}  # (lam, span) -> the groups whose initial law comes from the iterated embedded chain
+    shared = {}  # (lam, span, eps) -> the photon-noise tables, which groups with other backgrounds share
+    iterate = {}  # (lam, span, eps) -> the groups whose initial law comes from the iterated embedded chain
     for g, lam in enumerate(levels):
         span = None if spans is None else tuple(ranges[g][:2])
-        base = shared.get((lam, span))
+        chain = (lam, span, float(eps_on[g]), float(eps_off[g]))
+        base = shared.get(chain)
         if base is None:
-            base = shared[(lam, span)] = level_tables(lam, params.eps_pos, params.eps_neg, params.bias_pr,
-                                                      params.reset_memory, span=span)
+            base = shared[chain] = level_tables(lam, chain[2], chain[3], params.bias_pr, params.reset_memory,
+                                                span=span)
         t = dataclasses.replace(base, a_on=float(bg_on[g]), a_off=float(bg_off[g]))
         cols = slice(offsets[g], offsets[g] + sizes[g])
         p = t.p_event
@@ -385,16 +464,18 @@ def kernel_tables(levels, params, spans=None, background=None):
         else:
             mean_p = float((t.pmf * p).sum())
             rates[g] = mean_p / (dt_s + mean_p * refr_s)
-            iterate.setdefault((lam, span), []).append(g)
-    for key, groups in iterate.items():  # the chains of one level together, in blocks of bounded memory
-        base = shared[key]
+            iterate.setdefault((lam, span), []).append((g, chain))
+    for groups in iterate.values():  # the chains of one level together, in blocks of bounded memory
         for start in range(0, len(groups), ITERATE_BLOCK):
-            block = groups[start:start + ITERATE_BLOCK]
+            block = [g for g, _ in groups[start:start + ITERATE_BLOCK]]
+            chains = [chain for _, chain in groups[start:start + ITERATE_BLOCK]]
+            # one chain's tables, or (thresholds that differ) each chain's stacked
+            together = shared[chains[0]] if len(set(chains)) == 1 else _stack_tables([shared[c] for c in chains])
             a_on = np.asarray(bg_on, dtype=np.float64)[block][:, None]
             a_off = np.asarray(bg_off, dtype=np.float64)[block][:, None]
-            laws = _embedded_iterate(base, ITERATED_STEPS, a_on, a_off)  # row i: chain i's own, bit for bit
-            for i, g in enumerate(block):
-                t = dataclasses.replace(base, a_on=float(bg_on[g]), a_off=float(bg_off[g]))
+            laws = _embedded_iterate(together, ITERATED_STEPS, a_on, a_off)  # row i: chain i's own, bit for bit
+            for i, (g, chain) in enumerate(zip(block, chains)):
+                t = dataclasses.replace(shared[chain], a_on=float(bg_on[g]), a_off=float(bg_off[g]))
                 _write_initial(table, slice(offsets[g], offsets[g] + sizes[g]), t, laws[i], dt_s, refr_s)
     return table, itable, offsets, sizes, rates
 
@@ -427,9 +508,10 @@ def _embedded_iterate(t: LevelTables, steps: int, a_on=None, a_off=None) -> np.n
     p_safe = np.where(live, p, 1.0)
     x = np.broadcast_to(t.pmf / t.pmf.sum(), np.broadcast_shapes(np.shape(p), np.shape(a_on)[:-1] + (t.n_states,)))
     done = np.zeros(x.shape[:-1] + (1,), dtype=bool)  # a chain whose law vanished: Poisson(lam), as it started
+    index = _after_index(t)
     for _ in range(steps):
         w = np.where(live, x / p_safe, 0.0)
-        after_on, after_off = _after(t, w, w, a_on, a_off)
+        after_on, after_off = _after(t, w, w, a_on, a_off, index)
         x_new = after_on + after_off + np.where(live, 0.0, x)
         total = x_new.sum(axis=-1, keepdims=True)
         done = done | ~(total > 0)
@@ -595,36 +677,80 @@ def _stationary(t: LevelTables):
     return pi, p
 
 
-def _after(t: LevelTables, w_on, w_off, a_on=None, a_off=None):
+def _after(t: LevelTables, w_on, w_off, a_on=None, a_off=None, index=None):
     """Per state ``j``: ``sum_m w_on(m) E_on(m, j)`` and ``sum_m w_off(m) E_off(m, j)`` (``w = pi / P``),
     the stationary laws of the state just after an ON and an OFF event (unnormalised), in O(S log S).
 
     ``w_on``, ``w_off``: ``(S,)``, or ``(G, S)`` for ``G`` chains of this level that differ in their background
-    ``a_on``, ``a_off`` (``(G, 1)``; default: the tables' own)."""
+    ``a_on``, ``a_off`` (``(G, 1)``; default: the tables' own) or, tables stacked by :func:`_stack_tables`, in
+    their thresholds too. ``index``: :func:`_after_index` of ``t`` (computed here when not given)."""
     k = t.k
-    n_s = t.n_states
-    j = np.arange(n_s)
     a_on = t.a_on if a_on is None else a_on
     a_off = t.a_off if a_off is None else a_off
+    a, b, top, inside, gather = _after_index(t) if index is None else index
     zero = np.zeros(np.shape(w_on)[:-1] + (1,))
     # ON: stored branch reaches j from the m with idx_on(m) <= j (idx_on nondecreasing: a prefix of m)
     c_on = np.concatenate([zero, np.cumsum(w_on, axis=-1)], axis=-1)
-    a = np.searchsorted(t.idx_on, j, side="right")
-    after_on = t.fresh_on * w_on.sum(axis=-1, keepdims=True) + k * t.pmf * c_on[..., a]
+    after_on = t.fresh_on * w_on.sum(axis=-1, keepdims=True) + k * t.pmf * gather(c_on, a)
     # OFF: from the m with idx_off(m) >= j (a suffix)
     c_off = np.concatenate([zero, np.cumsum(w_off, axis=-1)], axis=-1)
-    b = np.searchsorted(t.idx_off, j, side="left")
-    after_off = t.fresh_off * w_off.sum(axis=-1, keepdims=True) + k * t.pmf * (c_off[..., -1:] - c_off[..., b])
+    after_off = t.fresh_off * w_off.sum(axis=-1, keepdims=True) + k * t.pmf * (c_off[..., -1:] - gather(c_off, b))
     if np.any(np.asarray(a_on) > 0.0) or np.any(np.asarray(a_off) > 0.0):
         # background in a trial without photon event stores that trial's count j: fresh branch not beaten, or the
         # stored one not beaten, i.e. idx_off(m) < j < idx_on(m): the m in [a, b) (both indices nondecreasing)
-        inside = b > a
-        top = np.maximum(b, a)
         after_on = after_on + a_on * (t.none_fresh * c_on[..., -1:]
-                                      + k * t.pmf * np.where(inside, c_on[..., top] - c_on[..., a], 0.0))
+                                      + k * t.pmf * np.where(inside, gather(c_on, top) - gather(c_on, a), 0.0))
         after_off = after_off + a_off * (t.none_fresh * c_off[..., -1:]
-                                         + k * t.pmf * np.where(inside, c_off[..., top] - c_off[..., a], 0.0))
+                                         + k * t.pmf * np.where(inside, gather(c_off, top) - gather(c_off, a), 0.0))
     return after_on, after_off
+
+
+def _after_index(t: LevelTables):
+    """What :func:`_after` reads of the tables' structure, the same at every step: ``(a, b, top, inside, gather)``,
+    the first state past each ``j``'s ON prefix and OFF suffix, and ``gather(c, i)`` = ``c[..., i]`` (per row for
+    tables stacked by :func:`_stack_tables`: ``i`` then indexes the flattened ``(G, S + 1)`` cumulative sums)."""
+    j = np.arange(t.n_states)
+    if t.idx_on.ndim == 1:
+        a = np.searchsorted(t.idx_on, j, side="right")
+        b = np.searchsorted(t.idx_off, j, side="left")
+        gather = _gather_last
+    else:
+        rows, n_s = t.idx_on.shape
+        shift = (np.arange(rows, dtype=np.int64) * (n_s + 3))[:, None]  # rows apart: one sorted array
+        query = (j + 1 + shift).ravel()
+        start = np.arange(rows, dtype=np.int64)[:, None] * n_s
+        a = np.searchsorted((t.idx_on + 1 + shift).ravel(), query, side="right").reshape(rows, -1) - start
+        b = np.searchsorted((t.idx_off + 1 + shift).ravel(), query, side="left").reshape(rows, -1) - start
+        gather = _gather_flat
+    inside = b > a
+    top = np.maximum(b, a)
+    if t.idx_on.ndim != 1:  # row g's cumulative sums start at g (S + 1) in the flattened array
+        row = np.arange(a.shape[0], dtype=np.int64)[:, None] * (t.n_states + 1)
+        a, b, top = a + row, b + row, top + row
+    return a, b, top, inside, gather
+
+
+def _gather_last(c, index):
+    return c[..., index]
+
+
+def _gather_flat(c, index):
+    return c.reshape(-1)[index]
+
+
+#: The fields of :class:`LevelTables` that differ between chains of one light level whose thresholds differ.
+_PER_CHAIN = ("idx_on", "idx_off", "fresh_on", "fresh_off", "stored_on", "stored_off", "none_fresh")
+
+
+def _stack_tables(tables: list) -> LevelTables:
+    """Chains of one light level and state range with thresholds of their own as one :class:`LevelTables` whose
+    per-chain fields are ``(G, S)`` (``p_fresh_*``: ``(G, 1)``), for :func:`_embedded_iterate`: row ``i`` is
+    chain ``i``'s own computation, bit for bit."""
+    first = tables[0]
+    stacked = {name: np.stack([getattr(t, name) for t in tables]) for name in _PER_CHAIN}
+    for name in ("p_fresh_on", "p_fresh_off"):
+        stacked[name] = np.array([[getattr(t, name)] for t in tables])
+    return dataclasses.replace(first, **stacked)
 
 
 def level_statistics(t: LevelTables, dt_s: float, refr_s: float, stationary=None):
