@@ -726,3 +726,24 @@ def test_chains_with_thresholds_of_their_own_iterated_together_are_those_iterate
                                          memory.ITERATED_STEPS)
         np.testing.assert_array_equal(together[i], alone)
     assert not np.allclose(together[1], together[2])  # the thresholds change the law
+
+
+def test_memory_with_mismatch_pickles_without_its_tables_and_huge_thresholds_run():
+    """The tonic transform with memory and mismatch pickles without its per-chain tables (a DataLoader worker
+    rebuilds them: the same noise); a threshold beyond float64's expm1 is a threshold no count reaches."""
+    import pickle
+
+    from evnoise.plugins.tonic import PhotonNoise
+
+    transform = PhotonNoise((16, 12, 2), MEM.replace(eps_sigma=0.04), 2.0, rng=91)
+    blob = pickle.dumps(transform)
+    assert len(blob) < 200_000
+    copy = pickle.loads(blob)
+    dtype = np.dtype([("x", "<i8"), ("y", "<i8"), ("t", "<i8"), ("p", "<i8")])
+    sample = np.zeros(2, dtype=dtype)
+    sample["t"] = [0, 3_000_000]
+    a, b = transform.noise(sample), copy.noise(sample)
+    assert a.size > 100 and np.array_equal(a, b)
+    thr = np.stack([np.full((4, 4), 800.0), np.full((4, 4), MEM.eps_neg)])
+    e = ev.simulate_events(np.full((4, 4), 2.0), MEM, 2.0, rng=92, thresholds=thr)
+    assert e.size > 0 and not np.any(e["p"] == 1)

@@ -559,3 +559,9 @@ def test_resampled_poisson_counts_include_the_dead_time():
         se = math.sqrt(mean[pol] / sample.size)
         assert abs(no_dead_time[pol] - mean[pol]) > 10 * se  # the test can tell the two apart
         assert abs(sample.mean() - mean[pol]) < 4 * se
+
+
+def test_resampled_poisson_pairs_with_memory_and_per_pixel_maps_are_refused_up_front():
+    params = dataclasses.replace(PARAMS, reset_memory=0.5, eps_sigma=0.03)
+    with pytest.raises(ParameterError, match="distribution='exact'"):
+        ResampledPairs([np.full((8, 8), 2.0)], params, window_s=0.5, max_lux=MAX_LUX, distribution="poisson")

@@ -164,6 +164,20 @@ class PhotonNoise:
         self._log1m_p, self._q_on, self._timer, self._nu = static_inputs(lam, self.params, run.eps_on, run.eps_off,
                                                                          run.background)
 
+    def __getstate__(self):
+        # with reset memory the chains' tables can be hundreds of MB (threshold mismatch, a spread leak: a chain per
+        # pixel); a DataLoader worker rebuilds them from the maps (no randomness) instead of receiving a copy
+        state = self.__dict__.copy()
+        if state.get("_memory") is not None:
+            state["_memory"] = "rebuild"
+            state.pop("_nu", None)
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        if self.__dict__.get("_memory") == "rebuild":
+            self._precompute()
+
     @staticmethod
     def _lux_map(lux, height, width):
         if np.ndim(lux) == 0:

@@ -248,6 +248,10 @@ class ResampledPairs:
         # ... and its trials are i.i.d.: counts are binomial in the per-trial probabilities
         self._fast = (self._alike and params.refractory_s == 0 and not regular_timer(params)
                       and not memory_on(params))
+        if distribution == "poisson" and memory_on(params) and not self._alike:
+            raise ParameterError("distribution='poisson' with reset_memory > 0 is known for the nominal pixel only, "
+                                 "not with thresholds or a background that differ between pixels (eps_sigma, "
+                                 "leak_sigma, hot pixels); use distribution='exact'")
 
     def __len__(self):
         return len(self.lux)

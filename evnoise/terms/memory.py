@@ -51,8 +51,9 @@ background differ.
 
 Threshold mismatch. A pixel's chain reads its thresholds only through the threshold counts ``k_on(m)``,
 ``k_off(m)`` over its light's states, so pixels whose thresholds give the same counts share one chain, exactly
-(:func:`threshold_classes`); at a few photons per trial and a bias of tens of photons a 3 % mismatch still gives
-hundreds of distinct chains per light level, each with tables of its own (set-up about 1 ms per pixel at tens
+(:func:`threshold_classes`); with a 3 % mismatch most pixels still get a chain of their own (a
+346 x 260 davis346 sensor: 24 000 chains at 0.01 lux, 80 000 at 0.5 lux; a spread leak alone does that too),
+each with tables of its own (set-up about 1 ms per pixel at tens
 of photons per trial, a few ms at thousands; :data:`MAX_TABLE_STATES` bounds the total).
 
 Background (Poisson: the ``leak_*`` rates and hot pixels, :func:`level_background` for the nominal pixel; the
@@ -90,7 +91,8 @@ TAIL_MASS = 1e-17
 #: Up to this many distinct light levels a simulation computes each level's stationary rate (its expected
 #: events); beyond, an estimate sizes its windows.
 EXACT_RATE_LEVELS = 64
-#: Most table entries (states over all light levels) one simulation builds (about 80 bytes each).
+#: Most table entries (states over all light levels) one simulation builds (136 bytes each in the tables, up to
+#: about 330 while they are built: 6.5 GB at the limit).
 MAX_TABLE_STATES = 20_000_000
 
 
@@ -194,6 +196,11 @@ def pixel_groups(lam, params, background=None, thresholds=None, class_spans=None
 MAX_BREAKPOINTS = 1_000_000
 
 
+def _expm1(eps: float) -> float:
+    """``expm1(eps)``, ``inf`` beyond float64 (a threshold no count reaches) rather than ``OverflowError``."""
+    return math.inf if eps > 709.0 else math.expm1(eps)
+
+
 def threshold_classes(eps, lo: int, n_states: int, bias: float) -> np.ndarray:
     """Class of each threshold ``eps`` (array) such that two thresholds share a class only if they give the same
     threshold counts ``k(m) = m + floor(expm1(eps) (m + bias))`` at every state ``m = lo .. lo + n_states - 1``
@@ -203,7 +210,7 @@ def threshold_classes(eps, lo: int, n_states: int, bias: float) -> np.ndarray:
     :data:`MAX_BREAKPOINTS` breakpoints, or a class that fails that check, every distinct threshold is a class."""
     distinct, exact = np.unique(np.asarray(eps, dtype=np.float64), return_inverse=True)
     exact = exact.ravel()
-    distinct = np.array([math.expm1(e) for e in distinct.tolist()])  # as level_tables computes it
+    distinct = np.array([_expm1(e) for e in distinct.tolist()])  # as level_tables computes it
     if distinct.size == 1:
         return exact
     x = lo + np.arange(n_states, dtype=np.float64) + bias
@@ -567,8 +574,7 @@ def level_tables(lam: float, eps_on: float, eps_off: float, bias: float, k: floa
     log_p = np.empty(n_s)
     k_on = np.empty(n_s)
     k_off = np.empty(n_s)
-    fill_counts(float(lam), float(lo), n_s, math.expm1(eps_on), math.expm1(eps_off), float(bias), log_p, k_on,
-                k_off)
+    fill_counts(float(lam), float(lo), n_s, _expm1(eps_on), _expm1(eps_off), float(bias), log_p, k_on, k_off)
     pmf = np.exp(log_p)
     m = lo + np.arange(n_s, dtype=np.float64)
     head = np.cumsum(pmf)
