@@ -695,7 +695,8 @@ def test_threshold_classes_are_the_pixels_with_equal_threshold_counts():
     x = lo + np.arange(n_s) + bias
     rng = np.random.default_rng(5)
     on_breaks = np.log1p(rng.integers(1, 30, 60) / rng.choice(x, 60))  # exp(eps) - 1 = j / x
-    eps = np.concatenate([rng.normal(0.5, 0.05, 300), on_breaks, np.nextafter(on_breaks, 0), np.nextafter(on_breaks, 9)])
+    eps = np.concatenate([rng.normal(0.5, 0.05, 300), on_breaks, np.nextafter(on_breaks, 0),
+                          np.nextafter(on_breaks, 9)])
     cls = memory.threshold_classes(eps, lo, n_s, bias)
     counts = np.empty((eps.size, n_s))
     scratch = np.empty(n_s)

@@ -165,8 +165,10 @@ def pixel_groups(lam, params, background=None, thresholds=None, class_spans=None
     ``class_spans``: ``{lam: (lo, n_states)}``, the states over which they must agree (default
     :func:`state_range`'s; :class:`evnoise.NoiseStream` widens them to hold counts stored under another light)."""
     lam = np.asarray(lam, dtype=np.float64).ravel()
-    eps_on = np.full(lam.shape, params.eps_pos) if thresholds is None else np.asarray(thresholds[0], np.float64).ravel()
-    eps_off = np.full(lam.shape, params.eps_neg) if thresholds is None else np.asarray(thresholds[1], np.float64).ravel()
+    if thresholds is None:
+        eps_on, eps_off = np.full(lam.shape, params.eps_pos), np.full(lam.shape, params.eps_neg)
+    else:
+        eps_on, eps_off = (np.asarray(x, dtype=np.float64).ravel() for x in thresholds)
     lam_levels, lam_index = np.unique(lam, return_inverse=True)
     lam_index = lam_index.ravel()
     if background is None:
