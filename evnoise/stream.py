@@ -54,7 +54,7 @@ class NoiseStream:
     not modelled with reset memory yet (:class:`~evnoise.ParameterError`). With mismatch or a spread leak most
     pixels have a chain of their own, and after a change of light each chain's tables widen to hold the counts
     stored under the old light, so a large sensor can pass
-    :data:`~evnoise.terms.memory.MAX_TABLE_STATES` at the change (a :class:`~evnoise.ParameterError` then)
+    the table budget (``evnoise.terms.memory.MAX_TABLE_STATES``) at the change (a :class:`~evnoise.ParameterError` then)
     where a stream at either light alone fits.
     """
 
