@@ -53,9 +53,9 @@ class NoiseStream:
     spread leak included) and threshold mismatch are part of the memory model; the regular background timer is
     not modelled with reset memory yet (:class:`~evnoise.ParameterError`). With mismatch or a spread leak most
     pixels have a chain of their own, and after a change of light each chain's tables widen to hold the counts
-    stored under the old light, so a large sensor can pass
-    the table budget (``evnoise.terms.memory.MAX_TABLE_STATES``) at the change (a :class:`~evnoise.ParameterError` then)
-    where a stream at either light alone fits.
+    stored under the old light, so a large sensor can pass the table budget
+    (``evnoise.terms.memory.MAX_TABLE_STATES``) at the change (a :class:`~evnoise.ParameterError` then) where a
+    stream at either light alone fits.
     """
 
     def __init__(self, shape, params: NoiseParams, rng=None, *, t_start_us: int = 0, thresholds=None,
