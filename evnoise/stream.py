@@ -76,6 +76,7 @@ class NoiseStream:
         self._t_rel = 0  # µs since t_start_us
         self._inputs = None  # (lam, renewal inputs) of the last interval
         self._memory = None  # reset memory: (levels, tables, each level's lowest count) of the last interval
+        self._grouping = None  # reset memory: (class spans, lam, pixel_groups) of the last interval
         self._stored = np.full(self.shape[0] * self.shape[1], np.nan)  # stored photon counts (NaN: none yet)
         self._pending_count = np.full(self.shape[0] * self.shape[1], np.nan)  # new state of a pending event
 
@@ -136,10 +137,15 @@ class NoiseStream:
             lam_levels, lam_group = np.unique(lam, return_inverse=True)
             class_spans = dict(zip(lam_levels.tolist(), _memory_spans(lam_levels, lam_group.ravel(), self._stored,
                                                                       self._pending_count)))
-        levels, a_on, a_off, group, eps = pixel_groups(lam, p, self._bg, thresholds, class_spans)
+        grouping = self._grouping
+        if grouping is None or grouping[0] != class_spans or not np.array_equal(grouping[1], lam):
+            # the pixels' chains: the same while the light and the states compared over are (most intervals)
+            grouping = self._grouping = (class_spans, lam.copy(), pixel_groups(lam, p, self._bg, thresholds,
+                                                                               class_spans))
+        levels, a_on, a_off, group, eps = grouping[2]
         spans = _memory_spans(levels, group, self._stored, self._pending_count)
         if class_spans is not None:  # within the states its thresholds were compared over (counts beyond: clamped)
-            spans = [_inside(span, class_spans[float(level)]) for span, level in zip(spans, levels)]
+            spans = _inside(spans, [class_spans[level] for level in levels.tolist()])
         key = np.stack([levels, a_on, a_off, *eps])
         if self._memory is None or not np.array_equal(key, self._memory[0]) or spans != self._memory[4]:
             table, itable, offsets, sizes, rates = kernel_tables(levels, p, spans, background=(a_on, a_off),
@@ -190,26 +196,27 @@ def _memory_spans(levels, group, stored, pending) -> list:
         known = np.isfinite(counts)
         np.minimum.at(low, group[known], counts[known])
         np.maximum.at(high, group[known], counts[known])
-    spans = []
-    for g, lam in enumerate(levels):
-        lo, n, _ = _state_range(float(lam))
-        hi = lo + n - 1
-        if np.isfinite(low[g]):
-            room = max(0, MAX_STATES - n)
-            lo_w = max(int(low[g]), lo - room)
-            hi_w = min(int(high[g]), hi + room)
-            lo, hi = min(lo, lo_w), max(hi, hi_w)
-            if hi - lo + 1 > max(MAX_STATES, n):
-                hi = lo + max(MAX_STATES, n) - 1
-        spans.append((int(lo), int(hi - lo + 1)))
-    return spans
+    distinct, which = np.unique(np.asarray(levels, dtype=np.float64), return_inverse=True)
+    ranges = np.array([_state_range(float(lam))[:2] for lam in distinct], dtype=np.int64).reshape(-1, 2)
+    lo, n = ranges[which.ravel(), 0], ranges[which.ravel(), 1]
+    hi = lo + n - 1
+    brought = np.isfinite(low)
+    room = np.maximum(0, MAX_STATES - n)
+    low_i = np.where(brought, low, 0.0).astype(np.int64)  # whole counts
+    high_i = np.where(brought, high, 0.0).astype(np.int64)
+    new_lo = np.where(brought, np.minimum(lo, np.maximum(low_i, lo - room)), lo)
+    new_hi = np.where(brought, np.maximum(hi, np.minimum(high_i, hi + room)), hi)
+    cap = np.maximum(MAX_STATES, n)
+    new_hi = np.where(brought & (new_hi - new_lo + 1 > cap), new_lo + cap - 1, new_hi)
+    return list(zip(new_lo.tolist(), (new_hi - new_lo + 1).tolist()))
 
 
-def _inside(span, outer):
-    """The states of ``span`` (``(lo, n_states)``) within ``outer``."""
-    lo = max(span[0], outer[0])
-    hi = min(span[0] + span[1], outer[0] + outer[1]) - 1
-    return int(lo), int(hi - lo + 1)
+def _inside(spans, outer) -> list:
+    """The states of each of ``spans`` (``(lo, n_states)`` pairs) within the matching one of ``outer``."""
+    spans, outer = np.asarray(spans, dtype=np.int64).reshape(-1, 2), np.asarray(outer, dtype=np.int64).reshape(-1, 2)
+    lo = np.maximum(spans[:, 0], outer[:, 0])
+    hi = np.minimum(spans[:, 0] + spans[:, 1], outer[:, 0] + outer[:, 1]) - 1
+    return list(zip(lo.tolist(), (hi - lo + 1).tolist()))
 
 
 def _first_trial_at_or_after(t_us: float, dt: float) -> float:
