@@ -69,7 +69,8 @@ class NoiseStream:
             check_supported(run.params, thresholds, background)
         self.params = run.params
         self._eps_on, self._eps_off = run.thresholds
-        self._thresholds_given = thresholds is not None
+        # thresholds that differ between pixels (drawn or given): the memory chains depend on them
+        self._mismatch = bool(np.any(self._eps_on != self._eps_on[0]) or np.any(self._eps_off != self._eps_off[0]))
         self._bg = run.background
         self._state = PixelState(np.arange(self.shape[0] * self.shape[1]), run.key, self.threads)
         self._t0 = check_t_start(t_start_us)
@@ -132,7 +133,7 @@ class NoiseStream:
         dt = p.trial_us
         thresholds = (self._eps_on, self._eps_off)
         class_spans = None
-        if p.eps_sigma > 0 or self._thresholds_given:
+        if self._mismatch:
             # pixels share a chain when their thresholds agree over the states their light's tables will hold
             lam_levels, lam_group = np.unique(lam, return_inverse=True)
             class_spans = dict(zip(lam_levels.tolist(), _memory_spans(lam_levels, lam_group.ravel(), self._stored,

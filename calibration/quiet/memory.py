@@ -57,9 +57,11 @@ def transition_matrices(t):
 
 
 def _trials(window, dt_s: float):
-    """Per pixel with events: trial indices ``(P, K)`` (strictly increasing per pixel: two events of a pixel
-    in one trial, which the model cannot make, are moved to consecutive trials), polarities, event numbers,
-    the window's trials and the number of silent pixels."""
+    """The window's events by rank: ``(trials, polarities, n_trials, n_silent)``. Pixels with events are ordered
+    by their number of events (most first), so the pixels with an ``i``-th event are a prefix: ``trials[i]`` and
+    ``polarities[i]`` hold their ``i``-th event's trial index and polarity (as many entries as events in all:
+    one pixel with many events costs no padding). A pixel's trials strictly increase (two events of a pixel in
+    one trial, which the model cannot make, are moved to consecutive trials); ``n_trials``: the window's."""
     ev = window.events
     if ev is None:
         raise InputError(f"{window.describe()}: no events (read the window with quiet_window)")
@@ -67,35 +69,35 @@ def _trials(window, dt_s: float):
     pix = np.asarray(ev["pixel"], dtype=np.int64)
     order = np.lexsort((ev["t_s"], pix))
     pix, t, on = pix[order], np.asarray(ev["t_s"])[order], np.asarray(ev["on"])[order]
-    active, start, count = np.unique(pix, return_index=True, return_counts=True)
-    most = np.argsort(-count, kind="stable")  # most events first: the pixels with an event i are a prefix
-    start, count = start[most], count[most]
-    k_max = int(count.max()) if count.size else 0
-    trial = np.zeros((active.size, k_max), dtype=np.int64)
-    pol = np.zeros((active.size, k_max), dtype=bool)
-    for i, (s, c) in enumerate(zip(start, count)):
-        idx = np.clip(np.floor(t[s:s + c] / dt_s).astype(np.int64), 0, n_trials - 1)
-        idx = np.maximum.accumulate(idx - np.arange(c)) + np.arange(c)  # strictly increasing
-        trial[i, :c] = idx
-        pol[i, :c] = on[s:s + c]
-    n_pixels = int(np.prod(window.shape))
-    return trial, pol, count, n_trials, n_pixels - active.size
+    active, first, inverse, count = np.unique(pix, return_index=True, return_inverse=True, return_counts=True)
+    rank = np.arange(pix.size) - first[inverse]  # the event's number within its pixel
+    idx = np.clip(np.floor(t / dt_s).astype(np.int64), 0, n_trials - 1) - rank
+    # strictly increasing within each pixel: a running maximum per pixel (pixels' blocks are contiguous)
+    idx = np.maximum.accumulate(idx + inverse * (n_trials + pix.size)) - inverse * (n_trials + pix.size) + rank
+    most = np.empty(active.size, dtype=np.int64)
+    most[np.argsort(-count, kind="stable")] = np.arange(active.size)  # each pixel's place, most events first
+    by_rank = np.lexsort((most[inverse], rank))
+    bounds = np.searchsorted(rank[by_rank], np.arange(int(count.max(initial=0)) + 1))
+    trials = [idx[by_rank][a:b] for a, b in zip(bounds[:-1], bounds[1:])]
+    polarities = [on[by_rank][a:b] for a, b in zip(bounds[:-1], bounds[1:])]
+    return trials, polarities, n_trials, int(np.prod(window.shape)) - active.size
 
 
 def window_log_likelihood(values: dict, window, base, nodes: int = SPREAD_NODES, data=None) -> float:
     """Log-likelihood of a window's events (trial indices and polarities of every pixel) under the memory chain
     with ``values`` (``lam``, ``k``, ``leak_on_hz``, ``leak_off_hz``, ``sigma``) and ``base``'s photon noise
     (module doc). ``data``: :func:`_trials` of the window, to reuse."""
+    from scipy.special import logsumexp
+
     from evnoise.terms import memory
     from evnoise.terms.arrivals import arrival_shares
 
     dt_s = 1.0 / base.trial_rate_hz
-    trial, pol, count, n_trials, n_silent = _trials(window, dt_s) if data is None else data
+    trials, polarities, n_trials, n_silent = _trials(window, dt_s) if data is None else data
     z, w = np.polynomial.hermite_e.hermegauss(nodes if values["sigma"] > 0 else 1)
     w = w / w.sum()
     base_tables = memory.level_tables(values["lam"], base.eps_pos, base.eps_neg, base.bias_pr, values["k"])
-    n_act, k_max = trial.shape
-    live = [int(np.count_nonzero(count > i)) for i in range(k_max)]
+    n_act = trials[0].size if trials else 0
     per_node = np.empty((z.size, n_act))
     silent = np.empty(z.size)
     for iz, zz in enumerate(z):
@@ -110,19 +112,19 @@ def window_log_likelihood(values: dict, window, base, nodes: int = SPREAD_NODES,
         pi, _ = memory._stationary(t)
         start, _ = memory.initial_law(t, pi, dt_s, 0.0)
         with np.errstate(invalid="ignore"):
-            silent[iz] = _log_dot(start, np.where(np.isfinite(log_q), n_trials * log_q, -np.inf))
+            silent[iz] = logsumexp(np.where(np.isfinite(log_q), n_trials * log_q, -np.inf), b=start)
         alpha = np.broadcast_to(start, (n_act, start.size)).copy()
         log_l = np.zeros(n_act)
         prev = np.full(n_act, -1, dtype=np.int64)
-        for i in range(k_max):
-            n = live[i]  # pixels sorted by their number of events: the first n have an event i
-            a = _quiet_trials(alpha[:n], trial[:n, i] - prev[:n] - 1, log_q)
-            a = np.where(pol[:n, i, None], a @ e_on, a @ e_off)
+        for trial, pol in zip(trials, polarities):
+            n = trial.size  # pixels sorted by their number of events: the first n have this event
+            a = _quiet_trials(alpha[:n], trial - prev[:n] - 1, log_q)
+            a = np.where(pol[:, None], a @ e_on, a @ e_off)
             total = a.sum(axis=1)
             with np.errstate(divide="ignore"):
                 log_l[:n] += np.log(total)
             alpha[:n] = a / np.where(total > 0, total, 1.0)[:, None]
-            prev[:n] = trial[:n, i]
+            prev[:n] = trial
         with np.errstate(divide="ignore"):
             log_l += np.log(_quiet_trials(alpha, n_trials - 1 - prev, log_q).sum(axis=1))
         per_node[iz] = log_l
@@ -137,14 +139,6 @@ def _quiet_trials(alpha, gaps, log_q):
     with np.errstate(invalid="ignore"):
         factor = np.exp(gaps[:, None] * log_q[None, :])
     return alpha * np.where(gaps[:, None] == 0, 1.0, factor)
-
-
-def _log_dot(weight, log_x) -> float:
-    """``log(sum(weight * exp(log_x)))``."""
-    with np.errstate(divide="ignore"):
-        terms = np.log(weight) + log_x
-    top = np.max(terms)
-    return float(top + np.log(np.exp(terms - top).sum())) if np.isfinite(top) else -math.inf
 
 
 @dataclasses.dataclass
@@ -260,25 +254,15 @@ def fit_memory(windows, base="dvs128", *, nodes: int = SPREAD_NODES) -> MemoryFi
                      windows=[w.describe() for w in windows])
 
 
-def _standard_errors(nll, theta, step: float = 1e-3):
+def _standard_errors(nll, theta):
     """Standard errors of :data:`NAMES` from the numerical Hessian of ``nll`` in the fit's coordinates (logs,
     the logit of ``k``), carried to the values by the delta method; None if it is not positive definite."""
-    n = theta.size
-    h = np.empty((n, n))
-    f0 = nll(theta)
-    for i in range(n):
-        for j in range(i, n):
-            ei = np.eye(n)[i] * step
-            ej = np.eye(n)[j] * step
-            h[i, j] = h[j, i] = (nll(theta + ei + ej) - nll(theta + ei - ej) - nll(theta - ei + ej)
-                                 + nll(theta - ei - ej)) / (4 * step * step)
-    del f0
-    try:
-        cov = np.linalg.inv(h)
-    except np.linalg.LinAlgError:
-        return None
+    from .likelihood import hessian
+
+    h = hessian(nll, theta)
     if not np.all(np.linalg.eigvalsh(h) > 0):
         return None
+    cov = np.linalg.inv(h)
     v = _unpack(theta, True)
     grad = [v["lam"], v["k"] * (1.0 - v["k"]), v["leak_on_hz"], v["leak_off_hz"], v["sigma"]]
     return {name: float(abs(g) * math.sqrt(cov[i, i])) for i, (name, g) in enumerate(zip(NAMES, grad))}

@@ -207,9 +207,10 @@ def threshold_classes(eps, lo: int, n_states: int, bias: float) -> np.ndarray:
     """Class of each threshold ``eps`` (array) such that two thresholds share a class only if they give the same
     threshold counts ``k(m) = m + floor(expm1(eps) (m + bias))`` at every state ``m = lo .. lo + n_states - 1``
     (:func:`evnoise._kernels.poisson.threshold_count`, what the chain's tables read). ``floor(c x)`` changes
-    where ``c`` passes ``j / x``: the classes are the intervals between those breakpoints, each checked against
-    the kernel's own counts at its smallest and largest threshold (counts are monotone in ``c``); with more than
-    :data:`MAX_BREAKPOINTS` breakpoints, or a class that fails that check, every distinct threshold is a class."""
+    where ``c`` passes ``j / x``: the classes are the intervals between those breakpoints, each checked with the
+    kernel's arithmetic at its smallest and largest threshold (counts are monotone in ``c``): in a class that fails
+    it (float rounding beside a breakpoint) every distinct threshold is a class of its own; with more than
+    :data:`MAX_BREAKPOINTS` breakpoints every distinct threshold is one."""
     distinct, exact = np.unique(np.asarray(eps, dtype=np.float64), return_inverse=True)
     exact = exact.ravel()
     distinct = np.array([_expm1(e) for e in distinct.tolist()])  # as level_tables computes it
@@ -727,15 +728,12 @@ def _after_index(t: LevelTables):
         shift = (np.arange(rows, dtype=np.int64) * (n_s + 3))[:, None]  # rows apart: one sorted array
         query = (j + 1 + shift).ravel()
         start = np.arange(rows, dtype=np.int64)[:, None] * n_s
-        a = np.searchsorted((t.idx_on + 1 + shift).ravel(), query, side="right").reshape(rows, -1) - start
-        b = np.searchsorted((t.idx_off + 1 + shift).ravel(), query, side="left").reshape(rows, -1) - start
+        # ... and as indices into the flattened (G, S + 1) cumulative sums, where row g's start at g (S + 1)
+        row = np.arange(rows, dtype=np.int64)[:, None] * (n_s + 1)
+        a = np.searchsorted((t.idx_on + 1 + shift).ravel(), query, side="right").reshape(rows, -1) - start + row
+        b = np.searchsorted((t.idx_off + 1 + shift).ravel(), query, side="left").reshape(rows, -1) - start + row
         gather = _gather_flat
-    inside = b > a
-    top = np.maximum(b, a)
-    if t.idx_on.ndim != 1:  # row g's cumulative sums start at g (S + 1) in the flattened array
-        row = np.arange(a.shape[0], dtype=np.int64)[:, None] * (t.n_states + 1)
-        a, b, top = a + row, b + row, top + row
-    return a, b, top, inside, gather
+    return a, b, np.maximum(b, a), b > a, gather
 
 
 def _gather_last(c, index):
