@@ -14,6 +14,7 @@ from evnoise._lazy import lazy_attributes
 _LAZY = {
     "QuietWindow": ".window",
     "quiet_window": ".window",
+    "oscillating_pixels": ".window",
     "fit_quiet": ".fit",
     "QuietFit": ".fit",
     "preset_toml": ".fit",

@@ -85,7 +85,7 @@ from .likelihood import (
     unpack,
     window_groups,
 )
-from .window import DOUBLET_US
+from .window import DOUBLET_US, oscillating_notes, same_exclusions
 
 __all__ = ["fit_quiet", "QuietFit", "LR_P", "GOODNESS_P", "preset_toml"]
 
@@ -153,7 +153,7 @@ class QuietFit:
 
     def summary(self) -> str:
         lines = [f"quiet-scene calibration from {len(self.windows)} window(s), "
-                 f"{sum(int(np.prod(w.shape)) for w in self.windows)} pixel-windows; log-likelihood "
+                 f"{sum(w.n_pixels for w in self.windows)} pixel-windows; log-likelihood "
                  f"{self.log_likelihood:.2f}",
                  f"  fit status: {self.fit_status.upper()}"]
         lines += [f"  rejected: {r}" for r in self.rejections]
@@ -190,6 +190,7 @@ class QuietFit:
             "log_likelihood": round(self.log_likelihood, 3),
             "fit_status": self.fit_status,
             "rejections": list(self.rejections),
+            "notes": list(self.notes),
             "status": {k: v for k, v in self.status.items() if k not in self.hidden},
             "values": {k: float(v) for k, v in self.values.items() if k in self.shown()},
             "std_error": {k: float(v) for k, v in self.std_error.items() if v is not None and math.isfinite(v)},
@@ -263,7 +264,7 @@ def _hot_guess(windows, rates):
 
     n_pix, n_hot, hot_events, hot_time = 0, 0, 0.0, 0.0
     for w in windows:
-        total = w.counts.sum(axis=0).ravel()
+        total = w.pixel_counts().sum(axis=0)
         mu = float(np.sum(rates)) * w.duration_s
         cut = poisson.isf(1e-4, mu) + 1
         sel = total > cut
@@ -425,7 +426,7 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
 
     import evnoise as ev
 
-    windows = list(windows)
+    windows = same_exclusions(list(windows))
     if not windows:
         raise InputError("no quiet windows to fit")
     for opt, name in ((spread, "spread"), (hot, "hot"), (regularity, "regularity"), (timing, "timing"),
@@ -443,12 +444,12 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
     lux_levels = {w.lux for w in windows if w.lux is not None}
     growth = len(lux_levels) >= 2
     lux = [np.array([w.lux or 0.0 for w in g.windows]) for g in groups]
-    exposure = sum(w.duration_s * np.prod(w.shape) for w in windows)
-    tot = np.sum([w.counts.reshape(2, -1).sum(axis=1) for w in windows], axis=0).astype(np.float64)
+    exposure = sum(w.duration_s * w.n_pixels for w in windows)
+    tot = np.sum([w.pixel_counts().sum(axis=1) for w in windows], axis=0).astype(np.float64)
     shot_total = np.zeros(2)
     for g, sh in zip(groups, shot):
         for i, w in enumerate(g.windows):
-            shot_total += sh[i] * w.duration_s * np.prod(w.shape)
+            shot_total += sh[i] * w.duration_s * w.n_pixels
     rates0 = [max((tot[k] - shot_total[k]) / exposure, 1e-9) for k in range(2)]
     hot_guess = _hot_guess(windows, np.array(rates0))
 
@@ -657,8 +658,9 @@ def _quiet_fit(model, res, se, notes, tests, goodness, windows, base, spread, ho
     if doublets:
         notes.append(f"{doublets} readout doublet(s) merged (a pixel's event within {DOUBLET_US} us after its "
                      "previous one of the same polarity)")
+    notes += oscillating_notes(windows)
     for n in ("hot_sigma", "hot_on_fraction"):
-        if model.hot and v["hot_fraction"] * sum(np.prod(w.shape) for w in windows) < 5:
+        if model.hot and v["hot_fraction"] * sum(w.n_pixels for w in windows) < 5:
             status[n] = "weakly identified (fewer than 5 hot pixels)"
     for n, side in _at_bounds(v, model).items():
         if n == "regularity" and side.startswith("at upper") and se.get(n) is not None and math.isfinite(se[n]):
@@ -718,7 +720,8 @@ def preset_toml(params, *, sensor: tuple, header: str, provenance: dict, fit: Qu
     if fit is not None:
         tables = fit.to_toml_tables()
         lines += toml_table("fit", {"method": tables["method"], "log_likelihood": tables["log_likelihood"],
-                                "fit_status": tables["fit_status"], "rejections": tables["rejections"]}) + [""]
+                                "fit_status": tables["fit_status"], "rejections": tables["rejections"],
+                                "notes": tables["notes"]}) + [""]
         lines += toml_table("fit.status", tables["status"]) + [""]
         lines += toml_table("fit.values", tables["values"]) + [""]
         lines += toml_table("fit.std_error", tables["std_error"]) + [""]

@@ -55,9 +55,10 @@ def goodness_of_fit(v, model, groups, n_fitted):
     out = []
     for gi, grp in enumerate(groups):
         for wi, w in enumerate(grp.windows):
-            n_pix = int(np.prod(w.shape))
+            n_pix = w.n_pixels
+            kept = w.pixel_counts()
             for pol, name in enumerate(("ON", "OFF")):
-                counts = np.minimum(w.counts[pol].ravel(), GOF_MAX_COUNT)
+                counts = np.minimum(kept[pol], GOF_MAX_COUNT)
                 kmax = int(counts.max())
                 pmf = _marginal_pmf(v, model, gi, grp, wi, pol, kmax)
                 observed = np.bincount(counts, minlength=kmax + 1).astype(np.float64)
@@ -208,9 +209,11 @@ def compare_to_recording(params, window: QuietWindow, *, replicas: int = 20, see
     from scipy.stats import chi2
 
     sim = simulate_window(params, window, replicas=replicas, seed=seed)
+    sim = sim.reshape(sim.shape[0], 2, -1)[:, :, window.kept()]  # the pixels the window keeps
+    kept = window.pixel_counts()
     out = []
     for pol, name in enumerate(("ON", "OFF")):
-        real = np.minimum(window.counts[pol].ravel(), GOF_MAX_COUNT)
+        real = np.minimum(kept[pol], GOF_MAX_COUNT)
         fake = np.minimum(sim[:, pol].ravel(), GOF_MAX_COUNT)
         top = int(max(real.max(), fake.max()))
         h_real = np.bincount(real, minlength=top + 1).astype(np.float64)
@@ -268,6 +271,9 @@ def compare_intervals(params, window: QuietWindow, *, replicas: int = 4, seed: i
     counts, ivals, opp, trans = [], [], 0, 0
     for s in np.random.SeedSequence(seed).spawn(replicas):
         events = ev.simulate_events(lux, params, window.duration_s, rng=np.random.default_rng(s))
+        if window.excluded.size:  # the pixels the window leaves out, left out here too
+            pix = events["y"].astype(np.int64) * window.shape[1] + events["x"].astype(np.int64)
+            events = events[~np.isin(pix, window.excluded)]
         counts.append([int(np.count_nonzero(events["p"] == 1)), int(np.count_nonzero(events["p"] == 0))])
         sp = same_pixel_timing(events, window.shape)
         ivals.append(np.asarray(sp["intervals_s"]))

@@ -70,7 +70,9 @@ def window_groups(windows) -> list:
         shapes = {w.shape for w in ws}
         if len(shapes) > 1:
             raise InputError(f"windows of {name} have different sensor sizes: {sorted(shapes)}")
-        stack = np.stack([w.counts.reshape(2, -1).T for w in ws], axis=1)  # (P, n_windows, 2)
+        if len({w.excluded.tobytes() for w in ws}) > 1:
+            raise InputError(f"windows of {name} exclude different pixels (use window.same_exclusions)")
+        stack = np.stack([w.pixel_counts().T for w in ws], axis=1)  # (P, n_windows, 2), the kept pixels
         flat = stack.reshape(stack.shape[0], -1)
         uniq, mult = np.unique(flat, axis=0, return_counts=True)
         vec = uniq.reshape(-1, len(ws), 2)

@@ -80,7 +80,7 @@ def _trials(window, dt_s: float):
     bounds = np.searchsorted(rank[by_rank], np.arange(int(count.max(initial=0)) + 1))
     trials = [idx[by_rank][a:b] for a, b in zip(bounds[:-1], bounds[1:])]
     polarities = [on[by_rank][a:b] for a, b in zip(bounds[:-1], bounds[1:])]
-    return trials, polarities, n_trials, int(np.prod(window.shape)) - active.size
+    return trials, polarities, n_trials, window.n_pixels - active.size
 
 
 def window_log_likelihood(values: dict, window, base, nodes: int = SPREAD_NODES, data=None) -> float:
@@ -217,7 +217,7 @@ def fit_memory(windows, base="dvs128", *, nodes: int = SPREAD_NODES) -> MemoryFi
         raise InputError("no quiet windows to fit")
     dt_s = 1.0 / base.trial_rate_hz
     data = [_trials(w, dt_s) for w in windows]
-    exposure = sum(w.duration_s * np.prod(w.shape) for w in windows)
+    exposure = sum(w.duration_s * w.n_pixels for w in windows)
     rate_on = max(sum(int(w.counts[0].sum()) for w in windows), 1) / exposure
     rate_off = max(sum(int(w.counts[1].sum()) for w in windows), 1) / exposure
 

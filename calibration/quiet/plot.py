@@ -22,10 +22,11 @@ def plot_quiet(fit, path, *, seed: int = 0, params=None):
     fig, axes = plt.subplots(len(rows), 4, figsize=(14, 3.1 * len(rows)), squeeze=False)
     for r, w in enumerate(rows):
         sim = simulate_window(params, w, replicas=5, seed=seed + r)
+        kept, keep = w.pixel_counts(), w.kept()  # histograms of the pixels the fit uses
         for pol, name in enumerate(("ON", "OFF")):
             ax = axes[r, pol]
-            real = np.minimum(w.counts[pol].ravel(), GOF_MAX_COUNT)
-            fake = np.minimum(sim[:, pol].ravel(), GOF_MAX_COUNT)
+            real = np.minimum(kept[pol], GOF_MAX_COUNT)
+            fake = np.minimum(sim[:, pol].reshape(sim.shape[0], -1)[:, keep].ravel(), GOF_MAX_COUNT)
             top = int(max(real.max(), fake.max())) + 1
             bins = np.arange(top + 1)
             ax.step(bins[:-1], np.bincount(real, minlength=top) / real.size, where="mid", label="recording")

@@ -13,13 +13,27 @@ import numpy as np
 from evnoise._clock import seconds_text
 from evnoise.errors import InputError, ParameterError
 
-__all__ = ["QuietWindow", "quiet_window", "window_events", "merge_doublets", "DOUBLET_US"]
+__all__ = ["QuietWindow", "quiet_window", "window_events", "merge_doublets", "oscillating_pixels", "oscillating_notes",
+           "same_exclusions",
+           "DOUBLET_US",
+           "OSCILLATING_MIN_EVENTS", "OSCILLATING_MAX_CV", "OSCILLATING_RATE_FACTOR"]
 
 #: Readout doublets: a pixel's event within this many microseconds after its previous event of the same
 #: polarity is merged into it (:func:`merge_doublets`). The DVS128 recordings hold such pairs 0-2 us apart
 #: (up to 13 of the 31 same-pixel intervals of the eDVS128 window), which no photon or leak process
 #: makes and the simulator has no term for; 0 keeps them.
 DOUBLET_US = 10
+
+#: Oscillating pixels (:func:`oscillating_pixels`): a pixel with at least this many events of one polarity ...
+OSCILLATING_MIN_EVENTS = 15
+#: ... whose same-polarity intervals have a coefficient of variation below this (a Poisson pixel's is 1; with
+#: 14 intervals a Poisson pixel's sample CV is below 0.3 with probability about 5e-6, with 9 about 3e-4) ...
+OSCILLATING_MAX_CV = 0.3
+#: ... and at least this many times the window's mean events per pixel of that polarity (so a sensor whose
+#: every pixel leaks near-periodically, the model's regular timer, is not flagged: its pixels are alike).
+#: A DVS128 recording holds one such pixel firing ON every 185 ms for 14-21 s (calibration/README); no term of
+#: the model makes a lone periodic pixel, and its intervals decide a timing fit's KS test.
+OSCILLATING_RATE_FACTOR = 10.0
 
 
 @dataclass
@@ -39,6 +53,11 @@ class QuietWindow:
     events: dict | None = None
     #: readout doublets merged when the window was read (:data:`DOUBLET_US`)
     doublets: int = 0
+    #: flat indices ``y * W + x`` of pixels left out of the fit (their counts are 0 and their events dropped;
+    #: :meth:`without`); ``pixel_counts`` and ``n_pixels`` count only the others
+    excluded: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    #: the oscillating pixels found when the window was read (:func:`oscillating_pixels`), dropped or not
+    oscillating: list = field(default_factory=list)
 
     def __post_init__(self):
         counts = np.asarray(self.counts)
@@ -53,10 +72,46 @@ class QuietWindow:
             raise ParameterError(f"lux must be finite and >= 0, got {self.lux!r}")
         if not self.group:
             self.group = self.source
+        excluded = np.unique(np.asarray(self.excluded, dtype=np.int64).ravel())
+        n = int(np.prod(counts.shape[1:]))
+        if excluded.size and (excluded[0] < 0 or excluded[-1] >= n):
+            raise InputError(f"excluded pixels must be flat indices 0 .. {n - 1}")
+        if excluded.size >= n:
+            raise InputError("every pixel of the window is excluded")
+        self.excluded = excluded
+        self.counts.reshape(2, -1)[:, excluded] = 0
 
     @property
     def shape(self):
         return self.counts.shape[1:]
+
+    @property
+    def n_pixels(self) -> int:
+        """The number of pixels the fit uses (the sensor's, less the excluded ones)."""
+        return int(np.prod(self.shape)) - int(self.excluded.size)
+
+    def kept(self) -> np.ndarray:
+        """Flat boolean mask ``(H * W,)`` of the pixels the fit uses."""
+        keep = np.ones(int(np.prod(self.shape)), dtype=bool)
+        keep[self.excluded] = False
+        return keep
+
+    def pixel_counts(self) -> np.ndarray:
+        """Counts ``(2, n_pixels)`` ``[ON, OFF]`` of the pixels the fit uses, in flat order."""
+        return self.counts.reshape(2, -1)[:, self.kept()]
+
+    def without(self, pixels) -> "QuietWindow":
+        """A copy with ``pixels`` (flat indices) excluded too: their counts set to 0 and their events dropped."""
+        import dataclasses
+
+        excluded = np.union1d(self.excluded, np.asarray(pixels, dtype=np.int64).ravel())
+        if excluded.size == self.excluded.size:
+            return self
+        events = self.events
+        if events is not None:
+            keep = ~np.isin(events["pixel"], excluded)
+            events = {k: np.asarray(v)[keep] for k, v in events.items()}
+        return dataclasses.replace(self, counts=self.counts.copy(), events=events, excluded=excluded)
 
     def describe(self) -> str:
         when = "" if self.t_start_s is None else f" {seconds_text(self.t_start_s)}-{seconds_text(self.t_end_s)} s"
@@ -78,6 +133,61 @@ def merge_doublets(events: np.ndarray, width: int, doublet_us: float = DOUBLET_U
     return events[~dup], int(np.count_nonzero(dup))
 
 
+def oscillating_pixels(events: np.ndarray, shape: tuple) -> list:
+    """Pixels firing near-periodically far above the others: per polarity, at least
+    :data:`OSCILLATING_MIN_EVENTS` events, at least :data:`OSCILLATING_RATE_FACTOR` times the window's mean
+    events per pixel of that polarity, and same-polarity intervals with a coefficient of variation below
+    :data:`OSCILLATING_MAX_CV`. One dict per pixel and polarity: ``x``, ``y``, ``polarity`` (1 ON, 0 OFF),
+    ``events``, ``period_s`` (mean interval) and ``cv``, busiest first."""
+    if events.size < OSCILLATING_MIN_EVENTS:
+        return []
+    height, width = int(shape[0]), int(shape[1])
+    n_pix = height * width
+    pol = (events["p"] == 1).astype(np.int64)
+    key = (events["y"].astype(np.int64) * width + events["x"].astype(np.int64)) * 2 + pol
+    n = np.bincount(key, minlength=2 * n_pix)
+    mean = np.array([n[0::2].sum(), n[1::2].sum()], dtype=np.float64) / n_pix
+    busy = np.flatnonzero((n >= OSCILLATING_MIN_EVENTS) & (n >= OSCILLATING_RATE_FACTOR * mean[np.arange(n.size) % 2]))
+    found = []
+    for k in busy:
+        t = np.sort(events["t"][key == k].astype(np.int64)) * 1e-6
+        gaps = np.diff(t)
+        cv = float(np.std(gaps, ddof=1) / np.mean(gaps)) if np.mean(gaps) > 0 else math.inf
+        if cv < OSCILLATING_MAX_CV:
+            pix = int(k // 2)
+            found.append({"x": pix % width, "y": pix // width, "polarity": int(k % 2), "events": int(n[k]),
+                          "period_s": float(np.mean(gaps)), "cv": cv})
+    return sorted(found, key=lambda d: -d["events"])
+
+
+def oscillating_notes(windows) -> list:
+    """One line per window with oscillating pixels (:func:`oscillating_pixels`): which, and whether they were left
+    out of the fit (``quiet_window(..., drop_oscillating=True)``, ``evnoise calibrate --drop-oscillating``)."""
+    out = []
+    for w in windows:
+        if not w.oscillating:
+            continue
+        width = w.shape[1]
+        dropped = set(int(i) for i in w.excluded)
+        pixels = ", ".join(f"x {o['x']} y {o['y']} ({'ON' if o['polarity'] else 'OFF'}, {o['events']} events every "
+                           f"{o['period_s']:.3g} s, interval CV {o['cv']:.2f})" for o in w.oscillating[:5])
+        more = f" and {len(w.oscillating) - 5} more" if len(w.oscillating) > 5 else ""
+        left = all(o["y"] * width + o["x"] in dropped for o in w.oscillating)
+        out.append(f"{w.describe()}: {len(w.oscillating)} oscillating pixel(s) {pixels}{more}: "
+                   + ("left out of the fit" if left else "kept in the fit, where no term of the model makes a lone "
+                      "periodic pixel (drop_oscillating / --drop-oscillating leaves them out)"))
+    return out
+
+
+def same_exclusions(windows) -> list:
+    """The windows with every window of a group (:attr:`QuietWindow.group`: its pixels are tied) excluding the
+    pixels any of them excludes, so the group's pixels are the same in each."""
+    union = {}
+    for w in windows:
+        union[w.group] = np.union1d(union.get(w.group, w.excluded), w.excluded)
+    return [w.without(union[w.group]) for w in windows]
+
+
 def window_events(events: np.ndarray, shape: tuple, t_start_us: int) -> dict:
     """The events of a window as the timing likelihood reads them: ``pixel`` (flat index ``y * W + x``),
     ``t_s`` (seconds from the window's start) and ``on`` (bool), sorted by pixel, then time."""
@@ -90,7 +200,7 @@ def window_events(events: np.ndarray, shape: tuple, t_start_us: int) -> dict:
 
 def quiet_window(path, t_start_s: float, t_end_s: float, *, lux: float | None = None, sensor=None,
                  csv_columns=None, checks: bool = False, seed: int = 0, progress: bool = False,
-                 doublet_us: float = DOUBLET_US) -> QuietWindow:
+                 doublet_us: float = DOUBLET_US, drop_oscillating: bool = False) -> QuietWindow:
     """The counts of a recording's window ``[t_start_s, t_end_s)`` (seconds on the file's clock).
 
     Any file :func:`evnoise.read_events` opens. The sensor size is the file's (or ``sensor``). With
@@ -98,7 +208,10 @@ def quiet_window(path, t_start_s: float, t_end_s: float, *, lux: float | None = 
     stationarity, scene motion; :func:`evnoise.calibration.quiet.checks.window_checks`, resampled
     with ``seed``), into ``QuietWindow.checks``; ``progress`` shows a bar over their resamples. Readout
     doublets are merged first (:func:`merge_doublets`, ``doublet_us``; 0 keeps them); the window keeps its
-    events (``QuietWindow.events``) for the fit's timing likelihood.
+    events (``QuietWindow.events``) for the fit's timing likelihood. Oscillating pixels
+    (:func:`oscillating_pixels`) are found and kept in ``QuietWindow.oscillating``; with ``drop_oscillating`` they
+    are left out of the window (``QuietWindow.excluded``: counts 0, events dropped, before the checks), as the
+    model has no term for a lone periodic pixel.
     """
     from evnoise.events import count_events
     from evnoise.io import read_events
@@ -114,6 +227,13 @@ def quiet_window(path, t_start_s: float, t_end_s: float, *, lux: float | None = 
         raise InputError(f"{path}: no events in the window {seconds_text(t_start_s)} .. {seconds_text(t_end_s)} s "
                          "(check the times: they are seconds on the file's clock)")
     events, doublets = merge_doublets(events, int(shape[1]), doublet_us)
+    oscillating = oscillating_pixels(events, tuple(shape))
+    excluded = np.unique([o["y"] * int(shape[1]) + o["x"] for o in oscillating]).astype(np.int64)
+    if drop_oscillating and excluded.size:
+        pix = events["y"].astype(np.int64) * int(shape[1]) + events["x"].astype(np.int64)
+        events = events[~np.isin(pix, excluded)]
+    else:
+        excluded = np.zeros(0, dtype=np.int64)
     counts = count_events(events, tuple(shape))
     found = []
     if checks:
@@ -125,4 +245,4 @@ def quiet_window(path, t_start_s: float, t_end_s: float, *, lux: float | None = 
     t0_us = round(t_start_s * 1e6)
     return QuietWindow(counts, float(t_end_s - t_start_s), str(path), str(path), float(t_start_s), float(t_end_s),
                        None if lux is None else float(lux), found, window_events(events, tuple(shape), t0_us),
-                       doublets)
+                       doublets, excluded, oscillating)

@@ -31,7 +31,9 @@ The two after fits' presets (:meth:`QuietFit.to_params` on the ``dvs128`` photon
 the window (``evnoise.simulate_events``, 4 replicas) and their counts and intervals set beside the real ones.
 
 Writes the JSON (``--out``) and prints markdown tables. The recordings are third-party data: they are
-read, never copied. Readout doublets (:data:`evnoise.calibration.quiet.window.DOUBLET_US`) are merged.
+read, never copied. Readout doublets (:data:`evnoise.calibration.quiet.window.DOUBLET_US`) are merged, and
+oscillating pixels (:func:`evnoise.calibration.quiet.window.oscillating_pixels`: one DVS128 pixel fires ON every
+185 ms in two windows) are left out of the window (``drop_oscillating``), as the model has no term for them.
 """
 
 from __future__ import annotations
@@ -124,7 +126,8 @@ def analyse(data: Path, rel: str, seg: dict, *, simulate: bool = True) -> dict:
     from ..quiet.fit import fit_quiet
     from ..quiet.window import quiet_window
 
-    w = quiet_window(data / rel, seg["t_from_us"] * 1e-6, seg["t_to_us"] * 1e-6, checks=True)
+    w = quiet_window(data / rel, seg["t_from_us"] * 1e-6, seg["t_to_us"] * 1e-6, checks=True,
+                     drop_oscillating=True)
     w.source = rel
     pairs = next(c for c in w.checks if c["check"] == "polarity_pairs")
     same = pairs.get("same_pixel") or next((c["same_pixel"] for c in w.checks if "same_pixel" in c), None)
@@ -138,6 +141,7 @@ def analyse(data: Path, rel: str, seg: dict, *, simulate: bool = True) -> dict:
     row = {
         "file": rel, "from_s": seg["from_s"], "to_s": seg["to_s"], "t_from_us": int(seg["t_from_us"]),
         "t_to_us": int(seg["t_to_us"]), "content": seg.get("content", ""), "doublets_merged": int(w.doublets),
+        "oscillating_pixels_left_out": w.oscillating,
         "events": int(w.counts.sum()), "on_events": int(w.counts[0].sum()), "off_events": int(w.counts[1].sum()),
         "alternation": {"transitions": n_trans, "opposite": int(same["opposite"]) if same else 0,
                         "opposite_share": same["opposite"] / n_trans if n_trans else math.nan,
@@ -288,7 +292,9 @@ def _write(path, rows, t0, version) -> dict:
                   "OFF->ON pairs: OFF/ON pairs of one pixel within 50 ms, against each pixel's ON stream shifted "
                   "in time (polarity_pairs check; 200 resamples)",
                   "IEI: same-pixel inter-event intervals within the window; the model's median and CV are those "
-                  "of the fitted model's interval distribution seen within the window (the KS test's CDF)"],
+                  "of the fitted model's interval distribution seen within the window (the KS test's CDF)",
+                  "oscillating pixels (oscillating_pixels_left_out: >= 15 events of one polarity, >= 10 times the "
+                  "mean, interval CV < 0.3) are left out of the window before its checks and fits"],
         "windows": rows,
     }
     path.write_text(json.dumps(_jsonable(out), indent=1) + "\n", encoding="utf-8")

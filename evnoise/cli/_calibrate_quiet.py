@@ -56,6 +56,10 @@ def add_arguments(p) -> None:
     g.add_argument("--hot-regularity", choices=("auto", "on", "off"), default="off",
                    help="give the hot pixels a regularity of their own (the preset's hot_pixel_regularity; identified "
                         "by the event times: use with --timing; default: off, one regularity for every pixel)")
+    g.add_argument("--drop-oscillating", action="store_true",
+                   help="leave out of the fit the pixels that fire near-periodically far above the others (at least 15 "
+                        "events of one polarity, 10 times the mean, interval CV < 0.3; no term of the model makes a "
+                        "lone periodic pixel). Default: kept, and named in the fit's notes")
     g.add_argument("--no-checks", dest="checks", action="store_false",
                    help="skip the checks that each window is pure stationary noise (OFF/ON pairs, drift, a changing "
                         "pattern; about 15 s per million events)")
@@ -118,10 +122,10 @@ def run(args, recordings) -> int:
     for rec in recordings:
         for a, b, lux in spans:
             w = quiet_window(rec, a, b, lux=lux, sensor=args.sensor, csv_columns=args.csv_columns,
-                             checks=args.checks, progress=not args.quiet)
+                             checks=args.checks, progress=not args.quiet, drop_oscillating=args.drop_oscillating)
             windows.append(w)
             log.info("%s: %d events in %d pixels over %.3g s", w.describe(), int(w.counts.sum()),
-                     int(w.counts[0].size), w.duration_s)
+                     w.n_pixels, w.duration_s)
     fit = fit_quiet(windows, base=base, spread=args.spread, hot=args.hot, regularity=args.regularity,
                     timing=args.timing, hot_regularity=args.hot_regularity, progress=not args.quiet)
     print(fit.summary())
