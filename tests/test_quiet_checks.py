@@ -229,3 +229,48 @@ def test_quiet_summary_shows_thresholds_and_no_p_of_one_on_one_bin(tmp_path):
     for line in text.splitlines():
         if line.startswith("  check ") and "stationarity" in line:
             assert ">= 0.001)" in line or "< 0.001)" in line, line
+
+
+def _poisson_times_us(rate_hz, t0_s, t1_s, rng):
+    n = rng.poisson(rate_hz * (t1_s - t0_s))
+    return np.sort(rng.uniform(t0_s, t1_s, size=n) * 1e6).astype(np.int64)
+
+
+def _events_at(t_us):
+    out = np.zeros(t_us.size, dtype=ev.EVENT_DTYPE)
+    out["t"] = np.sort(t_us)
+    return out
+
+
+def test_a_failed_stationarity_check_names_the_longest_stretch_that_passes():
+    """A still window whose last tenth holds a burst (motion starting): the check fails and names a stretch that
+    ends before the burst. Checked against a brute-force search over the same grid with SciPy's chi-square test
+    on the events of each stretch: the stretch passes, and no longer one on the grid does."""
+    from scipy.stats import chisquare
+
+    rng = np.random.default_rng(3)
+    t0_us, duration_us = 5_000_000, 4_000_000
+    t = np.r_[_poisson_times_us(500.0, 5.0, 9.0, rng), _poisson_times_us(3000.0, 8.6, 9.0, rng)]
+    events = _events_at(t)
+    check = qc.stationarity(events, t0_us, duration_us)
+    assert check["p_value"] < qc.CHECK_P
+    a, b = check["span_us"]
+    assert t0_us <= a < b <= 8_600_000 + duration_us / qc.SPAN_STEPS  # ends at the burst's start (a grid step)
+    assert "the longest stretch that passes it alone" in check["detail"]
+
+    def passes(lo, hi):
+        inside = t[(t >= lo) & (t < hi)]
+        counts = np.histogram(inside, bins=np.linspace(lo, hi, 5))[0]
+        return chisquare(counts).pvalue >= qc.CHECK_P
+
+    step = duration_us / qc.SPAN_STEPS
+    assert passes(a, b)
+    length = round((b - a) / step)
+    assert not any(passes(t0_us + i * step, t0_us + (i + n) * step)
+                   for n in range(length + 1, qc.SPAN_STEPS + 1) for i in range(qc.SPAN_STEPS - n + 1))
+    # a stationary window keeps its check as it was (no span); a steady ramp has no long stretch that passes
+    still = qc.stationarity(_events_at(_poisson_times_us(500.0, 5.0, 9.0, rng)), t0_us, duration_us)
+    assert still["p_value"] >= qc.CHECK_P and "span_us" not in still
+    ramp = _events_at(np.sort(t0_us + duration_us * np.sqrt(rng.uniform(size=40_000))).astype(np.int64))
+    steep = qc.stationarity(ramp, t0_us, duration_us)
+    assert steep["span_us"] is None and "no stretch" in steep["detail"]

@@ -80,12 +80,15 @@ noise failed at ``CHECK_P`` about as often as they should (tests/test_quiet_chec
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
+from evnoise._clock import seconds_text
+
 __all__ = ["window_checks", "failed_checks", "check_verdict", "polarity_pairs", "same_pixel_timing",
-           "polarity_transitions",
-           "stationarity", "scene_motion", "spatial_structure", "PAIR_GAP_S", "CHECK_P", "MIN_INTERVALS",
-           "STORED_INTERVALS"]
+           "polarity_transitions", "stationarity", "stationary_span", "scene_motion", "spatial_structure",
+           "PAIR_GAP_S", "CHECK_P", "MIN_INTERVALS", "STORED_INTERVALS"]
 
 #: Largest gap (seconds) between a pixel's OFF and ON events counted as a pair.
 PAIR_GAP_S = 0.05
@@ -279,8 +282,44 @@ def polarity_transitions(timing: dict, *, p_opposite: float | None = None) -> di
     return out
 
 
+#: :func:`stationary_span` looks for the longest stretch of a window, on a grid of this many steps, that passes the
+#: stationarity check alone ...
+SPAN_STEPS = 40
+#: ... and at least this share of the window long (a shorter one is no window to suggest)
+SPAN_MIN_SHARE = 0.5
+
+
+def _stationarity_p(t_sorted: np.ndarray, a: float, b: float, pieces: int) -> float:
+    """The stationarity check's p-value of the events ``t_sorted`` (sorted) within ``[a, b)``."""
+    from scipy.stats import chi2
+
+    counts = np.diff(np.searchsorted(t_sorted, np.linspace(a, b, pieces + 1), side="left")).astype(np.float64)
+    expected = counts.sum() / pieces
+    if expected <= 0:
+        return 1.0
+    return float(chi2.sf(float(np.sum((counts - expected) ** 2 / expected)), pieces - 1))
+
+
+def stationary_span(events: np.ndarray, t_start_us: int, duration_us: int, *, pieces: int = 4,
+                    p: float = CHECK_P) -> tuple | None:
+    """The longest stretch ``(start_us, end_us)`` of the window, its ends on a grid of :data:`SPAN_STEPS` steps and
+    at least :data:`SPAN_MIN_SHARE` of it long, whose events pass the stationarity check (``pieces`` slices, p >=
+    ``p``); the earliest of equally long ones; None if none does. A suggestion for a window to check again (it is
+    chosen among many, so its own p-value is optimistic), not a test."""
+    t = np.sort(events["t"].astype(np.int64) - int(t_start_us)).astype(np.float64)
+    step = max(int(duration_us), 1) / SPAN_STEPS
+    for length in range(SPAN_STEPS, int(math.ceil(SPAN_MIN_SHARE * SPAN_STEPS)) - 1, -1):
+        for first in range(SPAN_STEPS - length + 1):
+            a, b = first * step, (first + length) * step
+            if _stationarity_p(t, a, b, pieces) >= p:
+                return int(t_start_us + round(a)), int(t_start_us + round(b))
+    return None
+
+
 def stationarity(events: np.ndarray, t_start_us: int, duration_us: int, *, pieces: int = 4) -> dict:
-    """Events in ``pieces`` equal time slices against equal shares (Pearson chi-square)."""
+    """Events in ``pieces`` equal time slices against equal shares (Pearson chi-square). Where it fails, the
+    longest stretch of the window that passes (:func:`stationary_span`) is named in the detail and kept as
+    ``span_us`` (None if none)."""
     from scipy.stats import chi2
 
     t = events["t"].astype(np.int64) - int(t_start_us)
@@ -290,10 +329,18 @@ def stationarity(events: np.ndarray, t_start_us: int, duration_us: int, *, piece
     expected = observed.sum() / pieces
     stat = float(np.sum((observed - expected) ** 2 / expected)) if expected > 0 else 0.0
     rate = observed / (duration_us * 1e-6 / pieces)
-    return {"check": "stationarity", "statistic": stat, "null_mean": float(pieces - 1),
-            "null_sd": float(np.sqrt(2.0 * (pieces - 1))), "p_value": float(chi2.sf(stat, pieces - 1)),
-            "assumption": True,
-            "detail": f"events/s in {pieces} slices: " + ", ".join(f"{r:.4g}" for r in rate)}
+    p_value = float(chi2.sf(stat, pieces - 1))
+    out = {"check": "stationarity", "statistic": stat, "null_mean": float(pieces - 1),
+           "null_sd": float(np.sqrt(2.0 * (pieces - 1))), "p_value": p_value, "assumption": True,
+           "detail": f"events/s in {pieces} slices: " + ", ".join(f"{r:.4g}" for r in rate)}
+    if p_value < CHECK_P:
+        span = stationary_span(events, t_start_us, duration_us, pieces=pieces)
+        out["span_us"] = list(span) if span else None
+        out["detail"] += ("; no stretch of at least half the window passes this check" if span is None else
+                          f"; the longest stretch that passes it alone: {seconds_text(span[0] * 1e-6)}-"
+                          f"{seconds_text(span[1] * 1e-6)} s "
+                          "(a suggestion: check it again)")
+    return out
 
 
 def _block_index(shape: tuple, block: int) -> tuple:
