@@ -273,4 +273,8 @@ def test_a_failed_stationarity_check_names_the_longest_stretch_that_passes():
     assert still["p_value"] >= qc.CHECK_P and "span_us" not in still
     ramp = _events_at(np.sort(t0_us + duration_us * np.sqrt(rng.uniform(size=40_000))).astype(np.int64))
     steep = qc.stationarity(ramp, t0_us, duration_us)
-    assert steep["span_us"] is None and "no stretch" in steep["detail"]
+    assert "span_us" not in steep and "no stretch" in steep["detail"]
+    # both kinds of failed check go into a preset's TOML (written with --accept-rejected)
+    from evnoise.calibration.preset import toml_value
+
+    assert all(toml_value(v) for c in (check, steep) for v in c.values())

@@ -319,7 +319,7 @@ def stationary_span(events: np.ndarray, t_start_us: int, duration_us: int, *, pi
 def stationarity(events: np.ndarray, t_start_us: int, duration_us: int, *, pieces: int = 4) -> dict:
     """Events in ``pieces`` equal time slices against equal shares (Pearson chi-square). Where it fails, the
     longest stretch of the window that passes (:func:`stationary_span`) is named in the detail and kept as
-    ``span_us`` (None if none)."""
+    ``span_us`` (absent if none)."""
     from scipy.stats import chi2
 
     t = events["t"].astype(np.int64) - int(t_start_us)
@@ -335,7 +335,8 @@ def stationarity(events: np.ndarray, t_start_us: int, duration_us: int, *, piece
            "detail": f"events/s in {pieces} slices: " + ", ".join(f"{r:.4g}" for r in rate)}
     if p_value < CHECK_P:
         span = stationary_span(events, t_start_us, duration_us, pieces=pieces)
-        out["span_us"] = list(span) if span else None
+        if span is not None:  # (no key where none passes: a preset's TOML has no null)
+            out["span_us"] = list(span)
         out["detail"] += ("; no stretch of at least half the window passes this check" if span is None else
                           f"; the longest stretch that passes it alone: {seconds_text(span[0] * 1e-6)}-"
                           f"{seconds_text(span[1] * 1e-6)} s "
