@@ -104,13 +104,18 @@ def test_leaving_a_pixel_out_removes_exactly_its_term_from_both_likelihoods(tmp_
 def test_windows_of_one_recording_leave_out_the_same_pixels(tmp_path):
     path = _recording(tmp_path, _with_oscillator(_background(POISSON, 8), 9))
     a = qw.quiet_window(path, 1.0, 4.0, drop_oscillating=True)
-    b = qw.quiet_window(path, 4.0, 7.0)
+    b = qw.quiet_window(path, 4.0, 7.0, checks=True)
     assert a.excluded.size == 1 and b.excluded.size == 0
     with pytest.raises(InputError, match="exclude different pixels"):
         ql.window_groups([a, b])
     same = qw.same_exclusions([a, b])
     assert [list(w.excluded) for w in same] == [list(a.excluded)] * 2
     assert not np.any(same[1].events["pixel"] == a.excluded[0])
+    # the same-pixel timing the fit's timing tests read is that of the window without the pixel
+    both = qw.quiet_window(path, 4.0, 7.0, checks=True, drop_oscillating=True)
+    timing = [next(c["same_pixel"] for c in w.checks if "same_pixel" in c) for w in (b, same[1], both)]
+    assert timing[0]["n_intervals"] > timing[1]["n_intervals"]
+    assert timing[1] == timing[2]
     other = qw.QuietWindow(b.counts, b.duration_s, source="another sensor")  # another group: untouched
     assert qw.same_exclusions([a, other])[1] is other
     with pytest.raises(InputError, match="flat indices"):

@@ -101,17 +101,24 @@ class QuietWindow:
         return self.counts.reshape(2, -1)[:, self.kept()]
 
     def without(self, pixels) -> "QuietWindow":
-        """A copy with ``pixels`` (flat indices) excluded too: their counts set to 0 and their events dropped."""
+        """A copy with ``pixels`` (flat indices) excluded too: their counts set to 0 and their events dropped. The
+        same-pixel timing the checks gathered (``same_pixel``, which the fit's timing tests read) is recomputed
+        from the remaining events; the checks' own p-values stay those of the window as it was read."""
         import dataclasses
 
         excluded = np.union1d(self.excluded, np.asarray(pixels, dtype=np.int64).ravel())
         if excluded.size == self.excluded.size:
             return self
-        events = self.events
+        events, checks = self.events, self.checks
         if events is not None:
             keep = ~np.isin(events["pixel"], excluded)
             events = {k: np.asarray(v)[keep] for k, v in events.items()}
-        return dataclasses.replace(self, counts=self.counts.copy(), events=events, excluded=excluded)
+            if any("same_pixel" in c for c in checks):
+                from .checks import same_pixel_timing
+
+                timing = same_pixel_timing(_event_array(events, self.shape[1]), self.shape)
+                checks = [dict(c, same_pixel=timing) if "same_pixel" in c else c for c in checks]
+        return dataclasses.replace(self, counts=self.counts.copy(), events=events, excluded=excluded, checks=checks)
 
     def describe(self) -> str:
         when = "" if self.t_start_s is None else f" {seconds_text(self.t_start_s)}-{seconds_text(self.t_end_s)} s"
@@ -131,6 +138,18 @@ def merge_doublets(events: np.ndarray, width: int, doublet_us: float = DOUBLET_U
     dup = np.zeros(events.size, dtype=bool)
     dup[order[1:]] = (k[1:] == k[:-1]) & (t[1:] - t[:-1] <= doublet_us)
     return events[~dup], int(np.count_nonzero(dup))
+
+
+def _event_array(events: dict, width: int) -> np.ndarray:
+    """The events of :func:`window_events`' dict as an event array (times in microseconds from the window start)."""
+    from evnoise.events import EVENT_DTYPE
+
+    out = np.zeros(events["pixel"].size, dtype=EVENT_DTYPE)
+    out["t"] = np.round(np.asarray(events["t_s"]) * 1e6)
+    out["x"] = events["pixel"] % int(width)
+    out["y"] = events["pixel"] // int(width)
+    out["p"] = np.asarray(events["on"], dtype=bool)
+    return out
 
 
 def oscillating_pixels(events: np.ndarray, shape: tuple) -> list:
