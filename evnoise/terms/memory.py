@@ -91,8 +91,8 @@ TAIL_MASS = 1e-17
 #: Up to this many distinct light levels a simulation computes each level's stationary rate (its expected
 #: events); beyond, an estimate sizes its windows.
 EXACT_RATE_LEVELS = 64
-#: Most table entries (states over all light levels) one simulation builds (136 bytes each in the tables, up to
-#: about 330 while they are built: 6.5 GB at the limit).
+#: Most table entries (states over all light levels) one simulation builds (136 bytes each in the tables, 2.7 GB at
+#: the limit; building them takes about 100-200 MB more, :data:`ITERATE_BLOCK_STATES`).
 MAX_TABLE_STATES = 20_000_000
 
 
@@ -437,15 +437,12 @@ def kernel_tables(levels, params, spans=None, background=None, thresholds=None):
     eps_on, eps_off = ((np.full(n_levels, params.eps_pos), np.full(n_levels, params.eps_neg)) if thresholds is None
                        else thresholds)
     exact = len(levels) <= EXACT_RATE_LEVELS
-    shared = {}  # (lam, span, eps) -> the photon-noise tables, which groups with other backgrounds share
-    iterate = {}  # (lam, span, eps) -> the groups whose initial law comes from the iterated embedded chain
-    for g, lam in enumerate(levels):
-        span = None if spans is None else tuple(ranges[g][:2])
-        chain = (lam, span, float(eps_on[g]), float(eps_off[g]))
-        base = shared.get(chain)
-        if base is None:
-            base = shared[chain] = level_tables(lam, chain[2], chain[3], params.bias_pr, params.reset_memory,
-                                                span=span)
+
+    def chain_of(g):
+        return (float(levels[g]), None if spans is None else tuple(ranges[g][:2]), float(eps_on[g]),
+                float(eps_off[g]))
+
+    def write(g, base):  # group g's rows but the initial law's; returns its tables with its background
         t = dataclasses.replace(base, a_on=float(bg_on[g]), a_off=float(bg_off[g]))
         cols = slice(offsets[g], offsets[g] + sizes[g])
         p = t.p_event
@@ -466,27 +463,58 @@ def kernel_tables(levels, params, spans=None, background=None, thresholds=None):
         table[km.ROW_BG_OFF, cols] = quiet * t.a_off
         table[km.ROW_CUM_NONE, cols] = np.cumsum(t.none_fresh)
         table[km.ROW_K_HEAD, cols] = t.k * t.head
-        if exact:
+        return t, p
+
+    def build(chain):
+        return level_tables(chain[0], chain[2], chain[3], params.bias_pr, params.reset_memory, span=chain[1])
+
+    if exact:  # a few levels: each group's stationary law by a linear solve; chains shared across backgrounds
+        shared = {}
+        for g in range(n_levels):
+            chain = chain_of(g)
+            base = shared.get(chain)
+            if base is None:
+                base = shared[chain] = build(chain)
+            t, _ = write(g, base)
             stationary = _stationary(t)
             r_on, r_off, *_ = level_statistics(t, dt_s, refr_s, stationary)
             rates[g] = r_on + r_off
-            _write_initial(table, cols, t, stationary[0], dt_s, refr_s)
-        else:
-            mean_p = float((t.pmf * p).sum())
-            rates[g] = mean_p / (dt_s + mean_p * refr_s)
-            iterate.setdefault((lam, span), []).append((g, chain))
-    for groups in iterate.values():  # the chains of one level together, in blocks of bounded memory
-        for start in range(0, len(groups), ITERATE_BLOCK):
-            block = [g for g, _ in groups[start:start + ITERATE_BLOCK]]
-            chains = [chain for _, chain in groups[start:start + ITERATE_BLOCK]]
-            # one chain's tables, or (thresholds that differ) each chain's stacked
-            together = shared[chains[0]] if len(set(chains)) == 1 else _stack_tables([shared[c] for c in chains])
-            a_on = np.asarray(bg_on, dtype=np.float64)[block][:, None]
-            a_off = np.asarray(bg_off, dtype=np.float64)[block][:, None]
-            laws = _embedded_iterate(together, ITERATED_STEPS, a_on, a_off)  # row i: chain i's own, bit for bit
-            for i, (g, chain) in enumerate(zip(block, chains)):
-                t = dataclasses.replace(shared[chain], a_on=float(bg_on[g]), a_off=float(bg_off[g]))
-                _write_initial(table, slice(offsets[g], offsets[g] + sizes[g]), t, laws[i], dt_s, refr_s)
+            _write_initial(table, slice(offsets[g], offsets[g] + sizes[g]), t, stationary[0], dt_s, refr_s)
+        return table, itable, offsets, sizes, rates
+    # Many chains: each group's initial law from the iterated embedded chain, the chains of one level and state
+    # range in blocks of ITERATE_BLOCK groups (stacked: row i is chain i's own computation, bit for bit, whatever
+    # the block). Groups are taken level by level and chain by chain, so a chain's photon-noise tables live only
+    # while its groups' block does: the peak holds the final tables and one block's, not every chain's.
+    order = sorted(range(n_levels), key=lambda g: (chain_of(g)[:2], chain_of(g)[2:], g))
+    alive, block, block_states = {}, [], 0
+
+    def flush():
+        chains = [chain for _, chain in block]
+        together = alive[chains[0]] if len(set(chains)) == 1 else _stack_tables([alive[c] for c in chains])
+        a_on = np.asarray(bg_on, dtype=np.float64)[[g for g, _ in block]][:, None]
+        a_off = np.asarray(bg_off, dtype=np.float64)[[g for g, _ in block]][:, None]
+        laws = _embedded_iterate(together, ITERATED_STEPS, a_on, a_off)
+        for i, (g, chain) in enumerate(block):
+            t = dataclasses.replace(alive[chain], a_on=float(bg_on[g]), a_off=float(bg_off[g]))
+            _write_initial(table, slice(offsets[g], offsets[g] + sizes[g]), t, laws[i], dt_s, refr_s)
+        block.clear()
+
+    for g in order:
+        chain = chain_of(g)
+        if block and (block[-1][1][:2] != chain[:2] or len(block) == ITERATE_BLOCK
+                      or block_states + sizes[g] > ITERATE_BLOCK_STATES):
+            flush()
+            block_states = 0
+            alive = {c: alive[c] for c in (chain,) if c in alive}  # the others are not needed again
+        if chain not in alive:
+            alive[chain] = build(chain)
+        t, p = write(g, alive[chain])
+        mean_p = float((t.pmf * p).sum())
+        rates[g] = mean_p / (dt_s + mean_p * refr_s)
+        block.append((g, chain))
+        block_states += int(sizes[g])
+    if block:
+        flush()
     return table, itable, offsets, sizes, rates
 
 
@@ -502,8 +530,13 @@ def _write_initial(table, cols, t: LevelTables, pi, dt_s: float, refr_s: float) 
 #: Beyond :data:`EXACT_RATE_LEVELS` levels the embedded stationary law of :func:`initial_law` is this many steps
 #: of the embedded chain from ``Poisson(lam)`` (each ``O(S log S)``), not a linear solve.
 ITERATED_STEPS = 40
-#: Chains of one light level iterated together (:func:`_embedded_iterate`; ``(block, S)`` arrays).
+#: Chains of one light level iterated together (:func:`_embedded_iterate`; ``(block, S)`` arrays): at most this
+#: many ...
 ITERATE_BLOCK = 2048
+#: ... and at most this many states in all (unless one chain alone has more): the block's tables, stacked, and the
+#: iteration's arrays take a few hundred bytes per state, so this bounds :func:`kernel_tables`' memory beyond its
+#: final tables to about 100 MB.
+ITERATE_BLOCK_STATES = 250_000
 
 
 def _embedded_iterate(t: LevelTables, steps: int, a_on=None, a_off=None) -> np.ndarray:

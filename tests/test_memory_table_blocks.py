@@ -1,0 +1,48 @@
+"""Reset memory's kernel tables are built block by block (issue 32): the same tables whatever the blocks, and the
+memory the build takes beyond its final tables is bounded by a block's, not by the number of chains."""
+
+from __future__ import annotations
+
+import tracemalloc
+
+import numpy as np
+
+import evnoise as ev
+from evnoise._run import run_setup
+from evnoise.terms import memory as tm
+
+
+def _groups(shape, lux, seed=1):
+    params = ev.load_preset("davis346").replace(reset_memory=0.5, leak_regularity=0.0)
+    run = run_setup(shape, params, np.random.default_rng(seed))
+    lam = params.photons_per_trial(np.full(shape, lux)).ravel()
+    levels, a_on, a_off, _, eps = tm.pixel_groups(lam, run.params, run.background, run.thresholds)
+    return params, levels, (a_on, a_off), eps
+
+
+def _build(params, levels, background, eps):
+    tracemalloc.start()
+    try:
+        out = tm.kernel_tables(levels, params, background=background, thresholds=eps)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    return out, peak
+
+
+def test_tables_do_not_depend_on_the_blocks_and_the_build_memory_is_a_blocks(monkeypatch):
+    params, levels, background, eps = _groups((24, 30), 0.5)
+    assert levels.size > tm.EXACT_RATE_LEVELS  # the iterated path, where blocks are
+    monkeypatch.setattr(tm, "ITERATE_BLOCK_STATES", 10**12)
+    monkeypatch.setattr(tm, "ITERATE_BLOCK", 10**9)
+    whole, peak_whole = _build(params, levels, background, eps)  # every chain in one block
+    monkeypatch.setattr(tm, "ITERATE_BLOCK_STATES", 1_000)
+    monkeypatch.setattr(tm, "ITERATE_BLOCK", 2048)
+    blocks, peak_blocks = _build(params, levels, background, eps)
+    for a, b in zip(whole, blocks):
+        assert np.array_equal(a, b)  # bit for bit (NaN-free tables)
+    final = whole[0].nbytes + whole[1].nbytes
+    states = int(whole[3].sum())
+    assert states > 50 * 1_000  # many blocks
+    # one block at a time: what the build holds beyond its final tables is far below one block per chain
+    assert peak_blocks - final < 0.25 * (peak_whole - final), (peak_blocks, peak_whole, final)
