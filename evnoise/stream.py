@@ -136,8 +136,8 @@ class NoiseStream:
         if self._mismatch:
             # pixels share a chain when their thresholds agree over the states their light's tables will hold
             lam_levels, lam_group = np.unique(lam, return_inverse=True)
-            class_spans = dict(zip(lam_levels.tolist(), _memory_spans(lam_levels, lam_group.ravel(), self._stored,
-                                                                      self._pending_count)))
+            level_spans = _memory_spans(lam_levels, lam_group.ravel(), self._stored, self._pending_count)
+            class_spans = dict(zip(lam_levels.tolist(), map(tuple, level_spans.tolist())))
         grouping = self._grouping
         if grouping is None or grouping[0] != class_spans or not np.array_equal(grouping[1], lam):
             # the pixels' chains: the same while the light and the states compared over are (most intervals)
@@ -146,12 +146,13 @@ class NoiseStream:
         levels, a_on, a_off, group, eps = grouping[2]
         spans = _memory_spans(levels, group, self._stored, self._pending_count)
         if class_spans is not None:  # within the states its thresholds were compared over (counts beyond: clamped)
-            spans = _inside(spans, [class_spans[level] for level in levels.tolist()])
+            spans = _inside(spans, level_spans[np.searchsorted(lam_levels, levels)])
         key = np.stack([levels, a_on, a_off, *eps])
-        if self._memory is None or not np.array_equal(key, self._memory[0]) or spans != self._memory[4]:
-            table, itable, offsets, sizes, rates = kernel_tables(levels, p, spans, background=(a_on, a_off),
+        if (self._memory is None or not np.array_equal(key, self._memory[0])
+                or not np.array_equal(spans, self._memory[4])):
+            table, itable, offsets, sizes, rates = kernel_tables(levels, p, spans.tolist(), background=(a_on, a_off),
                                                                  thresholds=eps)
-            lowest = np.array([lo for lo, _ in spans], dtype=np.float64)
+            lowest = spans[:, 0].astype(np.float64)
             self._memory = (key, (table, itable, offsets, sizes), lowest, rates, spans)
         _, tables, lowest, rates, _ = self._memory
         sizes = tables[3]
@@ -184,9 +185,10 @@ def _state_range(lam: float):
     return state_range(lam)
 
 
-def _memory_spans(levels, group, stored, pending) -> list:
-    """Per light level, the states ``(lo, n_states)`` its tables need: :func:`~evnoise.terms.memory.state_range`'s,
-    widened to hold the stored counts (and pending events' new counts) its pixels bring from another light,
+def _memory_spans(levels, group, stored, pending) -> np.ndarray:
+    """Per light level, the states ``(lo, n_states)`` (rows of an ``(n, 2)`` int64 array) its tables need:
+    :func:`~evnoise.terms.memory.state_range`'s, widened to hold the stored counts (and pending events' new counts)
+    its pixels bring from another light,
     up to :data:`~evnoise.terms.memory.MAX_STATES` states (counts beyond are clamped into the range: only a
     step of the light by many times its own photon noise at hundreds of photons per trial goes that far)."""
     from .terms.memory import MAX_STATES
@@ -209,15 +211,14 @@ def _memory_spans(levels, group, stored, pending) -> list:
     new_hi = np.where(brought, np.maximum(hi, np.minimum(high_i, hi + room)), hi)
     cap = np.maximum(MAX_STATES, n)
     new_hi = np.where(brought & (new_hi - new_lo + 1 > cap), new_lo + cap - 1, new_hi)
-    return list(zip(new_lo.tolist(), (new_hi - new_lo + 1).tolist()))
+    return np.stack([new_lo, new_hi - new_lo + 1], axis=1).astype(np.int64)
 
 
-def _inside(spans, outer) -> list:
-    """The states of each of ``spans`` (``(lo, n_states)`` pairs) within the matching one of ``outer``."""
-    spans, outer = np.asarray(spans, dtype=np.int64).reshape(-1, 2), np.asarray(outer, dtype=np.int64).reshape(-1, 2)
+def _inside(spans, outer) -> np.ndarray:
+    """The states of each of ``spans`` (``(n, 2)``: ``lo, n_states``) within the matching row of ``outer``."""
     lo = np.maximum(spans[:, 0], outer[:, 0])
     hi = np.minimum(spans[:, 0] + spans[:, 1], outer[:, 0] + outer[:, 1]) - 1
-    return list(zip(lo.tolist(), (hi - lo + 1).tolist()))
+    return np.stack([lo, hi - lo + 1], axis=1)
 
 
 def _first_trial_at_or_after(t_us: float, dt: float) -> float:
