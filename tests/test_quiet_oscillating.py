@@ -183,3 +183,41 @@ def test_the_real_windows_have_one_oscillating_pixel():
                 found[(rel.split("/")[-1], seg["from_s"])] = [(o["x"], o["y"], o["polarity"]) for o in w.oscillating]
     assert found == {("cam255_neal_standing_up2.aedat", 0.0): [(34, 95, 1)],
                      ("cam255_neal_standing_up.aedat", 0.0): [(34, 95, 1)]}
+
+
+def test_many_busy_pixels_against_a_pixel_by_pixel_reference():
+    """Many busy streams (periodic and Poisson, both polarities) are judged in one pass: the same pixels, periods
+    and CVs as a plain per-stream loop with NumPy's std."""
+    rng = np.random.default_rng(21)
+    parts = [_background(POISSON, 22)]
+    for i in range(120):
+        n = int(rng.integers(15, 60))
+        if i % 2:
+            t = np.sort(rng.uniform(0, DURATION_S, n))  # Poisson-like
+        else:
+            period = DURATION_S / n
+            t = np.arange(n) * period + rng.normal(0, period * rng.uniform(0.01, 0.4), n)
+        e = np.zeros(n, dtype=ev.EVENT_DTYPE)
+        e["t"] = T0_US + np.round(t * 1e6).astype(np.int64)
+        e["x"], e["y"], e["p"] = i % SHAPE[1], (i // SHAPE[1]) % SHAPE[0], (i // 3) % 2
+        parts.append(e)
+    events = np.concatenate(parts)
+    pix = events["y"].astype(np.int64) * SHAPE[1] + events["x"]
+    events = events[np.lexsort((events["t"], pix))]  # not in time order: the function must not rely on it
+    found = qw.oscillating_pixels(events, SHAPE)
+    key = (events["y"].astype(np.int64) * SHAPE[1] + events["x"]) * 2 + (events["p"] == 1)
+    mean = [np.count_nonzero(key % 2 == pol) / (SHAPE[0] * SHAPE[1]) for pol in (0, 1)]
+    want = []
+    for k in np.unique(key):
+        t = np.sort(events["t"][key == k]) * 1e-6
+        if t.size < qw.OSCILLATING_MIN_EVENTS or t.size < qw.OSCILLATING_RATE_FACTOR * mean[k % 2]:
+            continue
+        gaps = np.diff(t)
+        cv = np.std(gaps, ddof=1) / np.mean(gaps)
+        if cv < qw.OSCILLATING_MAX_CV:
+            want.append((int(k // 2) % SHAPE[1], int(k // 2) // SHAPE[1], int(k % 2), t.size, np.mean(gaps), cv))
+    got = [(o["x"], o["y"], o["polarity"], o["events"], o["period_s"], o["cv"]) for o in found]
+    assert 20 < len(want) < 60
+    assert sorted(g[:4] for g in got) == sorted(w[:4] for w in want)
+    for g, w in zip(sorted(got), sorted(want)):
+        assert g[4] == pytest.approx(w[4], rel=1e-12) and g[5] == pytest.approx(w[5], rel=1e-9)
