@@ -296,3 +296,21 @@ def test_cli_writes_the_hot_pixels_own_regularity(tmp_path, capsys):
         assert params.hot_pixel_regularity == -1.0
     assert params.leak_regularity == 0.0  # --regularity off: the ordinary pixels are Poisson
     assert "hot_regularity" in capsys.readouterr().out
+
+
+def test_count_fit_of_a_window_short_against_the_leak_leaves_the_regular_plateau():
+    """In a window shorter than r / rate a regular pixel cannot fire twice, so its count likelihood is 0 (floored)
+    for every pixel with two events, whatever r above rate x window: a plateau. The count fit used to start only
+    on it (r = 0.5, 0.9) and stay (a real 3.4 s DVS128 window: 24 000 log-units low). Poisson counts of such a
+    window: the fit with the regularity free reaches at least the Poisson maximum, computed here with SciPy."""
+    rng = np.random.default_rng(7)
+    shape, T = (96, 96), 3.0
+    rate_on, rate_off = 0.03, 0.004  # rate x window = 0.1: r above 0.1 is the plateau
+    on, off = rng.poisson(rate_on * T, shape), rng.poisson(rate_off * T, shape)
+    assert np.count_nonzero(on + off >= 2) > 20
+    w = qw.QuietWindow(np.stack([on, off]), T, source="poisson counts")
+    fit = q.fit_quiet([w], spread="off", hot="off", regularity="on")
+    mle = [on.mean() / T, off.mean() / T]
+    poisson_ll = float(poisson.logpmf(on, mle[0] * T).sum() + poisson.logpmf(off, mle[1] * T).sum())
+    assert fit.log_likelihood >= poisson_ll - 1e-6 * abs(poisson_ll)
+    assert fit.values["regularity"] < rate_on * T

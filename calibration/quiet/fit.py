@@ -371,11 +371,15 @@ def _with_count_start(model: Model, groups, starts):
 
 
 def _starts(model: Model, previous: dict, hot_guess):
-    """Two starting points: moderate and strong spread/regularity, hot pixels from the data."""
+    """Starting points: moderate and strong spread/regularity (and, for the counts, near Poisson), hot pixels from
+    the data."""
     starts = []
     # the timing likelihood of a regular timer is 0 for a gap shorter than r / rate: start near Poisson there
-    # (the hot pixels' short gaps first of all)
-    pairs = ((0.5, 0.01), (1.2, 0.2)) if model.timing else ((0.5, 0.5), (1.2, 0.9))
+    # (the hot pixels' short gaps first of all). The counts' likelihood of a regular timer is 0 for two events of
+    # a pixel whose r / rate exceeds the window (floored at 1e-300, :func:`.likelihood._log_component`): in a window
+    # short against 1 / rate every r above rate x window is one flat plateau, where BFGS started from r = 0.5 or
+    # 0.9 stays (a real 3.4 s DVS128 window: 24 000 log-units below its maximum), so they start near Poisson too
+    pairs = ((0.5, 0.01), (1.2, 0.2)) if model.timing else ((0.5, 0.5), (1.2, 0.9), (0.5, 0.01))
     for sigma, reg in pairs:
         v = dict(previous, sigma=sigma if model.spread else 0.0, regularity=reg if model.regular else 0.0,
                  hot_regularity=1e-3)
@@ -483,9 +487,10 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
                 red_values = dict(values, **({"hot_fraction": 0.0} if term == "hot" else {}))
                 if term == "regular":
                     red_values["regularity"] = 0.0
-                red_starts = [theta_of(red_values, reduced)]
-                if use_timing:  # the full fit's values may give a gap the reduced model forbids: start afresh too
-                    red_starts = _with_count_start(reduced, groups, red_starts + _starts(reduced, values0, hot_guess))
+                # the full fit's values may sit where the reduced model forbids what the window has (a gap, a count):
+                # start afresh too
+                red_starts = _with_count_start(reduced, groups, [theta_of(red_values, reduced)]
+                                               + _starts(reduced, values0, hot_guess))
                 red_res = maximise(reduced, groups, red_starts)
                 if use_timing and red_res.fun < res.fun - 1e-6:
                     # the full model holds the reduced one, so BFGS stopped at a lower maximum (seen on real windows
@@ -504,7 +509,9 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
             if keep != full:
                 model = model_of(keep)
                 kept_values = dict(values, **({} if keep["hot"] else {"hot_fraction": 0.0}))
-                res = maximise(model, groups, [theta_of(kept_values, model)] + _starts(model, values0, hot_guess)[:1])
+                starts = _starts(model, values0, hot_guess)
+                starts = starts[:1] if use_timing else starts  # (a timing model takes the best of its starts)
+                res = maximise(model, groups, [theta_of(kept_values, model)] + starts)
         with phases.phase("standard errors"):
             se, notes = _standard_errors(model, groups, res)
         with phases.phase("goodness of fit"):
@@ -541,7 +548,7 @@ def _standard_errors(model: Model, groups, res):
     cov = inverse_information(free)
     # a coordinate on a bound of its range (_at_bounds), running off to +-inf, can make the information
     # singular: then it is held there and the others' errors are conditional on it
-    bound = _at_bounds(v, model)
+    bound = _at_bounds(v, model, [w for g in groups for w in g.windows])
     if cov is None and bound:
         free = [i for i, n in enumerate(coords) if n not in bound]
         cov = inverse_information(free)
@@ -602,11 +609,15 @@ BOUND_TOL = 1e-4
 SIGMA_FLOOR = 1e-3
 
 
-def _at_bounds(v: dict, model: Model) -> dict:
+def _at_bounds(v: dict, model: Model, windows=()) -> dict:
     """``{name: "at upper bound (BOUND" | "at lower bound (BOUND"}`` (the caller closes the bracket) of the fitted
     parameters on a bound of their range (:data:`BOUND_TOL`): the maximum is there, not inside, so the
-    observed information gives it no standard error."""
+    observed information gives it no standard error. A polarity without any event in ``windows`` has its rate's
+    maximum at 0 (the optimiser stops wherever its log's gradient falls below its tolerance)."""
     out = {}
+    for k, name in enumerate(("rate_on_hz", "rate_off_hz")):
+        if windows and not any(int(w.pixel_counts()[k].sum()) for w in windows):
+            out[name] = f"at lower bound (0: no {'ON' if k == 0 else 'OFF'} events"
     if model.spread and v["sigma"] < SIGMA_FLOOR:
         out["sigma"] = "at lower bound (0: no spread"
     if model.hot:
@@ -662,7 +673,7 @@ def _quiet_fit(model, res, se, notes, tests, goodness, windows, base, spread, ho
     for n in ("hot_sigma", "hot_on_fraction"):
         if model.hot and v["hot_fraction"] * sum(w.n_pixels for w in windows) < 5:
             status[n] = "weakly identified (fewer than 5 hot pixels)"
-    for n, side in _at_bounds(v, model).items():
+    for n, side in _at_bounds(v, model, windows).items():
         if n == "regularity" and side.startswith("at upper") and se.get(n) is not None and math.isfinite(se[n]):
             # near r = 1 the profile likelihood's one-sided error stands (_standard_errors)
             status[n] = f"{side}; one-sided profile-likelihood error)"
