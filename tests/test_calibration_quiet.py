@@ -314,3 +314,20 @@ def test_count_fit_of_a_window_short_against_the_leak_leaves_the_regular_plateau
     poisson_ll = float(poisson.logpmf(on, mle[0] * T).sum() + poisson.logpmf(off, mle[1] * T).sum())
     assert fit.log_likelihood >= poisson_ll - 1e-6 * abs(poisson_ll)
     assert fit.values["regularity"] < rate_on * T
+
+
+def test_a_polarity_without_events_is_at_its_bound_and_the_others_keep_their_errors():
+    """No OFF event in the window: the OFF rate's maximum is at 0 (a bound), so it has no standard error, and is
+    held there for the others' (before: the information was singular and no parameter had one)."""
+    rng = np.random.default_rng(8)
+    shape, T = (64, 64), 20.0
+    on = rng.poisson(0.05 * T, shape)
+    w = qw.QuietWindow(np.stack([on, np.zeros(shape, dtype=np.int64)]), T, source="ON only")
+    fit = q.fit_quiet([w], spread="off", hot="off", regularity="off")
+    assert fit.status["rate_off_hz"].startswith("at lower bound (0: no OFF events")
+    assert fit.std_error["rate_off_hz"] is None
+    se = fit.std_error["rate_on_hz"]
+    # the Poisson MLE and its standard error sqrt(n) / (T n_pix), computed directly
+    n, n_pix = on.sum(), on.size
+    assert fit.values["rate_on_hz"] == pytest.approx(n / (T * n_pix), rel=1e-4)
+    assert se == pytest.approx(math.sqrt(n) / (T * n_pix), rel=1e-2)
