@@ -378,7 +378,7 @@ def _starts(model: Model, previous: dict, hot_guess):
     # (the hot pixels' short gaps first of all). The counts' likelihood of a regular timer is 0 for two events of
     # a pixel whose r / rate exceeds the window (floored at 1e-300, :func:`.likelihood._log_component`): in a window
     # short against 1 / rate every r above rate x window is one flat plateau, where BFGS started from r = 0.5 or
-    # 0.9 stays (a real 3.4 s DVS128 window: 24 000 log-units below its maximum), so they start near Poisson too
+    # 0.9 stays (a real 3.4 s DVS128 window: 46 000 log-units below its maximum), so they start near Poisson too
     pairs = ((0.5, 0.01), (1.2, 0.2)) if model.timing else ((0.5, 0.5), (1.2, 0.9), (0.5, 0.01))
     for sigma, reg in pairs:
         v = dict(previous, sigma=sigma if model.spread else 0.0, regularity=reg if model.regular else 0.0,

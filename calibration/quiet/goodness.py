@@ -10,7 +10,7 @@ import numpy as np
 
 from .counts import count_pmf
 from .likelihood import component_rates
-from .window import QuietWindow
+from .window import QuietWindow, drop_pixels
 
 __all__ = ["GOF_MAX_COUNT", "simulate_window", "compare_to_recording", "interval_cdf", "timing_tests",
            "window_intervals", "compare_intervals"]
@@ -272,8 +272,7 @@ def compare_intervals(params, window: QuietWindow, *, replicas: int = 4, seed: i
     for s in np.random.SeedSequence(seed).spawn(replicas):
         events = ev.simulate_events(lux, params, window.duration_s, rng=np.random.default_rng(s))
         if window.excluded.size:  # the pixels the window leaves out, left out here too
-            pix = events["y"].astype(np.int64) * window.shape[1] + events["x"].astype(np.int64)
-            events = events[~np.isin(pix, window.excluded)]
+            events = drop_pixels(events, window.shape[1], window.excluded)
         counts.append([int(np.count_nonzero(events["p"] == 1)), int(np.count_nonzero(events["p"] == 0))])
         sp = same_pixel_timing(events, window.shape)
         ivals.append(np.asarray(sp["intervals_s"]))

@@ -14,7 +14,7 @@ from evnoise._clock import seconds_text
 from evnoise.errors import InputError, ParameterError
 
 __all__ = ["QuietWindow", "quiet_window", "window_events", "merge_doublets", "oscillating_pixels", "oscillating_notes",
-           "same_exclusions",
+           "same_exclusions", "drop_pixels",
            "DOUBLET_US",
            "OSCILLATING_MIN_EVENTS", "OSCILLATING_MAX_CV", "OSCILLATING_RATE_FACTOR"]
 
@@ -140,6 +140,12 @@ def merge_doublets(events: np.ndarray, width: int, doublet_us: float = DOUBLET_U
     return events[~dup], int(np.count_nonzero(dup))
 
 
+def drop_pixels(events: np.ndarray, width: int, pixels: np.ndarray) -> np.ndarray:
+    """The events (an event array) of the pixels other than ``pixels`` (flat indices ``y * width + x``)."""
+    pix = events["y"].astype(np.int64) * int(width) + events["x"].astype(np.int64)
+    return events[~np.isin(pix, pixels)]
+
+
 def _event_array(events: dict, width: int) -> np.ndarray:
     """The events of :func:`window_events`' dict as an event array (times in microseconds from the window start)."""
     from evnoise.events import EVENT_DTYPE
@@ -260,8 +266,7 @@ def quiet_window(path, t_start_s: float, t_end_s: float, *, lux: float | None = 
     oscillating = oscillating_pixels(events, tuple(shape))
     excluded = np.unique([o["y"] * int(shape[1]) + o["x"] for o in oscillating]).astype(np.int64)
     if drop_oscillating and excluded.size:
-        pix = events["y"].astype(np.int64) * int(shape[1]) + events["x"].astype(np.int64)
-        events = events[~np.isin(pix, excluded)]
+        events = drop_pixels(events, int(shape[1]), excluded)
     else:
         excluded = np.zeros(0, dtype=np.int64)
     counts = count_events(events, tuple(shape))

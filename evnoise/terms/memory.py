@@ -485,7 +485,7 @@ def kernel_tables(levels, params, spans=None, background=None, thresholds=None):
     # range in blocks of ITERATE_BLOCK groups (stacked: row i is chain i's own computation, bit for bit, whatever
     # the block). Groups are taken level by level and chain by chain, so a chain's photon-noise tables live only
     # while its groups' block does: the peak holds the final tables and one block's, not every chain's.
-    order = sorted(range(n_levels), key=lambda g: (chain_of(g)[:2], chain_of(g)[2:], g))
+    order = sorted(range(n_levels), key=lambda g: (chain_of(g), g))
     alive, block, block_states = {}, [], 0
 
     def flush():
