@@ -44,7 +44,7 @@ from .errors import InputError, ParameterError
 from .events import EVENT_DTYPE, empty_events
 from .params import NoiseParams
 from .rates import trial_probabilities
-from .terms.memory import check_supported, memory_on, refuse
+from .terms.memory import check_supported, memory_on
 
 __all__ = [
     "simulate_events",
@@ -212,9 +212,7 @@ def _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, t
     params, key, (eps_on, eps_off), bg = run.params, run.key, run.thresholds, run.background
     if memory_on(params):
         check_supported(params, thresholds, background)
-        if method == "trials":
-            raise ParameterError("method='trials' does not model reset_memory > 0 yet; use method='auto' or "
-                                 "'renewal' (the reset-memory renewal tier)")
+    if memory_on(params) and method != "trials":
         return _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, sink, bg=bg,
                             thresholds=(eps_on, eps_off))
     if method == "trials":
@@ -455,7 +453,8 @@ def iter_video(
         raise ParameterError("method='renewal' needs a static scene, but some pixels change between frames")
     run = run_setup(shape, params, rng, thresholds=thresholds, background=background)
     params, key, (eps_on, eps_off), bg = run.params, run.key, run.thresholds, run.background
-    refuse(params, "simulate_video / iter_video (changing scenes)")
+    if memory_on(params):
+        check_supported(params, thresholds, background)
     t0_us = int(round(ts[0] * 1e6))
     frame_us = (ts - ts[0]) * 1e6
     duration_us = int(round(frame_us[-1]))
@@ -546,6 +545,45 @@ def _fill_static_cache(state: PixelState, frames_lam: np.ndarray, params: NoiseP
     state.cache_lam[sel] = lam0
 
 
+class _MemoryChains:
+    """The reset-memory chains of a changing scene's pixels (:mod:`evnoise.terms.memory`): each pixel's chain at
+    its light at the start (static pixels: their light; changing ones: the first trial's), grouped as
+    :func:`~evnoise.terms.memory.pixel_groups` does over the whole sensor. ``group`` (per flat pixel) indexes
+    ``tables`` (:func:`~evnoise.terms.memory.kernel_tables`, without the rates) and ``rates`` (events/s)."""
+
+    def __init__(self, lam_start, params, bg, eps_on, eps_off):
+        from .terms.memory import kernel_tables, pixel_groups, state_range
+
+        levels, a_on, a_off, self.group, eps = pixel_groups(lam_start, params, bg, (eps_on, eps_off))
+        *self.tables, self.rates = kernel_tables(levels, params, background=(a_on, a_off), thresholds=eps)
+        self.lo = np.array([state_range(float(lam))[0] for lam in levels], dtype=np.float64)
+
+    def start_trials(self, state: PixelState, group, dt, refr_us, threads):
+        """The trial tier's pixels ``state`` (chains ``group``) start in their steady state: stored count, and
+        the dead time of a last event before ``t = 0`` (:func:`evnoise._kernels.memory.initial_stored`)."""
+        from ._kernels.memory import initial_stored
+
+        table, _, offsets, sizes = self.tables
+
+        def run(lo, hi):
+            initial_stored(state.states[lo:hi], state.fstate[lo:hi], group[lo:hi], offsets, sizes, self.lo, table,
+                           float(dt), float(refr_us))
+
+        map_chunks(run, state.pix.size, threads)
+
+
+def _memory_setup(lam_of, lam_first_trial, stat_pix, dyn_pix, params, bg, eps_on, eps_off):
+    """:class:`_MemoryChains` of a changing scene with reset memory, else None."""
+    if not memory_on(params):
+        return None
+    lam_start = np.empty(stat_pix.size + dyn_pix.size)
+    if stat_pix.size:
+        lam_start[stat_pix] = lam_of(0)[stat_pix]
+    if dyn_pix.size:
+        lam_start[dyn_pix] = lam_first_trial()
+    return _MemoryChains(lam_start, params, bg, eps_on, eps_off)
+
+
 def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us, duration_us, threads,
                   progress, labels=False, bg=None):
     """Generator over windows of a changing scene (renewal for ``static`` pixels, trials for the rest)."""
@@ -563,32 +601,14 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
     def lam_of(i):
         return params.photons_per_trial(frames.get(i)).ravel()
 
-    # static pixels: closed-form probabilities once
-    stat_timer = None
-    if stat_pix.size:
-        lam0 = lam_of(0)[stat_pix]
-        log1m_p, q_on, stat_timer, nu = static_inputs(lam0, params, eps_on[stat_pix], eps_off[stat_pix],
-                                                       select_background(bg, stat_pix))
-
-    def expected_events():
-        """The static pixels' events, and the changing ones' noise at their first frame (asked for only)."""
-        rate = float(nu.sum()) if stat_pix.size else 0.0
-        if dyn_pix.size:
-            *_, dyn_nu = static_inputs(lam_of(0)[dyn_pix], params, eps_on[dyn_pix], eps_off[dyn_pix],
-                                       select_background(bg, dyn_pix))
-            rate += float(dyn_nu.sum())
-        return rate * duration_us * 1e-6
-    dyn_bg = terms.kernel_coefficients(params, bg, dyn_pix)
-    model = terms.kernel_model(params)  # what each noise term feeds the trial kernel
-    regularity = model[terms.MODEL.index("regularity")]
-    fast_static = TRIAL_FAST_STATIC and regularity == 0.0  # the regular timer is not memoryless
-    per_window = max(1, TARGET_PIXEL_TRIALS_PER_WINDOW // max(1, dyn_pix.size))
-    per_window = min(per_window, max(1, int(MAX_WINDOW_US // dt)))
-    if stat_pix.size:
-        stat_rate = float(nu.sum())
-        if stat_rate > 0:
-            per_window = min(per_window, max(1, int(TARGET_EVENTS_PER_WINDOW / (stat_rate * dt * 1e-6))))
-    n_windows = -(-n_trials // per_window)  # windows of per_window trials, made one at a time
+    def lam_first_trial():
+        """The changing pixels' photons per trial at the first trial's centre (their reference at the start)."""
+        idx = frame_indices(0, 1)
+        lams = np.stack([lam_of(int(i))[dyn_pix] for i in idx])
+        if idx.size == 1:
+            return lams[0]
+        a = min(max((0.5 * dt - frame_us[idx[0]]) / (frame_us[idx[1]] - frame_us[idx[0]]), 0.0), 1.0)
+        return lams[0] + a * (lams[1] - lams[0])
 
     def frame_indices(j_a, j_b):
         """Indices of the frames bracketing the centres of trials j_a .. j_b - 1."""
@@ -598,20 +618,50 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
         seg = np.clip(np.searchsorted(frame_us, centres, side="right") - 1, 0, frames.n - 2)
         return np.unique(np.concatenate([seg, seg + 1]))
 
+    mem = _memory_setup(lam_of, lam_first_trial, stat_pix, dyn_pix, params, bg, eps_on, eps_off)
+    # static pixels: closed-form probabilities once (with reset memory: their chains' tables)
+    stat_timer = None
+    if stat_pix.size and mem is not None:
+        nu = mem.rates[mem.group[stat_pix]]
+    elif stat_pix.size:
+        lam0 = lam_of(0)[stat_pix]
+        log1m_p, q_on, stat_timer, nu = static_inputs(lam0, params, eps_on[stat_pix], eps_off[stat_pix],
+                                                       select_background(bg, stat_pix))
+
+    def expected_events():
+        """The static pixels' events, and the changing ones' noise at their first frame (asked for only)."""
+        rate = float(nu.sum()) if stat_pix.size else 0.0
+        if dyn_pix.size and mem is not None:
+            rate += float(mem.rates[mem.group[dyn_pix]].sum())
+        elif dyn_pix.size:
+            *_, dyn_nu = static_inputs(lam_of(0)[dyn_pix], params, eps_on[dyn_pix], eps_off[dyn_pix],
+                                       select_background(bg, dyn_pix))
+            rate += float(dyn_nu.sum())
+        return rate * duration_us * 1e-6
+    dyn_bg = terms.kernel_coefficients(params, bg, dyn_pix)
+    model = terms.kernel_model(params)  # what each noise term feeds the trial kernel
+    regularity = model[terms.MODEL.index("regularity")]
+    # the regular timer and reset memory are not memoryless
+    fast_static = TRIAL_FAST_STATIC and regularity == 0.0 and mem is None
+    per_window = max(1, TARGET_PIXEL_TRIALS_PER_WINDOW // max(1, dyn_pix.size))
+    per_window = min(per_window, max(1, int(MAX_WINDOW_US // dt)))
+    if stat_pix.size:
+        stat_rate = float(nu.sum())
+        if stat_rate > 0:
+            per_window = min(per_window, max(1, int(TARGET_EVENTS_PER_WINDOW / (stat_rate * dt * 1e-6))))
+    n_windows = -(-n_trials // per_window)  # windows of per_window trials, made one at a time
+
     def gen():
         stat_state = PixelState(stat_pix, key, threads) if stat_pix.size else None
         dyn_state = PixelState(dyn_pix, key, threads) if dyn_pix.size else None
         cache: dict[int, np.ndarray] = {}
         if dyn_state is not None:
-            idx = frame_indices(0, 1)
-            lams = np.stack([lam_of(int(i))[dyn_pix] for i in idx])
-            if idx.size == 1:
-                lam_first = lams[0]
-            else:
-                a = min(max((0.5 * dt - frame_us[idx[0]]) / (frame_us[idx[1]] - frame_us[idx[0]]), 0.0), 1.0)
-                lam_first = lams[0] + a * (lams[1] - lams[0])
+            lam_first = lam_first_trial()
             dyn_state.lam_ref[:] = lam_first
             dyn_state.lam_prev[:] = lam_first
+            if mem is not None:
+                mem.start_trials(dyn_state, mem.group[dyn_pix], dt, refr, threads)
+        stat_mem = np.full(stat_pix.size, math.nan) if mem is not None else None  # stored states, drawn at first
         dyn_e_on, dyn_e_off = eps_on[dyn_pix], eps_off[dyn_pix]
         dyn_thr = np.stack([c_on[dyn_pix], c_off[dyn_pix], dyn_e_on, dyn_e_off])
         bar = _time_bar(duration_us, progress)
@@ -623,8 +673,12 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
             if stat_state is not None:
                 expected = nu * (j_b - j_a) * dt * 1e-6
                 w_end = min(j_b * dt, float(duration_us))
-                parts += renewal_step(stat_state, width, log1m_p, q_on, dt, refr, 0, w_end, math.inf,
-                                       t0_us, threads, expected=expected, timer=stat_timer)
+                if mem is not None:
+                    parts += memory_step(stat_state, stat_mem, width, mem.group[stat_pix], mem.tables, dt, float(refr),
+                                         0.0, float(w_end), math.inf, np.int64(t0_us), threads, expected)
+                else:
+                    parts += renewal_step(stat_state, width, log1m_p, q_on, dt, refr, 0, w_end, math.inf,
+                                          t0_us, threads, expected=expected, timer=stat_timer)
             if dyn_state is not None:
                 idx = frame_indices(j_a, j_b)
                 for i in list(cache):

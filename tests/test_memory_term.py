@@ -203,14 +203,12 @@ def test_state_range_bound():
     assert 0 < memory.state_range(1e5)[2] < 1e-4
 
 
-@pytest.mark.parametrize("what", ["video", "stream", "tonic", "rate", "poisson", "background", "trials"])
+@pytest.mark.parametrize("what", ["stream", "tonic", "rate", "poisson", "background"])
 def test_what_is_not_modelled_yet_is_refused(what):
     lux = np.full((4, 4), 1.0)
     timer = MEM.replace(leak_on_hz=0.1, leak_regularity=0.5)
     with pytest.raises(ev.ParameterError, match="reset_memory"):
-        if what == "video":
-            ev.simulate_video(np.stack([lux, 2 * lux]), [0.0, 0.1], MEM, rng=1)
-        elif what == "stream":  # a stream with memory is modelled (mismatch too), with the regular timer not yet
+        if what == "stream":  # a stream with memory is modelled (mismatch too), with the regular timer not yet
             ev.NoiseStream((4, 4), timer, rng=1)
         elif what == "tonic":  # the tonic plugin models memory (mismatch too), with the regular timer not yet
             from evnoise.plugins.tonic import PhotonNoise
@@ -220,10 +218,8 @@ def test_what_is_not_modelled_yet_is_refused(what):
             ev.expected_rate(lux, MEM, thresholds=np.full((2, 4, 4), 0.5))
         elif what == "poisson":  # counts about the closed form: the nominal pixel's only
             ev.sample_counts(lux, MEM.replace(eps_sigma=0.05), 1.0, rng=1, distribution="poisson")
-        elif what == "background":  # a Poisson background is modelled (hot pixels too); the regular timer not yet
+        else:  # a Poisson background is modelled (hot pixels too); the regular timer not yet
             ev.simulate_events(lux, timer, 1.0, rng=1)
-        else:
-            ev.simulate_events(lux, MEM, 1.0, rng=1, method="trials")
 
 
 def test_expected_rate_of_a_pixel_with_memory_is_the_markov_renewal_rate():

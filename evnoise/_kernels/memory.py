@@ -20,7 +20,7 @@ import numpy as np
 from ._jit import kernel
 from .poisson import log_pmf, threshold_count
 from .rng import geometric, uniform, uniform_pos
-from .simulate import LAST_TAU, LAST_TRIAL, PEND_ON, PEND_TAU, PEND_TRIAL, first_eligible_trial
+from .simulate import LAST_TAU, LAST_TRIAL, PEND_ON, PEND_TAU, PEND_TRIAL, STORED, first_eligible_trial
 
 NO_EVENT = math.nan
 
@@ -92,6 +92,26 @@ def draw_initial(s, table, o, n_s, refr_us):
     if uniform(s) < table[ROW_DEAD, o + int(st)]:
         return st, uniform_pos(s) * refr_us
     return st, -1.0
+
+
+@kernel
+def initial_stored(states, fstate, group, offsets, sizes, lo, table, dt, refr_us):
+    """The trial tier's start in the steady state (:func:`evnoise._kernels.simulate.trial_window` with reset
+    memory): per pixel ``k`` of the chunk a state of its level ``group[k]`` drawn by :func:`draw_initial` from
+    its stream ``states[k]``, stored as the count ``lo[g] + state`` in ``fstate[k, STORED]``, and the last event's
+    time and trial when ``t = 0`` falls in its dead time (as :func:`memory_window` does)."""
+    s = np.empty(4, dtype=np.uint64)
+    for k in range(states.shape[0]):
+        for w in range(4):
+            s[w] = states[k, w]
+        g = group[k]
+        st, elapsed = draw_initial(s, table, offsets[g], sizes[g], refr_us)
+        fstate[k, STORED] = lo[g] + st
+        if elapsed > 0.0:
+            fstate[k, LAST_TAU] = -elapsed
+            fstate[k, LAST_TRIAL] = np.floor(-elapsed / dt)
+        for w in range(4):
+            states[k, w] = s[w]
 
 
 @kernel

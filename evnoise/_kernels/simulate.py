@@ -69,10 +69,11 @@ def _restore(states, fstate, k, snap_s, snap_f):
 #: (one row per pixel, so a pixel's state is one cache line): the last event's trial and time (µs),
 #: a pending event's trial, time (NaN: none) and polarity (1.0 ON), the reference and previous mean
 #: photon counts of the trial tier, its cached static probabilities (``CACHE_LAM`` the ``lam`` they
-#: belong to, NaN for none), and the regular timer's next arrival (trial) and its intensity (events/s).
+#: belong to, NaN for none), the regular timer's next arrival (trial) and its intensity (events/s), and the
+#: trial tier's stored count of the reset-memory term (the photon count the pixel reset at).
 (LAST_TRIAL, LAST_TAU, PEND_TRIAL, PEND_TAU, PEND_ON, LAM_REF, LAM_PREV, CACHE_LAM, CACHE_LOG1M_P, CACHE_Q_ON,
- BG_NEXT, BG_L) = range(12)
-N_STATE = 12
+ BG_NEXT, BG_L, STORED) = range(13)
+N_STATE = 13
 
 
 @kernel
@@ -325,7 +326,7 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
     ``thr`` ``(4, n)`` ``[c_on, c_off, eps_on, eps_off]``, ``states`` the random streams and
     ``fstate`` the state (columns :data:`LAST_TRIAL` ...; the reference ``LAM_REF``, the previous
     trial's mean ``LAM_PREV``). ``model`` is ``(b, dt, refr_us, lux_per_photon, dark_lux, pr_alpha,
-    regularity)``: the bias in photons per trial, the trial length and refractory period (µs) and the
+    regularity, memory)``: the bias in photons per trial, the trial length and refractory period (µs) and the
     terms below. Events at or after ``tau_limit`` (µs) are not emitted (the end of the recording).
 
     With ``fast_static`` a pixel whose ``lam`` is the same in every frame of the window and
@@ -373,7 +374,7 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
     snap_f = np.empty(fstate.shape[1])
     n_frames = frames_lam.shape[0]
     max_signal = 1 << 20
-    b, dt, refr_us, lux_per_photon, dark_lux, pr_alpha, regularity = model
+    b, dt, refr_us, lux_per_photon, dark_lux, pr_alpha, regularity, memory = model
     has_bg = bg.shape[1] > 0
     own_reg = bg.shape[0] > 4  # a regularity per pixel (hot pixels with their own), row 4
     dt_s = dt * 1e-6
@@ -508,6 +509,8 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
                     break
                 if fired:
                     ref = max(math.exp(lev_ref) - b, 0.0)
+                    if memory > 0.0:
+                        fstate[k, STORED] = poisson_emlam(s, ref, math.exp(-ref))
             if not fired and j > fstate[k, LAST_TRIAL] and s_j >= fstate[k, LAST_TAU] + refr_us:
                 if lam != lam_c:
                     lam_c = lam
@@ -516,7 +519,10 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
                     ref_c = ref
                     emr_c = math.exp(-ref)
                 n_sig = poisson_emlam(s, lam, em_c)
-                n_ref = poisson_emlam(s, ref, emr_c)
+                if memory > 0.0 and uniform(s) < memory:
+                    n_ref = fstate[k, STORED]
+                else:
+                    n_ref = poisson_emlam(s, ref, emr_c)
                 pol = -1
                 if n_sig > threshold_count(n_ref, thr[0, k], b):  # a float: no int64 wrap for large thresholds
                     pol = 1
@@ -561,6 +567,8 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
                     fstate[k, LAST_TAU] = tau
                     fstate[k, LAST_TRIAL] = j
                     ref = lam
+                    if memory > 0.0:
+                        fstate[k, STORED] = n_sig
                     if regularity > 0.0:
                         fstate[k, BG_NEXT] = math.nan
             fstate[k, LAM_PREV] = lam

@@ -38,7 +38,10 @@ models' event streams (coupled) differ with probability at most ``2 J tail_mass`
 :func:`memory_statistics`) grows (2e-6 at ``lam = 1e5``); there events need
 counts tens of standard deviations from ``lam`` for any ``eps`` above ``~5 / sqrt(lam)`` and the rate is 0.
 
-Supported: :func:`evnoise.simulate_events` / :func:`evnoise.iter_events` of static scenes, and
+Supported: :func:`evnoise.simulate_events` / :func:`evnoise.iter_events` of static scenes (``method="trials"``:
+trial by trial, :func:`evnoise._kernels.simulate.trial_window`, the reference for this tier), changing scenes
+(:func:`evnoise.simulate_video` / :func:`evnoise.iter_video`: static pixels here, changing ones trial by trial,
+every pixel started in the steady state of its light at the first trial), and
 :class:`evnoise.NoiseStream` (light held per interval: each pixel keeps its stored count across intervals
 and through changes of light, its level's tables widened to hold it; the v2e plugin runs on it) and the
 tonic plugin (each sample starts in the steady state), and :func:`evnoise.sample_counts` (the counts of
@@ -46,8 +49,7 @@ those events; its Poisson / negative-binomial variants about :func:`memory_stati
 generator's counts mode, all with threshold mismatch (``eps_sigma > 0`` or given ``thresholds``: pixels are
 grouped by chain, :func:`pixel_groups`). :func:`evnoise.expected_rate` gives :func:`memory_statistics`' rate
 (the nominal pixel's). Refused with :class:`~evnoise.ParameterError` (not yet modelled): the regular background
-timer, :func:`evnoise.simulate_video`, and per-pixel rates or Poisson counts for pixels whose thresholds or
-background differ.
+timer, and per-pixel rates or Poisson counts for pixels whose thresholds or background differ.
 
 Threshold mismatch. A pixel's chain reads its thresholds only through the threshold counts ``k_on(m)``,
 ``k_off(m)`` over its light's states, so pixels whose thresholds give the same counts share one chain, exactly
@@ -102,6 +104,10 @@ class ResetMemory(NoiseTerm):
     name = "memory"
     fields = ("reset_memory",)
 
+    def kernel_model(self, params) -> dict:
+        # the trial kernel's share of comparisons against the stored count (the trial tier: changing scenes)
+        return {"memory": float(params.reset_memory)}
+
 
 MEMORY = ResetMemory()
 
@@ -109,16 +115,6 @@ MEMORY = ResetMemory()
 def memory_on(params) -> bool:
     """True when ``params`` has reset memory (``reset_memory > 0``)."""
     return getattr(params, "reset_memory", 0.0) > 0
-
-
-def refuse(params, where: str) -> None:
-    """Raise :class:`~evnoise.ParameterError` when ``params`` (checked :class:`~evnoise.NoiseParams`) has reset
-    memory, which ``where`` does not model yet."""
-    if memory_on(params):
-        from ..errors import ParameterError
-
-        raise ParameterError(f"reset_memory > 0 is not supported by {where} yet (only simulate_events and iter_events "
-                             f"of static scenes model it); set reset_memory = 0")
 
 
 def unsupported(params, thresholds=None, background=None, per_pixel: bool = True) -> list:

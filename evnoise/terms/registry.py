@@ -19,7 +19,7 @@ TERMS: list[NoiseTerm] = []  # filled by evnoise.terms (its __init__), in order
 MAPS = ("thresholds", "background")
 
 #: Entries of the trial kernel's ``model`` tuple, in the kernel's order (:func:`kernel_model`).
-MODEL = ("bias", "trial_us", "refractory_us", "lux_per_photon", "dark_lux", "pr_alpha", "regularity")
+MODEL = ("bias", "trial_us", "refractory_us", "lux_per_photon", "dark_lux", "pr_alpha", "regularity", "memory")
 
 
 def register(new: NoiseTerm) -> None:
