@@ -547,9 +547,11 @@ def _fill_static_cache(state: PixelState, frames_lam: np.ndarray, params: NoiseP
 
 class _MemoryChains:
     """The reset-memory chains of a changing scene's pixels (:mod:`evnoise.terms.memory`): each pixel's chain at
-    its light at the start (static pixels: their light; changing ones: the first trial's), grouped as
-    :func:`~evnoise.terms.memory.pixel_groups` does over the whole sensor. ``group`` (per flat pixel) indexes
-    ``tables`` (:func:`~evnoise.terms.memory.kernel_tables`, without the rates) and ``rates`` (events/s)."""
+    the first frame's light (the scene before the video starts: each pixel's stored count is drawn from its steady
+    state there; the first frame's distinct values, not the interpolated first trial's, so that pixels share chains
+    as in a still scene), grouped as :func:`~evnoise.terms.memory.pixel_groups` does over the whole sensor.
+    ``group`` (per flat pixel) indexes ``tables`` (:func:`~evnoise.terms.memory.kernel_tables`, without the rates)
+    and ``rates`` (events/s)."""
 
     def __init__(self, lam_start, params, bg, eps_on, eps_off):
         from .terms.memory import kernel_tables, pixel_groups, state_range
@@ -572,16 +574,9 @@ class _MemoryChains:
         map_chunks(run, state.pix.size, threads)
 
 
-def _memory_setup(lam_of, lam_first_trial, stat_pix, dyn_pix, params, bg, eps_on, eps_off):
+def _memory_setup(lam_of, params, bg, eps_on, eps_off):
     """:class:`_MemoryChains` of a changing scene with reset memory, else None."""
-    if not memory_on(params):
-        return None
-    lam_start = np.empty(stat_pix.size + dyn_pix.size)
-    if stat_pix.size:
-        lam_start[stat_pix] = lam_of(0)[stat_pix]
-    if dyn_pix.size:
-        lam_start[dyn_pix] = lam_first_trial()
-    return _MemoryChains(lam_start, params, bg, eps_on, eps_off)
+    return _MemoryChains(lam_of(0), params, bg, eps_on, eps_off) if memory_on(params) else None
 
 
 def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us, duration_us, threads,
@@ -618,7 +613,7 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
         seg = np.clip(np.searchsorted(frame_us, centres, side="right") - 1, 0, frames.n - 2)
         return np.unique(np.concatenate([seg, seg + 1]))
 
-    mem = _memory_setup(lam_of, lam_first_trial, stat_pix, dyn_pix, params, bg, eps_on, eps_off)
+    mem = _memory_setup(lam_of, params, bg, eps_on, eps_off)
     # static pixels: closed-form probabilities once (with reset memory: their chains' tables)
     stat_timer = None
     if stat_pix.size and mem is not None:

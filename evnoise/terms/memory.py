@@ -41,7 +41,7 @@ counts tens of standard deviations from ``lam`` for any ``eps`` above ``~5 / sqr
 Supported: :func:`evnoise.simulate_events` / :func:`evnoise.iter_events` of static scenes (``method="trials"``:
 trial by trial, :func:`evnoise._kernels.simulate.trial_window`, the reference for this tier), changing scenes
 (:func:`evnoise.simulate_video` / :func:`evnoise.iter_video`: static pixels here, changing ones trial by trial,
-every pixel started in the steady state of its light at the first trial), and
+every pixel started in the steady state of the first frame's light), and
 :class:`evnoise.NoiseStream` (light held per interval: each pixel keeps its stored count across intervals
 and through changes of light, its level's tables widened to hold it; the v2e plugin runs on it) and the
 tonic plugin (each sample starts in the steady state), and :func:`evnoise.sample_counts` (the counts of
