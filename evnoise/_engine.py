@@ -336,22 +336,24 @@ def renewal_step(state: PixelState, width, log1m_p, q_on, dt, refr_us, j_min, w_
 
 
 def memory_step(state: PixelState, mem, width, group, tables, dt, refr_us, j_min, w_end, discard_from, t0_us,
-                threads, expected):
+                threads, expected, timer=None):
     """Run the reset-memory kernel (:func:`evnoise._kernels.memory.memory_window`) over all pixels of ``state``
     up to ``w_end``; returns chunk parts ``(t, x, y, p)`` (views of ``state``'s buffers: use them before the
     next window). ``mem``: each pixel's stored state (local index in its level ``group``; NaN before its first
     window), updated in place; ``tables``: ``(table, itable, offsets, sizes)`` of
-    :func:`evnoise.terms.memory.kernel_tables`; ``expected``: each pixel's expected events in the window."""
+    :func:`evnoise.terms.memory.kernel_tables`; ``expected``: each pixel's expected events in the window;
+    ``timer``: its groups' regular timer ``(3, groups)`` (None: none)."""
     from ._kernels.memory import memory_window
 
     table, itable, offsets, sizes = tables
+    timer = np.zeros((3, 0)) if timer is None else timer
 
     def run(lo, hi):
         out = state.buffers(lo, int(1.2 * expected[lo:hi].sum() + 64))
         on = np.zeros(hi - lo, dtype=np.int64)
         off = np.zeros(hi - lo, dtype=np.int64)
         out, n = run_to_end(lambda buf, n, k: memory_window(
-            width, state.pix[lo:hi], group[lo:hi], offsets, sizes, table, itable, state.states[lo:hi],
+            width, state.pix[lo:hi], group[lo:hi], offsets, sizes, table, itable, timer, state.states[lo:hi],
             state.fstate[lo:hi], mem[lo:hi], dt, float(refr_us), float(j_min), float(w_end), float(discard_from),
             np.int64(t0_us), buf, n, k, on, off, True), out, hi - lo)
         state.keep(lo, out)

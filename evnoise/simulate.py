@@ -211,7 +211,7 @@ def _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, t
     run = run_setup(lux.shape, params, rng, thresholds=thresholds, background=background)
     params, key, (eps_on, eps_off), bg = run.params, run.key, run.thresholds, run.background
     if memory_on(params):
-        check_supported(params, thresholds, background)
+        check_supported(params, thresholds, background, timer=method != "trials")
     if memory_on(params) and method != "trials":
         return _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, sink, bg=bg,
                             thresholds=(eps_on, eps_off))
@@ -284,12 +284,13 @@ def _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, s
     level, background and thresholds (``bg``: the run's flat maps or None; ``thresholds``: its flat per-pixel
     ``(eps_on, eps_off)`` or None), each advanced event by event over its group's state tables
     (:mod:`evnoise._kernels.memory`)."""
-    from .terms.memory import kernel_tables, pixel_groups
+    from .terms.memory import chain_timer, kernel_tables, pixel_groups
 
     width = lux.shape[1]
     lam = params.photons_per_trial(lux).ravel()
-    levels, a_on, a_off, group, eps = pixel_groups(lam, params, bg, thresholds)
-    tables = kernel_tables(levels, params, background=(a_on, a_off), thresholds=eps)
+    levels, a_on, a_off, reg, group, eps = pixel_groups(lam, params, bg, thresholds, with_timer=True)
+    timer = chain_timer(a_on, a_off, reg, params)
+    tables = kernel_tables(levels, params, background=(a_on, a_off), thresholds=eps, timer=timer)
     level_rates = tables[4]
     nu = level_rates[group]
     dt = params.trial_us
@@ -299,7 +300,7 @@ def _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, s
 
     def step(state, t_prev, w_end):
         return memory_step(state, mem, width, group, tables[:4], dt, refr, 0.0, float(w_end), math.inf,
-                           np.int64(t_start_us), threads, nu * ((w_end - t_prev) * 1e-6))
+                           np.int64(t_start_us), threads, nu * ((w_end - t_prev) * 1e-6), timer)
 
     return _static_windows(lux.size, key, threads, total, t_start_us, duration_us, progress, sink,
                            1.2 * total + 8.0 * math.sqrt(total) + 4096, step)
@@ -769,7 +770,7 @@ def sample_counts(
                     draw_key=distribution == "exact")
     params, gen, key, (eps_on, eps_off), bg = run.params, run.gen, run.key, run.thresholds, run.background
     if memory_on(params):
-        check_supported(params, thresholds, background)
+        check_supported(params, thresholds, background, timer=True)
         return _memory_counts(lux, params, key, duration_us, threads, distribution, gen, r if
                               distribution == "negative-binomial" else None, bg, (eps_on, eps_off), thresholds)
     lam = params.photons_per_trial(lux).ravel()

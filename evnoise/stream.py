@@ -51,7 +51,8 @@ class NoiseStream:
     is kept (clamped into the new light's state range, which spans the new ``lam`` ± many standard
     deviations: only a jump of the light beyond that range moves it). A Poisson background (hot pixels and a
     spread leak included) and threshold mismatch are part of the memory model; the regular background timer is
-    not modelled with reset memory yet (:class:`~evnoise.ParameterError`). With mismatch or a spread leak most
+    not modelled with reset memory in a stream yet (:class:`~evnoise.ParameterError`; still scenes run it:
+    :func:`evnoise.simulate_events`). With mismatch or a spread leak most
     pixels have a chain of their own, and after a change of light each chain's tables widen to hold the counts
     stored under the old light, so a large sensor can pass the table budget
     (``evnoise.terms.memory.MAX_TABLE_STATES``) at the change (a :class:`~evnoise.ParameterError` then) where a

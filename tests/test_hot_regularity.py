@@ -124,10 +124,19 @@ def test_noise_stream_runs_the_same_model():
     check_gaps(gaps[~hot[pix]], leak, 0.8, QUIET.trial_rate_hz, duration_s)
 
 
-def test_reset_memory_refuses_a_timer_of_the_hot_pixels():
+def test_reset_memory_runs_the_hot_pixels_own_timer():
+    """With reset memory (its renewal tier) hot pixels keep a timer of their own: in the dark (no photon noise,
+    background alone) their gaps have its mean and variance, the ordinary pixels' the Poisson leak's. (Refused
+    before memory ran with the timer.)"""
     params = QUIET.replace(leak_regularity=0.0, hot_pixel_regularity=0.5, reset_memory=0.3)
-    with pytest.raises(ev.ParameterError, match="hot_pixel_regularity"):
-        ev.simulate_events(np.zeros((4, 4)), params, 1.0, rng=1)
+    shape, duration_s = (16, 16), 100.0
+    bg = ev.draw_background(shape, params, rng=9)
+    hot = bg[1].ravel() > 0
+    events = ev.simulate_events(np.zeros(shape), params, duration_s, rng=13, background=bg)
+    gaps, pix = gaps_by_pixel(events, shape[1])
+    leak = params.leak_on_hz + params.leak_off_hz
+    check_gaps(gaps[hot[pix]], leak + params.hot_pixel_rate_hz, 0.5, params.trial_rate_hz, duration_s)
+    check_gaps(gaps[~hot[pix]], leak, 0.0, params.trial_rate_hz, duration_s)
 
 
 @pytest.mark.parametrize("off", [dict(hot_pixel_fraction=0.0), dict(hot_pixel_rate_hz=0.0)])

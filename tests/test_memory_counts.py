@@ -44,14 +44,20 @@ def test_mean_counts_follow_the_memory_closed_form(distribution):
         assert abs(memoryless[pol] - want[pol]) > 2 * K_SIGMA * se  # the two models are told apart here
 
 
-def test_counts_with_memory_still_refuse_what_the_memory_tier_lacks():
-    """The regular timer is refused; threshold mismatch is modelled (the events' counts, same seed)."""
+def test_counts_with_memory_are_the_events_counts_with_mismatch_and_the_timer():
+    """Threshold mismatch and the regular timer are modelled: the counts are the events' (same seed); the Poisson
+    variant of a pixel with the timer is about the closed form's rate."""
     lux = np.full((4, 4), 1.0)
-    params = MEM.replace(eps_sigma=0.05)
-    np.testing.assert_array_equal(ev.sample_counts(lux, params, 1.0, rng=1),
-                                  ev.count_events(ev.simulate_events(lux, params, 1.0, rng=1), lux.shape))
-    with pytest.raises(ev.ParameterError, match="reset_memory"):
-        ev.sample_counts(lux, MEM.replace(leak_on_hz=0.1, leak_regularity=0.5), 1.0, rng=1)
+    for params in (MEM.replace(eps_sigma=0.05), MEM.replace(leak_on_hz=20.0, leak_regularity=0.5)):
+        np.testing.assert_array_equal(ev.sample_counts(lux, params, 1.0, rng=1),
+                                      ev.count_events(ev.simulate_events(lux, params, 1.0, rng=1), lux.shape))
+    timed = MEM.replace(leak_on_hz=20.0, leak_regularity=0.5)
+    big = np.full((50, 50), 1.0)
+    counts = ev.sample_counts(big, timed, 2.0, rng=2, distribution="poisson")
+    want = memory.memory_statistics(1.0, timed).rate_hz * 2.0
+    for pol in (0, 1):
+        c = counts[pol].ravel().astype(float)
+        assert abs(c.mean() - want[pol]) <= K_SIGMA * c.std(ddof=1) / np.sqrt(c.size), (pol, c.mean(), want[pol])
 
 
 def test_dataset_counts_mode_with_memory_counts_the_memory_tier():

@@ -18,6 +18,7 @@ import math
 import numpy as np
 
 from ._jit import kernel
+from .background import draw_timer, draw_timer_stationary
 from .poisson import log_pmf, threshold_count
 from .rng import geometric, uniform, uniform_pos
 from .simulate import LAST_TAU, LAST_TRIAL, PEND_ON, PEND_TAU, PEND_TRIAL, STORED, first_eligible_trial
@@ -189,8 +190,8 @@ def draw_event(s, table, itable, o, n_s, st):
 
 
 @kernel
-def memory_window(width, pix, group, offsets, sizes, table, itable, states, fstate, mem, dt, refr_us, j_min, w_end,
-                  discard_from_trial, t0_us, out, n, k_start, on_counts, off_counts, store):
+def memory_window(width, pix, group, offsets, sizes, table, itable, timer, states, fstate, mem, dt, refr_us, j_min,
+                  w_end, discard_from_trial, t0_us, out, n, k_start, on_counts, off_counts, store):
     """Advance static pixels with reset memory up to time ``w_end`` (µs); the memory twin of ``renewal_window``.
 
     No trial before ``j_min`` is drawn, and a drawn event beyond ``w_end`` whose trial starts at or after
@@ -206,11 +207,22 @@ def memory_window(width, pix, group, offsets, sizes, table, itable, states, fsta
     then drawn, with its last event's time when ``t = 0`` is in its dead time, from the steady state:
     :func:`draw_initial`).
 
+    The regular background timer (:mod:`evnoise._kernels.background`): ``timer`` is ``(3, groups)``, per group
+    the timer's fixed part ``d`` (trials; ``inf``: none, the background is Poisson and in the tables' rows), its
+    ``log1p(-a2)`` and the share of ON arrivals, or ``(3, 0)`` for no group. A group with a timer has tables of
+    photon noise alone (``ROW_LOG1M_P``, and ``ROW_BG_*`` 0): from the first eligible trial the photon event comes
+    after ``G`` trials (geometric), the timer's after ``L`` (:func:`draw_timer`; at a pixel's start outside its
+    dead time :func:`draw_timer_stationary` with its state's photon probability), the photon event first when
+    ``G <= L`` (the trial kernel compares photons first); a timer event's polarity is ON with its share, and it
+    stores the count of a trial without photon event (:func:`_quiet_count`). With a refractory period only a
+    pixel's first event is approximate there (as for memoryless pixels with the timer).
+
     Events go to ``out = (t, x, y, p)`` from slot ``n``; counts to ``on_counts``, ``off_counts``. Returns
     ``(n, k)`` like ``renewal_window`` (``k = len(pix)``: done; else the buffers are full and pixel ``k``
     keeps its next event pending: grow them and call again from ``k``).
     """
     t_out, x_out, y_out, p_out = out
+    has_timer = timer.shape[1] > 0
     cap = t_out.shape[0] if store else 0
     n_pix = pix.shape[0]
     s = np.empty(4, dtype=np.uint64)
@@ -226,11 +238,15 @@ def memory_window(width, pix, group, offsets, sizes, table, itable, states, fsta
         o = offsets[g]
         n_s = sizes[g]
         st = mem[k]
+        d_timer = timer[0, g] if has_timer else math.inf
+        stationary_timer = False
         if math.isnan(st):
             st, elapsed = draw_initial(s, table, o, n_s, refr_us)
             if elapsed > 0.0:  # in the dead time of an event at -elapsed µs (in trial floor(-elapsed / dt) < 0)
                 fstate[k, LAST_TAU] = -elapsed
                 fstate[k, LAST_TRIAL] = np.floor(-elapsed / dt)
+            else:
+                stationary_timer = True
         jp = fstate[k, PEND_TRIAL]
         code = fstate[k, PEND_ON]  # pending event: on + 2 * (new state + 1)
         x_pix = pix[k] % width
@@ -247,14 +263,29 @@ def memory_window(width, pix, group, offsets, sizes, table, itable, states, fsta
                 else:
                     j_e = first_eligible_trial(lt, lta, refr_us, dt)
                 j_e = max(j_e, j_min)
-                gap = geometric(s, table[ROW_LOG1M_P, o + int(st)])
+                log1m_p = table[ROW_LOG1M_P, o + int(st)]
+                gap = geometric(s, log1m_p)
+                from_timer = False
+                if d_timer < math.inf:
+                    if stationary_timer:
+                        arrival = draw_timer_stationary(s, d_timer, timer[1, g], log1m_p)
+                    else:
+                        arrival = draw_timer(s, d_timer, timer[1, g])
+                    from_timer = arrival < gap
+                    if from_timer:
+                        gap = arrival
+                stationary_timer = False
                 if gap == math.inf:
                     tau = math.inf
                     jp = math.inf
                     break
                 jp = j_e + gap - 1.0
                 tau = (jp + uniform(s)) * dt
-                on, new_st = draw_event(s, table, itable, o, n_s, st)
+                if from_timer:
+                    on = uniform(s) < timer[2, g]
+                    new_st = _quiet_count(table, itable, o, n_s, o + int(st), uniform_pos(s))
+                else:
+                    on, new_st = draw_event(s, table, itable, o, n_s, st)
                 code = (1.0 if on else 0.0) + 2.0 * (new_st + 1.0)
             if tau >= w_end:
                 break

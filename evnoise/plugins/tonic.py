@@ -139,7 +139,7 @@ class PhotonNoise:
 
         self._setup = run_setup((height, width), params, map_rng, draw_key=False)
         if memory_on(self._setup.params):
-            check_supported(self._setup.params)
+            check_supported(self._setup.params, timer=True)
         self.params = self._setup.params
         self._thresholds = self._setup.threshold_map() if self.params.eps_sigma > 0 else None
         self._background = self._setup.background_map()
@@ -148,17 +148,19 @@ class PhotonNoise:
     def _precompute(self):
         """The renewal kernel's per-pixel inputs at ``self.lux`` (what ``simulate_events`` computes per call)."""
         from .._engine import static_inputs
-        from ..terms.memory import kernel_tables, memory_on, pixel_groups
+        from ..terms.memory import chain_timer, kernel_tables, memory_on, pixel_groups
 
         run = self._setup
         lam = self.params.photons_per_trial(self.lux).ravel()
         self._pix = np.arange(self.lux.size, dtype=np.int64)
         self._memory = None
         if memory_on(self.params):  # reset memory: the state tables of the map's light levels (terms/memory.py)
-            levels, a_on, a_off, group, eps = pixel_groups(lam, self.params, run.background, run.thresholds)
+            levels, a_on, a_off, reg, group, eps = pixel_groups(lam, self.params, run.background, run.thresholds,
+                                                                with_timer=True)
+            timer = chain_timer(a_on, a_off, reg, self.params)
             table, itable, offsets, sizes, rates = kernel_tables(levels, self.params, background=(a_on, a_off),
-                                                                 thresholds=eps)
-            self._memory = (group, (table, itable, offsets, sizes))
+                                                                 thresholds=eps, timer=timer)
+            self._memory = (group, (table, itable, offsets, sizes), timer)
             self._nu = rates[group]
             return
         self._log1m_p, self._q_on, self._timer, self._nu = static_inputs(lam, self.params, run.eps_on, run.eps_off,
@@ -241,10 +243,10 @@ class PhotonNoise:
         threads = resolve_threads(self.threads)
         state = PixelState(self._pix, key, threads)
         if self._memory is not None:  # each sample starts in the steady state of its light (stored counts drawn)
-            group, tables = self._memory
+            group, tables, timer = self._memory
             parts = memory_step(state, np.full(self._pix.size, math.nan), self.sensor_size[0], group, tables,
                                 self.params.trial_us, self.params.refractory_us, 0.0, float(span_us), math.inf,
-                                t_first, threads, self._nu * (span_us * 1e-6))
+                                t_first, threads, self._nu * (span_us * 1e-6), timer)
         else:
             parts = renewal_step(state, self.sensor_size[0], self._log1m_p, self._q_on, self.params.trial_us,
                                  self.params.refractory_us, 0, span_us, math.inf, t_first, threads,

@@ -48,8 +48,15 @@ tonic plugin (each sample starts in the steady state), and :func:`evnoise.sample
 those events; its Poisson / negative-binomial variants about :func:`memory_statistics`' rate) with the dataset
 generator's counts mode, all with threshold mismatch (``eps_sigma > 0`` or given ``thresholds``: pixels are
 grouped by chain, :func:`pixel_groups`). :func:`evnoise.expected_rate` gives :func:`memory_statistics`' rate
-(the nominal pixel's). Refused with :class:`~evnoise.ParameterError` (not yet modelled): the regular background
-timer, and per-pixel rates or Poisson counts for pixels whose thresholds or background differ.
+(the nominal pixel's). The regular background timer (``leak_regularity``, ``hot_pixel_regularity``) runs with
+memory in still scenes (:func:`evnoise.simulate_events` / ``iter_events`` with the renewal tier, ``sample_counts``,
+``expected_rate``, the tonic plugin): from state ``m`` the next event comes after ``min(G, L)`` eligible trials,
+``G`` the photon gap, ``L`` the timer's (photons first on a tie), a timer event storing the count of a trial without
+photon event; the closed form is the chain with a per-state background (:func:`with_timer`), the kernel draws
+both gaps (:func:`evnoise._kernels.memory.memory_window`). Refused with :class:`~evnoise.ParameterError` (not yet
+modelled): the timer with memory in the trial tier, in changing scenes and in :class:`evnoise.NoiseStream` (a
+pending timer arrival is not kept across a change of light), :func:`memory_iei_cdf` with the timer (not
+geometric), and per-pixel rates or Poisson counts for pixels whose thresholds or background differ.
 
 Threshold mismatch. A pixel's chain reads its thresholds only through the threshold counts ``k_on(m)``,
 ``k_off(m)`` over its light's states, so pixels whose thresholds give the same counts share one chain, exactly
@@ -117,14 +124,18 @@ def memory_on(params) -> bool:
     return getattr(params, "reset_memory", 0.0) > 0
 
 
-def unsupported(params, thresholds=None, background=None, per_pixel: bool = True) -> list:
+def unsupported(params, thresholds=None, background=None, per_pixel: bool = True, timer: bool = False) -> list:
     """What the reset-memory model does not cover yet for ``params`` (checked :class:`~evnoise.NoiseParams`),
     in words (empty: all of it is covered; see the module doc). ``per_pixel``: whether the caller handles a
     background or thresholds that differ between pixels (hot pixels, ``leak_sigma``, threshold mismatch, given maps:
-    the simulators group pixels by their chain); a closed form for one pixel or the population does not."""
+    the simulators group pixels by their chain); a closed form for one pixel or the population does not.
+    ``timer``: whether the caller runs the regular background timer with memory (static scenes: the renewal tier
+    and its closed form; not the trial tier nor a stream whose light changes)."""
     missing = []
-    if params.regular_background:
-        missing.append("a regular background timer (leak_regularity > 0 or hot_pixel_regularity > 0)")
+    if params.regular_background and not timer:
+        missing.append("a regular background timer (leak_regularity > 0 or hot_pixel_regularity > 0) in this "
+                       "entry point (only simulate_events / iter_events of still scenes, sample_counts, "
+                       "expected_rate and the tonic transform run it with memory)")
     if not per_pixel:
         if params.eps_sigma > 0 or thresholds is not None:
             missing.append("threshold mismatch (eps_sigma > 0 or given thresholds)")
@@ -137,17 +148,18 @@ def unsupported(params, thresholds=None, background=None, per_pixel: bool = True
     return missing
 
 
-def check_supported(params, thresholds=None, background=None) -> None:
-    """Refuse, naming it, what the reset-memory simulator does not support yet (see the module doc)."""
+def check_supported(params, thresholds=None, background=None, timer: bool = False) -> None:
+    """Refuse, naming it, what the reset-memory simulator does not support yet (see the module doc; ``timer``: as in
+    :func:`unsupported`)."""
     from ..errors import ParameterError
 
-    missing = unsupported(params, thresholds, background)
+    missing = unsupported(params, thresholds, background, timer=timer)
     if missing:
         raise ParameterError(f"reset_memory > 0 does not support {', '.join(missing)} yet; set reset_memory = 0 "
                              f"or turn them off")
 
 
-def pixel_groups(lam, params, background=None, thresholds=None, class_spans=None):
+def pixel_groups(lam, params, background=None, thresholds=None, class_spans=None, with_timer: bool = False):
     """Pixels grouped by their chain: ``(levels, a_on, a_off, group, eps)``, the distinct chains' photons per trial,
     per-trial background arrival probabilities (:func:`level_background`) and thresholds ``eps = (eps_on,
     eps_off)``, and each pixel's index ``group`` into them. ``background``: the run's flat ``(scale, hot)`` maps
@@ -159,7 +171,10 @@ def pixel_groups(lam, params, background=None, thresholds=None, class_spans=None
     reads a threshold through its counts ``k(m) = m + floor(expm1(eps) (m + b))`` over the level's states
     (:func:`threshold_classes`), so pixels whose thresholds give the same counts share a chain exactly.
     ``class_spans``: ``{lam: (lo, n_states)}``, the states over which they must agree (default
-    :func:`state_range`'s; :class:`evnoise.NoiseStream` widens them to hold counts stored under another light)."""
+    :func:`state_range`'s; :class:`evnoise.NoiseStream` widens them to hold counts stored under another light).
+
+    ``with_timer``: also group by the regular timer's regularity (:func:`evnoise.terms.timer.pixel_regularity`;
+    hot pixels may have their own) and return it: ``(levels, a_on, a_off, regularity, group, eps)``."""
     lam = np.asarray(lam, dtype=np.float64).ravel()
     if thresholds is None:
         eps_on, eps_off = np.full(lam.shape, params.eps_pos), np.full(lam.shape, params.eps_neg)
@@ -181,12 +196,92 @@ def pixel_groups(lam, params, background=None, thresholds=None, class_spans=None
             lo, n_states = (class_spans or {}).get(float(level)) or state_range(float(level))[:2]
             class_on[sel] = threshold_classes(eps_on[sel], lo, n_states, params.bias_pr)
             class_off[sel] = threshold_classes(eps_off[sel], lo, n_states, params.bias_pr)
-    rows, first, group = np.unique(np.stack([lam, a_on, a_off, class_on, class_off], axis=1), axis=0,
-                                   return_index=True, return_inverse=True)
+    columns = [lam, a_on, a_off, class_on, class_off]
+    if with_timer:
+        from .timer import pixel_regularity
+
+        reg = pixel_regularity(params, None if background is None else background[1]) if params.regular_background \
+            else 0.0
+        columns.append(np.broadcast_to(np.asarray(reg, dtype=np.float64), lam.shape))
+    rows, first, group = np.unique(np.stack(columns, axis=1), axis=0, return_index=True, return_inverse=True)
     # each group's thresholds: those of its first pixel (all of its pixels have the same counts)
-    return (np.ascontiguousarray(rows[:, 0]), np.ascontiguousarray(rows[:, 1]), np.ascontiguousarray(rows[:, 2]),
-            np.ascontiguousarray(group.ravel(), dtype=np.int64),
-            (np.ascontiguousarray(eps_on[first]), np.ascontiguousarray(eps_off[first])))
+    out = [np.ascontiguousarray(rows[:, 0]), np.ascontiguousarray(rows[:, 1]), np.ascontiguousarray(rows[:, 2]),
+           np.ascontiguousarray(group.ravel(), dtype=np.int64),
+           (np.ascontiguousarray(eps_on[first]), np.ascontiguousarray(eps_off[first]))]
+    if with_timer:
+        out.insert(3, np.ascontiguousarray(rows[:, 5]))
+    return tuple(out)
+
+
+def chain_timer(a_on, a_off, regularity, params):
+    """The regular background timer of chains with per-trial background arrival probabilities ``a_on``, ``a_off``
+    and ``regularity`` (arrays, one entry per chain): ``(3, chains)``, the timer's fixed part ``d`` (trials),
+    ``log1p(-a2)`` (:func:`evnoise.terms.timer.timer_shape`, from the intensity ``-log1p(-a) N`` that gives the
+    arrival probability ``a = a_on + a_off``) and the share of ON arrivals; or None when no chain has one.
+    ``d = inf`` where a chain's background is Poisson (regularity 0, the timer's law then, or no background):
+    the tables hold that background (:func:`kernel_tables`)."""
+    from .timer import timer_shape
+
+    a_on = np.asarray(a_on, dtype=np.float64)
+    a_off = np.asarray(a_off, dtype=np.float64)
+    a = a_on + a_off
+    reg = np.broadcast_to(np.asarray(regularity, dtype=np.float64), a.shape)
+    has = (a > 0) & (reg > 0)
+    if not has.any():
+        return None
+    with np.errstate(divide="ignore"):
+        l_all = np.where(has, -np.log1p(-np.minimum(a, 1.0)) * params.trial_rate_hz, 0.0)
+    d, log1m_a2 = timer_shape(np.where(np.isfinite(l_all), l_all, 1e300), 1.0 / params.trial_rate_hz,
+                              np.where(has, reg, 0.0))
+    share_on = np.where(a > 0, a_on / np.where(a > 0, a, 1.0), 0.0)
+    return np.ascontiguousarray(np.stack([np.where(has, d, math.inf), np.where(has, log1m_a2, 0.0), share_on]))
+
+
+def with_timer(t, a_on: float, a_off: float, d: float, log1m_a2: float):
+    """The tables ``t`` of a chain whose background (``a_on``, ``a_off``) arrives by the regular timer (``d``,
+    ``log1m_a2``: :func:`chain_timer`), as a chain with a per-state background: from state ``m`` the next event
+    comes after ``min(G, L)`` eligible trials (``G`` geometric with the photon probability ``p(m)``, ``L`` the
+    timer; photons first on a tie), so the event is a photon one with probability ``p(m) E[min(G, L)]`` and the
+    mean sojourn is ``E[min(G, L)]`` trials (:func:`evnoise.terms.timer.timer_mean_min`, the fixed part's
+    fraction mixed). Per-state arrival probabilities ``a(m)`` with ``p + (1 - p) a = 1 / E[min]`` give the chain
+    (:func:`_stationary`), the rates and mean intervals (:func:`level_statistics`) and the steady state
+    (:func:`initial_law`) of that process; not its interval distribution (not geometric)."""
+    from .timer import timer_mean_min
+
+    p = t.photon_event
+    with np.errstate(divide="ignore"):
+        log1m_p = np.log1p(-p)
+    d0 = math.floor(d)
+    phi = d - d0
+    e_min = ((1.0 - phi) * timer_mean_min(log1m_p, p, d0, log1m_a2)
+             + phi * timer_mean_min(log1m_p, p, d0 + 1.0, log1m_a2))
+    photon_first = np.minimum(p * e_min, 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a_eff = np.where(p < 1.0, (1.0 - photon_first) / (e_min * np.where(p < 1.0, 1.0 - p, 1.0)), 0.0)
+        photon_on = np.where(p > 0, (t.p_fresh_on + t.stored_on) / np.where(p > 0, p, 1.0), 0.0)
+    share_on = a_on / (a_on + a_off)
+    # the sojourn up to a photon event, and up to a timer one: E[G; G <= L] and E[L; L < G]
+    by_photon = ((1.0 - phi) * _photon_first_mean(log1m_p, p, d0, log1m_a2)
+                 + phi * _photon_first_mean(log1m_p, p, d0 + 1.0, log1m_a2))
+    by_timer = np.maximum(e_min - by_photon, 0.0)
+    return dataclasses.replace(t, a_on=a_eff * share_on, a_off=a_eff * (1.0 - share_on),
+                               gap_on=photon_on * by_photon + share_on * by_timer,
+                               gap_off=(1.0 - photon_on) * by_photon + (1.0 - share_on) * by_timer)
+
+
+def _photon_first_mean(log1m_p, p, d, log1m_a2):
+    """``E[G 1{G <= d + G2}]`` for a whole ``d`` (``G`` geometric with ``p``, ``G2`` with ``a2``; arrays): the sum
+    over ``g <= d`` is ``(1 - q^d (1 + d p)) / p``, beyond ``p q^d (d / (1 - q c) + 1 / (1 - q c)^2)`` with ``c = 1 -
+    a2`` (``1 - q c = -expm1(log q + log c)``); 1 where ``p = 1``, 0 where ``p = 0``."""
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        live = (p > 0) & (p < 1)
+        lq = np.where(live, log1m_p, -1.0)
+        p_s = np.where(live, p, 1.0)
+        q_d = np.exp(d * lq)
+        head = (-np.expm1(d * lq) - d * p_s * q_d) / p_s
+        one_m_qc = -np.expm1(lq + log1m_a2)
+        tail = p_s * q_d * (d / one_m_qc + 1.0 / one_m_qc**2)
+    return np.where(live, head + tail, np.where(p >= 1.0, 1.0, 0.0))
 
 
 #: Most threshold-count breakpoints :func:`threshold_classes` sorts per light level; beyond, each distinct
@@ -239,18 +334,15 @@ def threshold_classes(eps, lo: int, n_states: int, bias: float) -> np.ndarray:
 
 def level_background(levels, params, scale=None, hot=None):
     """Per-trial background arrival probabilities ``(a_on, a_off)`` at the light levels ``levels`` (photons per
-    trial; a Poisson background, :mod:`evnoise.background`), 0 without background: the nominal pixel's, or with
-    ``scale``, ``hot`` (arrays like ``levels``) each pixel's of the background maps."""
-    from ..errors import ParameterError
+    trial; :mod:`evnoise.background`; with the regular timer, the intensities' per-trial probabilities that
+    :func:`chain_timer` turns into the timer), 0 without background: the nominal pixel's, or with ``scale``,
+    ``hot`` (arrays like ``levels``) each pixel's of the background maps."""
     from .arrivals import arrival_shares, lux_of_photons
     from .registry import background_on, intensities
 
     lam = np.atleast_1d(np.asarray(levels, dtype=np.float64))
     if not background_on(params):
         return np.zeros(lam.shape), np.zeros(lam.shape)
-    if params.regular_background:
-        raise ParameterError("reset_memory > 0 does not support a regular background timer (leak_regularity > 0 or "
-                             "hot_pixel_regularity > 0) yet; set reset_memory = 0 or the regularities to 0")
     l_on, l_off = intensities(lux_of_photons(lam, params), params, scale, hot)
     a_on, a_off = arrival_shares(np.broadcast_to(l_on, lam.shape), np.broadcast_to(l_off, lam.shape),
                                  params.trial_rate_hz)
@@ -337,9 +429,13 @@ class LevelTables:
         ``(1 - k) Poisson(j) P(fresh reference not beaten)``: the joint law of the trial's count ``j`` and no
         fresh event (with the stored branch's ``k Poisson(j)`` on ``idx_off(m) < j < idx_on(m)``, the law of the
         count of a trial without photon event: what a background event stores).
-    a_on, a_off : float
+    a_on, a_off : float or numpy.ndarray
         Per-trial background arrival probabilities (0: none): a trial without photon event has a background
-        event with probability ``a_on + a_off``, ON with probability ``a_on / (a_on + a_off)``.
+        event with probability ``a_on + a_off``, ON with probability ``a_on / (a_on + a_off)``; per state with the
+        regular timer (:func:`with_timer`).
+    gap_on, gap_off : numpy.ndarray or None
+        With the regular timer (:func:`with_timer`), per state ``E[T 1{next event ON}]`` and OFF alike, in eligible
+        trials (the sojourn and the next polarity are not independent then); None: they are (``q_on / P``).
     """
 
     k: float
@@ -360,6 +456,8 @@ class LevelTables:
     none_fresh: np.ndarray
     a_on: float = 0.0
     a_off: float = 0.0
+    gap_on: np.ndarray | None = None
+    gap_off: np.ndarray | None = None
 
     @property
     def photon_event(self) -> np.ndarray:
@@ -393,13 +491,15 @@ class LevelTables:
         return np.minimum(self.p_on + self.p_off, 1.0)
 
 
-def kernel_tables(levels, params, spans=None, background=None, thresholds=None):
+def kernel_tables(levels, params, spans=None, background=None, thresholds=None, timer=None):
     """The kernel's tables of the light levels ``levels`` (photons per trial) of one run.
 
     ``spans``: optional ``(lo, n_states)`` per level replacing :func:`state_range`'s (a wider range, holding
     stored counts of another light: :class:`evnoise.NoiseStream`). ``background``: optional ``(a_on, a_off)`` per
     level (:func:`pixel_groups`), else the nominal pixel's (:func:`level_background`). ``thresholds``: optional
-    ``(eps_on, eps_off)`` per level (:func:`pixel_groups`), else the nominal ones.
+    ``(eps_on, eps_off)`` per level (:func:`pixel_groups`), else the nominal ones. ``timer``: the levels' regular
+    background timer (:func:`chain_timer`) or None: a level with one has tables of photon noise alone (its
+    background is the kernel's timer) and the steady state and rate of :func:`with_timer`.
 
     Returns ``(table, itable, offsets, sizes, rates)``: float rows ``ROW_*`` and integer rows ``ROW_IDX_*`` of
     :mod:`evnoise._kernels.memory` over all levels' states (level ``g``'s at ``offsets[g] .. + sizes[g]``) and
@@ -438,12 +538,21 @@ def kernel_tables(levels, params, spans=None, background=None, thresholds=None):
         return (float(levels[g]), None if spans is None else tuple(ranges[g][:2]), float(eps_on[g]),
                 float(eps_off[g]))
 
+    def timed(g):
+        return timer is not None and timer[0, g] < math.inf
+
+    def with_background(g, base):  # group g's chain with its background (Poisson, or the timer's per state)
+        if timed(g):
+            return with_timer(base, float(bg_on[g]), float(bg_off[g]), float(timer[0, g]), float(timer[1, g]))
+        return dataclasses.replace(base, a_on=float(bg_on[g]), a_off=float(bg_off[g]))
+
     def write(g, base):  # group g's rows but the initial law's; returns its tables with its background
-        t = dataclasses.replace(base, a_on=float(bg_on[g]), a_off=float(bg_off[g]))
+        t = with_background(g, base)
         cols = slice(offsets[g], offsets[g] + sizes[g])
         p = t.p_event
         with np.errstate(divide="ignore"):
-            table[km.ROW_LOG1M_P, cols] = np.log1p(-p)
+            # the kernel draws the photon gap from this; a timer's arrivals are its own draws
+            table[km.ROW_LOG1M_P, cols] = np.log1p(-(t.photon_event if timed(g) else p))
         table[km.ROW_FRESH_ON, cols] = t.p_fresh_on
         table[km.ROW_FRESH_OFF, cols] = t.p_fresh_off
         table[km.ROW_STORED_ON, cols] = t.stored_on
@@ -454,7 +563,7 @@ def kernel_tables(levels, params, spans=None, background=None, thresholds=None):
         table[km.ROW_HEAD, cols] = t.head
         itable[km.ROW_IDX_ON, cols] = t.idx_on
         itable[km.ROW_IDX_OFF, cols] = t.idx_off
-        quiet = 1.0 - t.photon_event
+        quiet = 0.0 if timed(g) else 1.0 - t.photon_event
         table[km.ROW_BG_ON, cols] = quiet * t.a_on
         table[km.ROW_BG_OFF, cols] = quiet * t.a_off
         table[km.ROW_CUM_NONE, cols] = np.cumsum(t.none_fresh)
@@ -487,11 +596,16 @@ def kernel_tables(levels, params, spans=None, background=None, thresholds=None):
     def flush():
         chains = [chain for _, chain in block]
         together = alive[chains[0]] if len(set(chains)) == 1 else _stack_tables([alive[c] for c in chains])
-        a_on = np.asarray(bg_on, dtype=np.float64)[[g for g, _ in block]][:, None]
-        a_off = np.asarray(bg_off, dtype=np.float64)[[g for g, _ in block]][:, None]
+        if any(timed(g) for g, _ in block):  # per-state backgrounds, (G, S)
+            own = [with_background(g, alive[chain]) for g, chain in block]
+            a_on = np.stack([np.broadcast_to(t.a_on, (t.n_states,)) for t in own])
+            a_off = np.stack([np.broadcast_to(t.a_off, (t.n_states,)) for t in own])
+        else:
+            a_on = np.asarray(bg_on, dtype=np.float64)[[g for g, _ in block]][:, None]
+            a_off = np.asarray(bg_off, dtype=np.float64)[[g for g, _ in block]][:, None]
         laws = _embedded_iterate(together, ITERATED_STEPS, a_on, a_off)
         for i, (g, chain) in enumerate(block):
-            t = dataclasses.replace(alive[chain], a_on=float(bg_on[g]), a_off=float(bg_off[g]))
+            t = with_background(g, alive[chain])
             _write_initial(table, slice(offsets[g], offsets[g] + sizes[g]), t, laws[i], dt_s, refr_s)
         block.clear()
 
@@ -695,7 +809,8 @@ def _stationary(t: LevelTables):
         m_t += j[:, None] <= t.idx_off[None, :]
         m_t *= (t.k * t.pmf)[:, None]
         m_t += (t.fresh_on + t.fresh_off)[:, None]
-        if t.a_on > 0.0 or t.a_off > 0.0:  # background events store a count of a trial without photon event
+        if np.any(t.a_on > 0.0) or np.any(t.a_off > 0.0):  # background events store a count of a trial without
+            # photon event (a per-state background, the timer's, multiplies by the column m)
             quiet = (j[:, None] > t.idx_off[None, :]) & (j[:, None] < t.idx_on[None, :])
             m_t += (t.a_on + t.a_off) * (t.none_fresh[:, None] + (t.k * t.pmf)[:, None] * quiet)
         m_t[:, live] /= p[live]
@@ -733,7 +848,16 @@ def _after(t: LevelTables, w_on, w_off, a_on=None, a_off=None, index=None):
     # OFF: from the m with idx_off(m) >= j (a suffix)
     c_off = np.concatenate([zero, np.cumsum(w_off, axis=-1)], axis=-1)
     after_off = t.fresh_off * w_off.sum(axis=-1, keepdims=True) + k * t.pmf * (c_off[..., -1:] - gather(c_off, b))
-    if np.any(np.asarray(a_on) > 0.0) or np.any(np.asarray(a_off) > 0.0):
+    if np.shape(a_on)[-1:] == (t.n_states,) and t.n_states > 1:
+        # a background per state m (the regular timer's, :func:`with_timer`): the sums below weighted by it
+        for a_x, w_x, name in ((a_on, w_on, "on"), (a_off, w_off, "off")):
+            c_a = np.concatenate([zero, np.cumsum(w_x * a_x, axis=-1)], axis=-1)
+            part = t.none_fresh * c_a[..., -1:] + k * t.pmf * np.where(inside, gather(c_a, top) - gather(c_a, a), 0.0)
+            if name == "on":
+                after_on = after_on + part
+            else:
+                after_off = after_off + part
+    elif np.any(np.asarray(a_on) > 0.0) or np.any(np.asarray(a_off) > 0.0):
         # background in a trial without photon event stores that trial's count j: fresh branch not beaten, or the
         # stored one not beaten, i.e. idx_off(m) < j < idx_on(m): the m in [a, b) (both indices nondecreasing)
         after_on = after_on + a_on * (t.none_fresh * c_on[..., -1:]
@@ -813,7 +937,13 @@ def level_statistics(t: LevelTables, dt_s: float, refr_s: float, stationary=None
             weights[a, 0] = after * q_off
         mass = weights.sum(axis=2)
         transition = mass / mass.sum(axis=1, keepdims=True)
-        iei = refr_s + dt_s * (weights * np.where(live, 1.0 / np.where(live, p, 1.0), np.inf)).sum(axis=2) / mass
+        if t.gap_on is None:  # the sojourn is independent of the next polarity: E[T | j] = 1 / P(j) trials
+            iei = refr_s + dt_s * (weights * np.where(live, 1.0 / np.where(live, p, 1.0), np.inf)).sum(axis=2) / mass
+        else:  # the regular timer: E[T 1{next b} | j] of with_timer
+            iei = np.empty((2, 2))
+            for a, after in ((1, after_on), (0, after_off)):
+                for b, gap in ((1, t.gap_on), (0, t.gap_off)):
+                    iei[a, b] = refr_s + dt_s * (after * gap).sum() / mass[a, b]
     return rate * share_on, rate * (1.0 - share_on) if rate > 0 else 0.0, transition, iei, weights, p
 
 
@@ -846,9 +976,12 @@ def memory_statistics(lux, params) -> MemoryStatistics:
     dt_s = 1.0 / params.trial_rate_hz
     refr_s = params.refractory_us * 1e-6
     bg_on, bg_off = level_background(levels, params)
+    timer = _nominal_timer(bg_on, bg_off, params)
     for i, level in enumerate(levels):
         t = level_tables(level, params.eps_pos, params.eps_neg, params.bias_pr, params.reset_memory,
                          a_on=bg_on[i], a_off=bg_off[i])
+        if timer is not None and timer[0, i] < math.inf:
+            t = with_timer(t, float(bg_on[i]), float(bg_off[i]), float(timer[0, i]), float(timer[1, i]))
         r_on, r_off, trans, iei, weights, _ = level_statistics(t, dt_s, refr_s)
         out["rate"][i] = (r_on, r_off)
         total = r_on + r_off
@@ -870,6 +1003,13 @@ def memory_statistics(lux, params) -> MemoryStatistics:
                             shaped(out["opp"]), shaped(out["iei"], (2, 2)), shaped(out["tail"]))
 
 
+def _nominal_timer(bg_on, bg_off, params):
+    """:func:`chain_timer` of the nominal pixel (not hot: ``leak_regularity``) at levels with these backgrounds."""
+    if not params.regular_background:
+        return None
+    return chain_timer(bg_on, bg_off, params.leak_regularity, params)
+
+
 def memory_iei_cdf(t_s, lux: float, params) -> np.ndarray:
     """CDF of the interval from an event of polarity ``a`` to the next when that is of polarity ``b``.
 
@@ -885,6 +1025,12 @@ def memory_iei_cdf(t_s, lux: float, params) -> np.ndarray:
     params = check_params(params)
     lam = float(params.photons_per_trial(float(lux)))
     bg_on, bg_off = level_background([lam], params)
+    if _nominal_timer(bg_on, bg_off, params) is not None:
+        from ..errors import ParameterError
+
+        raise ParameterError("memory_iei_cdf: the intervals of a pixel with the regular background timer are not "
+                             "geometric in trials, and their distribution is not computed (memory_statistics gives "
+                             "their means)")
     t = level_tables(lam, params.eps_pos, params.eps_neg, params.bias_pr, params.reset_memory, a_on=bg_on[0],
                      a_off=bg_off[0])
     dt_s = 1.0 / params.trial_rate_hz
