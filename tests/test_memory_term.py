@@ -702,6 +702,31 @@ def test_threshold_classes_are_the_pixels_with_equal_threshold_counts():
     assert n_chains <= np.unique(cls).size <= n_chains + on_breaks.size
 
 
+def test_threshold_classes_of_few_thresholds_over_many_states_are_exactly_the_equal_counts():
+    """Few thresholds and many states (a bright level, more breakpoints than counts): the classes compare the
+    counts themselves, so they are exactly the brute-force partition of the kernel's counts, ulp neighbours of
+    breakpoints included, and the same partition as the breakpoints' where no rounding is near."""
+    from evnoise._kernels.memory import fill_counts
+
+    lo, n_s, bias = 900, 300, 64.0
+    x = lo + np.arange(n_s) + bias
+    rng = np.random.default_rng(6)
+    on_breaks = np.log1p(rng.integers(100, 200, 10) / rng.choice(x, 10))
+    eps = np.concatenate([rng.normal(0.15, 0.01, 40), on_breaks, np.nextafter(on_breaks, 0),
+                          np.nextafter(on_breaks, 9)])
+    distinct = np.unique(eps)
+    breakpoints = (np.floor(np.expm1(distinct[-1]) * x) - np.floor(np.expm1(distinct[0]) * x)).sum()
+    assert distinct.size * n_s <= breakpoints <= memory.MAX_BREAKPOINTS  # the counts path
+    cls = memory.threshold_classes(eps, lo, n_s, bias)
+    counts = np.empty((eps.size, n_s))
+    scratch = np.empty(n_s)
+    for i, e in enumerate(eps):
+        fill_counts(0.0, float(lo), n_s, math.expm1(e), math.expm1(e), bias, scratch, counts[i], scratch)
+    same_class = cls[:, None] == cls[None, :]
+    same_counts = (counts[:, None, :] == counts[None, :, :]).all(axis=-1)
+    assert np.array_equal(same_class, same_counts)
+
+
 def test_chains_with_thresholds_of_their_own_iterated_together_are_those_iterated_alone():
     """Chains of one light level whose thresholds (and backgrounds) differ, stacked and iterated together: each row
     is the chain's own iteration, bit for bit."""

@@ -312,6 +312,11 @@ def threshold_classes(eps, lo: int, n_states: int, bias: float) -> np.ndarray:
     j_lo, j_hi = np.floor(distinct[0] * x), np.floor(distinct[-1] * x)
     if not (np.all(np.isfinite(j_hi)) and float((j_hi - j_lo).sum()) <= MAX_BREAKPOINTS):
         return exact
+    if distinct.size * x.size <= float((j_hi - j_lo).sum()):
+        # fewer counts than breakpoints (few thresholds, many photons): compare the counts themselves, computed
+        # as the kernel does (threshold_count: floor(c (m + b)))
+        counts = np.floor(distinct[:, None] * x[None, :])
+        return np.unique(counts, axis=0, return_inverse=True)[1].ravel()[exact]
     steps = (j_hi - j_lo).astype(np.int64)
     xs = np.repeat(x, steps)
     js = np.repeat(j_lo, steps) + 1.0 + (np.arange(xs.size) - np.repeat(np.cumsum(steps) - steps, steps))
