@@ -211,7 +211,7 @@ def _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, t
     run = run_setup(lux.shape, params, rng, thresholds=thresholds, background=background)
     params, key, (eps_on, eps_off), bg = run.params, run.key, run.thresholds, run.background
     if memory_on(params):
-        check_supported(params, thresholds, background, timer=method != "trials")
+        check_supported(params, thresholds, background, timer=True)
     if memory_on(params) and method != "trials":
         return _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, sink, bg=bg,
                             thresholds=(eps_on, eps_off))
@@ -455,7 +455,7 @@ def iter_video(
     run = run_setup(shape, params, rng, thresholds=thresholds, background=background)
     params, key, (eps_on, eps_off), bg = run.params, run.key, run.thresholds, run.background
     if memory_on(params):
-        check_supported(params, thresholds, background)
+        check_supported(params, thresholds, background, timer=True)
     t0_us = int(round(ts[0] * 1e6))
     frame_us = (ts - ts[0]) * 1e6
     duration_us = int(round(frame_us[-1]))
@@ -555,22 +555,30 @@ class _MemoryChains:
     and ``rates`` (events/s)."""
 
     def __init__(self, lam_start, params, bg, eps_on, eps_off):
-        from .terms.memory import kernel_tables, pixel_groups, state_range
+        from .terms.memory import chain_timer, kernel_tables, pixel_groups, state_range
 
-        levels, a_on, a_off, self.group, eps = pixel_groups(lam_start, params, bg, (eps_on, eps_off))
-        *self.tables, self.rates = kernel_tables(levels, params, background=(a_on, a_off), thresholds=eps)
+        levels, a_on, a_off, reg, self.group, eps = pixel_groups(lam_start, params, bg, (eps_on, eps_off),
+                                                                 with_timer=True)
+        self.timer = chain_timer(a_on, a_off, reg, params)
+        *self.tables, self.rates = kernel_tables(levels, params, background=(a_on, a_off), thresholds=eps,
+                                                 timer=self.timer)
         self.lo = np.array([state_range(float(lam))[0] for lam in levels], dtype=np.float64)
 
-    def start_trials(self, state: PixelState, group, dt, refr_us, threads):
-        """The trial tier's pixels ``state`` (chains ``group``) start in their steady state: stored count, and
-        the dead time of a last event before ``t = 0`` (:func:`evnoise._kernels.memory.initial_stored`)."""
+    def start_trials(self, state: PixelState, group, dt, refr_us, threads, bg_rows, lam_first, model):
+        """The trial tier's pixels ``state`` (chains ``group``, background rows ``bg_rows`` of the trial kernel,
+        photons per trial ``lam_first`` at trial 0, its ``model``) start in their steady state: stored count, the
+        dead time of a last event before ``t = 0``, the regular timer's first arrival
+        (:func:`evnoise._kernels.memory.initial_stored`)."""
         from ._kernels.memory import initial_stored
 
         table, _, offsets, sizes = self.tables
+        timer = np.zeros((3, 0)) if self.timer is None else self.timer
+        model = np.asarray(model, dtype=np.float64)
 
         def run(lo, hi):
             initial_stored(state.states[lo:hi], state.fstate[lo:hi], group[lo:hi], offsets, sizes, self.lo, table,
-                           float(dt), float(refr_us))
+                           float(dt), float(refr_us), timer, np.ascontiguousarray(bg_rows[:, lo:hi]),
+                           np.ascontiguousarray(lam_first[lo:hi]), model)
 
         map_chunks(run, state.pix.size, threads)
 
@@ -656,7 +664,7 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
             dyn_state.lam_ref[:] = lam_first
             dyn_state.lam_prev[:] = lam_first
             if mem is not None:
-                mem.start_trials(dyn_state, mem.group[dyn_pix], dt, refr, threads)
+                mem.start_trials(dyn_state, mem.group[dyn_pix], dt, refr, threads, dyn_bg, lam_first, model)
         stat_mem = np.full(stat_pix.size, math.nan) if mem is not None else None  # stored states, drawn at first
         dyn_e_on, dyn_e_off = eps_on[dyn_pix], eps_off[dyn_pix]
         dyn_thr = np.stack([c_on[dyn_pix], c_off[dyn_pix], dyn_e_on, dyn_e_off])
@@ -671,7 +679,7 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
                 w_end = min(j_b * dt, float(duration_us))
                 if mem is not None:
                     parts += memory_step(stat_state, stat_mem, width, mem.group[stat_pix], mem.tables, dt, float(refr),
-                                         0.0, float(w_end), math.inf, np.int64(t0_us), threads, expected)
+                                         0.0, float(w_end), math.inf, np.int64(t0_us), threads, expected, mem.timer)
                 else:
                     parts += renewal_step(stat_state, width, log1m_p, q_on, dt, refr, 0, w_end, math.inf,
                                           t0_us, threads, expected=expected, timer=stat_timer)

@@ -203,7 +203,7 @@ def test_state_range_bound():
     assert 0 < memory.state_range(1e5)[2] < 1e-4
 
 
-@pytest.mark.parametrize("what", ["stream", "rate", "poisson", "trials"])
+@pytest.mark.parametrize("what", ["stream", "rate", "poisson"])
 def test_what_is_not_modelled_yet_is_refused(what):
     lux = np.full((4, 4), 1.0)
     timer = MEM.replace(leak_on_hz=0.1, leak_regularity=0.5)
@@ -214,8 +214,6 @@ def test_what_is_not_modelled_yet_is_refused(what):
             ev.expected_rate(lux, MEM, thresholds=np.full((2, 4, 4), 0.5))
         elif what == "poisson":  # counts about the closed form: the nominal pixel's only
             ev.sample_counts(lux, MEM.replace(eps_sigma=0.05), 1.0, rng=1, distribution="poisson")
-        else:  # still scenes run memory with the timer in the renewal tier; the trial tier not yet
-            ev.simulate_events(lux, timer, 1.0, rng=1, method="trials")
 
 
 def test_expected_rate_of_a_pixel_with_memory_is_the_markov_renewal_rate():

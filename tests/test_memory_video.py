@@ -195,9 +195,3 @@ def test_video_with_memory_at_hard_light_levels_is_finite_and_quiet(lux_pair):
         e = ev.simulate_video(frames, [0.0, 0.05], MEM.replace(leak_on_hz=1.0), rng=2)
     assert np.all(np.diff(e["t"].astype(np.int64)) >= 0)
     assert np.all(e["t"] < 50_000) and np.all(e["x"] < 4) and np.all(e["y"] < 3)
-
-
-def test_video_with_memory_and_the_regular_timer_is_refused():
-    frames = np.stack([np.full((4, 4), 1.0), np.full((4, 4), 2.0)])
-    with pytest.raises(ev.ParameterError, match="regular background timer"):
-        ev.simulate_video(frames, [0.0, 0.1], MEM.replace(leak_on_hz=0.1, leak_regularity=0.5), rng=1)

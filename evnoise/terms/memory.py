@@ -49,12 +49,13 @@ those events; its Poisson / negative-binomial variants about :func:`memory_stati
 generator's counts mode, all with threshold mismatch (``eps_sigma > 0`` or given ``thresholds``: pixels are
 grouped by chain, :func:`pixel_groups`). :func:`evnoise.expected_rate` gives :func:`memory_statistics`' rate
 (the nominal pixel's). The regular background timer (``leak_regularity``, ``hot_pixel_regularity``) runs with
-memory in still scenes (:func:`evnoise.simulate_events` / ``iter_events`` with the renewal tier, ``sample_counts``,
+memory (:func:`evnoise.simulate_events` / ``iter_events``, both tiers, ``simulate_video``, ``sample_counts``,
 ``expected_rate``, the tonic plugin): from state ``m`` the next event comes after ``min(G, L)`` eligible trials,
 ``G`` the photon gap, ``L`` the timer's (photons first on a tie), a timer event storing the count of a trial without
-photon event; the closed form is the chain with a per-state background (:func:`with_timer`), the kernel draws
-both gaps (:func:`evnoise._kernels.memory.memory_window`). Refused with :class:`~evnoise.ParameterError` (not yet
-modelled): the timer with memory in the trial tier, in changing scenes and in :class:`evnoise.NoiseStream` (a
+photon event; the closed form is the chain with a per-state background (:func:`with_timer`), the renewal kernel
+draws both gaps (:func:`evnoise._kernels.memory.memory_window`), the trial kernel runs its own timer (started from
+the steady-state age given the stored state, :func:`evnoise._kernels.memory.initial_stored`). Refused with
+:class:`~evnoise.ParameterError` (not yet modelled): the timer with memory in :class:`evnoise.NoiseStream` (a
 pending timer arrival is not kept across a change of light), :func:`memory_iei_cdf` with the timer (not
 geometric), and per-pixel rates or Poisson counts for pixels whose thresholds or background differ.
 
@@ -129,13 +130,13 @@ def unsupported(params, thresholds=None, background=None, per_pixel: bool = True
     in words (empty: all of it is covered; see the module doc). ``per_pixel``: whether the caller handles a
     background or thresholds that differ between pixels (hot pixels, ``leak_sigma``, threshold mismatch, given maps:
     the simulators group pixels by their chain); a closed form for one pixel or the population does not.
-    ``timer``: whether the caller runs the regular background timer with memory (static scenes: the renewal tier
-    and its closed form; not the trial tier nor a stream whose light changes)."""
+    ``timer``: whether the caller runs the regular background timer with memory (the simulators and the closed
+    form; not a stream, whose light changes between intervals)."""
     missing = []
     if params.regular_background and not timer:
         missing.append("a regular background timer (leak_regularity > 0 or hot_pixel_regularity > 0) in this "
-                       "entry point (only simulate_events / iter_events of still scenes, sample_counts, "
-                       "expected_rate and the tonic transform run it with memory)")
+                       "entry point (simulate_events, simulate_video, sample_counts, expected_rate and the tonic "
+                       "transform run it with memory)")
     if not per_pixel:
         if params.eps_sigma > 0 or thresholds is not None:
             missing.append("threshold mismatch (eps_sigma > 0 or given thresholds)")
