@@ -100,7 +100,7 @@ def expected_rate(lux, params, *, thresholds=None, background=None, mismatch: st
         # needs what differs between pixels; given maps: per-pixel rates, which the closed form does not give
         nominal = mismatch == "nominal"
         missing = unsupported(params.replace(eps_sigma=0.0) if nominal else params, thresholds, background,
-                              per_pixel=nominal and background is None and thresholds is None, timer=True)
+                              per_pixel=nominal and background is None and thresholds is None)
         if missing:
             raise ParameterError(f"the rate with reset_memory > 0 is known for the nominal pixel (nominal thresholds, "
                                  f"a Poisson background) only, not for {', '.join(missing)} "

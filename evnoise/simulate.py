@@ -44,7 +44,7 @@ from .errors import InputError, ParameterError
 from .events import EVENT_DTYPE, empty_events
 from .params import NoiseParams
 from .rates import trial_probabilities
-from .terms.memory import check_supported, memory_on
+from .terms.memory import memory_on
 
 __all__ = [
     "simulate_events",
@@ -210,8 +210,6 @@ def _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, t
     threads = resolve_threads(threads)
     run = run_setup(lux.shape, params, rng, thresholds=thresholds, background=background)
     params, key, (eps_on, eps_off), bg = run.params, run.key, run.thresholds, run.background
-    if memory_on(params):
-        check_supported(params, thresholds, background, timer=True)
     if memory_on(params) and method != "trials":
         return _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, sink, bg=bg,
                             thresholds=(eps_on, eps_off))
@@ -454,8 +452,6 @@ def iter_video(
         raise ParameterError("method='renewal' needs a static scene, but some pixels change between frames")
     run = run_setup(shape, params, rng, thresholds=thresholds, background=background)
     params, key, (eps_on, eps_off), bg = run.params, run.key, run.thresholds, run.background
-    if memory_on(params):
-        check_supported(params, thresholds, background, timer=True)
     t0_us = int(round(ts[0] * 1e6))
     frame_us = (ts - ts[0]) * 1e6
     duration_us = int(round(frame_us[-1]))
@@ -778,7 +774,6 @@ def sample_counts(
                     draw_key=distribution == "exact")
     params, gen, key, (eps_on, eps_off), bg = run.params, run.gen, run.key, run.thresholds, run.background
     if memory_on(params):
-        check_supported(params, thresholds, background, timer=True)
         return _memory_counts(lux, params, key, duration_us, threads, distribution, gen, r if
                               distribution == "negative-binomial" else None, bg, (eps_on, eps_off), thresholds)
     lam = params.photons_per_trial(lux).ravel()

@@ -13,7 +13,7 @@ from ._run import run_setup
 from .errors import InputError, ParameterError
 from .events import empty_events
 from .params import NoiseParams
-from .terms.memory import check_supported, memory_on
+from .terms.memory import memory_on
 
 __all__ = ["NoiseStream"]
 
@@ -50,9 +50,9 @@ class NoiseStream:
     interval starts in the steady state of its light. When a pixel's light changes, its stored photon count
     is kept (clamped into the new light's state range, which spans the new ``lam`` ± many standard
     deviations: only a jump of the light beyond that range moves it). A Poisson background (hot pixels and a
-    spread leak included) and threshold mismatch are part of the memory model; the regular background timer is
-    not modelled with reset memory in a stream yet (:class:`~evnoise.ParameterError`; still scenes run it:
-    :func:`evnoise.simulate_events`). With mismatch or a spread leak most
+    spread leak included), the regular background timer (its pending arrival kept across intervals and moved
+    with a change of its intensity, as without memory) and threshold mismatch are part of the memory model.
+    With mismatch or a spread leak most
     pixels have a chain of their own, and after a change of light each chain's tables widen to hold the counts
     stored under the old light, so a large sensor can pass the table budget
     (``evnoise.terms.memory.MAX_TABLE_STATES``) at the change (a :class:`~evnoise.ParameterError` then) where a
@@ -66,8 +66,6 @@ class NoiseStream:
         self.shape = check_shape(shape)
         self.threads = resolve_threads(threads)
         run = run_setup(self.shape, params, rng, thresholds=thresholds, background=background)
-        if memory_on(run.params):
-            check_supported(run.params, thresholds, background)
         self.params = run.params
         self._eps_on, self._eps_off = run.thresholds
         # thresholds that differ between pixels (drawn or given): the memory chains depend on them
@@ -110,11 +108,7 @@ class NoiseStream:
         j_min = _first_trial_at_or_after(self._t_rel, dt)
         discard = _first_trial_at_or_after(t_end, dt)
         if timer is not None:
-            from .background import lux_of_photons
-
-            scale, hot = (None, None) if self._bg is None else self._bg
-            l_on, l_off = terms.intensities(lux_of_photons(lam, p), p, scale, hot)
-            self._state.rescale_timers(np.broadcast_to(l_on + l_off, lam.shape), j_min)
+            self._state.rescale_timers(self._timer_intensity(lam), j_min)
         parts = renewal_step(self._state, self.shape[1], log1m_p, q_on, dt, p.refractory_us, j_min,
                               float(t_end), discard, self._t0, self.threads,
                               expected=nu * (t_end - self._t_rel) * 1e-6, timer=timer)
@@ -123,12 +117,20 @@ class NoiseStream:
         return out
 
 
+    def _timer_intensity(self, lam) -> np.ndarray:
+        """Each pixel's background intensity (events/s) at ``lam`` photons per trial: what its timer runs at."""
+        from .background import lux_of_photons
+
+        scale, hot = (None, None) if self._bg is None else self._bg
+        l_on, l_off = terms.intensities(lux_of_photons(lam, self.params), self.params, scale, hot)
+        return np.broadcast_to(l_on + l_off, lam.shape)
+
     def _advance_memory(self, lam, t_end: int) -> np.ndarray:
         """:meth:`advance` with reset memory: the memory kernel over the interval's light levels. A pixel's
         stored state is kept as a photon count between intervals (a level's tables index counts from its
         lowest one), and so is the new state of an event pending in a trial that started in the last interval."""
         from ._kernels.simulate import PEND_ON, PEND_TAU
-        from .terms.memory import kernel_tables, pixel_groups
+        from .terms.memory import chain_timer, kernel_tables, pixel_groups
 
         p = self.params
         dt = p.trial_us
@@ -143,19 +145,20 @@ class NoiseStream:
         if grouping is None or grouping[0] != class_spans or not np.array_equal(grouping[1], lam):
             # the pixels' chains: the same while the light and the states compared over are (most intervals)
             grouping = self._grouping = (class_spans, lam.copy(), pixel_groups(lam, p, self._bg, thresholds,
-                                                                               class_spans))
-        levels, a_on, a_off, group, eps = grouping[2]
+                                                                               class_spans, with_timer=True))
+        levels, a_on, a_off, reg, group, eps = grouping[2]
         spans = _memory_spans(levels, group, self._stored, self._pending_count)
         if class_spans is not None:  # within the states its thresholds were compared over (counts beyond: clamped)
             spans = _inside(spans, level_spans[np.searchsorted(lam_levels, levels)])
-        key = np.stack([levels, a_on, a_off, *eps])
+        key = np.stack([levels, a_on, a_off, reg, *eps])
         if (self._memory is None or not np.array_equal(key, self._memory[0])
                 or not np.array_equal(spans, self._memory[4])):
+            timer = chain_timer(a_on, a_off, reg, p)
             table, itable, offsets, sizes, rates = kernel_tables(levels, p, spans.tolist(), background=(a_on, a_off),
-                                                                 thresholds=eps)
+                                                                 thresholds=eps, timer=timer)
             lowest = spans[:, 0].astype(np.float64)
-            self._memory = (key, (table, itable, offsets, sizes), lowest, rates, spans)
-        _, tables, lowest, rates, _ = self._memory
+            self._memory = (key, (table, itable, offsets, sizes), lowest, rates, spans, timer)
+        _, tables, lowest, rates, _, timer = self._memory
         sizes = tables[3]
         lo, top = lowest[group], (sizes[group] - 1).astype(np.float64)
         mem = np.clip(self._stored - lo, 0.0, top)  # NaN stays NaN: drawn from the steady state
@@ -167,8 +170,10 @@ class NoiseStream:
             fstate[pend, PEND_ON] = code % 2.0 + 2.0 * (new + 1.0)
         j_min = _first_trial_at_or_after(self._t_rel, dt)
         discard = _first_trial_at_or_after(t_end, dt)
+        if timer is not None:  # a pending timer arrival moves with a change of its intensity (as without memory)
+            self._state.rescale_timers(self._timer_intensity(lam), j_min)
         parts = memory_step(self._state, mem, self.shape[1], group, tables, dt, p.refractory_us, j_min, float(t_end),
-                            discard, self._t0, self.threads, rates[group] * ((t_end - self._t_rel) * 1e-6))
+                            discard, self._t0, self.threads, rates[group] * ((t_end - self._t_rel) * 1e-6), timer)
         out = sorted_window(parts, self._t0 + self._t_rel, self._t0 + t_end)
         self._stored = mem + lo
         code = fstate[:, PEND_ON]

@@ -231,8 +231,11 @@ def memory_window(width, pix, group, offsets, sizes, table, itable, timer, state
     after ``G`` trials (geometric), the timer's after ``L`` (:func:`draw_timer`; at a pixel's start outside its
     dead time :func:`draw_timer_stationary` with its state's photon probability), the photon event first when
     ``G <= L`` (the trial kernel compares photons first); a timer event's polarity is ON with its share, and it
-    stores the count of a trial without photon event (:func:`_quiet_count`). With a refractory period only a
-    pixel's first event is approximate there (as for memoryless pixels with the timer).
+    stores the count of a trial without photon event (:func:`_quiet_count`). The timer's arrival (trial) is kept in
+    ``fstate[k, BG_NEXT]`` until an event restarts it, so a pending event dropped at ``discard_from_trial`` is
+    redrawn with a fresh photon gap (memoryless) and the same timer (as ``renewal_window`` does; a change of its
+    intensity between intervals: :meth:`evnoise._engine.PixelState.rescale_timers`). With a refractory period only
+    a pixel's first event is approximate there (as for memoryless pixels with the timer).
 
     Events go to ``out = (t, x, y, p)`` from slot ``n``; counts to ``on_counts``, ``off_counts``. Returns
     ``(n, k)`` like ``renewal_window`` (``k = len(pix)``: done; else the buffers are full and pixel ``k``
@@ -256,6 +259,7 @@ def memory_window(width, pix, group, offsets, sizes, table, itable, timer, state
         n_s = sizes[g]
         st = mem[k]
         d_timer = timer[0, g] if has_timer else math.inf
+        nxt = fstate[k, BG_NEXT]  # the timer's pending arrival (trial; NaN: none drawn since the last event)
         stationary_timer = False
         if math.isnan(st):
             st, elapsed = draw_initial(s, table, o, n_s, refr_us)
@@ -281,22 +285,24 @@ def memory_window(width, pix, group, offsets, sizes, table, itable, timer, state
                     j_e = first_eligible_trial(lt, lta, refr_us, dt)
                 j_e = max(j_e, j_min)
                 log1m_p = table[ROW_LOG1M_P, o + int(st)]
-                gap = geometric(s, log1m_p)
                 from_timer = False
                 if d_timer < math.inf:
-                    if stationary_timer:
-                        arrival = draw_timer_stationary(s, d_timer, timer[1, g], log1m_p)
-                    else:
-                        arrival = draw_timer(s, d_timer, timer[1, g])
-                    from_timer = arrival < gap
+                    if math.isnan(nxt):
+                        if stationary_timer:
+                            nxt = j_e + draw_timer_stationary(s, d_timer, timer[1, g], log1m_p) - 1.0
+                        else:
+                            nxt = j_e + draw_timer(s, d_timer, timer[1, g]) - 1.0
+                    nxt = max(nxt, j_e)
+                    jp = j_e + geometric(s, log1m_p) - 1.0
+                    from_timer = nxt < jp  # photons first on a tie
                     if from_timer:
-                        gap = arrival
+                        jp = nxt
+                else:
+                    jp = j_e + geometric(s, log1m_p) - 1.0
                 stationary_timer = False
-                if gap == math.inf:
+                if jp == math.inf:
                     tau = math.inf
-                    jp = math.inf
                     break
-                jp = j_e + gap - 1.0
                 tau = (jp + uniform(s)) * dt
                 if from_timer:
                     on = uniform(s) < timer[2, g]
@@ -322,6 +328,7 @@ def memory_window(width, pix, group, offsets, sizes, table, itable, timer, state
             lta = tau
             lt = jp
             tau = NO_EVENT
+            nxt = NO_EVENT  # every event restarts the timer
         on_counts[k] += n_on
         off_counts[k] += n_off
         fstate[k, LAST_TAU] = lta
@@ -331,6 +338,8 @@ def memory_window(width, pix, group, offsets, sizes, table, itable, timer, state
         fstate[k, PEND_TAU] = tau
         fstate[k, PEND_TRIAL] = jp
         fstate[k, PEND_ON] = code
+        if d_timer < math.inf:
+            fstate[k, BG_NEXT] = nxt  # kept when the pending event is dropped (the photon gap is redrawn)
         mem[k] = st
         for w in range(4):
             states[k, w] = s[w]

@@ -135,11 +135,7 @@ class PhotonNoise:
         self._worker_gen = None  # (process identity, Generator) of that copy
         # the sensor's per-pixel maps (threshold mismatch, background spread, hot pixels): drawn once, here;
         # each sample's kernel key is drawn per call (_draw)
-        from ..terms.memory import check_supported, memory_on
-
         self._setup = run_setup((height, width), params, map_rng, draw_key=False)
-        if memory_on(self._setup.params):
-            check_supported(self._setup.params, timer=True)
         self.params = self._setup.params
         self._thresholds = self._setup.threshold_map() if self.params.eps_sigma > 0 else None
         self._background = self._setup.background_map()

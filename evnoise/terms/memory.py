@@ -49,15 +49,16 @@ those events; its Poisson / negative-binomial variants about :func:`memory_stati
 generator's counts mode, all with threshold mismatch (``eps_sigma > 0`` or given ``thresholds``: pixels are
 grouped by chain, :func:`pixel_groups`). :func:`evnoise.expected_rate` gives :func:`memory_statistics`' rate
 (the nominal pixel's). The regular background timer (``leak_regularity``, ``hot_pixel_regularity``) runs with
-memory (:func:`evnoise.simulate_events` / ``iter_events``, both tiers, ``simulate_video``, ``sample_counts``,
-``expected_rate``, the tonic plugin): from state ``m`` the next event comes after ``min(G, L)`` eligible trials,
-``G`` the photon gap, ``L`` the timer's (photons first on a tie), a timer event storing the count of a trial without
-photon event; the closed form is the chain with a per-state background (:func:`with_timer`), the renewal kernel
-draws both gaps (:func:`evnoise._kernels.memory.memory_window`), the trial kernel runs its own timer (started from
-the steady-state age given the stored state, :func:`evnoise._kernels.memory.initial_stored`). Refused with
-:class:`~evnoise.ParameterError` (not yet modelled): the timer with memory in :class:`evnoise.NoiseStream` (a
-pending timer arrival is not kept across a change of light), :func:`memory_iei_cdf` with the timer (not
-geometric), and per-pixel rates or Poisson counts for pixels whose thresholds or background differ.
+memory in every simulator (:func:`evnoise.simulate_events` / ``iter_events``, both tiers, ``simulate_video``,
+``sample_counts``, :class:`evnoise.NoiseStream` and so the v2e plugin, the tonic plugin) and in
+``expected_rate``: from state ``m`` the next event comes after ``min(G, L)`` eligible trials, ``G`` the photon
+gap, ``L`` the timer's (photons first on a tie), a timer event storing the count of a trial without photon
+event; the closed form is the chain with a per-state background (:func:`with_timer`), the renewal kernel draws
+both gaps (:func:`evnoise._kernels.memory.memory_window`), the trial kernel runs its own timer (started from the
+steady-state age given the stored state, :func:`evnoise._kernels.memory.initial_stored`); a stream keeps a
+pixel's pending timer arrival across intervals (moved with a change of its intensity). Refused with
+:class:`~evnoise.ParameterError`: :func:`memory_iei_cdf` with the timer (not geometric), and per-pixel rates or
+Poisson counts for pixels whose thresholds or background differ (the closed form is the nominal pixel's).
 
 Threshold mismatch. A pixel's chain reads its thresholds only through the threshold counts ``k_on(m)``,
 ``k_off(m)`` over its light's states, so pixels whose thresholds give the same counts share one chain, exactly
@@ -125,18 +126,13 @@ def memory_on(params) -> bool:
     return getattr(params, "reset_memory", 0.0) > 0
 
 
-def unsupported(params, thresholds=None, background=None, per_pixel: bool = True, timer: bool = False) -> list:
-    """What the reset-memory model does not cover yet for ``params`` (checked :class:`~evnoise.NoiseParams`),
-    in words (empty: all of it is covered; see the module doc). ``per_pixel``: whether the caller handles a
-    background or thresholds that differ between pixels (hot pixels, ``leak_sigma``, threshold mismatch, given maps:
-    the simulators group pixels by their chain); a closed form for one pixel or the population does not.
-    ``timer``: whether the caller runs the regular background timer with memory (the simulators and the closed
-    form; not a stream, whose light changes between intervals)."""
+def unsupported(params, thresholds=None, background=None, per_pixel: bool = True) -> list:
+    """What the reset-memory model does not cover for ``params`` (checked :class:`~evnoise.NoiseParams`), in words
+    (empty: all of it is covered; see the module doc). ``per_pixel``: whether the caller handles a background or
+    thresholds that differ between pixels (hot pixels, ``leak_sigma``, threshold mismatch, given maps: the
+    simulators group pixels by their chain, and cover everything); a closed form for one pixel or the population
+    does not."""
     missing = []
-    if params.regular_background and not timer:
-        missing.append("a regular background timer (leak_regularity > 0 or hot_pixel_regularity > 0) in this "
-                       "entry point (simulate_events, simulate_video, sample_counts, expected_rate and the tonic "
-                       "transform run it with memory)")
     if not per_pixel:
         if params.eps_sigma > 0 or thresholds is not None:
             missing.append("threshold mismatch (eps_sigma > 0 or given thresholds)")
@@ -147,17 +143,6 @@ def unsupported(params, thresholds=None, background=None, per_pixel: bool = True
         if params.has_background and params.leak_sigma > 0:
             missing.append("a background that differs between pixels (leak_sigma > 0)")
     return missing
-
-
-def check_supported(params, thresholds=None, background=None, timer: bool = False) -> None:
-    """Refuse, naming it, what the reset-memory simulator does not support yet (see the module doc; ``timer``: as in
-    :func:`unsupported`)."""
-    from ..errors import ParameterError
-
-    missing = unsupported(params, thresholds, background, timer=timer)
-    if missing:
-        raise ParameterError(f"reset_memory > 0 does not support {', '.join(missing)} yet; set reset_memory = 0 "
-                             f"or turn them off")
 
 
 def pixel_groups(lam, params, background=None, thresholds=None, class_spans=None, with_timer: bool = False):
