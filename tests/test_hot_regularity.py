@@ -86,9 +86,12 @@ def test_hot_pixels_follow_their_own_timer_and_the_others_theirs(method, shape, 
     assert abs(on_share_hot - q) < K * math.sqrt(q * (1 - q) / n_hot)
 
 
-def test_a_timer_for_the_hot_pixels_alone():
-    """``leak_regularity = 0`` and regular hot pixels: the ordinary pixels stay Poisson (CV 1)."""
-    params = QUIET.replace(leak_regularity=0.0, hot_pixel_regularity=0.95)
+@pytest.mark.parametrize("reset_memory", [0.0, 0.3])
+def test_a_timer_for_the_hot_pixels_alone(reset_memory):
+    """``leak_regularity = 0`` and regular hot pixels: the ordinary pixels stay Poisson (CV 1). With reset memory
+    (its renewal tier; refused before memory ran with the timer) the same in the dark, where the background is all
+    there is: the hot pixels' gaps have their timer's mean and variance."""
+    params = QUIET.replace(leak_regularity=0.0, hot_pixel_regularity=0.95, reset_memory=reset_memory)
     shape, duration_s = (24, 24), 200.0
     bg = ev.draw_background(shape, params, rng=8)
     hot = bg[1].ravel() > 0
@@ -122,21 +125,6 @@ def test_noise_stream_runs_the_same_model():
     leak = QUIET.leak_on_hz + QUIET.leak_off_hz
     check_gaps(gaps[hot[pix]], leak + QUIET.hot_pixel_rate_hz, 0.0, QUIET.trial_rate_hz, duration_s)
     check_gaps(gaps[~hot[pix]], leak, 0.8, QUIET.trial_rate_hz, duration_s)
-
-
-def test_reset_memory_runs_the_hot_pixels_own_timer():
-    """With reset memory (its renewal tier) hot pixels keep a timer of their own: in the dark (no photon noise,
-    background alone) their gaps have its mean and variance, the ordinary pixels' the Poisson leak's. (Refused
-    before memory ran with the timer.)"""
-    params = QUIET.replace(leak_regularity=0.0, hot_pixel_regularity=0.5, reset_memory=0.3)
-    shape, duration_s = (16, 16), 100.0
-    bg = ev.draw_background(shape, params, rng=9)
-    hot = bg[1].ravel() > 0
-    events = ev.simulate_events(np.zeros(shape), params, duration_s, rng=13, background=bg)
-    gaps, pix = gaps_by_pixel(events, shape[1])
-    leak = params.leak_on_hz + params.leak_off_hz
-    check_gaps(gaps[hot[pix]], leak + params.hot_pixel_rate_hz, 0.5, params.trial_rate_hz, duration_s)
-    check_gaps(gaps[~hot[pix]], leak, 0.0, params.trial_rate_hz, duration_s)
 
 
 @pytest.mark.parametrize("off", [dict(hot_pixel_fraction=0.0), dict(hot_pixel_rate_hz=0.0)])

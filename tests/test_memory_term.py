@@ -154,14 +154,16 @@ def test_fast_kernel_against_the_reference_simulation():
             assert stats.ks_2samp(ref["gaps", a, b], fast["gaps", a, b]).pvalue > 1e-3, (a, b)
 
 
-def test_output_does_not_depend_on_threads_or_windows(monkeypatch):
+@pytest.mark.parametrize("params", [MEM, MEM.replace(leak_on_hz=2.0, leak_off_hz=0.5, leak_regularity=0.6)],
+                         ids=["memory", "memory-and-timer"])
+def test_output_does_not_depend_on_threads_or_windows(monkeypatch, params):
     lux = np.full((130, 130), 1.0)  # 16,900 pixels: two chunks
     lux[::3] = 3.0
-    one = ev.simulate_events(lux, MEM, 0.2, rng=7, threads=1)
-    two = ev.simulate_events(lux, MEM, 0.2, rng=7, threads=2)
+    one = ev.simulate_events(lux, params, 0.2, rng=7, threads=1)
+    two = ev.simulate_events(lux, params, 0.2, rng=7, threads=2)
     assert one.size > 10_000 and np.array_equal(one, two)
     monkeypatch.setattr(sim, "TARGET_EVENTS_PER_WINDOW", 3000)  # many windows, events pending across them
-    windows = list(ev.iter_events(lux, MEM, 0.2, rng=7, threads=2))
+    windows = list(ev.iter_events(lux, params, 0.2, rng=7, threads=2))
     assert len(windows) > 5 and np.array_equal(np.concatenate(windows), one)
 
 
@@ -364,6 +366,28 @@ def test_noise_stream_with_memory_through_changes_of_light_against_the_per_trial
                 continue
             (ra, sa), (rb, sb) = _ratio(sums[0][num], sums[0][den]), _ratio(sums[1][num], sums[1][den])
             assert abs(ra - rb) <= K_SIGMA * math.hypot(sa, sb), (lo_s, num, ra, rb)
+
+
+def _assert_phase_agrees(sums, n_pix, where):
+    """Two-sample checks of one phase: ``sums`` is ``(reference, simulated)`` :func:`_summaries`; the mean per-pixel
+    events, the alternation and the ON share agree within k sigma (sigmas from each side's per-pixel spread)."""
+    a, b = sums[0]["events"], sums[1]["events"]
+    se = math.sqrt(a.var() / n_pix + b.var() / n_pix)
+    assert abs(a.mean() - b.mean()) <= K_SIGMA * se, (where, a.mean(), b.mean())
+    for num, den in (("opp", "trans"), ("on", "events")):
+        (ra, sa), (rb, sb) = _ratio(sums[0][num], sums[0][den]), _ratio(sums[1][num], sums[1][den])
+        assert abs(ra - rb) <= K_SIGMA * math.hypot(sa, sb), (where, num, ra, rb)
+
+
+def _kernel_counts(eps, lo, n_s, bias):
+    """The kernel's threshold counts ``k(m)`` over states ``lo .. lo + n_s - 1``, one row per threshold."""
+    from evnoise._kernels.memory import fill_counts
+
+    counts = np.empty((np.size(eps), n_s))
+    scratch = np.empty(n_s)
+    for i, e in enumerate(eps):
+        fill_counts(0.0, float(lo), n_s, math.expm1(e), math.expm1(e), bias, scratch, counts[i], scratch)
+    return counts
 
 
 def _reference_schedule(lam, params, n_pix, seed, background_hz=(0.0, 0.0)):
@@ -676,8 +700,6 @@ def test_memory_with_threshold_mismatch_in_a_stream_and_the_tonic_transform():
 def test_threshold_classes_are_the_pixels_with_equal_threshold_counts():
     """Pixels share a chain exactly when their threshold counts agree at every state: classes from the breakpoints
     against a brute-force comparison of the kernel's own counts, with thresholds on and one ulp beside breakpoints."""
-    from evnoise._kernels.memory import fill_counts
-
     lo, n_s, bias = 3, 40, 1.7
     x = lo + np.arange(n_s) + bias
     rng = np.random.default_rng(5)
@@ -685,10 +707,7 @@ def test_threshold_classes_are_the_pixels_with_equal_threshold_counts():
     eps = np.concatenate([rng.normal(0.5, 0.05, 300), on_breaks, np.nextafter(on_breaks, 0),
                           np.nextafter(on_breaks, 9)])
     cls = memory.threshold_classes(eps, lo, n_s, bias)
-    counts = np.empty((eps.size, n_s))
-    scratch = np.empty(n_s)
-    for i, e in enumerate(eps):
-        fill_counts(0.0, float(lo), n_s, math.expm1(e), math.expm1(e), bias, scratch, counts[i], scratch)
+    counts = _kernel_counts(eps, lo, n_s, bias)
     same_class = cls[:, None] == cls[None, :]
     same_counts = (counts[:, None, :] == counts[None, :, :]).all(axis=-1)
     assert not (same_class & ~same_counts).any()  # a class never holds two chains
@@ -701,8 +720,6 @@ def test_threshold_classes_of_few_thresholds_over_many_states_are_exactly_the_eq
     """Few thresholds and many states (a bright level, more breakpoints than counts): the classes compare the
     counts themselves, so they are exactly the brute-force partition of the kernel's counts, ulp neighbours of
     breakpoints included, and the same partition as the breakpoints' where no rounding is near."""
-    from evnoise._kernels.memory import fill_counts
-
     lo, n_s, bias = 900, 300, 64.0
     x = lo + np.arange(n_s) + bias
     rng = np.random.default_rng(6)
@@ -713,10 +730,7 @@ def test_threshold_classes_of_few_thresholds_over_many_states_are_exactly_the_eq
     breakpoints = (np.floor(np.expm1(distinct[-1]) * x) - np.floor(np.expm1(distinct[0]) * x)).sum()
     assert distinct.size * n_s <= breakpoints <= memory.MAX_BREAKPOINTS  # the counts path
     cls = memory.threshold_classes(eps, lo, n_s, bias)
-    counts = np.empty((eps.size, n_s))
-    scratch = np.empty(n_s)
-    for i, e in enumerate(eps):
-        fill_counts(0.0, float(lo), n_s, math.expm1(e), math.expm1(e), bias, scratch, counts[i], scratch)
+    counts = _kernel_counts(eps, lo, n_s, bias)
     same_class = cls[:, None] == cls[None, :]
     same_counts = (counts[:, None, :] == counts[None, :, :]).all(axis=-1)
     assert np.array_equal(same_class, same_counts)

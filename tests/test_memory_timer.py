@@ -16,7 +16,14 @@ from scipy import stats
 
 import evnoise as ev
 from evnoise.terms import memory
-from test_memory_term import K_SIGMA, _check_against_closed_form, _ratio, _summaries
+from test_memory_term import (
+    K_SIGMA,
+    _assert_phase_agrees,
+    _check_against_closed_form,
+    _ratio,
+    _stream_events,
+    _summaries,
+)
 
 #: thresholds high enough that photon noise and the timer's background are of the same order (a few events/s)
 TIMED = ev.NoiseParams(eps_pos=1.5, eps_neg=1.5, bias_pr=1.0, trial_rate_hz=1000.0, photons_per_lux=5.0,
@@ -153,19 +160,6 @@ def test_a_tie_between_photon_and_timer_goes_to_the_photon_event():
     assert abs(share - want) < K_SIGMA * se, (share, want, se)
 
 
-def test_output_with_the_timer_does_not_depend_on_threads_or_windows(monkeypatch):
-    from evnoise import simulate as sim
-
-    lux = np.full((130, 130), 1.0)  # 16,900 pixels: two chunks
-    lux[::3] = 3.0
-    one = ev.simulate_events(lux, TIMED, 0.5, rng=7, threads=1)
-    two = ev.simulate_events(lux, TIMED, 0.5, rng=7, threads=2)
-    assert one.size > 10_000 and np.array_equal(one, two)
-    monkeypatch.setattr(sim, "TARGET_EVENTS_PER_WINDOW", 3000)
-    windows = list(ev.iter_events(lux, TIMED, 0.5, rng=7, threads=2))
-    assert len(windows) > 5 and np.array_equal(np.concatenate(windows), one)
-
-
 def test_the_dvs128_preset_runs_with_memory():
     """The shipped dvs128 preset (near-periodic leak, Poisson hot pixels of their own regularity, a leak spread,
     threshold mismatch) with reset memory: still scenes, counts, the nominal rate and the tonic transform run; with
@@ -266,18 +260,6 @@ def test_a_changing_video_with_memory_and_the_timer_runs():
     assert np.all(e["t"] < 20_000_000)
 
 
-def _stream_events(stream, lux_until, seed):
-    """Advance ``stream`` through intervals of random lengths (not aligned to trials) under the light
-    ``lux_until = [(lux, t_end_us), ...]``; returns ``(pix, t, p)``."""
-    rng = np.random.default_rng(seed)
-    chunks = []
-    for lux, t_end in lux_until:
-        while stream.t_us < t_end:
-            chunks.append(stream.advance(lux, min(t_end, stream.t_us + int(rng.integers(1, 90_000)))))
-    e = np.concatenate(chunks)
-    return e["y"].astype(np.int64) * lux_until[0][0].shape[1] + e["x"], e["t"].astype(np.float64), e["p"]
-
-
 def test_noise_stream_with_memory_and_timer_against_the_closed_form():
     """Irregular intervals at one light: each drops its pending event and redraws the photon gap, keeping the
     timer's arrival; the closed form's rates, transitions and mean intervals. (When written: a stream that drew a
@@ -305,12 +287,7 @@ def test_noise_stream_with_memory_and_timer_through_a_change_of_light_against_th
         for pix, t, p in (ref, got):
             sel = (t >= lo_s * 1e6) & (t < hi_s * 1e6)
             sums.append(_summaries(pix[sel], np.floor(t[sel]), p[sel], n_pix))
-        a, b = sums[0]["events"], sums[1]["events"]
-        se = math.sqrt(a.var() / n_pix + b.var() / n_pix)
-        assert abs(a.mean() - b.mean()) <= K_SIGMA * se, (lo_s, a.mean(), b.mean())
-        for num, den in (("opp", "trans"), ("on", "events")):
-            (ra, sa), (rb, sb) = _ratio(sums[0][num], sums[0][den]), _ratio(sums[1][num], sums[1][den])
-            assert abs(ra - rb) <= K_SIGMA * math.hypot(sa, sb), (lo_s, num, ra, rb)
+        _assert_phase_agrees(sums, n_pix, lo_s)
 
 
 def test_memory_iei_cdf_with_the_timer_is_refused():
