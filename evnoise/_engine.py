@@ -122,8 +122,16 @@ class PixelState:
 
         The remaining interval scales with ``old / new`` intensity (a leak drifting at a new speed covers
         the rest of its way in proportionally more or less time): exact for a periodic timer, the natural
-        continuation otherwise. Pixels whose intensity is unchanged are left alone (bit for bit).
+        continuation otherwise. Pixels whose intensity is unchanged are left alone (bit for bit). A timer that
+        had no intensity (its arrival at infinity) is drawn afresh when its pixel has one again, as the trial
+        kernel does (before, such a pixel's background stayed silent until its next photon event).
         """
+        # a timer that never fires (no intensity: arrival inf) is drawn afresh once its pixel has an intensity
+        revive = (self.bg_next == math.inf) & (l_all > 0)
+        if revive.any():
+            self.bg_next[revive] = math.nan
+            idx = np.flatnonzero(revive)
+            self.pend_tau[idx[self.pend_trial[idx] >= j_now]] = math.nan
         pend = np.isfinite(self.bg_next) & (self.bg_next >= j_now) & (l_all != self.bg_l) & (self.bg_l > 0)
         if pend.any():
             ratio = np.where(l_all[pend] > 0, self.bg_l[pend] / np.where(l_all[pend] > 0, l_all[pend], 1.0), np.inf)

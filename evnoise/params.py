@@ -178,7 +178,8 @@ class NoiseParams:
         against the count it stored at its last event, instead of a fresh reference sample (the paper's
         memoryless model, ``k = 0``, the default). With ``k > 0`` a pixel that fired ON stored a high level and
         tends to fire OFF next: consecutive events alternate in polarity, as in real quiet pixels (see
-        :mod:`evnoise.terms.memory`; static scenes through :func:`~evnoise.simulate_events` only, for now).
+        :mod:`evnoise.terms.memory`, which says what runs it: every simulator, with or without the regular
+        background timer; the closed form is the nominal pixel's).
     hot_pixel_regularity : float, optional
         How regular the background arrivals of a *hot* pixel are, ``0 <= r <= 1`` as ``leak_regularity``;
         ``-1`` (the default) means the same as ``leak_regularity`` (one regularity for every pixel); it applies to

@@ -719,7 +719,7 @@ def test_threshold_classes_are_the_pixels_with_equal_threshold_counts():
 def test_threshold_classes_of_few_thresholds_over_many_states_are_exactly_the_equal_counts():
     """Few thresholds and many states (a bright level, more breakpoints than counts): the classes compare the
     counts themselves, so they are exactly the brute-force partition of the kernel's counts, ulp neighbours of
-    breakpoints included, and the same partition as the breakpoints' where no rounding is near."""
+    breakpoints included."""
     lo, n_s, bias = 900, 300, 64.0
     x = lo + np.arange(n_s) + bias
     rng = np.random.default_rng(6)

@@ -34,14 +34,65 @@ LUX = 2.0
 @pytest.mark.parametrize("regularity", [0.3, 0.8, 1.0])
 @pytest.mark.parametrize("refractory_s", [0.0, 2e-3])
 def test_without_memory_the_chain_is_the_memoryless_timer(regularity, refractory_s):
-    """k = 0: the chain's rates are the memoryless timer's closed form (evnoise.background.regular_rates, a separate
-    formula: E[min(G, L)] over the timer's fixed part and geometric rest), within the truncation's bound."""
+    """k = 0: the chain's rates are the memoryless timer's closed form (evnoise.background.regular_rates, its own
+    code path; both use timer_mean_min for E[min(G, L)], checked against plain sums below), within the truncation's
+    bound: this checks the chain's plumbing (per-state background, stationary law, rates)."""
     params = TIMED.replace(reset_memory=0.0, leak_regularity=regularity, refractory_s=refractory_s)
     lux = np.array([0.0, 0.3, 2.0, 20.0])
     st = memory.memory_statistics(lux, params)
     want = ev.expected_rate(lux, params)
     bound = 2.0 * st.tail_mass * params.trial_rate_hz
     assert np.all(np.abs(st.rate_hz - want) <= 1e-9 * want + bound), (st.rate_hz, want)
+
+
+@pytest.mark.parametrize("p, d, a2", [(0.01, 30, 0.05), (0.3, 0, 0.5), (1e-4, 1000, 1e-3), (0.05, 10, 1.0),
+                                      (0.2, 5, 1e-9), (0.0, 7, 0.3), (1.0, 4, 0.2)])
+def test_the_timer_sums_against_plain_sums(p, d, a2):
+    """E[min(G, L)] and E[G; G <= L] for L = d + G2 (G geometric with p, G2 with a2, both >= 1) against the plain
+    sums over g (P(L >= g) = 1 up to d, then (1 - a2)^(g - d - 1)), to 1e-10 relative."""
+    from evnoise.terms.timer import timer_mean_min
+
+    g = np.arange(1, 400_001, dtype=np.float64)
+    tail_l = np.where(g <= d, 1.0, (1.0 - a2) ** np.maximum(g - d - 1.0, 0.0))  # P(L >= g)
+    p_g = p * (1.0 - p) ** (g - 1.0)  # P(G = g)
+    e_photon = float((g * p_g * tail_l).sum())
+    e_min = float((((1.0 - p) ** (g - 1.0)) * tail_l).sum())  # sum over t >= 0 of P(G > t) P(L > t)
+    with np.errstate(divide="ignore"):
+        log1m_p = np.log1p(-p)
+    args = (np.array([log1m_p]), np.array([p]), float(d), math.log1p(-a2) if a2 < 1 else -math.inf)
+    assert math.isclose(float(timer_mean_min(*args)[0]), e_min, rel_tol=1e-10)
+    assert math.isclose(float(memory._photon_first_mean(*args)[0]), e_photon, rel_tol=1e-10, abs_tol=1e-300)
+
+
+@pytest.mark.parametrize("method", ["auto", "trials"])
+def test_memory_timer_and_refractory_period_against_the_closed_form(method):
+    """With a refractory period (its dead time after every event; at the start only the first event is
+    approximate, as without memory): both tiers against the closed form's rates, transitions and mean intervals."""
+    params = TIMED.replace(refractory_s=2e-3)
+    lux = np.full((20, 20), LUX)
+    duration_s = 30.0
+    e = ev.simulate_events(lux, params, duration_s, rng=19, method=method)
+    pix, t, p = e["y"].astype(np.int64) * lux.shape[1] + e["x"], e["t"].astype(np.float64), e["p"]
+    _check_against_closed_form(_summaries(pix, t, p, lux.size), memory.memory_statistics(LUX, params), duration_s,
+                               lux.size)
+
+
+@pytest.mark.parametrize("reset_memory", [0.0, 0.8])
+def test_a_timer_without_intensity_starts_again_when_the_light_returns(reset_memory):
+    """A leak proportional to the light (none in the dark) on the timer: a stream at 0 lux, then at 5 lux, has the
+    closed form's rate there (before, without memory: the timer's arrival stayed at infinity after the dark interval
+    and the background never came back until a photon event; the memory kernel has no timer in the dark)."""
+    params = TIMED.replace(reset_memory=reset_memory, leak_on_hz=0.0, leak_off_hz=0.0, leak_on_hz_per_lux=1.0,
+                           eps_pos=3.0, eps_neg=3.0)
+    shape = (30, 30)
+    stream = ev.NoiseStream(shape, params, rng=3)
+    assert stream.advance(np.zeros(shape), 1_000_000).size == 0
+    e = stream.advance(np.full(shape, 5.0), 21_000_000)
+    e = e[e["t"] >= 2_000_000]  # after a settling second
+    counts = np.bincount(e["y"].astype(np.int64) * shape[1] + e["x"], minlength=shape[0] * shape[1]) / 19.0
+    rate = float(ev.expected_rate(5.0, params).sum())
+    assert rate > 4.0
+    assert abs(counts.mean() - rate) < K_SIGMA * counts.std() / math.sqrt(counts.size), (counts.mean(), rate)
 
 
 def test_a_regularity_near_zero_is_the_poisson_background():

@@ -66,7 +66,7 @@ def _restore(states, fstate, k, snap_s, snap_f):
 
 
 #: Columns of the per-pixel float state ``fstate`` ``(n, N_STATE)`` that the window kernels advance
-#: (one row per pixel, so a pixel's state is one cache line): the last event's trial and time (µs),
+#: (one row per pixel, so a pixel's state is contiguous): the last event's trial and time (µs),
 #: a pending event's trial, time (NaN: none) and polarity (1.0 ON), the reference and previous mean
 #: photon counts of the trial tier, its cached static probabilities (``CACHE_LAM`` the ``lam`` they
 #: belong to, NaN for none), the regular timer's next arrival (trial) and its intensity (events/s), and the
@@ -362,6 +362,15 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
     constant inversely proportional to the input photocurrent); once within ``1e-9`` of the input
     level it is snapped to it, so a settled pixel is exactly static again.
 
+    Reset memory (:mod:`evnoise.terms.memory`): with ``memory = k > 0`` the noise comparison of an eligible
+    trial takes, with probability ``k`` (one more uniform, drawn before the reference; none when ``k = 0``), the
+    pixel's stored count ``STORED`` as its reference instead of a fresh ``n0 ~ Poisson(lam_ref)``. A noise or
+    background event stores the trial's count ``n``; a trial with signal events stores a count drawn around the
+    new reference, ``Poisson(lam_ref)`` (the level the pixel reset at, with its photon noise). For a still pixel
+    this is the module's model trial by trial; the caller draws ``STORED`` (and a timer's first arrival) at the
+    start from the steady state (:func:`evnoise._kernels.memory.initial_stored`). ``fast_static`` is ignored then
+    (the stored count makes a still pixel's trials dependent).
+
     Events go to the caller's buffers ``out = (t, x, y, p)`` from slot ``n`` on, starting at pixel
     ``k_start``; returns ``(n, k)``, ``k = len(pix)`` when every pixel is done. When the buffers fill
     up, pixel ``k``'s stream and state are put back as they were before it and its events dropped:
@@ -393,7 +402,7 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
         e_on = math.exp(thr[2, k])
         e_off = math.exp(thr[3, k])
         ref = fstate[k, LAM_REF]
-        if fast_static:
+        if fast_static and memory == 0.0:
             lam0 = frames_lam[0, flat]
             const = lam0 == ref and fstate[k, LAM_PREV] == ref
             for f in range(1, n_frames):

@@ -245,7 +245,7 @@ def with_timer(t, a_on: float, a_off: float, d: float, log1m_a2: float):
     with np.errstate(divide="ignore", invalid="ignore"):
         a_eff = np.where(p < 1.0, (1.0 - photon_first) / (e_min * np.where(p < 1.0, 1.0 - p, 1.0)), 0.0)
         photon_on = np.where(p > 0, (t.p_fresh_on + t.stored_on) / np.where(p > 0, p, 1.0), 0.0)
-    share_on = a_on / (a_on + a_off)
+    share_on = a_on / (a_on + a_off) if a_on + a_off > 0 else 0.0  # chain_timer gives a timer only where a > 0
     # the sojourn up to a photon event, and up to a timer one: E[G; G <= L] and E[L; L < G]
     by_photon = ((1.0 - phi) * _photon_first_mean(log1m_p, p, d0, log1m_a2)
                  + phi * _photon_first_mean(log1m_p, p, d0 + 1.0, log1m_a2))
@@ -264,7 +264,7 @@ def _photon_first_mean(log1m_p, p, d, log1m_a2):
         lq = np.where(live, log1m_p, -1.0)
         p_s = np.where(live, p, 1.0)
         q_d = np.exp(d * lq)
-        head = (-np.expm1(d * lq) - d * p_s * q_d) / p_s
+        head = np.maximum((-np.expm1(d * lq) - d * p_s * q_d) / p_s, 0.0)  # ~ p d^2 / 2 for p d small: rounding
         one_m_qc = -np.expm1(lq + log1m_a2)
         tail = p_s * q_d * (d / one_m_qc + 1.0 / one_m_qc**2)
     return np.where(live, head + tail, np.where(p >= 1.0, 1.0, 0.0))
@@ -490,7 +490,8 @@ def kernel_tables(levels, params, spans=None, background=None, thresholds=None, 
     level (:func:`pixel_groups`), else the nominal pixel's (:func:`level_background`). ``thresholds``: optional
     ``(eps_on, eps_off)`` per level (:func:`pixel_groups`), else the nominal ones. ``timer``: the levels' regular
     background timer (:func:`chain_timer`) or None: a level with one has tables of photon noise alone (its
-    background is the kernel's timer) and the steady state and rate of :func:`with_timer`.
+    background is the kernel's timer) and the steady state and rate of :func:`with_timer`; without it every
+    background is Poisson (also that of parameters with a regular timer: pass ``timer`` for those).
 
     Returns ``(table, itable, offsets, sizes, rates)``: float rows ``ROW_*`` and integer rows ``ROW_IDX_*`` of
     :mod:`evnoise._kernels.memory` over all levels' states (level ``g``'s at ``offsets[g] .. + sizes[g]``) and
