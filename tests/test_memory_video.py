@@ -105,10 +105,20 @@ def _step_reference(params, lam_a, lam_b, n_pix, n_before, n_after, seed):
     the refractory period after the previous event; the reference moves to the last threshold crossed and the
     stored count is drawn ``Poisson(reference)``. Noise trials: a share ``k`` compares with the stored count,
     else with a fresh ``Poisson(reference)``; a noise event resets the reference to ``lam`` and stores ``n``.
+    With a leak on the regular timer (``leak_regularity > 0``, intensity independent of the light): in an eligible
+    trial without photon event the timer, drawn in the first such trial after an event (``L = D + G2`` as in
+    :mod:`evnoise._kernels.background`), fires in trial ``j + L - 1``; every event (signal ones too) restarts it.
     Starts from a burn-in (the first ``n_before // 2`` trials, returned too: the caller looks later).
     Returns per event ``(pixel, time µs, polarity, is_signal)``."""
     rng = np.random.default_rng(seed)
     b, k, dt, refr = params.bias_pr, params.reset_memory, params.trial_us, params.refractory_us
+    l_on, l_off, r = params.leak_on_hz, params.leak_off_hz, params.leak_regularity
+    timed = l_on + l_off > 0 and r > 0
+    if timed:
+        a = -math.expm1(-(l_on + l_off) / params.trial_rate_hz)
+        d = r * (1.0 / a - 1.0)
+        a2 = 1.0 / (1.0 + (1.0 - r) * (1.0 / a - 1.0))
+    arrival = np.full(n_pix, np.nan)
     ref = np.full(n_pix, float(lam_a))
     stored = rng.poisson(lam_a, n_pix).astype(np.float64)
     last_tau = np.full(n_pix, -np.inf)
@@ -134,29 +144,42 @@ def _step_reference(params, lam_a, lam_b, n_pix, n_before, n_after, seed):
                     ref[i] = math.exp(lev_ref) - b
                     stored[i] = rng.poisson(ref[i])
                     sig[i] = True
+                    arrival[i] = np.nan
         n = rng.poisson(lam, n_pix)
         use_stored = rng.random(n_pix) < k
         fresh = rng.poisson(ref)
-        r = np.where(use_stored, stored, fresh)
-        d = np.log(n + b) - np.log(r + b)
-        on, off = d > params.eps_pos, -d > params.eps_neg
+        reference = np.where(use_stored, stored, fresh)
+        diff = np.log(n + b) - np.log(reference + b)
+        on, off = diff > params.eps_pos, -diff > params.eps_neg
+        eligible = ~sig & (j > last_trial) & (j * dt >= last_tau + refr)
+        if timed:
+            quiet = eligible & ~(on | off)
+            start = quiet & np.isnan(arrival)
+            fixed = math.floor(d) + (rng.random(n_pix) < d - math.floor(d))
+            arrival = np.where(start, j + fixed + rng.geometric(a2, n_pix) - 1.0, arrival)
+            timer = quiet & (j >= arrival)
+            timer_on = rng.random(n_pix) < l_on / (l_on + l_off)
+            on, off = on | (timer & timer_on), off | (timer & ~timer_on)
         tau = (j + rng.random(n_pix)) * dt
-        fire = (on | off) & ~sig & (j > last_trial) & (j * dt >= last_tau + refr)
+        fire = (on | off) & eligible
         for i in np.flatnonzero(fire):
             out.append((i, tau[i], int(on[i]), False))
         last_tau[fire], last_trial[fire] = tau[fire], j
         ref[fire] = lam
         stored[fire] = n[fire]
+        arrival[fire] = np.nan
     pix, t, p, s = (np.array(c) for c in zip(*out))
     return pix.astype(np.int64), t.astype(np.float64), p.astype(np.uint8), s.astype(bool)
 
 
-def test_video_step_with_memory_against_a_per_trial_reference():
+@pytest.mark.parametrize("params", [MEM, MEM.replace(leak_on_hz=40.0, leak_off_hz=10.0, leak_regularity=0.7)],
+                         ids=["memory", "memory-and-timer"])
+def test_video_step_with_memory_against_a_per_trial_reference(params):
     """A step of light 0.5 -> 2 lux at 1 s: the changing pixels' signal events (two ON each), then their noise
     right after the step (the stored count drawn at the new reference meets the new light), and settled, against
     the plain per-trial reference of the same schedule: per-pixel counts, ON share and alternation per phase
-    (two-sample, k-sigma from the per-pixel spread of each); settled phases against the closed form too."""
-    params = MEM
+    (two-sample, k-sigma from the per-pixel spread of each); settled phases against the closed form too. With a
+    leak on the regular timer as well (restarted by the signal events)."""
     dt = params.trial_us
     shape = (30, 30)
     n_pix = shape[0] * shape[1]
