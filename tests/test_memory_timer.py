@@ -341,6 +341,31 @@ def test_noise_stream_with_memory_and_timer_through_a_change_of_light_against_th
         _assert_phase_agrees(sums, n_pix, lo_s)
 
 
-def test_memory_iei_cdf_with_the_timer_is_refused():
-    with pytest.raises(ev.ParameterError, match="timer"):
-        memory.memory_iei_cdf([0.1], LUX, TIMED)
+def test_interval_distribution_with_the_timer_has_the_closed_form_means_and_limits():
+    """memory_iei_cdf with the timer (cumulative sums of P(K <= m, photon / timer first)) against the mean intervals
+    of memory_statistics (E[G; G <= L], E[L; L < G]: another derivation), to 1e-6; near regularity 0 it is the
+    Poisson background's distribution (the geometric formula), to 1e-6."""
+    grid = np.linspace(0.0, 20.0, 200_001)
+    cdf = memory.memory_iei_cdf(grid, LUX, TIMED)
+    assert np.all(np.diff(cdf, axis=-1) >= -1e-12) and np.allclose(cdf[..., -1], 1.0, atol=1e-12)
+    means = ((1.0 - cdf[..., 1:]) + (1.0 - cdf[..., :-1])).sum(axis=-1) * 0.5 * (grid[1] - grid[0])
+    np.testing.assert_allclose(means, memory.memory_statistics(LUX, TIMED).iei_mean_s, rtol=1e-6)
+    ts = np.array([0.0005, 0.003, 0.02, 0.1, 0.4, 1.5])
+    nearly = memory.memory_iei_cdf(ts, LUX, TIMED.replace(leak_regularity=1e-9))
+    poisson = memory.memory_iei_cdf(ts, LUX, TIMED.replace(leak_regularity=0.0))
+    np.testing.assert_allclose(nearly, poisson, rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.parametrize("refractory_s", [0.0, 2e-3])
+def test_kernel_intervals_with_the_timer_follow_the_closed_form_distribution(refractory_s):
+    """The renewal kernel's intervals per polarity pair against memory_iei_cdf with the timer (one-sample KS; a
+    pixel's successive intervals are dependent through its state, which makes the p-values somewhat optimistic)."""
+    params = TIMED.replace(refractory_s=refractory_s)
+    lux = np.full((20, 20), LUX)
+    pix, t, p = _events(lux, params, 30.0, seed=23)
+    s = _summaries(pix, t, p, lux.size)
+    for a in (0, 1):
+        for b in (0, 1):
+            gaps = s["gaps", a, b] * 1e-6
+            p_ks = stats.kstest(gaps, lambda x: memory.memory_iei_cdf(x, LUX, params)[a, b]).pvalue
+            assert p_ks > 1e-3, (a, b, p_ks)

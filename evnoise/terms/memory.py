@@ -56,9 +56,10 @@ gap, ``L`` the timer's (photons first on a tie), a timer event storing the count
 event; the closed form is the chain with a per-state background (:func:`with_timer`), the renewal kernel draws
 both gaps (:func:`evnoise._kernels.memory.memory_window`), the trial kernel runs its own timer (started from the
 steady-state age given the stored state, :func:`evnoise._kernels.memory.initial_stored`); a stream keeps a
-pixel's pending timer arrival across intervals (moved with a change of its intensity). Refused with
-:class:`~evnoise.ParameterError`: :func:`memory_iei_cdf` with the timer (not geometric), and per-pixel rates or
-Poisson counts for pixels whose thresholds or background differ (the closed form is the nominal pixel's).
+pixel's pending timer arrival across intervals (moved with a change of its intensity); :func:`memory_iei_cdf`
+gives the intervals' distribution (:func:`_timer_iei_cdf`). Refused with :class:`~evnoise.ParameterError`:
+per-pixel rates or Poisson counts for pixels whose thresholds or background differ (the closed form is the
+nominal pixel's).
 
 Threshold mismatch. A pixel's chain reads its thresholds only through the threshold counts ``k_on(m)``,
 ``k_off(m)`` over its light's states, so pixels whose thresholds give the same counts share one chain, exactly
@@ -231,7 +232,7 @@ def with_timer(t, a_on: float, a_off: float, d: float, log1m_a2: float):
     mean sojourn is ``E[min(G, L)]`` trials (:func:`evnoise.terms.timer.timer_mean_min`, the fixed part's
     fraction mixed). Per-state arrival probabilities ``a(m)`` with ``p + (1 - p) a = 1 / E[min]`` give the chain
     (:func:`_stationary`), the rates and mean intervals (:func:`level_statistics`) and the steady state
-    (:func:`initial_law`) of that process; not its interval distribution (not geometric)."""
+    (:func:`initial_law`) of that process; its interval distribution is not geometric (:func:`_timer_iei_cdf`)."""
     from .timer import timer_mean_min
 
     p = t.photon_event
@@ -995,6 +996,55 @@ def memory_statistics(lux, params) -> MemoryStatistics:
                             shaped(out["opp"]), shaped(out["iei"], (2, 2)), shaped(out["tail"]))
 
 
+def _timer_iei_cdf(t, x, weights, d: float, log1m_a2: float, share_on: float) -> np.ndarray:
+    """:func:`memory_iei_cdf` with the regular timer: ``x`` (trials, ``(T,)``) is ``K - 1 + U1 + U2`` with ``K =
+    min(G, L)`` the eligible trials to the next event. Per state ``j`` the cumulative ``C(m) = P(K <= m, photon
+    first)`` is ``1 - q^m`` up to the timer's fixed part ``D`` and ``1 - q^D + p q^D (1 - (q c)^(m - D)) / (1 - q c)``
+    beyond (``c = 1 - a2``); ``P(K <= m, timer first) = a2 q^(D + 1) (1 - (q c)^(m - D)) / (1 - q c)`` beyond ``D``
+    (ties to the photons), mixed over ``D = floor(d)`` and ``floor(d) + 1``. A photon event is ON with the state's
+    photon share, a timer event with ``share_on``; the triangular ``U1 + U2`` is added as in the geometric case.
+    ``weights``: :func:`level_statistics`' (their sum over the next polarity is the law of the state after ``a``)."""
+    p = np.minimum(t.photon_event, 1.0)[:, None]  # (S, 1)
+    with np.errstate(divide="ignore", invalid="ignore", under="ignore", over="ignore"):
+        live = p > 0
+        lq = np.where(p < 1.0, np.log1p(-np.where(p < 1.0, p, 0.0)), -np.inf)
+        photon_on = np.where(live, (t.p_fresh_on + t.stored_on)[:, None] / np.where(live, p, 1.0), 0.0)
+        one_m_qc = -np.expm1(lq + log1m_a2)
+        a2 = -math.expm1(log1m_a2)
+
+        def q_pow(m):  # q^m for whole m >= 0 (q^0 = 1 also where q = 0)
+            return np.where(m > 0, np.exp(m * lq), 1.0)
+
+        def cumulative(m):  # (photon first, timer first): P(K <= m, ...) per state, for whole m (T,)
+            m = np.maximum(m, 0.0)[None, :]
+            photon, timer = 0.0, 0.0
+            d0 = math.floor(d)
+            for dd, w in ((d0, 1.0 - (d - d0)), (d0 + 1.0, d - d0)):
+                if w == 0.0:
+                    continue
+                beyond = m > dd
+                k = np.where(beyond, m - dd, 0.0)
+                rest = np.where(beyond, -np.expm1(k * (lq + log1m_a2)) / one_m_qc, 0.0)  # sum of (q c)^h, h < k
+                q_d = q_pow(np.float64(dd))
+                photon = photon + w * np.where(beyond, -np.expm1(dd * lq) + p * q_d * rest, -np.expm1(m * lq))
+                timer = timer + w * np.where(beyond, a2 * q_d * np.where(p < 1.0, np.exp(lq), 0.0) * rest, 0.0)
+            return np.where(m > 0, photon, 0.0), np.where(m > 0, timer, 0.0)
+
+        n = np.floor(x)
+        f = x - n
+        f1 = 1.0 - 0.5 * (1.0 - f) ** 2  # P(U1 + U2 <= 1 + f)
+        f0 = 0.5 * f**2  # P(U1 + U2 <= f)
+        c_prev, c_n, c_next = cumulative(n - 1.0), cumulative(n), cumulative(n + 1.0)
+        cdf = [np.where(x[None, :] < 0, 0.0, c_prev[i] + (c_n[i] - c_prev[i]) * f1 + (c_next[i] - c_n[i]) * f0)
+               for i in (0, 1)]  # (S, T) photon first, timer first
+        after = weights.sum(axis=1)  # (2, S): the law of the state after an event of polarity a (unnormalised)
+        out = np.empty((2, 2, x.size))
+        for b, photon_share, timer_share in ((1, photon_on, share_on), (0, 1.0 - photon_on, 1.0 - share_on)):
+            per_state = photon_share * cdf[0] + timer_share * cdf[1]
+            out[:, b] = np.einsum("as,st->at", after, per_state) / weights[:, b].sum(axis=1)[:, None]
+    return np.clip(out, 0.0, 1.0)
+
+
 def _nominal_timer(bg_on, bg_off, params):
     """:func:`chain_timer` of the nominal pixel (not hot: ``leak_regularity``) at levels with these backgrounds."""
     if not params.regular_background:
@@ -1010,25 +1060,26 @@ def memory_iei_cdf(t_s, lux: float, params) -> np.ndarray:
     ``R + dt (G - 1 + U1 + U2)``, ``G`` geometric with ``P(j)``, ``U1``, ``U2`` uniform (the uniform times of the two
     events in their trials; the refractory period's mean skip is exactly ``R``), independent of the next
     polarity; the CDF is the mixture over ``j`` weighted by the stationary law of the states after ``a``
-    events and ``P(b | j)``.
+    events and ``P(b | j)``. With the regular background timer ``G`` is ``min(G, L)`` and the next polarity
+    depends on which came first (:func:`_timer_iei_cdf`).
     """
     from .._checks import check_params
 
     params = check_params(params)
     lam = float(params.photons_per_trial(float(lux)))
     bg_on, bg_off = level_background([lam], params)
-    if _nominal_timer(bg_on, bg_off, params) is not None:
-        from ..errors import ParameterError
-
-        raise ParameterError("memory_iei_cdf: the intervals of a pixel with the regular background timer are not "
-                             "geometric in trials, and their distribution is not computed (memory_statistics gives "
-                             "their means)")
+    timer = _nominal_timer(bg_on, bg_off, params)
     t = level_tables(lam, params.eps_pos, params.eps_neg, params.bias_pr, params.reset_memory, a_on=bg_on[0],
                      a_off=bg_off[0])
+    timed = timer is not None and timer[0, 0] < math.inf
+    if timed:
+        t = with_timer(t, float(bg_on[0]), float(bg_off[0]), float(timer[0, 0]), float(timer[1, 0]))
     dt_s = 1.0 / params.trial_rate_hz
     refr_s = params.refractory_us * 1e-6
     *_, weights, p = level_statistics(t, dt_s, refr_s)
     x = (np.atleast_1d(np.asarray(t_s, dtype=np.float64)) - refr_s) / dt_s  # G - 1 + U1 + U2
+    if timed:
+        return _timer_iei_cdf(t, x, weights, float(timer[0, 0]), float(timer[1, 0]), float(timer[2, 0]))
     n = np.floor(x)
     f = x - n
     q = 1.0 - p
