@@ -631,7 +631,11 @@ def _write_initial(table, cols, t: LevelTables, pi, dt_s: float, refr_s: float) 
 
 
 #: Beyond :data:`EXACT_RATE_LEVELS` levels the embedded stationary law of :func:`initial_law` is this many steps
-#: of the embedded chain from ``Poisson(lam)`` (each ``O(S log S)``), not a linear solve.
+#: of the embedded chain from ``Poisson(lam)`` (each ``O(S log S)``), not a linear solve. So the start of such a run
+#: (threshold mismatch, a leak spread, many light levels) is the steady state only up to the chain's mixing:
+#: total-variation distance from :func:`_stationary`'s law below 1e-7 for ``k <= 0.9`` at tens of photons per trial,
+#: 1e-8 to 5e-5 for ``k = 0.3`` at 640 to 3000, but 5e-3 for ``k = 0.9`` and up to 7e-2 for ``k >= 0.99`` at
+#: hundreds to thousands of photons per trial (measured, eps 0.1-0.5; 400 steps would not close the last ones).
 ITERATED_STEPS = 40
 #: Chains of one light level iterated together (:func:`_embedded_iterate`; ``(block, S)`` arrays): at most this
 #: many ...
