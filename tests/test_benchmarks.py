@@ -41,3 +41,16 @@ def test_benchmark_report_tiny_run(tmp_path):
             name = line.split("](", 1)[1].rstrip(")")
             png = tmp_path / name
             assert png.is_file() and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
+
+
+def test_memory_benchmark_tiny_run(tmp_path):
+    """benchmarks/bench_memory.py writes its section into a report (structure only, at smoke size)."""
+    script = SCRIPT.parent / "bench_memory.py"
+    report = tmp_path / "REPORT.md"
+    report.write_text("# report\n\n## Other\nkept\n")
+    proc = subprocess.run([sys.executable, str(script), "--tiny", "--out", str(report)], capture_output=True,
+                          text=True, check=False)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-4000:]
+    text = report.read_text(encoding="utf-8")
+    assert "## Other\nkept" in text and "## Reset memory: cost and error (issue 32)" in text
+    assert "| davis346 nominal, k = 0.3 |" in text and "Machine:" in text
