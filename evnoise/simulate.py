@@ -282,14 +282,11 @@ def _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, s
     level, background and thresholds (``bg``: the run's flat maps or None; ``thresholds``: its flat per-pixel
     ``(eps_on, eps_off)`` or None), each advanced event by event over its group's state tables
     (:mod:`evnoise._kernels.memory`)."""
-    from .terms.memory import chain_timer, kernel_tables, pixel_groups
+    from .terms.memory import still_chains
 
     width = lux.shape[1]
     lam = params.photons_per_trial(lux).ravel()
-    levels, a_on, a_off, reg, group, eps = pixel_groups(lam, params, bg, thresholds, with_timer=True)
-    timer = chain_timer(a_on, a_off, reg, params)
-    tables = kernel_tables(levels, params, background=(a_on, a_off), thresholds=eps, timer=timer)
-    level_rates = tables[4]
+    _, group, tables, level_rates, timer = still_chains(lam, params, bg, thresholds)
     nu = level_rates[group]
     dt = params.trial_us
     refr = float(params.refractory_us)
@@ -297,7 +294,7 @@ def _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, s
     mem = np.full(lux.size, math.nan)  # each pixel's stored state (NaN: drawn at its first window)
 
     def step(state, t_prev, w_end):
-        return memory_step(state, mem, width, group, tables[:4], dt, refr, 0.0, float(w_end), math.inf,
+        return memory_step(state, mem, width, group, tables, dt, refr, 0.0, float(w_end), math.inf,
                            np.int64(t_start_us), threads, nu * ((w_end - t_prev) * 1e-6), timer)
 
     return _static_windows(lux.size, key, threads, total, t_start_us, duration_us, progress, sink,
@@ -551,37 +548,31 @@ class _MemoryChains:
     and ``rates`` (events/s)."""
 
     def __init__(self, lam_start, params, bg, eps_on, eps_off):
-        from .terms.memory import chain_timer, kernel_tables, pixel_groups, state_range
+        from .terms.memory import state_range, still_chains
 
-        levels, a_on, a_off, reg, self.group, eps = pixel_groups(lam_start, params, bg, (eps_on, eps_off),
-                                                                 with_timer=True)
-        self.timer = chain_timer(a_on, a_off, reg, params)
-        *self.tables, self.rates = kernel_tables(levels, params, background=(a_on, a_off), thresholds=eps,
-                                                 timer=self.timer)
-        self.lo = np.array([state_range(float(lam))[0] for lam in levels], dtype=np.float64)
+        levels, self.group, self.tables, self.rates, self.timer = still_chains(lam_start, params, bg,
+                                                                               (eps_on, eps_off))
+        lowest = {lam: float(state_range(lam)[0]) for lam in set(levels.tolist())}  # chains share light levels
+        self.lo = np.array([lowest[lam] for lam in levels.tolist()], dtype=np.float64)
 
     def start_trials(self, state: PixelState, group, dt, refr_us, threads, bg_rows, lam_first, model):
         """The trial tier's pixels ``state`` (chains ``group``, background rows ``bg_rows`` of the trial kernel,
-        photons per trial ``lam_first`` at trial 0, its ``model``) start in their steady state: stored count, the
-        dead time of a last event before ``t = 0``, the regular timer's first arrival
-        (:func:`evnoise._kernels.memory.initial_stored`)."""
+        photons per trial ``lam_first`` at trial 0, its ``model``: :data:`evnoise.terms.MODEL`) start in their
+        steady state: stored count, the dead time of a last event before ``t = 0``, the regular timer's first
+        arrival (:func:`evnoise._kernels.memory.initial_stored`)."""
         from ._kernels.memory import initial_stored
 
         table, _, offsets, sizes = self.tables
         timer = np.zeros((3, 0)) if self.timer is None else self.timer
-        model = np.asarray(model, dtype=np.float64)
+        lux_per_photon, dark_lux, regularity = (float(model[terms.MODEL.index(name)])
+                                                for name in ("lux_per_photon", "dark_lux", "regularity"))
 
         def run(lo, hi):
             initial_stored(state.states[lo:hi], state.fstate[lo:hi], group[lo:hi], offsets, sizes, self.lo, table,
                            float(dt), float(refr_us), timer, np.ascontiguousarray(bg_rows[:, lo:hi]),
-                           np.ascontiguousarray(lam_first[lo:hi]), model)
+                           np.ascontiguousarray(lam_first[lo:hi]), lux_per_photon, dark_lux, regularity)
 
         map_chunks(run, state.pix.size, threads)
-
-
-def _memory_setup(lam_of, params, bg, eps_on, eps_off):
-    """:class:`_MemoryChains` of a changing scene with reset memory, else None."""
-    return _MemoryChains(lam_of(0), params, bg, eps_on, eps_off) if memory_on(params) else None
 
 
 def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us, duration_us, threads,
@@ -618,7 +609,7 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
         seg = np.clip(np.searchsorted(frame_us, centres, side="right") - 1, 0, frames.n - 2)
         return np.unique(np.concatenate([seg, seg + 1]))
 
-    mem = _memory_setup(lam_of, params, bg, eps_on, eps_off)
+    mem = _MemoryChains(lam_of(0), params, bg, eps_on, eps_off) if memory_on(params) else None
     # static pixels: closed-form probabilities once (with reset memory: their chains' tables)
     stat_timer = None
     if stat_pix.size and mem is not None:

@@ -145,7 +145,7 @@ class NoiseStream:
         if grouping is None or grouping[0] != class_spans or not np.array_equal(grouping[1], lam):
             # the pixels' chains: the same while the light and the states compared over are (most intervals)
             grouping = self._grouping = (class_spans, lam.copy(), pixel_groups(lam, p, self._bg, thresholds,
-                                                                               class_spans, with_timer=True))
+                                                                               class_spans))
         levels, a_on, a_off, reg, group, eps = grouping[2]
         spans = _memory_spans(levels, group, self._stored, self._pending_count)
         if class_spans is not None:  # within the states its thresholds were compared over (counts beyond: clamped)

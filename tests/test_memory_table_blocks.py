@@ -16,7 +16,7 @@ def _groups(shape, lux, seed=1):
     params = ev.load_preset("davis346").replace(reset_memory=0.5, leak_regularity=0.0)
     run = run_setup(shape, params, np.random.default_rng(seed))
     lam = params.photons_per_trial(np.full(shape, lux)).ravel()
-    levels, a_on, a_off, _, eps = tm.pixel_groups(lam, run.params, run.background, run.thresholds)
+    levels, a_on, a_off, _, _, eps = tm.pixel_groups(lam, run.params, run.background, run.thresholds)
     return params, levels, (a_on, a_off), eps
 
 

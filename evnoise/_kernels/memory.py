@@ -21,7 +21,18 @@ from ._jit import kernel
 from .background import draw_timer, draw_timer_stationary, timer_shape
 from .poisson import log_pmf, threshold_count
 from .rng import geometric, uniform, uniform_pos
-from .simulate import BG_L, BG_NEXT, LAST_TAU, LAST_TRIAL, PEND_ON, PEND_TAU, PEND_TRIAL, STORED, first_eligible_trial
+from .simulate import (
+    BG_L,
+    BG_NEXT,
+    LAST_TAU,
+    LAST_TRIAL,
+    PEND_ON,
+    PEND_TAU,
+    PEND_TRIAL,
+    STORED,
+    background_intensity,
+    first_eligible_trial,
+)
 
 NO_EVENT = math.nan
 
@@ -96,7 +107,8 @@ def draw_initial(s, table, o, n_s, refr_us):
 
 
 @kernel
-def initial_stored(states, fstate, group, offsets, sizes, lo, table, dt, refr_us, timer, bg, lam_first, model):
+def initial_stored(states, fstate, group, offsets, sizes, lo, table, dt, refr_us, timer, bg, lam_first,
+                   lux_per_photon, dark_lux, regularity):
     """The trial tier's start in the steady state (:func:`evnoise._kernels.simulate.trial_window` with reset
     memory): per pixel ``k`` of the chunk a state of its level ``group[k]`` drawn by :func:`draw_initial` from
     its stream ``states[k]``, stored as the count ``lo[g] + state`` in ``fstate[k, STORED]``, and the last event's
@@ -105,11 +117,11 @@ def initial_stored(states, fstate, group, offsets, sizes, lo, table, dt, refr_us
     With the regular timer (``timer`` ``(3, groups)`` as in :func:`memory_window`; ``(3, 0)``: none) a pixel of a
     group with one, outside its dead time, also gets its timer's first arrival from the steady-state age given its
     state (:func:`draw_timer_stationary` with the state's photon probability), as the trial kernel's ``BG_NEXT``
-    (trial) and ``BG_L`` (the intensity it belongs to, computed as the trial kernel does at trial 0 from the
-    pixel's background rows ``bg``, its photons per trial ``lam_first`` there and ``model``)."""
+    (trial) and ``BG_L`` (the intensity it belongs to: :func:`~evnoise._kernels.simulate.background_intensity` at
+    trial 0 from the pixel's background rows ``bg`` and its photons per trial ``lam_first`` there; ``regularity``:
+    the trial kernel's, where ``bg`` has no row of its own)."""
     s = np.empty(4, dtype=np.uint64)
     has_timer = timer.shape[1] > 0
-    lux_per_photon, dark_lux, regularity = model[3], model[4], model[6]
     own_reg = bg.shape[0] > 4
     for k in range(states.shape[0]):
         for w in range(4):
@@ -121,8 +133,7 @@ def initial_stored(states, fstate, group, offsets, sizes, lo, table, dt, refr_us
             fstate[k, LAST_TAU] = -elapsed
             fstate[k, LAST_TRIAL] = np.floor(-elapsed / dt)
         elif has_timer and timer[0, g] < math.inf and bg.shape[1] > 0:
-            lux_0 = max(lam_first[k] * lux_per_photon - dark_lux, 0.0)
-            l_all = bg[0, k] + bg[1, k] * lux_0 + bg[2, k] + bg[3, k] * lux_0
+            l_all = background_intensity(bg, k, lam_first[k], lux_per_photon, dark_lux)[1]
             if l_all > 0.0:
                 d_t, l1m_t = timer_shape(l_all, dt * 1e-6, bg[4, k] if own_reg else regularity)
                 log1m_p = table[ROW_LOG1M_P, offsets[g] + int(st)]

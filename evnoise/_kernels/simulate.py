@@ -295,6 +295,16 @@ def _add_background(p_on, p_off, l_on, l_off, dt_s):
     return p_on + quiet * g * l_on, p_off + quiet * g * l_off
 
 
+@kernel(inline=True)
+def background_intensity(bg, k, lam_in, lux_per_photon, dark_lux):
+    """``(l_on, l_all)``, pixel ``k``'s background intensities (events/s) at ``lam_in`` photons per trial from its
+    rows ``bg`` of :func:`trial_window` (also what :func:`evnoise._kernels.memory.initial_stored` stores, the same
+    arithmetic, so a timer it starts is not rescaled at the first trial)."""
+    lux = max(lam_in * lux_per_photon - dark_lux, 0.0)
+    l_on = bg[0, k] + bg[1, k] * lux
+    return l_on, l_on + bg[2, k] + bg[3, k] * lux
+
+
 _LEVEL_FLOOR = 1e-6  # photons per trial; log-levels below log(1e-6) are clamped in signal crossings
 
 
@@ -538,9 +548,7 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
                 elif n_ref > threshold_count(n_sig, thr[1, k], b):
                     pol = 0
                 elif has_bg:
-                    lux_j = max(lam_in * lux_per_photon - dark_lux, 0.0)
-                    l_on = bg[0, k] + bg[1, k] * lux_j
-                    l_all = l_on + bg[2, k] + bg[3, k] * lux_j
+                    l_on, l_all = background_intensity(bg, k, lam_in, lux_per_photon, dark_lux)
                     if regularity > 0.0:
                         if not fstate[k, BG_NEXT] < math.inf and l_all > 0.0:  # none pending (NaN, or inf in the dark)
                             d_t, l1m_t = timer_shape(l_all, dt_s, bg[4, k] if own_reg else regularity)

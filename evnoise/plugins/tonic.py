@@ -144,19 +144,15 @@ class PhotonNoise:
     def _precompute(self):
         """The renewal kernel's per-pixel inputs at ``self.lux`` (what ``simulate_events`` computes per call)."""
         from .._engine import static_inputs
-        from ..terms.memory import chain_timer, kernel_tables, memory_on, pixel_groups
+        from ..terms.memory import memory_on, still_chains
 
         run = self._setup
         lam = self.params.photons_per_trial(self.lux).ravel()
         self._pix = np.arange(self.lux.size, dtype=np.int64)
         self._memory = None
         if memory_on(self.params):  # reset memory: the state tables of the map's light levels (terms/memory.py)
-            levels, a_on, a_off, reg, group, eps = pixel_groups(lam, self.params, run.background, run.thresholds,
-                                                                with_timer=True)
-            timer = chain_timer(a_on, a_off, reg, self.params)
-            table, itable, offsets, sizes, rates = kernel_tables(levels, self.params, background=(a_on, a_off),
-                                                                 thresholds=eps, timer=timer)
-            self._memory = (group, (table, itable, offsets, sizes), timer)
+            _, group, tables, rates, timer = still_chains(lam, self.params, run.background, run.thresholds)
+            self._memory = (group, tables, timer)
             self._nu = rates[group]
             return
         self._log1m_p, self._q_on, self._timer, self._nu = static_inputs(lam, self.params, run.eps_on, run.eps_off,

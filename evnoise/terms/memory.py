@@ -146,22 +146,20 @@ def unsupported(params, thresholds=None, background=None, per_pixel: bool = True
     return missing
 
 
-def pixel_groups(lam, params, background=None, thresholds=None, class_spans=None, with_timer: bool = False):
-    """Pixels grouped by their chain: ``(levels, a_on, a_off, group, eps)``, the distinct chains' photons per trial,
-    per-trial background arrival probabilities (:func:`level_background`) and thresholds ``eps = (eps_on,
-    eps_off)``, and each pixel's index ``group`` into them. ``background``: the run's flat ``(scale, hot)`` maps
-    (:class:`evnoise._run.RunSetup`) or None (every pixel the nominal one). ``thresholds``: the run's flat per-pixel
-    ``(eps_on, eps_off)`` or None (the nominal ones). A background spread over pixels (``leak_sigma > 0``) makes
-    every pixel a group of its own (see :data:`MAX_TABLE_STATES`).
+def pixel_groups(lam, params, background=None, thresholds=None, class_spans=None):
+    """Pixels grouped by their chain: ``(levels, a_on, a_off, regularity, group, eps)``, the distinct chains'
+    photons per trial, per-trial background arrival probabilities (:func:`level_background`), the regular timer's
+    regularity (:func:`evnoise.terms.timer.pixel_regularity`, hot pixels may have their own; 0 without the timer)
+    and thresholds ``eps = (eps_on, eps_off)``, and each pixel's index ``group`` into them. ``background``: the
+    run's flat ``(scale, hot)`` maps (:class:`evnoise._run.RunSetup`) or None (every pixel the nominal one).
+    ``thresholds``: the run's flat per-pixel ``(eps_on, eps_off)`` or None (the nominal ones). A background spread
+    over pixels (``leak_sigma > 0``) makes every pixel a group of its own (see :data:`MAX_TABLE_STATES`).
 
     Thresholds that differ between pixels (mismatch) split a light level only where the chain differs: the chain
     reads a threshold through its counts ``k(m) = m + floor(expm1(eps) (m + b))`` over the level's states
     (:func:`threshold_classes`), so pixels whose thresholds give the same counts share a chain exactly.
     ``class_spans``: ``{lam: (lo, n_states)}``, the states over which they must agree (default
-    :func:`state_range`'s; :class:`evnoise.NoiseStream` widens them to hold counts stored under another light).
-
-    ``with_timer``: also group by the regular timer's regularity (:func:`evnoise.terms.timer.pixel_regularity`;
-    hot pixels may have their own) and return it: ``(levels, a_on, a_off, regularity, group, eps)``."""
+    :func:`state_range`'s; :class:`evnoise.NoiseStream` widens them to hold counts stored under another light)."""
     lam = np.asarray(lam, dtype=np.float64).ravel()
     if thresholds is None:
         eps_on, eps_off = np.full(lam.shape, params.eps_pos), np.full(lam.shape, params.eps_neg)
@@ -183,21 +181,29 @@ def pixel_groups(lam, params, background=None, thresholds=None, class_spans=None
             lo, n_states = (class_spans or {}).get(float(level)) or state_range(float(level))[:2]
             class_on[sel] = threshold_classes(eps_on[sel], lo, n_states, params.bias_pr)
             class_off[sel] = threshold_classes(eps_off[sel], lo, n_states, params.bias_pr)
-    columns = [lam, a_on, a_off, class_on, class_off]
-    if with_timer:
+    reg = 0.0
+    if params.regular_background:
         from .timer import pixel_regularity
 
-        reg = pixel_regularity(params, None if background is None else background[1]) if params.regular_background \
-            else 0.0
-        columns.append(np.broadcast_to(np.asarray(reg, dtype=np.float64), lam.shape))
-    rows, first, group = np.unique(np.stack(columns, axis=1), axis=0, return_index=True, return_inverse=True)
+        reg = pixel_regularity(params, None if background is None else background[1])
+    reg = np.broadcast_to(np.asarray(reg, dtype=np.float64), lam.shape)
+    rows, first, group = np.unique(np.stack([lam, a_on, a_off, class_on, class_off, reg], axis=1), axis=0,
+                                   return_index=True, return_inverse=True)
     # each group's thresholds: those of its first pixel (all of its pixels have the same counts)
-    out = [np.ascontiguousarray(rows[:, 0]), np.ascontiguousarray(rows[:, 1]), np.ascontiguousarray(rows[:, 2]),
-           np.ascontiguousarray(group.ravel(), dtype=np.int64),
-           (np.ascontiguousarray(eps_on[first]), np.ascontiguousarray(eps_off[first]))]
-    if with_timer:
-        out.insert(3, np.ascontiguousarray(rows[:, 5]))
-    return tuple(out)
+    return (np.ascontiguousarray(rows[:, 0]), np.ascontiguousarray(rows[:, 1]), np.ascontiguousarray(rows[:, 2]),
+            np.ascontiguousarray(rows[:, 5]), np.ascontiguousarray(group.ravel(), dtype=np.int64),
+            (np.ascontiguousarray(eps_on[first]), np.ascontiguousarray(eps_off[first])))
+
+
+def still_chains(lam, params, background=None, thresholds=None):
+    """The chains of pixels at ``lam`` photons per trial (flat; ``background``, ``thresholds`` as in
+    :func:`pixel_groups`), ready for the kernels: ``(levels, group, tables, rates, timer)``, ``tables`` the
+    ``(table, itable, offsets, sizes)`` of :func:`kernel_tables`, ``rates`` its per-chain rates, ``timer`` the
+    chains' regular timer (:func:`chain_timer`, None: none)."""
+    levels, a_on, a_off, reg, group, eps = pixel_groups(lam, params, background, thresholds)
+    timer = chain_timer(a_on, a_off, reg, params)
+    *tables, rates = kernel_tables(levels, params, background=(a_on, a_off), thresholds=eps, timer=timer)
+    return levels, group, tuple(tables), rates, timer
 
 
 def chain_timer(a_on, a_off, regularity, params):
@@ -845,22 +851,19 @@ def _after(t: LevelTables, w_on, w_off, a_on=None, a_off=None, index=None):
     # OFF: from the m with idx_off(m) >= j (a suffix)
     c_off = np.concatenate([zero, np.cumsum(w_off, axis=-1)], axis=-1)
     after_off = t.fresh_off * w_off.sum(axis=-1, keepdims=True) + k * t.pmf * (c_off[..., -1:] - gather(c_off, b))
-    if np.shape(a_on)[-1:] == (t.n_states,) and t.n_states > 1:
-        # a background per state m (the regular timer's, :func:`with_timer`): the sums below weighted by it
-        for a_x, w_x, name in ((a_on, w_on, "on"), (a_off, w_off, "off")):
-            c_a = np.concatenate([zero, np.cumsum(w_x * a_x, axis=-1)], axis=-1)
-            part = t.none_fresh * c_a[..., -1:] + k * t.pmf * np.where(inside, gather(c_a, top) - gather(c_a, a), 0.0)
-            if name == "on":
-                after_on = after_on + part
-            else:
-                after_off = after_off + part
-    elif np.any(np.asarray(a_on) > 0.0) or np.any(np.asarray(a_off) > 0.0):
+    def quiet(c):
         # background in a trial without photon event stores that trial's count j: fresh branch not beaten, or the
-        # stored one not beaten, i.e. idx_off(m) < j < idx_on(m): the m in [a, b) (both indices nondecreasing)
-        after_on = after_on + a_on * (t.none_fresh * c_on[..., -1:]
-                                      + k * t.pmf * np.where(inside, gather(c_on, top) - gather(c_on, a), 0.0))
-        after_off = after_off + a_off * (t.none_fresh * c_off[..., -1:]
-                                         + k * t.pmf * np.where(inside, gather(c_off, top) - gather(c_off, a), 0.0))
+        # stored one not beaten, i.e. idx_off(m) < j < idx_on(m): the m in [a, b) (both indices nondecreasing);
+        # ``c``: cumulative sums over m of the weights
+        return t.none_fresh * c[..., -1:] + k * t.pmf * np.where(inside, gather(c, top) - gather(c, a), 0.0)
+
+    if np.shape(a_on)[-1:] == (t.n_states,) and t.n_states > 1:
+        # a background per state m (the regular timer's, :func:`with_timer`): the sums weighted by it
+        after_on = after_on + quiet(np.concatenate([zero, np.cumsum(w_on * a_on, axis=-1)], axis=-1))
+        after_off = after_off + quiet(np.concatenate([zero, np.cumsum(w_off * a_off, axis=-1)], axis=-1))
+    elif np.any(np.asarray(a_on) > 0.0) or np.any(np.asarray(a_off) > 0.0):
+        after_on = after_on + a_on * quiet(c_on)
+        after_off = after_off + a_off * quiet(c_off)
     return after_on, after_off
 
 
