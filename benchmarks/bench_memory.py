@@ -1,6 +1,6 @@
 """Reset memory (issue 32): what it costs beside the memoryless simulator, and its error against the closed form.
 
-    python benchmarks/bench_memory.py [--side 128] [--duration 20] [--out benchmarks/REPORT.md] [--tiny]
+    python benchmarks/bench_memory.py [--side 128] [--duration 20] [--out benchmarks/REPORT.md] [--tiny] [--no-large]
 
 Still scenes of ``side x side`` pixels at one light, ``--duration`` seconds, in one process after a warm-up call
 (compiled kernels): the memoryless model, ``reset_memory = 0.3`` without and with threshold mismatch and a leak
@@ -9,7 +9,8 @@ a video (half the pixels changing, trial tier). Columns: *set-up*, the seconds o
 state; the smallest of three); *run*, the seconds of the whole run; *per event*, the marginal cost, the time of
 the last three quarters of the run over their events (a run of a quarter of the duration timed too);
 the simulated rate per pixel against the closed form (``memory_statistics``; nominal pixels only: the closed form
-is the nominal pixel's) as a z-score from the per-pixel spread. Shared machines make the timings noisy.
+is the nominal pixel's) as a z-score from the per-pixel spread. Then a 1280 x 720 evk4 scene beyond the table budget
+(:func:`run_large`). Shared machines make the timings noisy.
 """
 
 from __future__ import annotations
@@ -92,7 +93,36 @@ def run(side: int, duration_s: float) -> list[dict]:
     return rows
 
 
-def section(rows, side, duration_s, command) -> str:
+def run_large(shape, duration_s: float, force: bool = False) -> list[dict]:
+    """A scene beyond the table budget (``evnoise.terms.memory.MAX_TABLE_STATES``): evk4 with its threshold mismatch
+    at 2 lux, nearly a chain per pixel, which runs trial by trial with each chain's start computed on its own; beside
+    it the memoryless renewal and trial tiers. ``force``: lower the budget so that a small (smoke) scene takes that
+    path too. Set-up: a 1 ms run (once: it is most of the run)."""
+    import evnoise as ev
+    from evnoise.terms import memory
+
+    evk4 = ev.load_preset("evk4")
+    lux = np.full(shape, 2.0)
+    budget = memory.MAX_TABLE_STATES
+    if force:
+        memory.MAX_TABLE_STATES = 10
+    rows = []
+    try:
+        for name, params, method in [("evk4, memoryless (renewal tier)", evk4, "auto"),
+                                     ("evk4, memoryless (trial tier)", evk4, "trials"),
+                                     ("evk4, k = 0.3 (trial tier, starts without tables)", evk4.replace(
+                                         reset_memory=0.3), "auto")]:
+            ev.simulate_events(lux[:4, :4], params, 0.01, rng=0, method=method)  # compile
+            setup, _ = _timed(lambda: ev.simulate_events(lux, params, 0.001, rng=1, method=method))
+            total, events = _timed(lambda: ev.simulate_events(lux, params, duration_s, rng=2, method=method))
+            rows.append({"name": name, "setup_s": setup, "run_s": total, "events": int(events.size),
+                         "rate": events.size / lux.size / duration_s})
+    finally:
+        memory.MAX_TABLE_STATES = budget
+    return rows
+
+
+def section(rows, side, duration_s, command, large=(), large_shape=None, large_s=None) -> str:
     import evnoise
 
     lines = [TITLE, "",
@@ -116,6 +146,19 @@ def section(rows, side, duration_s, command) -> str:
               "per distinct light level, so threshold mismatch or a leak spread (a chain per pixel) costs a few "
               "tenths of a millisecond per pixel at a few photons per trial (above) and 1-3 ms at thousands (the "
               "tables and the iterated steady state: `evnoise.terms.memory.kernel_tables`).", ""]
+    if large:
+        h, w = large_shape
+        lines += [f"**Beyond the table budget** ({w}×{h}, 2 lux, {large_s:g} s; set-up = a 1 ms run, once): with "
+                  "`evk4`'s threshold mismatch nearly every pixel is a chain of its own, whose tables would pass "
+                  "`MAX_TABLE_STATES` (refused before); the run goes trial by trial, each chain's start computed on "
+                  "its own (`evnoise._kernels.memory_start`). Its events are those of the table path's trial tier "
+                  "with the same seed (`tests/test_memory_own_start.py`, on scenes small enough for tables), so its "
+                  "error is the trial tier's (validated against the closed form in `tests/test_memory_video.py`).", "",
+                  "| scene | set-up (s) | run (s) | events | rate / pixel (events/s) |", "|---|---|---|---|---|"]
+        for r in large:
+            lines.append(f"| {r['name']} | {r['setup_s']:.2f} | {r['run_s']:.2f} | {r['events']:,} | "
+                         f"{r['rate']:.4g} |")
+        lines.append("")
     return "\n".join(lines)
 
 
@@ -125,11 +168,15 @@ def main(argv=None) -> int:
     ap.add_argument("--duration", type=float, default=20.0)
     ap.add_argument("--out", type=Path, default=None, help="report to write the section into (default: print it)")
     ap.add_argument("--tiny", action="store_true", help="a smoke run (16 x 16, 1 s): the numbers mean nothing")
+    ap.add_argument("--no-large", action="store_true", help="leave out the 1280 x 720 scene beyond the table budget")
     args = ap.parse_args(argv)
     side, duration = (16, 1.0) if args.tiny else (args.side, args.duration)
+    large_shape, large_s = ((12, 16), 0.5) if args.tiny else ((720, 1280), 1.0)
     command = "python benchmarks/bench_memory.py" + (" --tiny" if args.tiny else
                                                       f" --side {side} --duration {duration:g}")
-    text = section(run(side, duration), side, duration, command)
+    rows = run(side, duration)
+    large = run_large(large_shape, large_s, force=args.tiny) if not args.no_large else ()
+    text = section(rows, side, duration, command, large, large_shape, large_s)
     if args.out is None:
         print(text)
     else:

@@ -18,6 +18,7 @@ of threads, the chunking of pixels, or the windows in which time is generated.
 
 from __future__ import annotations
 
+import collections
 import math
 from typing import Iterator
 
@@ -211,16 +212,59 @@ def _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, t
     run = run_setup(lux.shape, params, rng, thresholds=thresholds, background=background)
     params, key, (eps_on, eps_off), bg = run.params, run.key, run.thresholds, run.background
     if memory_on(params) and method != "trials":
-        return _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, sink, bg=bg,
-                            thresholds=(eps_on, eps_off))
+        return _still_memory_windows(lux, params, key, t_start_us, duration_us, threads, progress, sink, bg,
+                                     (eps_on, eps_off), method)
     if method == "trials":
-        frames = _FrameSource([lux], name="lux")
-        windows = _iter_dynamic(frames, np.array([0.0, float(duration_us)]), params, key, eps_on, eps_off,
-                                np.zeros(lux.size, dtype=bool), t_start_us, duration_us, threads, progress, bg=bg)
-        if sink is not None:
-            _check_memory(windows.expected_events)
-        return windows
+        return _still_trial_windows(lux, params, key, t_start_us, duration_us, threads, progress, sink, bg,
+                                    (eps_on, eps_off))
     return _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, threads, progress, sink, bg)
+
+
+def _still_trial_windows(lux, params, key, t_start_us, duration_us, threads, progress, sink, bg, thresholds,
+                         memory_plan=None):
+    """The windows of a still scene in the trial tier (``memory_plan``: as :func:`_iter_dynamic`'s)."""
+    windows = _iter_dynamic(_FrameSource([lux], name="lux"), np.array([0.0, float(duration_us)]), params, key,
+                            *thresholds, np.zeros(lux.size, dtype=bool), t_start_us, duration_us, threads, progress,
+                            bg=bg, memory_plan=memory_plan)
+    if sink is not None:
+        _check_memory(windows.expected_events)
+        windows = _into_sink(windows, sink)
+    return windows
+
+
+def _still_memory_windows(lux, params, key, t_start_us, duration_us, threads, progress, sink, bg, thresholds,
+                          method="auto"):
+    """The windows of a still scene with reset memory: the renewal tier over its chains' tables
+    (:func:`_iter_memory`) or, where the chains are too many for tables (:data:`~evnoise.terms.memory.MAX_TABLE_STATES`)
+    and ``method`` is ``"auto"``, the trial tier, each chain's start computed on its own (:class:`_OwnChainStarts`)."""
+    from .terms.memory import MAX_TABLE_STATES, chain_plan, too_many_states
+
+    plan = chain_plan(params.photons_per_trial(lux).ravel(), params, bg, thresholds)
+    if plan[2] <= MAX_TABLE_STATES:
+        return _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, sink, bg=bg,
+                            thresholds=thresholds, plan=plan)
+    if method == "renewal":
+        raise too_many_states(len(plan[0][0]), plan[2], " for the renewal tier (method='auto' or 'trials' runs them "
+                              "trial by trial, without tables)")
+    return _still_trial_windows(lux, params, key, t_start_us, duration_us, threads, progress, sink, bg, thresholds,
+                                plan)
+
+
+def _into_sink(windows: "EventWindows", sink) -> "EventWindows":
+    """``windows`` (the trial tier's, sorted on their own) copied one by one into ``sink``, sized for the expected
+    events first; each window yielded is the sink's view of it."""
+    total = windows.expected_events
+    sink.__init__(int(math.ceil(total + 8.0 * math.sqrt(total) + 4096)))
+
+    def gen():
+        for window in windows:
+            view = sink.reserve(window.size)
+            view[...] = window
+            del window
+            yield view
+
+    return EventWindows(gen(), expected_events=total, t_start_us=windows.t_start_us,
+                        duration_us=windows.duration_us)
 
 
 def _static_windows(n_pixels, key, threads, total, t_start_us, duration_us, progress, sink, reserve, step):
@@ -277,7 +321,8 @@ def _iter_static(lux, params, key, eps_on, eps_off, t_start_us, duration_us, thr
                            total + 8.0 * math.sqrt(total) + 4096, step)
 
 
-def _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, sink=None, bg=None, thresholds=None):
+def _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, sink=None, bg=None, thresholds=None,
+                 plan=None):
     """The windows of a static scene with reset memory (:mod:`evnoise.terms.memory`): pixels grouped by light
     level, background and thresholds (``bg``: the run's flat maps or None; ``thresholds``: its flat per-pixel
     ``(eps_on, eps_off)`` or None), each advanced event by event over its group's state tables
@@ -286,7 +331,7 @@ def _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, s
 
     width = lux.shape[1]
     lam = params.photons_per_trial(lux).ravel()
-    _, group, tables, level_rates, timer = still_chains(lam, params, bg, thresholds)
+    _, group, tables, level_rates, timer = still_chains(lam, params, bg, thresholds, plan)
     nu = level_rates[group]
     dt = params.trial_us
     refr = float(params.refractory_us)
@@ -351,17 +396,12 @@ def simulate_events(
     numpy.ndarray
         Events (:data:`evnoise.EVENT_DTYPE`), sorted by time.
     """
-    # static scenes: one output array, each window sorted straight into it (peak memory about the
-    # output plus one window, instead of twice the output for a final concatenation)
+    # one output array, each window sorted straight into it (the trial tier: copied into it), so the peak memory
+    # is about the output plus one window, instead of twice the output for a final concatenation
     sink = Collector(0)
-    parts = []
-    for window in _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, threads, progress,
-                               sink, background):
-        if method == "trials":
-            parts.append(window)
-    window = None  # the last window is a view of the sink's array: let it shrink in place
-    if method == "trials":
-        return np.concatenate(parts) if parts else empty_events(0)
+    # windows consumed and dropped (none held: the last is a view of the sink's array, which shrinks in place)
+    collections.deque(_iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, threads, progress,
+                                   sink, background), maxlen=0)
     return sink.result()
 
 
@@ -547,11 +587,11 @@ class _MemoryChains:
     ``group`` (per flat pixel) indexes ``tables`` (:func:`~evnoise.terms.memory.kernel_tables`, without the rates)
     and ``rates`` (events/s)."""
 
-    def __init__(self, lam_start, params, bg, eps_on, eps_off):
+    def __init__(self, lam_start, params, bg, eps_on, eps_off, plan=None):
         from .terms.memory import state_range, still_chains
 
         levels, self.group, self.tables, self.rates, self.timer = still_chains(lam_start, params, bg,
-                                                                               (eps_on, eps_off))
+                                                                               (eps_on, eps_off), plan)
         lowest = {lam: float(state_range(lam)[0]) for lam in set(levels.tolist())}  # chains share light levels
         self.lo = np.array([lowest[lam] for lam in levels.tolist()], dtype=np.float64)
 
@@ -575,12 +615,94 @@ class _MemoryChains:
         map_chunks(run, state.pix.size, threads)
 
 
+class _OwnChainStarts:
+    """Reset-memory chains too many for tables (their states pass :data:`~evnoise.terms.memory.MAX_TABLE_STATES`:
+    a large sensor with threshold mismatch has nearly a chain per pixel). Their pixels all run in the trial tier,
+    which needs of a chain only its start: computed chain by chain when the pixels start and not kept
+    (:mod:`evnoise._kernels.memory_start`: the law the tables would give, to rounding, and the same draws, so the
+    events are those of the table path). ``group``, ``rates`` as :class:`_MemoryChains`'; no ``tables``. ``plan``:
+    :func:`~evnoise.terms.memory.chain_plan`'s (without a regular timer: refused by the caller)."""
+
+    tables = None
+    timer = None
+
+    def __init__(self, params, plan, threads):
+        from ._kernels.memory_start import chain_rates, level_pmf
+        from .terms.memory import _expm1, state_range
+
+        (levels, a_on, a_off, _, self.group, (eps_on, eps_off)), _, _ = plan
+        distinct, level = np.unique(np.asarray(levels, dtype=np.float64), return_inverse=True)
+        spans = np.array([state_range(lam)[:2] for lam in distinct.tolist()], dtype=np.int64).reshape(-1, 2)
+        n_s = np.ascontiguousarray(spans[:, 1])
+        at = np.concatenate([[0], np.cumsum(n_s)[:-1]]).astype(np.int64)
+        pmf = np.empty(int(n_s.sum()))
+        for lv, lam in enumerate(distinct.tolist()):  # each light level's Poisson pmf once, for all its chains
+            level_pmf(lam, float(spans[lv, 0]), int(n_s[lv]), pmf[at[lv]:at[lv] + n_s[lv]])
+        c_on = np.array([_expm1(e) for e in np.asarray(eps_on, dtype=np.float64).tolist()])
+        c_off = np.array([_expm1(e) for e in np.asarray(eps_off, dtype=np.float64).tolist()])
+        self._levels = (pmf, np.ascontiguousarray(level.ravel(), dtype=np.int64), spans[:, 0].astype(np.float64), n_s,
+                        at)
+        self._chains = tuple(np.ascontiguousarray(a, dtype=np.float64) for a in (c_on, c_off, a_on, a_off))
+        self._model = (float(params.bias_pr), float(params.reset_memory), 1.0 / params.trial_rate_hz,
+                       params.refractory_us * 1e-6)
+        self.rates = np.empty(len(levels))
+        b, k, dt_s, refr_s = self._model
+        pmf, level, lo, n_s, at = self._levels
+
+        def run(i, j):  # chains i .. j - 1
+            chains = tuple(a[i:j] for a in self._chains)
+            chain_rates(pmf, level[i:j], lo, n_s, at, *chains, b, k, dt_s, refr_s, self.rates[i:j])
+
+        map_chunks(run, len(levels), threads)
+
+    def start_trials(self, state: PixelState, group, dt, refr_us, threads, bg_rows, lam_first, model):
+        """As :meth:`_MemoryChains.start_trials` (no regular timer here)."""
+        from ._kernels.memory_start import start_pixels
+        from .terms.memory import ITERATED_STEPS
+
+        order = np.argsort(group, kind="stable").astype(np.int64)
+        chains, first = np.unique(np.asarray(group)[order], return_index=True)
+        first = np.append(first, order.size).astype(np.int64)
+        chains = chains.astype(np.int64)
+        b, k, dt_s, refr_s = self._model
+
+        def run(i, j):  # the pixels of chains[i:j]
+            start_pixels(*self._levels, *self._chains, b, k, ITERATED_STEPS, dt_s, refr_s, float(dt), float(refr_us),
+                         chains[i:j], first[i:j + 1], order, state.states, state.fstate)
+
+        map_chunks(run, chains.size, threads)
+
+
+def _memory_chains(lam_start, params, bg, eps_on, eps_off, threads, plan=None):
+    """The reset-memory chains of a run's pixels at ``lam_start``: :class:`_MemoryChains` (tables) where their states
+    fit :data:`~evnoise.terms.memory.MAX_TABLE_STATES`, else :class:`_OwnChainStarts` (every pixel in the trial
+    tier), or a :class:`~evnoise.ParameterError` when the chains also have the regular timer."""
+    from .terms.memory import MAX_TABLE_STATES, chain_plan, too_many_states
+
+    plan = chain_plan(lam_start, params, bg, (eps_on, eps_off)) if plan is None else plan
+    if plan[2] <= MAX_TABLE_STATES:
+        return _MemoryChains(lam_start, params, bg, eps_on, eps_off, plan)
+    if plan[1] is not None:
+        raise too_many_states(len(plan[0][0]), plan[2], " and they have the regular background timer "
+                              "(leak_regularity or hot_pixel_regularity > 0), which the trial tier's start without "
+                              "tables does not cover")
+    return _OwnChainStarts(params, plan, threads)
+
+
 def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us, duration_us, threads,
-                  progress, labels=False, bg=None):
-    """Generator over windows of a changing scene (renewal for ``static`` pixels, trials for the rest)."""
+                  progress, labels=False, bg=None, memory_plan=None):
+    """Generator over windows of a changing scene (renewal for ``static`` pixels, trials for the rest; with reset
+    memory whose chains are too many for tables, trials for every pixel). ``memory_plan``:
+    :func:`~evnoise.terms.memory.chain_plan`'s at the first frame's light, when the caller has it."""
     from ._kernels.simulate import trial_window
 
     width = frames.shape[1]
+    mem = None
+    if memory_on(params):
+        mem = _memory_chains(params.photons_per_trial(frames.get(0)).ravel(), params, bg, eps_on, eps_off, threads,
+                             memory_plan)
+        if mem.tables is None:
+            static = np.zeros_like(static)
     dt = params.trial_us
     refr = params.refractory_us
     n_trials = math.ceil(duration_us / dt - 1e-12)
@@ -609,7 +731,6 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
         seg = np.clip(np.searchsorted(frame_us, centres, side="right") - 1, 0, frames.n - 2)
         return np.unique(np.concatenate([seg, seg + 1]))
 
-    mem = _MemoryChains(lam_of(0), params, bg, eps_on, eps_off) if memory_on(params) else None
     # static pixels: closed-form probabilities once (with reset memory: their chains' tables)
     stat_timer = None
     if stat_pix.size and mem is not None:
@@ -795,13 +916,13 @@ def _memory_counts(lux, params, key, duration_us, threads, distribution, gen, nb
                    given_thresholds=None):
     """:func:`sample_counts` with reset memory. ``"exact"``: the counts of the reset-memory tier's own events
     (the stream :func:`simulate_events` makes with the same seed, counted window by window: memory stays that
-    of one window); ``"poisson"`` / ``"negative-binomial"``: about the stationary rate of
-    :func:`~evnoise.terms.memory.memory_statistics` (the memory model's closed form, the nominal pixel's: not
-    with a background or thresholds that differ between pixels)."""
+    of one window; the trial tier's where the chains are too many for tables); ``"poisson"`` /
+    ``"negative-binomial"``: about the stationary rate of :func:`~evnoise.terms.memory.memory_statistics` (the memory
+    model's closed form, the nominal pixel's: not with a background or thresholds that differ between pixels)."""
     height, width = lux.shape
     if distribution == "exact":
         counts = np.zeros(2 * lux.size, dtype=np.int64)
-        for window in _iter_memory(lux, params, key, 0, duration_us, threads, False, bg=bg, thresholds=eps):
+        for window in _still_memory_windows(lux, params, key, 0, duration_us, threads, False, None, bg, eps):
             cell = window["y"].astype(np.int64) * width + window["x"]
             counts += np.bincount(np.where(window["p"] == 1, cell, lux.size + cell), minlength=2 * lux.size)
         return counts.reshape(2, height, width)

@@ -54,3 +54,4 @@ def test_memory_benchmark_tiny_run(tmp_path):
     text = report.read_text(encoding="utf-8")
     assert "## Other\nkept" in text and "## Reset memory: cost and error (issue 32)" in text
     assert "| davis346 nominal, k = 0.3 |" in text and "Machine:" in text
+    assert "| evk4, k = 0.3 (trial tier, starts without tables) |" in text

@@ -66,7 +66,11 @@ Threshold mismatch. A pixel's chain reads its thresholds only through the thresh
 (:func:`threshold_classes`); with a 3 % mismatch most pixels still get a chain of their own (a
 346 x 260 davis346 sensor: 24 000 chains at 0.01 lux, 80 000 at 0.5 lux; a spread leak alone does that too),
 each with tables of its own (set-up about 1 ms per pixel at tens
-of photons per trial, a few ms at thousands; :data:`MAX_TABLE_STATES` bounds the total).
+of photons per trial, a few ms at thousands; :data:`MAX_TABLE_STATES` bounds the total). A still scene or a video
+whose chains pass it (``evk4`` at 1280 x 720 with its mismatch: 624 000 chains at 2 lux) runs in the trial tier with
+each chain's start computed on its own, without tables (:mod:`evnoise._kernels.memory_start`: the law of the table
+path for many chains, to rounding, and its draws, so the same events as ``method="trials"`` with tables); not with
+the regular timer, ``method="renewal"``, :class:`evnoise.NoiseStream` or the tonic transform, which refuse it.
 
 Background (Poisson: the ``leak_*`` rates and hot pixels, :func:`level_background` for the nominal pixel; the
 simulators group pixels by ``(lam, background, thresholds)``, :func:`pixel_groups`, so hot pixels and a spread leak
@@ -195,13 +199,48 @@ def pixel_groups(lam, params, background=None, thresholds=None, class_spans=None
             (np.ascontiguousarray(eps_on[first]), np.ascontiguousarray(eps_off[first])))
 
 
-def still_chains(lam, params, background=None, thresholds=None):
+def chain_plan(lam, params, background=None, thresholds=None):
+    """What the chains of pixels at ``lam`` photons per trial are before any table is built: ``(groups, timer,
+    states)``, :func:`pixel_groups`' tuple, the chains' regular timer (:func:`chain_timer`) and the states their
+    tables would hold (:func:`table_states`, what :data:`MAX_TABLE_STATES` bounds)."""
+    groups = pixel_groups(lam, params, background, thresholds)
+    levels, a_on, a_off, reg, _, _ = groups
+    return groups, chain_timer(a_on, a_off, reg, params), table_states(levels)
+
+
+def level_spans(levels):
+    """``(lo, n_states)`` of :func:`state_range` for each light level of ``levels`` (each distinct one computed
+    once), as two int64 arrays."""
+    levels = np.asarray(levels, dtype=np.float64)
+    distinct, inverse = np.unique(levels, return_inverse=True)
+    ranges = np.array([state_range(lam)[:2] for lam in distinct.tolist()], dtype=np.int64).reshape(-1, 2)
+    return ranges[inverse.ravel(), 0], ranges[inverse.ravel(), 1]
+
+
+def table_states(levels) -> int:
+    """The states the tables of chains at ``levels`` (photons per trial, one entry per chain) hold."""
+    return int(level_spans(levels)[1].sum())
+
+
+def too_many_states(n_chains: int, states: int, why: str = ""):
+    """The :class:`~evnoise.ParameterError` of a scene whose ``n_chains`` chains need ``states`` table states, more
+    than :data:`MAX_TABLE_STATES` (``why``: what else keeps them from running, appended)."""
+    from ..errors import ParameterError
+
+    return ParameterError(f"reset_memory > 0: this scene's {n_chains:,} distinct chains (light levels, and pixels "
+                          f"whose thresholds or background differ) need {states:,} table states, more than "
+                          f"{MAX_TABLE_STATES:,}{why}; use fewer distinct illuminance values (e.g. quantise lux), a "
+                          f"smaller sensor, or no threshold mismatch / leak spread")
+
+
+def still_chains(lam, params, background=None, thresholds=None, plan=None):
     """The chains of pixels at ``lam`` photons per trial (flat; ``background``, ``thresholds`` as in
     :func:`pixel_groups`), ready for the kernels: ``(levels, group, tables, rates, timer)``, ``tables`` the
     ``(table, itable, offsets, sizes)`` of :func:`kernel_tables`, ``rates`` its per-chain rates, ``timer`` the
-    chains' regular timer (:func:`chain_timer`, None: none)."""
-    levels, a_on, a_off, reg, group, eps = pixel_groups(lam, params, background, thresholds)
-    timer = chain_timer(a_on, a_off, reg, params)
+    chains' regular timer (:func:`chain_timer`, None: none). ``plan``: :func:`chain_plan`'s, when the caller has
+    it."""
+    (levels, a_on, a_off, reg, group, eps), timer, _ = (chain_plan(lam, params, background, thresholds)
+                                                        if plan is None else plan)
     *tables, rates = kernel_tables(levels, params, background=(a_on, a_off), thresholds=eps, timer=timer)
     return levels, group, tuple(tables), rates, timer
 
@@ -507,7 +546,6 @@ def kernel_tables(levels, params, spans=None, background=None, thresholds=None, 
     Raises :class:`~evnoise.ParameterError` when the tables would pass :data:`MAX_TABLE_STATES`.
     """
     from .._kernels import memory as km
-    from ..errors import ParameterError
 
     if spans is None:
         by_lam = {lam: state_range(lam) for lam in set(np.asarray(levels, dtype=np.float64).tolist())}
@@ -517,10 +555,7 @@ def kernel_tables(levels, params, spans=None, background=None, thresholds=None, 
     sizes = np.array([r[1] for r in ranges], dtype=np.int64)
     total = int(sizes.sum())
     if total > MAX_TABLE_STATES:
-        raise ParameterError(f"reset_memory > 0: this scene's {len(levels):,} distinct chains (light levels, and "
-                             f"pixels whose thresholds or background differ) need {total:,} table states, more than "
-                             f"{MAX_TABLE_STATES:,}; use fewer distinct illuminance values (e.g. quantise lux), a "
-                             f"smaller sensor, or no threshold mismatch / leak spread")
+        raise too_many_states(len(levels), total)
     offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
     table = np.empty((km.N_ROWS, total))
     itable = np.empty((2, total), dtype=np.int64)

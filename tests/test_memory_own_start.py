@@ -1,0 +1,149 @@
+"""Reset memory on scenes whose chains are too many for tables: every pixel in the trial tier, each chain's start
+computed on its own (:mod:`evnoise._kernels.memory_start`) instead of refused.
+
+The start's law is checked against the table path's own computation (``level_tables``, ``_embedded_iterate``,
+``initial_law``: NumPy, pairwise sums, another order of operations) on chains with and without background, dead
+time, absorbing states and states spans; the events against the table path's trial tier, which the start is meant to
+reproduce: on scenes with more than ``EXACT_RATE_LEVELS`` chains (where the table path iterates the same embedded
+steps) the events are the same, event for event, once ``MAX_TABLE_STATES`` is lowered to send the scene down the new
+path. The trial tier itself is validated against the closed form in ``tests/test_memory_video.py``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import evnoise as ev
+from evnoise._kernels import memory_start as ms
+from evnoise.terms import memory
+from test_memory_term import MEM
+
+#: davis346 with memory and its threshold mismatch (most pixels a chain of their own), Poisson background
+DAVIS = ev.load_preset("davis346").replace(reset_memory=0.3, leak_regularity=0.0, hot_pixel_regularity=0.0)
+
+
+def _law_here(lam, eps_on, eps_off, bias, k, a_on, a_off, dt_s, refr_s, steps=memory.ITERATED_STEPS):
+    lo, n_s, _ = memory.state_range(lam)
+    pmf = np.empty(n_s)
+    ms.level_pmf(float(lam), float(lo), n_s, pmf)
+    cum, dead = np.empty(n_s), np.empty(n_s)
+    ms.start_law(pmf, float(lo), n_s, memory._expm1(eps_on), memory._expm1(eps_off), float(bias), float(k),
+                 float(a_on), float(a_off), steps, dt_s, refr_s, cum, dead)
+    return cum, dead
+
+
+def _law_of_tables(lam, eps_on, eps_off, bias, k, a_on, a_off, dt_s, refr_s, steps=memory.ITERATED_STEPS,
+                   jitter=None):
+    """The table path's law; ``jitter``: a generator that moves each of its input arrays by one rounding (a relative
+    2^-53 of either sign per element), to measure how much rounding alone moves the law."""
+    t = memory.level_tables(lam, eps_on, eps_off, bias, k, a_on=a_on, a_off=a_off)
+    if jitter is not None:
+        import dataclasses
+
+        moved = {name: getattr(t, name) * (1.0 + jitter.choice([-1.0, 1.0], t.n_states) * 2.0 ** -53)
+                 for name in ("pmf", "head", "tail", "fresh_on", "fresh_off", "stored_on", "stored_off", "none_fresh")}
+        t = dataclasses.replace(t, **moved)
+    weight, dead = memory.initial_law(t, memory._embedded_iterate(t, steps), dt_s, refr_s)
+    return np.cumsum(weight), dead
+
+
+CHAINS = [  # lam, eps_on, eps_off, bias, k, a_on, a_off, dt_s, refr_s
+    (2.0, 0.5, 0.6, 1.0, 0.7, 0.0, 0.0, 1e-3, 0.0),
+    (2.0, 0.5, 0.6, 1.0, 0.7, 0.0, 0.0, 1e-3, 2e-3),  # dead time
+    (9.5, 1.5, 1.5, 4.0, 0.8, 3e-3, 1e-3, 0.02, 1e-4),  # background of the order of the photon noise
+    (162.3, 0.12, 0.11, 187.3, 0.3, 6e-4, 0.0, 0.0149, 1e-3),  # evk4 at 2 lux
+    (3200.0, 0.15, 0.15, 64.0, 0.99, 0.0, 0.0, 1 / 424, 0.0),  # slow mixing: the steps, not the limit
+    (40.0, 25.0, 0.3, 2.0, 0.5, 0.0, 0.0, 1e-3, 0.0),  # ON never fires at most states
+    (40.0, 800.0, 900.0, 2.0, 0.5, 0.0, 0.0, 1e-3, 0.0),  # no state ever fires: absorbing everywhere
+    (0.0, 0.2, 0.2, 1.0, 0.5, 1e-3, 1e-3, 1e-3, 0.0),  # darkness: one state
+]
+
+
+@pytest.mark.parametrize("chain", CHAINS, ids=[f"lam{c[0]:g}-k{c[4]:g}-eps{c[1]:g}" for c in CHAINS])
+def test_start_law_is_the_table_paths(chain):
+    """State by state (differences of the cumulative laws) within what one rounding of the table path's own inputs
+    moves its law (10 times the largest move over 3 jitters), or 1e-13: rounding-level for a chain that mixes, up
+    to ~1e-7 for the slow-mixing one (k = 0.99 at 3200 photons per trial, states whose event probability is 1e-11:
+    the time weights 1 / P(m) and the iteration's cancellations amplify every rounding)."""
+    cum, dead = _law_here(*chain)
+    want_cum, want_dead = _law_of_tables(*chain)
+    mass, want = np.diff(cum, prepend=0.0), np.diff(want_cum, prepend=0.0)
+    moves = [np.abs(np.diff(_law_of_tables(*chain, jitter=np.random.default_rng(i))[0], prepend=0.0) - want).max()
+             for i in range(3)]
+    tol = max(1e-13, 10.0 * max(moves))
+    assert cum[-1] == pytest.approx(1.0, rel=1e-12)
+    assert np.abs(mass - want).max() <= tol, (np.abs(mass - want).max(), moves)
+    np.testing.assert_allclose(dead, want_dead, rtol=1e-13, atol=0)
+
+
+def test_start_law_stops_only_at_a_fixed_point():
+    """Stopping early (a step that changes nothing) gives the law of all the steps: 40 and 400 steps of a fast-mixing
+    chain agree to rounding, and a slow-mixing one's law still moves between 40 and 400 steps (it is the steps'
+    law, as the table path's)."""
+    fast = (2.0, 0.5, 0.6, 1.0, 0.3, 0.0, 0.0, 1e-3, 0.0)
+    np.testing.assert_allclose(_law_here(*fast)[0], _law_here(*fast, steps=400)[0], rtol=0, atol=1e-15)
+    slow = CHAINS[4]
+    assert np.abs(_law_here(*slow)[0] - _law_here(*slow, steps=400)[0]).max() > 1e-6
+
+
+@pytest.fixture
+def no_tables(monkeypatch):
+    """Every scene with memory has too many chains for tables."""
+    monkeypatch.setattr(memory, "MAX_TABLE_STATES", 10)
+
+
+def _scene():
+    lux = np.full((12, 16), 2.0)
+    lux[:6] = 40.0
+    return lux
+
+
+@pytest.mark.parametrize("params", [DAVIS, DAVIS.replace(refractory_s=5e-3, leak_sigma=0.8),
+                                    DAVIS.replace(hot_pixel_fraction=0.1, hot_pixel_rate_hz=3.0)],
+                         ids=["davis346", "dead-time-and-leak-spread", "hot-pixels"])
+def test_events_without_tables_are_the_table_paths(params, monkeypatch):
+    from evnoise._run import run_setup
+
+    lux = _scene()
+    run = run_setup(lux.shape, params, 5)  # what the runs below draw: the chains of their pixels
+    groups = memory.pixel_groups(params.photons_per_trial(lux).ravel(), run.params, run.background, run.thresholds)
+    with_tables = ev.simulate_events(lux, params, 3.0, rng=5, method="trials")
+    assert with_tables.size > 1000
+    monkeypatch.setattr(memory, "MAX_TABLE_STATES", 10)
+    auto = ev.simulate_events(lux, params, 3.0, rng=5)
+    trials = ev.simulate_events(lux, params, 3.0, rng=5, method="trials", threads=1)
+    np.testing.assert_array_equal(auto, with_tables)
+    np.testing.assert_array_equal(trials, with_tables)
+    assert len(groups[0]) > memory.EXACT_RATE_LEVELS  # where the table path iterates as the start does
+
+
+def test_windows_counts_and_video_without_tables(no_tables):
+    lux = _scene()
+    whole = ev.simulate_events(lux, DAVIS, 2.0, rng=8)
+    windows = ev.iter_events(lux, DAVIS, 2.0, rng=8)
+    assert windows.expected_events > 0.5 * whole.size
+    np.testing.assert_array_equal(np.concatenate(list(windows)), whole)
+    np.testing.assert_array_equal(ev.sample_counts(lux, DAVIS, 2.0, rng=8), ev.count_events(whole, lux.shape))
+    frames = [lux, lux * 1.5, lux]
+    video = ev.simulate_video(frames, [0.0, 0.5, 1.0], DAVIS, rng=9)
+    assert video.size > 0 and np.all(np.diff(video["t"].astype(np.int64)) >= 0)
+
+
+def test_without_tables_refuses_what_it_does_not_cover(no_tables):
+    lux = _scene()
+    with pytest.raises(ev.ParameterError, match=r"for the renewal tier \(method='auto' or 'trials'"):
+        ev.simulate_events(lux, DAVIS, 1.0, rng=1, method="renewal")
+    with pytest.raises(ev.ParameterError, match="regular background timer"):
+        ev.simulate_events(lux, DAVIS.replace(leak_regularity=0.5), 1.0, rng=1)
+    with pytest.raises(ev.ParameterError, match="regular background timer"):
+        ev.simulate_events(lux, ev.load_preset("dvs128").replace(reset_memory=0.3), 1.0, rng=1)
+
+
+def test_few_chains_keep_the_table_path():
+    """Below the table budget nothing changes: the renewal tier with memory (whose events differ from the trial
+    tier's) still runs by default."""
+    lux = np.full((8, 8), 2.0)
+    auto = ev.simulate_events(lux, MEM, 2.0, rng=4)
+    np.testing.assert_array_equal(auto, ev.simulate_events(lux, MEM, 2.0, rng=4, method="renewal"))
+    assert not np.array_equal(auto, ev.simulate_events(lux, MEM, 2.0, rng=4, method="trials"))
