@@ -380,8 +380,9 @@ def progress_bar(total, enabled, desc, unit="s", scale=None):
         return None
     from tqdm.auto import tqdm
 
+    counts = "{n:.1f}/{total:.1f} " if scale else "{n}/{total} "  # scaled counts are fractions (seconds)
     return tqdm(total=total, desc=desc, unit=unit, leave=False, unit_scale=scale or False,
-                bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.1f}/{total:.1f} " + unit + " [{elapsed}<{remaining}]")
+                bar_format="{desc}: {percentage:3.0f}%|{bar}| " + counts + unit + " [{elapsed}<{remaining}]")
 
 
 def check_t_start(t_start_us) -> int:

@@ -595,11 +595,12 @@ class _MemoryChains:
         lowest = {lam: float(state_range(lam)[0]) for lam in set(levels.tolist())}  # chains share light levels
         self.lo = np.array([lowest[lam] for lam in levels.tolist()], dtype=np.float64)
 
-    def start_trials(self, state: PixelState, group, dt, refr_us, threads, bg_rows, lam_first, model):
+    def start_trials(self, state: PixelState, group, dt, refr_us, threads, bg_rows, lam_first, model,
+                     progress=False):
         """The trial tier's pixels ``state`` (chains ``group``, background rows ``bg_rows`` of the trial kernel,
         photons per trial ``lam_first`` at trial 0, its ``model``: :data:`evnoise.terms.MODEL`) start in their
         steady state: stored count, the dead time of a last event before ``t = 0``, the regular timer's first
-        arrival (:func:`evnoise._kernels.memory.initial_stored`)."""
+        arrival (:func:`evnoise._kernels.memory.initial_stored`). ``progress``: not used (the tables are built)."""
         from ._kernels.memory import initial_stored
 
         table, _, offsets, sizes = self.tables
@@ -655,8 +656,10 @@ class _OwnChainStarts:
 
         map_chunks(run, len(levels), threads)
 
-    def start_trials(self, state: PixelState, group, dt, refr_us, threads, bg_rows, lam_first, model):
-        """As :meth:`_MemoryChains.start_trials` (no regular timer here)."""
+    def start_trials(self, state: PixelState, group, dt, refr_us, threads, bg_rows, lam_first, model,
+                     progress=False):
+        """As :meth:`_MemoryChains.start_trials` (no regular timer here); ``progress``: a bar over the chains (the
+        starts of a megapixel sensor take tens of seconds)."""
         from ._kernels.memory_start import start_pixels
         from .terms.memory import ITERATED_STEPS
 
@@ -666,11 +669,17 @@ class _OwnChainStarts:
         chains = chains.astype(np.int64)
         b, k, dt_s, refr_s = self._model
 
+        bar = progress_bar(int(chains.size), progress, "memory starts", unit="chains")
+
         def run(i, j):  # the pixels of chains[i:j]
             start_pixels(*self._levels, *self._chains, b, k, ITERATED_STEPS, dt_s, refr_s, float(dt), float(refr_us),
                          chains[i:j], first[i:j + 1], order, state.states, state.fstate)
+            if bar is not None:
+                bar.update(j - i)
 
         map_chunks(run, chains.size, threads)
+        if bar is not None:
+            bar.close()
 
 
 def _memory_chains(lam_start, params, bg, eps_on, eps_off, threads, plan=None):
@@ -772,7 +781,8 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
             dyn_state.lam_ref[:] = lam_first
             dyn_state.lam_prev[:] = lam_first
             if mem is not None:
-                mem.start_trials(dyn_state, mem.group[dyn_pix], dt, refr, threads, dyn_bg, lam_first, model)
+                mem.start_trials(dyn_state, mem.group[dyn_pix], dt, refr, threads, dyn_bg, lam_first, model,
+                                 progress)
         stat_mem = np.full(stat_pix.size, math.nan) if mem is not None else None  # stored states, drawn at first
         dyn_e_on, dyn_e_off = eps_on[dyn_pix], eps_off[dyn_pix]
         dyn_thr = np.stack([c_on[dyn_pix], c_off[dyn_pix], dyn_e_on, dyn_e_off])

@@ -118,16 +118,21 @@ def test_events_without_tables_are_the_table_paths(params, monkeypatch):
     assert len(groups[0]) > memory.EXACT_RATE_LEVELS  # where the table path iterates as the start does
 
 
-def test_windows_counts_and_video_without_tables(no_tables):
+def test_windows_counts_and_video_without_tables(monkeypatch):
+    """Windows, counts and a video down the new path: a video with the table path's trial tier everywhere
+    (``method="trials"``) gives the same events as the new path, which runs every pixel trial by trial."""
     lux = _scene()
+    frames = [lux, lux * 1.5, lux]
+    video_tables = ev.simulate_video(frames, [0.0, 0.5, 1.0], DAVIS, rng=9, method="trials")
+    monkeypatch.setattr(memory, "MAX_TABLE_STATES", 10)
     whole = ev.simulate_events(lux, DAVIS, 2.0, rng=8)
     windows = ev.iter_events(lux, DAVIS, 2.0, rng=8)
     assert windows.expected_events > 0.5 * whole.size
     np.testing.assert_array_equal(np.concatenate(list(windows)), whole)
     np.testing.assert_array_equal(ev.sample_counts(lux, DAVIS, 2.0, rng=8), ev.count_events(whole, lux.shape))
-    frames = [lux, lux * 1.5, lux]
     video = ev.simulate_video(frames, [0.0, 0.5, 1.0], DAVIS, rng=9)
-    assert video.size > 0 and np.all(np.diff(video["t"].astype(np.int64)) >= 0)
+    assert video.size > 1000
+    np.testing.assert_array_equal(video, video_tables)
 
 
 def test_without_tables_refuses_what_it_does_not_cover(no_tables):
