@@ -663,10 +663,14 @@ class _OwnChainStarts:
         from ._kernels.memory_start import start_pixels
         from .terms.memory import ITERATED_STEPS
 
-        order = np.argsort(group, kind="stable").astype(np.int64)
-        chains, first = np.unique(np.asarray(group)[order], return_index=True)
+        # pixels by chain, chains by light level (the kernel iterates the chains of a level together)
+        level = self._levels[1]
+        group = np.asarray(group, dtype=np.int64)
+        order = np.lexsort((group, level[group])).astype(np.int64)
+        chains, first = np.unique(group[order], return_index=True)  # chains sorted by id: put back in pixel order
+        by_level = np.argsort(first, kind="stable")
+        chains, first = chains[by_level].astype(np.int64), first[by_level]
         first = np.append(first, order.size).astype(np.int64)
-        chains = chains.astype(np.int64)
         b, k, dt_s, refr_s = self._model
 
         bar = progress_bar(int(chains.size), progress, "memory starts", unit="chains")

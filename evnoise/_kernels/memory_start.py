@@ -112,20 +112,19 @@ def chain_arrays(pmf_level, lo, n_s, c_on, c_off, b, k, a_on, a_off, arr, idx_on
         arr[A_P_OFF, s] = photon_off
 
 
+#: Chains of one light level iterated together (interleaved: their sums' dependency chains overlap).
+INTERLEAVE = 4
+
+
 @kernel
-def start_law(pmf_level, lo, n_s, c_on, c_off, b, k, a_on, a_off, steps, dt_s, refr_s, cum, dead):
-    """A chain's start at a trial start: ``cum`` the cumulative time-stationary law of its state (unnormalised,
-    as ``ROW_CUM_INIT``) and ``dead`` the probability, per state, that ``t = 0`` is in the dead time (``ROW_DEAD``)
-    (:func:`evnoise.terms.memory.initial_law` of the law after ``steps`` embedded steps from ``Poisson(lam)``;
-    arguments as :func:`chain_arrays`')."""
+def _prepare(pmf_level, lo, n_s, c_on, c_off, b, k, a_on, a_off, fk, a, bb, p, inv_p):
+    """What one step of a chain's embedded law reads (:func:`_iterate`): per state ``j`` the four weights ``fk[j]``,
+    the first ``m`` past ``j``'s ON prefix (``a``: ``idx_on(m) <= j``) and OFF suffix (``bb``: ``idx_off(m) >= j``),
+    and the event probabilities ``p`` and ``1 / p`` (0 where ``p = 0``). Arguments as :func:`chain_arrays`'."""
     arr = np.empty((N_ARRAYS, n_s))
     idx_on = np.empty(n_s, dtype=np.int64)
     idx_off = np.empty(n_s, dtype=np.int64)
     chain_arrays(pmf_level, lo, n_s, c_on, c_off, b, k, a_on, a_off, arr, idx_on, idx_off)
-    pmf = arr[A_PMF]
-    # for each j: first m past its ON prefix (idx_on(m) <= j) and its OFF suffix (idx_off(m) >= j)
-    a = np.empty(n_s, dtype=np.int64)
-    bb = np.empty(n_s, dtype=np.int64)
     i_a = 0
     i_b = 0
     for j in range(n_s):
@@ -135,8 +134,6 @@ def start_law(pmf_level, lo, n_s, c_on, c_off, b, k, a_on, a_off, steps, dt_s, r
         while i_b < n_s and idx_off[i_b] < j:
             i_b += 1
         bb[j] = i_b
-    p = np.empty(n_s)
-    inv_p = np.empty(n_s)
     for s in range(n_s):
         p[s] = arr[A_P_ON, s] + arr[A_P_OFF, s]
         inv_p[s] = 1.0 / p[s] if p[s] > 0.0 else 0.0
@@ -144,46 +141,79 @@ def start_law(pmf_level, lo, n_s, c_on, c_off, b, k, a_on, a_off, steps, dt_s, r
     # trials times the total weight W, the stored branches over the m whose ranges reach j, the background's
     # stored-quiet trials over the m in [a, b)
     a_all = a_on + a_off
-    fk = np.empty((n_s, 4))  # a row per state: the four weights one j reads
     for j in range(n_s):
         fk[j, 0] = arr[A_FRESH_ON, j] + arr[A_FRESH_OFF, j] + a_all * arr[A_NONE, j]
-        fk[j, 1] = k * pmf[j]
-        fk[j, 2] = a_all * k * pmf[j] if bb[j] > a[j] else 0.0
+        fk[j, 1] = k * pmf_level[j]
+        fk[j, 2] = a_all * k * pmf_level[j] if bb[j] > a[j] else 0.0
         fk[j, 3] = 0.0 if p[j] > 0.0 else 1.0  # a state that never fires keeps its mass
+
+
+@kernel
+def _iterate(pmf_level, n_s, fk, a, bb, inv_p, steps, x):
+    """``steps`` steps of the embedded laws of ``G`` chains of one level (``fk`` ``(n_s, G, 4)``, ``a``, ``bb``,
+    ``inv_p`` ``(n_s, G)``: :func:`_prepare`'s), each from ``Poisson(lam)``, into ``x`` ``(n_s, G)`` (normalised).
+
+    The chains are interleaved, each computed exactly as alone: a chain whose law vanished takes ``Poisson(lam)``
+    and stays there, one at a fixed point in floating point (a step that changes nothing) stops there (every further
+    step gives it again); the others go on."""
+    g_n = x.shape[1]
     total_pmf = 0.0
     for s in range(n_s):
-        total_pmf += pmf[s]
-    x = np.empty(n_s)
-    c = np.empty(n_s + 1)  # c[i]: the weights x / P of the states below i
-    c[0] = 0.0
+        total_pmf += pmf_level[s]
+    c = np.empty((n_s + 1, g_n))  # c[i, g]: chain g's weights x / P of the states below i
+    x_new = np.empty((n_s, g_n))
+    w_all = np.empty(g_n)
+    total = np.empty(g_n)
+    inv_total = np.empty(g_n)
+    live = np.ones(g_n, dtype=np.bool_)
+    changed = np.empty(g_n, dtype=np.bool_)
+    for g in range(g_n):
+        c[0, g] = 0.0
     for s in range(n_s):
-        x[s] = pmf[s] / total_pmf
-        c[s + 1] = c[s] + x[s] * inv_p[s]
-    x_new = np.empty(n_s)
+        for g in range(g_n):
+            x[s, g] = pmf_level[s] / total_pmf
+            c[s + 1, g] = c[s, g] + x[s, g] * inv_p[s, g]
     for _ in range(steps):
-        w_all = c[n_s]
-        total = 0.0
+        for g in range(g_n):
+            w_all[g] = c[n_s, g]
+            total[g] = 0.0
         for j in range(n_s):
-            ca = c[a[j]]
-            cb = c[bb[j]]
-            # ca + (W - cb), not (ca + W) - cb: W can be 1e11 times ca (states with P(m) ~ 1e-11)
-            v = fk[j, 0] * w_all + fk[j, 1] * (ca + (w_all - cb)) + fk[j, 2] * (cb - ca) + fk[j, 3] * x[j]
-            x_new[j] = v
-            total += v
-        if not total > 0.0:  # the law vanished: Poisson(lam), as it started (and stays)
-            for s in range(n_s):
-                x[s] = pmf[s] / total_pmf
-            break
-        same = True
-        inv_total = 1.0 / total
+            for g in range(g_n):
+                ca = c[a[j, g], g]
+                cb = c[bb[j, g], g]
+                # ca + (W - cb), not (ca + W) - cb: W can be 1e11 times ca (states with P(m) ~ 1e-11)
+                v = (fk[j, g, 0] * w_all[g] + fk[j, g, 1] * (ca + (w_all[g] - cb)) + fk[j, g, 2] * (cb - ca)
+                     + fk[j, g, 3] * x[j, g])
+                x_new[j, g] = v
+                total[g] += v
+        for g in range(g_n):
+            changed[g] = False
+            if live[g]:
+                if not total[g] > 0.0:  # the law vanished: Poisson(lam), as it started (and stays)
+                    live[g] = False
+                    for s in range(n_s):
+                        x[s, g] = pmf_level[s] / total_pmf
+                inv_total[g] = 1.0 / total[g]
         for s in range(n_s):  # normalised, and the next step's sums
-            v = x_new[s] * inv_total
-            same = same and v == x[s]
-            x[s] = v
-            c[s + 1] = c[s] + v * inv_p[s]
-        if same:  # a fixed point in floating point: every further step gives this law again
+            for g in range(g_n):
+                if live[g]:
+                    v = x_new[s, g] * inv_total[g]
+                    if v != x[s, g]:
+                        changed[g] = True
+                    x[s, g] = v
+                    c[s + 1, g] = c[s, g] + v * inv_p[s, g]
+        any_live = False
+        for g in range(g_n):
+            live[g] = live[g] and changed[g]  # a fixed point: every further step gives this law again
+            any_live = any_live or live[g]
+        if not any_live:
             break
-    # the time-stationary law at a trial start (initial_law): pi E[T_m], or pi on absorbing states
+
+
+@kernel
+def _finish(x, p, pmf_level, n_s, dt_s, refr_s, cum, dead):
+    """:func:`evnoise.terms.memory.initial_law` of an embedded law ``x`` (changed in place): ``cum``, ``dead`` as
+    :func:`start_law`'s."""
     absorbed = False
     pi_total = 0.0
     for s in range(n_s):
@@ -191,23 +221,41 @@ def start_law(pmf_level, lo, n_s, c_on, c_off, b, k, a_on, a_off, steps, dt_s, r
         pi_total += x[s]
     if not pi_total > 0.0:
         for s in range(n_s):
-            x[s] = pmf[s]
+            x[s] = pmf_level[s]
     for s in range(n_s):
         if x[s] > 0.0 and not p[s] > 0.0:
             absorbed = True
+    weight = np.empty(n_s)
     weight_total = 0.0
     for s in range(n_s):
         if absorbed:
             wt = x[s] if not p[s] > 0.0 else 0.0
         else:
             wt = x[s] * (refr_s / dt_s + 1.0 / p[s]) if p[s] > 0.0 else 0.0
-        x_new[s] = wt
+        weight[s] = wt
         weight_total += wt
         dead[s] = refr_s * p[s] / (refr_s * p[s] + dt_s) if p[s] > 0.0 else 0.0
     acc = 0.0
     for s in range(n_s):
-        acc += x_new[s] / weight_total
+        acc += weight[s] / weight_total
         cum[s] = acc
+
+
+@kernel
+def start_law(pmf_level, lo, n_s, c_on, c_off, b, k, a_on, a_off, steps, dt_s, refr_s, cum, dead):
+    """A chain's start at a trial start: ``cum`` the cumulative time-stationary law of its state (unnormalised,
+    as ``ROW_CUM_INIT``) and ``dead`` the probability, per state, that ``t = 0`` is in the dead time (``ROW_DEAD``)
+    (:func:`evnoise.terms.memory.initial_law` of the law after ``steps`` embedded steps from ``Poisson(lam)``;
+    arguments as :func:`chain_arrays`')."""
+    fk = np.empty((n_s, 1, 4))
+    a = np.empty((n_s, 1), dtype=np.int64)
+    bb = np.empty((n_s, 1), dtype=np.int64)
+    p = np.empty(n_s)
+    inv_p = np.empty((n_s, 1))
+    _prepare(pmf_level, lo, n_s, c_on, c_off, b, k, a_on, a_off, fk[:, 0], a[:, 0], bb[:, 0], p, inv_p[:, 0])
+    x = np.empty((n_s, 1))
+    _iterate(pmf_level, n_s, fk, a, bb, inv_p, steps, x)
+    _finish(np.ascontiguousarray(x[:, 0]), p, pmf_level, n_s, dt_s, refr_s, cum, dead)
 
 
 @kernel
@@ -243,25 +291,52 @@ def start_pixels(pmf, level, lo, n_s, at, c_on, c_off, a_on, a_off, b, k, steps,
     ``dt_s``, ``refr_s``: the trial and the refractory period for the law (as the tables'), ``dt_us``, ``refr_us``:
     for the draws (as the trial kernel's).
     """
-    for i in range(chains.size):
-        g = chains[i]
-        lv = level[g]
+    s = np.empty(4, dtype=np.uint64)
+    i = 0
+    while i < chains.size:
+        lv = level[chains[i]]
+        g_n = 1  # a block: up to INTERLEAVE consecutive chains of this level
+        while g_n < INTERLEAVE and i + g_n < chains.size and level[chains[i + g_n]] == lv:
+            g_n += 1
         n = n_s[lv]
+        pmf_level = pmf[at[lv]:at[lv] + n]
+        fk = np.empty((n, g_n, 4))
+        a = np.empty((n, g_n), dtype=np.int64)
+        bb = np.empty((n, g_n), dtype=np.int64)
+        p = np.empty((g_n, n))
+        inv_p = np.empty((n, g_n))
+        one = np.empty(n)
+        for q in range(g_n):
+            g = chains[i + q]
+            fk_q = np.empty((n, 4))
+            a_q = np.empty(n, dtype=np.int64)
+            bb_q = np.empty(n, dtype=np.int64)
+            _prepare(pmf_level, lo[lv], n, c_on[g], c_off[g], b, k, a_on[g], a_off[g], fk_q, a_q, bb_q, p[q], one)
+            for j in range(n):
+                for col in range(4):
+                    fk[j, q, col] = fk_q[j, col]
+                a[j, q] = a_q[j]
+                bb[j, q] = bb_q[j]
+                inv_p[j, q] = one[j]
+        x = np.empty((n, g_n))
+        _iterate(pmf_level, n, fk, a, bb, inv_p, steps, x)
         cum = np.empty(n)
         dead = np.empty(n)
-        start_law(pmf[at[lv]:at[lv] + n], lo[lv], n, c_on[g], c_off[g], b, k, a_on[g], a_off[g], steps, dt_s, refr_s,
-                  cum, dead)
-        s = np.empty(4, dtype=np.uint64)
-        for q in range(first[i], first[i + 1]):
-            r = members[q]
-            for w in range(4):
-                s[w] = states[r, w]
-            st = _search_up(cum, 0, n - 1, uniform_pos(s) * cum[n - 1])
-            fstate[r, STORED] = lo[lv] + st
-            if uniform(s) < dead[st]:
-                elapsed = uniform_pos(s) * refr_us
-                if elapsed > 0.0:
-                    fstate[r, LAST_TAU] = -elapsed
-                    fstate[r, LAST_TRIAL] = np.floor(-elapsed / dt_us)
-            for w in range(4):
-                states[r, w] = s[w]
+        for q in range(g_n):
+            for j in range(n):
+                one[j] = x[j, q]
+            _finish(one, p[q], pmf_level, n, dt_s, refr_s, cum, dead)
+            for r_i in range(first[i + q], first[i + q + 1]):
+                r = members[r_i]
+                for w in range(4):
+                    s[w] = states[r, w]
+                st = _search_up(cum, 0, n - 1, uniform_pos(s) * cum[n - 1])
+                fstate[r, STORED] = lo[lv] + st
+                if uniform(s) < dead[st]:
+                    elapsed = uniform_pos(s) * refr_us
+                    if elapsed > 0.0:
+                        fstate[r, LAST_TAU] = -elapsed
+                        fstate[r, LAST_TRIAL] = np.floor(-elapsed / dt_us)
+                for w in range(4):
+                    states[r, w] = s[w]
+        i += g_n
