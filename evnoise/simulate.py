@@ -648,11 +648,11 @@ class _OwnChainStarts:
                        params.refractory_us * 1e-6)
         self.rates = np.empty(len(levels))
         b, k, dt_s, refr_s = self._model
-        pmf, level, lo, n_s, at = self._levels
+        level = self._levels[1]
+        by_level = np.argsort(level, kind="stable").astype(np.int64)  # a level's chains together
 
-        def run(i, j):  # chains i .. j - 1
-            chains = tuple(a[i:j] for a in self._chains)
-            chain_rates(pmf, level[i:j], lo, n_s, at, *chains, b, k, dt_s, refr_s, self.rates[i:j])
+        def run(i, j):  # the chains by_level[i:j]
+            chain_rates(*self._levels, *self._chains, b, k, dt_s, refr_s, by_level[i:j], self.rates)
 
         map_chunks(run, len(levels), threads)
 

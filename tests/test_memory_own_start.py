@@ -145,6 +145,20 @@ def test_without_tables_refuses_what_it_does_not_cover(no_tables):
         ev.simulate_events(lux, ev.load_preset("dvs128").replace(reset_memory=0.3), 1.0, rng=1)
 
 
+@pytest.mark.parametrize("tables", [True, False], ids=["tables", "without-tables"])
+def test_expected_events_are_the_memory_rate(tables, monkeypatch):
+    """What a run with many chains says it expects (sizes its buffers, printed by the CLI) is the rate of the chains'
+    iterated laws: within 5 sigma of the events (counts of memory pixels are under-dispersed: Poisson's sigma is
+    ample). The states weighted by Poisson(lam), the estimate before, were ~30 % low with k = 0.3."""
+    lux = np.full((40, 40), 2.0)
+    if not tables:
+        monkeypatch.setattr(memory, "MAX_TABLE_STATES", 10)
+    windows = ev.iter_events(lux, DAVIS, 4.0, rng=21)
+    n = sum(w.size for w in windows)
+    assert n > 10_000
+    assert abs(windows.expected_events - n) < 5.0 * np.sqrt(n), (windows.expected_events, n)
+
+
 def test_few_chains_keep_the_table_path():
     """Below the table budget nothing changes: the renewal tier with memory (whose events differ from the trial
     tier's) still runs by default."""

@@ -259,24 +259,59 @@ def start_law(pmf_level, lo, n_s, c_on, c_off, b, k, a_on, a_off, steps, dt_s, r
 
 
 @kernel
-def chain_rates(pmf, level, lo, n_s, at, c_on, c_off, a_on, a_off, b, k, dt_s, refr_s, out):
-    """Each chain's rate estimate (events/s; :func:`evnoise.terms.memory.kernel_tables`' for many chains: the
-    states weighted by ``Poisson(lam)``), which sizes windows and buffers, into ``out``.
+def _block(pmf, level, lo, n_s, at, c_on, c_off, a_on, a_off, b, k, steps, chains, i):
+    """The chains ``chains[i:]`` of ``chains[i]``'s light level, at most :data:`INTERLEAVE` of them: their embedded
+    laws after ``steps`` steps from ``Poisson(lam)`` (:func:`_iterate`), ``(g_n, x (n_s, g_n), p (g_n, n_s), lv)``
+    (``p``: per-trial event probabilities; the arguments as :func:`start_pixels`')."""
+    lv = level[chains[i]]
+    g_n = 1
+    while g_n < INTERLEAVE and i + g_n < chains.size and level[chains[i + g_n]] == lv:
+        g_n += 1
+    n = n_s[lv]
+    pmf_level = pmf[at[lv]:at[lv] + n]
+    fk = np.empty((n, g_n, 4))
+    a = np.empty((n, g_n), dtype=np.int64)
+    bb = np.empty((n, g_n), dtype=np.int64)
+    p = np.empty((g_n, n))
+    inv_p = np.empty((n, g_n))
+    fk_q = np.empty((n, 4))
+    a_q = np.empty(n, dtype=np.int64)
+    bb_q = np.empty(n, dtype=np.int64)
+    one = np.empty(n)
+    for q in range(g_n):
+        g = chains[i + q]
+        _prepare(pmf_level, lo[lv], n, c_on[g], c_off[g], b, k, a_on[g], a_off[g], fk_q, a_q, bb_q, p[q], one)
+        for j in range(n):
+            for col in range(4):
+                fk[j, q, col] = fk_q[j, col]
+            a[j, q] = a_q[j]
+            bb[j, q] = bb_q[j]
+            inv_p[j, q] = one[j]
+    x = np.empty((n, g_n))
+    _iterate(pmf_level, n, fk, a, bb, inv_p, steps, x)
+    return g_n, x, p, lv
 
-    Chain ``g`` is at light level ``level[g]``, whose states are ``lo[l] ..`` (``n_s[l]`` of them) and whose
-    :func:`level_pmf` is ``pmf[at[l]:at[l] + n_s[l]]``; ``c_*``, ``a_*``: per chain, as :func:`chain_arrays`'."""
-    for g in range(level.size):
-        lv = level[g]
-        n = n_s[lv]
-        arr = np.empty((N_ARRAYS, n))
-        idx_on = np.empty(n, dtype=np.int64)
-        idx_off = np.empty(n, dtype=np.int64)
-        chain_arrays(pmf[at[lv]:at[lv] + n], lo[lv], n, c_on[g], c_off[g], b, k, a_on[g], a_off[g], arr, idx_on,
-                     idx_off)
-        mean_p = 0.0
-        for s in range(n):
-            mean_p += arr[A_PMF, s] * min(arr[A_P_ON, s] + arr[A_P_OFF, s], 1.0)
-        out[g] = mean_p / (dt_s + mean_p * refr_s)
+
+#: Embedded steps behind each chain's rate estimate (:func:`chain_rates`).
+RATE_STEPS = 5
+
+
+@kernel
+def chain_rates(pmf, level, lo, n_s, at, c_on, c_off, a_on, a_off, b, k, dt_s, refr_s, chains, out):
+    """The rate estimates (events/s) of the chains ``chains`` into ``out[chains]``: ``1 / (R + dt sum x / P)`` of the
+    embedded law ``x`` after :data:`RATE_STEPS` steps from ``Poisson(lam)`` (the stationary rate's formula,
+    :func:`evnoise.terms.memory.level_statistics`, within ~1e-3 for a chain that mixes; absorbing states left out).
+    It sizes windows and buffers and is what a run says it expects. Arguments as :func:`start_pixels`'."""
+    i = 0
+    while i < chains.size:
+        g_n, x, p, lv = _block(pmf, level, lo, n_s, at, c_on, c_off, a_on, a_off, b, k, RATE_STEPS, chains, i)
+        for q in range(g_n):
+            trials = 0.0
+            for j in range(n_s[lv]):
+                if p[q, j] > 0.0:
+                    trials += x[j, q] / p[q, j]
+            out[chains[i + q]] = 1.0 / (refr_s + dt_s * trials) if trials > 0.0 else 0.0
+        i += g_n
 
 
 @kernel
@@ -284,42 +319,22 @@ def start_pixels(pmf, level, lo, n_s, at, c_on, c_off, a_on, a_off, b, k, steps,
                  first, members, states, fstate):
     """Start the pixels of the chains ``chains`` (indices into the per-chain arrays) in their steady state.
 
-    The pixels of ``chains[i]`` are ``members[first[i]:first[i + 1]]`` (rows of ``states`` and ``fstate``); the
-    chains' arrays as :func:`chain_rates`'. Each
-    draws its state and dead time from its own stream as :func:`evnoise._kernels.memory.draw_initial` does, and
-    stores them as :func:`evnoise._kernels.memory.initial_stored` does (no regular timer: the caller refuses it).
+    Chain ``g`` is at light level ``level[g]``, whose states are ``lo[l] ..`` (``n_s[l]`` of them) and whose
+    :func:`level_pmf` is ``pmf[at[l]:at[l] + n_s[l]]``; ``c_*``, ``a_*``: per chain, as :func:`chain_arrays`'. The
+    chains of a level are adjacent in ``chains`` (they are iterated together, :func:`_block`). The pixels of
+    ``chains[i]`` are ``members[first[i]:first[i + 1]]`` (rows of ``states`` and ``fstate``). Each draws its state
+    and dead time from its own stream as :func:`evnoise._kernels.memory.draw_initial` does, and stores them as
+    :func:`evnoise._kernels.memory.initial_stored` does (no regular timer: the caller refuses it).
     ``dt_s``, ``refr_s``: the trial and the refractory period for the law (as the tables'), ``dt_us``, ``refr_us``:
     for the draws (as the trial kernel's).
     """
     s = np.empty(4, dtype=np.uint64)
     i = 0
     while i < chains.size:
-        lv = level[chains[i]]
-        g_n = 1  # a block: up to INTERLEAVE consecutive chains of this level
-        while g_n < INTERLEAVE and i + g_n < chains.size and level[chains[i + g_n]] == lv:
-            g_n += 1
+        g_n, x, p, lv = _block(pmf, level, lo, n_s, at, c_on, c_off, a_on, a_off, b, k, steps, chains, i)
         n = n_s[lv]
         pmf_level = pmf[at[lv]:at[lv] + n]
-        fk = np.empty((n, g_n, 4))
-        a = np.empty((n, g_n), dtype=np.int64)
-        bb = np.empty((n, g_n), dtype=np.int64)
-        p = np.empty((g_n, n))
-        inv_p = np.empty((n, g_n))
         one = np.empty(n)
-        for q in range(g_n):
-            g = chains[i + q]
-            fk_q = np.empty((n, 4))
-            a_q = np.empty(n, dtype=np.int64)
-            bb_q = np.empty(n, dtype=np.int64)
-            _prepare(pmf_level, lo[lv], n, c_on[g], c_off[g], b, k, a_on[g], a_off[g], fk_q, a_q, bb_q, p[q], one)
-            for j in range(n):
-                for col in range(4):
-                    fk[j, q, col] = fk_q[j, col]
-                a[j, q] = a_q[j]
-                bb[j, q] = bb_q[j]
-                inv_p[j, q] = one[j]
-        x = np.empty((n, g_n))
-        _iterate(pmf_level, n, fk, a, bb, inv_p, steps, x)
         cum = np.empty(n)
         dead = np.empty(n)
         for q in range(g_n):

@@ -542,7 +542,8 @@ def kernel_tables(levels, params, spans=None, background=None, thresholds=None, 
     Returns ``(table, itable, offsets, sizes, rates)``: float rows ``ROW_*`` and integer rows ``ROW_IDX_*`` of
     :mod:`evnoise._kernels.memory` over all levels' states (level ``g``'s at ``offsets[g] .. + sizes[g]``) and
     each level's rate (events/s, both polarities): the stationary rate for up to :data:`EXACT_RATE_LEVELS`
-    levels, beyond an estimate (the states weighted by ``Poisson(lam)``) that only sizes windows and buffers.
+    levels, beyond the rate of the iterated law of the initial state (:data:`ITERATED_STEPS`), which sizes windows
+    and buffers and is what a run says it expects.
     Raises :class:`~evnoise.ParameterError` when the tables would pass :data:`MAX_TABLE_STATES`.
     """
     from .._kernels import memory as km
@@ -641,6 +642,7 @@ def kernel_tables(levels, params, spans=None, background=None, thresholds=None, 
         for i, (g, chain) in enumerate(block):
             t = with_background(g, alive[chain])
             _write_initial(table, slice(offsets[g], offsets[g] + sizes[g]), t, laws[i], dt_s, refr_s)
+            rates[g] = _rate_of_law(t, laws[i], dt_s, refr_s)
         block.clear()
 
     for g in order:
@@ -652,14 +654,21 @@ def kernel_tables(levels, params, spans=None, background=None, thresholds=None, 
             alive = {c: alive[c] for c in (chain,) if c in alive}  # the others are not needed again
         if chain not in alive:
             alive[chain] = build(chain)
-        t, p = write(g, alive[chain])
-        mean_p = float((t.pmf * p).sum())
-        rates[g] = mean_p / (dt_s + mean_p * refr_s)
+        write(g, alive[chain])
         block.append((g, chain))
         block_states += int(sizes[g])
     if block:
         flush()
     return table, itable, offsets, sizes, rates
+
+
+def _rate_of_law(t: LevelTables, pi, dt_s: float, refr_s: float) -> float:
+    """The rate (events/s) of a chain whose embedded law is ``pi``: ``1 / (R + dt sum pi / P)``
+    (:func:`level_statistics`' formula; states that never fire left out, 0 when no state fires)."""
+    p = t.p_on + t.p_off
+    live = p > 0
+    trials = float((np.asarray(pi)[live] / p[live]).sum())
+    return 1.0 / (refr_s + dt_s * trials) if trials > 0 else 0.0
 
 
 def _write_initial(table, cols, t: LevelTables, pi, dt_s: float, refr_s: float) -> None:
