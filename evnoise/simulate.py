@@ -11,7 +11,8 @@ Fidelity tiers ("model only what a scene needs"):
     comparison, signal crossings of the mean level, refractory period. Cost O(pixels x trials).
 
 ``method="auto"`` uses the renewal tier for every pixel that is static over the whole run and
-the trial tier for the others. Randomness: each pixel has its own stream (xoshiro256++ keyed
+the trial tier for the others (with reset memory whose chains are too many for tables: the trial tier for every
+pixel, each chain's start computed on its own). Randomness: each pixel has its own stream (xoshiro256++ keyed
 by the caller's generator and the pixel index), so the output does not depend on the number
 of threads, the chunking of pixels, or the windows in which time is generated.
 """
@@ -20,6 +21,7 @@ from __future__ import annotations
 
 import collections
 import math
+import threading
 from typing import Iterator
 
 import numpy as np
@@ -244,8 +246,7 @@ def _still_memory_windows(lux, params, key, t_start_us, duration_us, threads, pr
         return _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, sink, bg=bg,
                             thresholds=thresholds, plan=plan)
     if method == "renewal":
-        raise too_many_states(len(plan[0][0]), plan[2], " for the renewal tier (method='auto' or 'trials' runs them "
-                              "trial by trial, without tables)")
+        raise too_many_states(len(plan[0][0]), plan[2], _RENEWAL_NEEDS_TABLES)
     return _still_trial_windows(lux, params, key, t_start_us, duration_us, threads, progress, sink, bg, thresholds,
                                 plan)
 
@@ -379,7 +380,9 @@ def simulate_events(
         Randomness; the same seed gives the same events whatever the number of threads.
     method : {"auto", "renewal", "trials"}
         Fidelity tier; for a static scene ``"auto"`` is the renewal tier (exact, O(events)),
-        ``"trials"`` runs the full per-trial model (statistically identical, slower).
+        ``"trials"`` runs the full per-trial model (statistically identical, slower). With reset memory whose chains
+        are too many for tables (:data:`evnoise.terms.memory.MAX_TABLE_STATES`) ``"auto"`` runs the trial tier and
+        ``"renewal"`` is refused.
     thresholds : array_like, optional
         Per-pixel thresholds ``(2, H, W)``; drawn from ``rng`` when ``params.eps_sigma > 0``.
     background : array_like, optional
@@ -496,7 +499,7 @@ def iter_video(
         raise InputError("the video is shorter than one microsecond")
     _check_span(t0_us, duration_us)
     return _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static.ravel(), t0_us,
-                         duration_us, threads, progress, labels=return_labels, bg=bg)
+                         duration_us, threads, progress, labels=return_labels, bg=bg, renewal=method == "renewal")
 
 
 def simulate_video(
@@ -525,7 +528,8 @@ def simulate_video(
         As in :func:`simulate_events`.
     method : {"auto", "renewal", "trials"}
         ``"auto"``: renewal tier for pixels that never change, trial tier for the rest;
-        ``"trials"``: trial tier everywhere; ``"renewal"``: only valid if nothing changes.
+        ``"trials"``: trial tier everywhere; ``"renewal"``: only valid if nothing changes (and, with reset
+        memory whose chains are too many for tables, refused: ``"auto"`` then runs every pixel trial by trial).
     return_labels : bool
         Also return a bool array, True for *signal* events (threshold crossings of the mean
         level) and False for *noise* events (the photon-count comparison): the ground truth
@@ -621,7 +625,7 @@ class _OwnChainStarts:
     a large sensor with threshold mismatch has nearly a chain per pixel). Their pixels all run in the trial tier,
     which needs of a chain only its start: computed chain by chain when the pixels start and not kept
     (:mod:`evnoise._kernels.memory_start`: the law the tables would give, to rounding, and the same draws, so the
-    events are those of the table path). ``group``, ``rates`` as :class:`_MemoryChains`'; no ``tables``. ``plan``:
+    events are those of the table path's trial tier, to rounding). ``group``, ``rates`` as :class:`_MemoryChains`'; no ``tables``. ``plan``:
     :func:`~evnoise.terms.memory.chain_plan`'s (without a regular timer: refused by the caller)."""
 
     tables = None
@@ -629,7 +633,7 @@ class _OwnChainStarts:
 
     def __init__(self, params, plan, threads):
         from ._kernels.memory_start import chain_rates, level_pmf
-        from .terms.memory import _expm1, state_range
+        from .terms.memory import ITERATED_STEPS, _expm1, state_range
 
         (levels, a_on, a_off, _, self.group, (eps_on, eps_off)), _, _ = plan
         distinct, level = np.unique(np.asarray(levels, dtype=np.float64), return_inverse=True)
@@ -652,7 +656,7 @@ class _OwnChainStarts:
         by_level = np.argsort(level, kind="stable").astype(np.int64)  # a level's chains together
 
         def run(i, j):  # the chains by_level[i:j]
-            chain_rates(*self._levels, *self._chains, b, k, dt_s, refr_s, by_level[i:j], self.rates)
+            chain_rates(*self._levels, *self._chains, b, k, dt_s, refr_s, ITERATED_STEPS, by_level[i:j], self.rates)
 
         map_chunks(run, len(levels), threads)
 
@@ -674,27 +678,37 @@ class _OwnChainStarts:
         b, k, dt_s, refr_s = self._model
 
         bar = progress_bar(int(chains.size), progress, "memory starts", unit="chains")
+        lock = threading.Lock()  # chunks finish in worker threads
 
         def run(i, j):  # the pixels of chains[i:j]
             start_pixels(*self._levels, *self._chains, b, k, ITERATED_STEPS, dt_s, refr_s, float(dt), float(refr_us),
                          chains[i:j], first[i:j + 1], order, state.states, state.fstate)
             if bar is not None:
-                bar.update(j - i)
+                with lock:
+                    bar.update(j - i)
 
         map_chunks(run, chains.size, threads)
         if bar is not None:
             bar.close()
 
 
-def _memory_chains(lam_start, params, bg, eps_on, eps_off, threads, plan=None):
+#: Why a scene whose chains are too many for tables cannot run with ``method="renewal"``.
+_RENEWAL_NEEDS_TABLES = (" for the renewal tier (method='auto' or 'trials' runs them trial by trial, without "
+                         "tables)")
+
+
+def _memory_chains(lam_start, params, bg, eps_on, eps_off, threads, plan=None, renewal=False):
     """The reset-memory chains of a run's pixels at ``lam_start``: :class:`_MemoryChains` (tables) where their states
     fit :data:`~evnoise.terms.memory.MAX_TABLE_STATES`, else :class:`_OwnChainStarts` (every pixel in the trial
-    tier), or a :class:`~evnoise.ParameterError` when the chains also have the regular timer."""
+    tier), or a :class:`~evnoise.ParameterError` when the chains also have the regular timer or the caller asked for
+    the renewal tier (``renewal``)."""
     from .terms.memory import MAX_TABLE_STATES, chain_plan, too_many_states
 
     plan = chain_plan(lam_start, params, bg, (eps_on, eps_off)) if plan is None else plan
     if plan[2] <= MAX_TABLE_STATES:
         return _MemoryChains(lam_start, params, bg, eps_on, eps_off, plan)
+    if renewal:
+        raise too_many_states(len(plan[0][0]), plan[2], _RENEWAL_NEEDS_TABLES)
     if plan[1] is not None:
         raise too_many_states(len(plan[0][0]), plan[2], " and they have the regular background timer "
                               "(leak_regularity or hot_pixel_regularity > 0), which the trial tier's start without "
@@ -703,17 +717,18 @@ def _memory_chains(lam_start, params, bg, eps_on, eps_off, threads, plan=None):
 
 
 def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us, duration_us, threads,
-                  progress, labels=False, bg=None, memory_plan=None):
+                  progress, labels=False, bg=None, memory_plan=None, renewal=False):
     """Generator over windows of a changing scene (renewal for ``static`` pixels, trials for the rest; with reset
-    memory whose chains are too many for tables, trials for every pixel). ``memory_plan``:
-    :func:`~evnoise.terms.memory.chain_plan`'s at the first frame's light, when the caller has it."""
+    memory whose chains are too many for tables, trials for every pixel, unless ``renewal``: the caller asked for the
+    renewal tier, refused then). ``memory_plan``: :func:`~evnoise.terms.memory.chain_plan`'s at the first frame's
+    light, when the caller has it."""
     from ._kernels.simulate import trial_window
 
     width = frames.shape[1]
     mem = None
     if memory_on(params):
         mem = _memory_chains(params.photons_per_trial(frames.get(0)).ravel(), params, bg, eps_on, eps_off, threads,
-                             memory_plan)
+                             memory_plan, renewal)
         if mem.tables is None:
             static = np.zeros_like(static)
     dt = params.trial_us

@@ -149,9 +149,10 @@ def _prepare(pmf_level, lo, n_s, c_on, c_off, b, k, a_on, a_off, fk, a, bb, p, i
 
 
 @kernel
-def _iterate(pmf_level, n_s, fk, a, bb, inv_p, steps, x):
+def _iterate(pmf_level, n_s, fk, a, bb, inv_p, steps, x, from_x=False):
     """``steps`` steps of the embedded laws of ``G`` chains of one level (``fk`` ``(n_s, G, 4)``, ``a``, ``bb``,
-    ``inv_p`` ``(n_s, G)``: :func:`_prepare`'s), each from ``Poisson(lam)``, into ``x`` ``(n_s, G)`` (normalised).
+    ``inv_p`` ``(n_s, G)``: :func:`_prepare`'s), each from ``Poisson(lam)`` (``from_x``: from the normalised laws in
+    ``x``), into ``x`` ``(n_s, G)`` (normalised).
 
     The chains are interleaved, each computed exactly as alone: a chain whose law vanished takes ``Poisson(lam)``
     and stays there, one at a fixed point in floating point (a step that changes nothing) stops there (every further
@@ -171,7 +172,8 @@ def _iterate(pmf_level, n_s, fk, a, bb, inv_p, steps, x):
         c[0, g] = 0.0
     for s in range(n_s):
         for g in range(g_n):
-            x[s, g] = pmf_level[s] / total_pmf
+            if not from_x:
+                x[s, g] = pmf_level[s] / total_pmf
             c[s + 1, g] = c[s, g] + x[s, g] * inv_p[s, g]
     for _ in range(steps):
         for g in range(g_n):
@@ -259,10 +261,11 @@ def start_law(pmf_level, lo, n_s, c_on, c_off, b, k, a_on, a_off, steps, dt_s, r
 
 
 @kernel
-def _block(pmf, level, lo, n_s, at, c_on, c_off, a_on, a_off, b, k, steps, chains, i):
+def _block(pmf, level, lo, n_s, at, c_on, c_off, a_on, a_off, b, k, steps, chains, i, rate_tol=0.0, max_steps=0):
     """The chains ``chains[i:]`` of ``chains[i]``'s light level, at most :data:`INTERLEAVE` of them: their embedded
     laws after ``steps`` steps from ``Poisson(lam)`` (:func:`_iterate`), ``(g_n, x (n_s, g_n), p (g_n, n_s), lv)``
-    (``p``: per-trial event probabilities; the arguments as :func:`start_pixels`')."""
+    (``p``: per-trial event probabilities; the arguments as :func:`start_pixels`'); with ``rate_tol`` more steps as
+    :func:`chain_rates` says."""
     lv = level[chains[i]]
     g_n = 1
     while g_n < INTERLEAVE and i + g_n < chains.size and level[chains[i + g_n]] == lv:
@@ -289,28 +292,54 @@ def _block(pmf, level, lo, n_s, at, c_on, c_off, a_on, a_off, b, k, steps, chain
             inv_p[j, q] = one[j]
     x = np.empty((n, g_n))
     _iterate(pmf_level, n, fk, a, bb, inv_p, steps, x)
+    if rate_tol > 0.0:  # more steps, RATE_STEPS at a time, until every chain's trials per event settle
+        done = steps
+        before = _trials_per_event(x, p)
+        while done < max_steps:
+            _iterate(pmf_level, n, fk, a, bb, inv_p, RATE_STEPS, x, True)
+            done += RATE_STEPS
+            after = _trials_per_event(x, p)
+            settled = True
+            for q in range(g_n):
+                settled = settled and abs(after[q] - before[q]) <= rate_tol * after[q]
+            before = after
+            if settled:
+                break
     return g_n, x, p, lv
 
 
-#: Embedded steps behind each chain's rate estimate (:func:`chain_rates`).
+@kernel
+def _trials_per_event(x, p):
+    """``sum x / P`` of each chain's embedded law (columns of ``x``; states that never fire left out)."""
+    out = np.zeros(x.shape[1])
+    for q in range(x.shape[1]):
+        for j in range(x.shape[0]):
+            if p[q, j] > 0.0:
+                out[q] += x[j, q] / p[q, j]
+    return out
+
+
+#: Embedded steps between two looks at a chain's rate estimate (:func:`chain_rates`) ...
 RATE_STEPS = 5
+#: ... which stops when the mean trials per event moved by less than this share over those steps.
+RATE_TOL = 1e-4
 
 
 @kernel
-def chain_rates(pmf, level, lo, n_s, at, c_on, c_off, a_on, a_off, b, k, dt_s, refr_s, chains, out):
-    """The rate estimates (events/s) of the chains ``chains`` into ``out[chains]``: ``1 / (R + dt sum x / P)`` of the
-    embedded law ``x`` after :data:`RATE_STEPS` steps from ``Poisson(lam)`` (the stationary rate's formula,
-    :func:`evnoise.terms.memory.level_statistics`, within ~1e-3 for a chain that mixes; absorbing states left out).
-    It sizes windows and buffers and is what a run says it expects. Arguments as :func:`start_pixels`'."""
+def chain_rates(pmf, level, lo, n_s, at, c_on, c_off, a_on, a_off, b, k, dt_s, refr_s, max_steps, chains, out):
+    """The rate estimates (events/s) of the chains ``chains`` into ``out[chains]``: ``1 / (R + dt sum x / P)`` (the
+    stationary rate's formula, :func:`evnoise.terms.memory.level_statistics`; absorbing states left out) of the
+    embedded law ``x`` after :data:`RATE_STEPS` steps from ``Poisson(lam)`` and as many more as it takes the mean
+    trials per event to move by less than :data:`RATE_TOL` over :data:`RATE_STEPS` steps, at most ``max_steps`` (the
+    starts' law). An estimate (a slow-mixing chain can still be moving): it sizes windows and buffers and is what a
+    run says it expects. Arguments as :func:`start_pixels`'."""
     i = 0
     while i < chains.size:
-        g_n, x, p, lv = _block(pmf, level, lo, n_s, at, c_on, c_off, a_on, a_off, b, k, RATE_STEPS, chains, i)
+        g_n, x, p, lv = _block(pmf, level, lo, n_s, at, c_on, c_off, a_on, a_off, b, k, RATE_STEPS, chains, i,
+                               RATE_TOL, max_steps)
+        trials = _trials_per_event(x, p)
         for q in range(g_n):
-            trials = 0.0
-            for j in range(n_s[lv]):
-                if p[q, j] > 0.0:
-                    trials += x[j, q] / p[q, j]
-            out[chains[i + q]] = 1.0 / (refr_s + dt_s * trials) if trials > 0.0 else 0.0
+            out[chains[i + q]] = 1.0 / (refr_s + dt_s * trials[q]) if trials[q] > 0.0 else 0.0
         i += g_n
 
 

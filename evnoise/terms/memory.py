@@ -69,7 +69,8 @@ each with tables of its own (set-up about 1 ms per pixel at tens
 of photons per trial, a few ms at thousands; :data:`MAX_TABLE_STATES` bounds the total). A still scene or a video
 whose chains pass it (``evk4`` at 1280 x 720 with its mismatch: 624 000 chains at 2 lux) runs in the trial tier with
 each chain's start computed on its own, without tables (:mod:`evnoise._kernels.memory_start`: the law of the table
-path for many chains, to rounding, and its draws, so the same events as ``method="trials"`` with tables); not with
+path for many chains, to rounding, and its draws, so the same events as ``method="trials"`` with tables but where a
+uniform falls within a rounding of a law's step, about 1e-16 per pixel); not with
 the regular timer, ``method="renewal"``, :class:`evnoise.NoiseStream` or the tonic transform, which refuse it.
 
 Background (Poisson: the ``leak_*`` rates and hot pixels, :func:`level_background` for the nominal pixel; the
