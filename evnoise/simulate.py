@@ -625,7 +625,8 @@ class _OwnChainStarts:
     a large sensor with threshold mismatch has nearly a chain per pixel). Their pixels all run in the trial tier,
     which needs of a chain only its start: computed chain by chain when the pixels start and not kept
     (:mod:`evnoise._kernels.memory_start`: the law the tables would give, to rounding, and the same draws, so the
-    events are those of the table path's trial tier, to rounding). ``group``, ``rates`` as :class:`_MemoryChains`'; no ``tables``. ``plan``:
+    events are those of the table path's trial tier, to rounding). ``group``, ``rates`` as :class:`_MemoryChains`';
+    no ``tables``. ``plan``:
     :func:`~evnoise.terms.memory.chain_plan`'s (without a regular timer: refused by the caller)."""
 
     tables = None
