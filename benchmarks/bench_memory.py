@@ -161,8 +161,8 @@ def section(rows, side, duration_s, command, large=(), large_shape=None, large_s
         lines += ["", "Where the set-up goes (a profile of the full-size run, 2 threads, this machine, 2026-11-27): "
                   "the chains' starts ~12 s (624 186 chains, ~38 µs each on one thread: 40 embedded steps over ~216 "
                   "states, four chains at a time), grouping the pixels into chains (threshold classes) ~3.5 s, the "
-                  "chains' rate estimates ~1.2 s. Not timed: the same scene with tables would need 135 M table "
-                  "states (18 GB) and ~0.45 ms per chain.", ""]
+                  "chains' rate estimates ~6 s (~20 embedded steps each). Not timed: the same scene with tables "
+                  "would need 135 M table states (18 GB) and ~0.45 ms per chain.", ""]
     return "\n".join(lines)
 
 

@@ -322,7 +322,7 @@ def _trials_per_event(x, p):
 #: Embedded steps between two looks at a chain's rate estimate (:func:`chain_rates`) ...
 RATE_STEPS = 5
 #: ... which stops when the mean trials per event moved by less than this share over those steps.
-RATE_TOL = 1e-4
+RATE_TOL = 1e-3
 
 
 @kernel
