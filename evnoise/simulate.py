@@ -634,7 +634,7 @@ class _OwnChainStarts:
 
     def __init__(self, params, plan, threads):
         from ._kernels.memory_start import chain_rates, level_pmf
-        from .terms.memory import ITERATED_STEPS, _expm1, state_range
+        from .terms.memory import ITERATED_STEPS, state_range, threshold_factors
 
         (levels, a_on, a_off, _, self.group, (eps_on, eps_off)), _, _ = plan
         distinct, level = np.unique(np.asarray(levels, dtype=np.float64), return_inverse=True)
@@ -644,8 +644,7 @@ class _OwnChainStarts:
         pmf = np.empty(int(n_s.sum()))
         for lv, lam in enumerate(distinct.tolist()):  # each light level's Poisson pmf once, for all its chains
             level_pmf(lam, float(spans[lv, 0]), int(n_s[lv]), pmf[at[lv]:at[lv] + n_s[lv]])
-        c_on = np.array([_expm1(e) for e in np.asarray(eps_on, dtype=np.float64).tolist()])
-        c_off = np.array([_expm1(e) for e in np.asarray(eps_off, dtype=np.float64).tolist()])
+        c_on, c_off = threshold_factors(eps_on), threshold_factors(eps_off)
         self._levels = (pmf, np.ascontiguousarray(level.ravel(), dtype=np.int64), spans[:, 0].astype(np.float64), n_s,
                         at)
         self._chains = tuple(np.ascontiguousarray(a, dtype=np.float64) for a in (c_on, c_off, a_on, a_off))

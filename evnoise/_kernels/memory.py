@@ -66,7 +66,7 @@ def fill_counts(lam, lo, n_states, c_on, c_off, b, log_pmf_out, k_on_out, k_off_
 
 
 @kernel
-def _search_up(cum, a, b, target):
+def search_up(cum, a, b, target):
     """Smallest index ``i`` in ``[a, b]`` with ``cum[i] >= target`` (``cum`` nondecreasing; ``b`` if none)."""
     while a < b:
         mid = (a + b) // 2
@@ -100,7 +100,7 @@ def draw_initial(s, table, o, n_s, refr_us):
     memoryless). Always two uniforms, three when dead.
     """
     cum = table[ROW_CUM_INIT, o:o + n_s]
-    st = float(_search_up(cum, 0, n_s - 1, uniform_pos(s) * cum[n_s - 1]))
+    st = float(search_up(cum, 0, n_s - 1, uniform_pos(s) * cum[n_s - 1]))
     if uniform(s) < table[ROW_DEAD, o + int(st)]:
         return st, uniform_pos(s) * refr_us
     return st, -1.0
@@ -204,17 +204,17 @@ def draw_event(s, table, itable, o, n_s, st):
         return branch == 4, _quiet_count(table, itable, o, n_s, i, w)
     if branch == 0:
         cum = table[ROW_CUM_FRESH_ON, o:o + n_s]
-        return True, float(_search_up(cum, 0, n_s - 1, w * cum[n_s - 1]))
+        return True, float(search_up(cum, 0, n_s - 1, w * cum[n_s - 1]))
     if branch == 1:
         cum = table[ROW_CUM_FRESH_OFF, o:o + n_s]
-        return False, float(_search_up(cum, 0, n_s - 1, w * cum[n_s - 1]))
+        return False, float(search_up(cum, 0, n_s - 1, w * cum[n_s - 1]))
     if branch == 2:
         a = itable[ROW_IDX_ON, i]  # Poisson restricted to states a .. S - 1: invert its upper tail
         tail = table[ROW_TAIL, o:o + n_s]
         return True, float(_search_down(tail, a, n_s - 1, w * tail[a]))
     b = itable[ROW_IDX_OFF, i]  # Poisson restricted to states 0 .. b: invert its cumulative sum
     head = table[ROW_HEAD, o:o + n_s]
-    return False, float(_search_up(head, 0, b, w * head[b]))
+    return False, float(search_up(head, 0, b, w * head[b]))
 
 
 @kernel

@@ -23,7 +23,7 @@ import math
 import numpy as np
 
 from ._jit import kernel
-from .memory import _search_up, fill_counts
+from .memory import fill_counts, search_up
 from .poisson import threshold_count
 from .rng import uniform, uniform_pos
 from .simulate import LAST_TAU, LAST_TRIAL, STORED
@@ -374,7 +374,7 @@ def start_pixels(pmf, level, lo, n_s, at, c_on, c_off, a_on, a_off, b, k, steps,
                 r = members[r_i]
                 for w in range(4):
                     s[w] = states[r, w]
-                st = _search_up(cum, 0, n - 1, uniform_pos(s) * cum[n - 1])
+                st = search_up(cum, 0, n - 1, uniform_pos(s) * cum[n - 1])
                 fstate[r, STORED] = lo[lv] + st
                 if uniform(s) < dead[st]:
                     elapsed = uniform_pos(s) * refr_us

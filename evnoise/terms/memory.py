@@ -327,6 +327,12 @@ def _expm1(eps: float) -> float:
     return math.inf if eps > 709.0 else math.expm1(eps)
 
 
+def threshold_factors(eps) -> np.ndarray:
+    """``expm1(eps)`` of each threshold (array), as the chains' tables take it (``inf`` beyond float64): the factor
+    ``c`` of the threshold counts ``k(m) = m + floor(c (m + b))``."""
+    return np.array([_expm1(e) for e in np.asarray(eps, dtype=np.float64).ravel().tolist()], dtype=np.float64)
+
+
 def threshold_classes(eps, lo: int, n_states: int, bias: float) -> np.ndarray:
     """Class of each threshold ``eps`` (array) such that two thresholds share a class only if they give the same
     threshold counts ``k(m) = m + floor(expm1(eps) (m + bias))`` at every state ``m = lo .. lo + n_states - 1``
