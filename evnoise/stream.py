@@ -130,7 +130,7 @@ class NoiseStream:
         stored state is kept as a photon count between intervals (a level's tables index counts from its
         lowest one), and so is the new state of an event pending in a trial that started in the last interval."""
         from ._kernels.simulate import PEND_ON, PEND_TAU
-        from .terms.memory import chain_timer, kernel_tables, pixel_groups
+        from .terms.memory import TABLES_FOR_EVERY_EVENT, chain_timer, kernel_tables, pixel_groups
 
         p = self.params
         dt = p.trial_us
@@ -155,7 +155,8 @@ class NoiseStream:
                 or not np.array_equal(spans, self._memory[4])):
             timer = chain_timer(a_on, a_off, reg, p)
             table, itable, offsets, sizes, rates = kernel_tables(levels, p, spans.tolist(), background=(a_on, a_off),
-                                                                 thresholds=eps, timer=timer)
+                                                                 thresholds=eps, timer=timer,
+                                                                 refused_why=TABLES_FOR_EVERY_EVENT)
             lowest = spans[:, 0].astype(np.float64)
             self._memory = (key, (table, itable, offsets, sizes), lowest, rates, spans, timer)
         _, tables, lowest, rates, _, timer = self._memory

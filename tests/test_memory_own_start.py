@@ -183,6 +183,8 @@ def test_without_tables_refuses_what_it_does_not_cover(no_tables):
         ev.simulate_events(lux, DAVIS.replace(leak_regularity=0.5), 1.0, rng=1)
     with pytest.raises(ev.ParameterError, match="regular background timer"):
         ev.simulate_events(lux, ev.load_preset("dvs128").replace(reset_memory=0.3), 1.0, rng=1)
+    with pytest.raises(ev.ParameterError, match=r"NoiseStream.*need them for every event; simulate_events"):
+        ev.NoiseStream(lux.shape, DAVIS, rng=1).advance(lux, 100_000)
 
 
 @pytest.mark.parametrize("k", [0.3, 0.9])

@@ -144,14 +144,15 @@ class PhotonNoise:
     def _precompute(self):
         """The renewal kernel's per-pixel inputs at ``self.lux`` (what ``simulate_events`` computes per call)."""
         from .._engine import static_inputs
-        from ..terms.memory import memory_on, still_chains
+        from ..terms.memory import TABLES_FOR_EVERY_EVENT, memory_on, still_chains
 
         run = self._setup
         lam = self.params.photons_per_trial(self.lux).ravel()
         self._pix = np.arange(self.lux.size, dtype=np.int64)
         self._memory = None
         if memory_on(self.params):  # reset memory: the state tables of the map's light levels (terms/memory.py)
-            _, group, tables, rates, timer = still_chains(lam, self.params, run.background, run.thresholds)
+            _, group, tables, rates, timer = still_chains(lam, self.params, run.background, run.thresholds,
+                                                          refused_why=TABLES_FOR_EVERY_EVENT)
             self._memory = (group, tables, timer)
             self._nu = rates[group]
             return

@@ -234,15 +234,22 @@ def too_many_states(n_chains: int, states: int, why: str = ""):
                           f"smaller sensor, or no threshold mismatch / leak spread")
 
 
-def still_chains(lam, params, background=None, thresholds=None, plan=None):
+#: What a caller that needs tables for every event says when they would pass :data:`MAX_TABLE_STATES`.
+TABLES_FOR_EVERY_EVENT = (" (NoiseStream, and so the v2e and frames plugins, and the tonic transform need them for "
+                          "every event; simulate_events, simulate_video and sample_counts run such scenes trial by "
+                          "trial)")
+
+
+def still_chains(lam, params, background=None, thresholds=None, plan=None, refused_why=""):
     """The chains of pixels at ``lam`` photons per trial (flat; ``background``, ``thresholds`` as in
     :func:`pixel_groups`), ready for the kernels: ``(levels, group, tables, rates, timer)``, ``tables`` the
     ``(table, itable, offsets, sizes)`` of :func:`kernel_tables`, ``rates`` its per-chain rates, ``timer`` the
     chains' regular timer (:func:`chain_timer`, None: none). ``plan``: :func:`chain_plan`'s, when the caller has
-    it."""
+    it; ``refused_why``: as :func:`kernel_tables`'."""
     (levels, a_on, a_off, reg, group, eps), timer, _ = (chain_plan(lam, params, background, thresholds)
                                                         if plan is None else plan)
-    *tables, rates = kernel_tables(levels, params, background=(a_on, a_off), thresholds=eps, timer=timer)
+    *tables, rates = kernel_tables(levels, params, background=(a_on, a_off), thresholds=eps, timer=timer,
+                                   refused_why=refused_why)
     return levels, group, tuple(tables), rates, timer
 
 
@@ -535,7 +542,7 @@ class LevelTables:
         return np.minimum(self.p_on + self.p_off, 1.0)
 
 
-def kernel_tables(levels, params, spans=None, background=None, thresholds=None, timer=None):
+def kernel_tables(levels, params, spans=None, background=None, thresholds=None, timer=None, refused_why=""):
     """The kernel's tables of the light levels ``levels`` (photons per trial) of one run.
 
     ``spans``: optional ``(lo, n_states)`` per level replacing :func:`state_range`'s (a wider range, holding
@@ -551,7 +558,8 @@ def kernel_tables(levels, params, spans=None, background=None, thresholds=None, 
     each level's rate (events/s, both polarities): the stationary rate for up to :data:`EXACT_RATE_LEVELS`
     levels, beyond the rate of the iterated law of the initial state (:data:`ITERATED_STEPS`), which sizes windows
     and buffers and is what a run says it expects.
-    Raises :class:`~evnoise.ParameterError` when the tables would pass :data:`MAX_TABLE_STATES`.
+    Raises :class:`~evnoise.ParameterError` when the tables would pass :data:`MAX_TABLE_STATES` (``refused_why``:
+    appended to its message, what the caller cannot do instead).
     """
     from .._kernels import memory as km
 
@@ -563,7 +571,7 @@ def kernel_tables(levels, params, spans=None, background=None, thresholds=None, 
     sizes = np.array([r[1] for r in ranges], dtype=np.int64)
     total = int(sizes.sum())
     if total > MAX_TABLE_STATES:
-        raise too_many_states(len(levels), total)
+        raise too_many_states(len(levels), total, refused_why)
     offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
     table = np.empty((km.N_ROWS, total))
     itable = np.empty((2, total), dtype=np.int64)
