@@ -381,7 +381,7 @@ def simulate_events(
     method : {"auto", "renewal", "trials"}
         Fidelity tier; for a static scene ``"auto"`` is the renewal tier (exact, O(events)),
         ``"trials"`` runs the full per-trial model (statistically identical, slower). With reset memory whose chains
-        are too many for tables (:data:`evnoise.terms.memory.MAX_TABLE_STATES`) ``"auto"`` runs the trial tier and
+        are too many for tables (``evnoise.terms.memory.MAX_TABLE_STATES``) ``"auto"`` runs the trial tier and
         ``"renewal"`` is refused.
     thresholds : array_like, optional
         Per-pixel thresholds ``(2, H, W)``; drawn from ``rng`` when ``params.eps_sigma > 0``.
