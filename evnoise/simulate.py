@@ -592,12 +592,12 @@ class _MemoryChains:
     and ``rates`` (events/s)."""
 
     def __init__(self, lam_start, params, bg, eps_on, eps_off, plan=None):
-        from .terms.memory import state_range, still_chains
+        from .terms.memory import level_spans, still_chains
 
         levels, self.group, self.tables, self.rates, self.timer = still_chains(lam_start, params, bg,
                                                                                (eps_on, eps_off), plan)
-        lowest = {lam: float(state_range(lam)[0]) for lam in set(levels.tolist())}  # chains share light levels
-        self.lo = np.array([lowest[lam] for lam in levels.tolist()], dtype=np.float64)
+        which, _, lo, _ = level_spans(levels)  # chains share light levels
+        self.lo = lo[which].astype(np.float64)
 
     def start_trials(self, state: PixelState, group, dt, refr_us, threads, bg_rows, lam_first, model,
                      progress=False):
@@ -634,25 +634,22 @@ class _OwnChainStarts:
 
     def __init__(self, params, plan, threads):
         from ._kernels.memory_start import chain_rates, level_pmf
-        from .terms.memory import ITERATED_STEPS, state_range, threshold_factors
+        from .terms.memory import ITERATED_STEPS, level_spans, threshold_factors
 
         (levels, a_on, a_off, _, self.group, (eps_on, eps_off)), _, _ = plan
-        distinct, level = np.unique(np.asarray(levels, dtype=np.float64), return_inverse=True)
-        spans = np.array([state_range(lam)[:2] for lam in distinct.tolist()], dtype=np.int64).reshape(-1, 2)
-        n_s = np.ascontiguousarray(spans[:, 1])
+        level, lam, lo, n_s = level_spans(levels)
         at = np.concatenate([[0], np.cumsum(n_s)[:-1]]).astype(np.int64)
         pmf = np.empty(int(n_s.sum()))
-        for lv, lam in enumerate(distinct.tolist()):  # each light level's Poisson pmf once, for all its chains
-            level_pmf(lam, float(spans[lv, 0]), int(n_s[lv]), pmf[at[lv]:at[lv] + n_s[lv]])
-        c_on, c_off = threshold_factors(eps_on), threshold_factors(eps_off)
-        self._levels = (pmf, np.ascontiguousarray(level.ravel(), dtype=np.int64), spans[:, 0].astype(np.float64), n_s,
-                        at)
-        self._chains = tuple(np.ascontiguousarray(a, dtype=np.float64) for a in (c_on, c_off, a_on, a_off))
+        for lv in range(lam.size):  # each light level's Poisson pmf once, for all its chains
+            level_pmf(float(lam[lv]), float(lo[lv]), int(n_s[lv]), pmf[at[lv]:at[lv] + n_s[lv]])
+        self._levels = (pmf, level, lo.astype(np.float64), n_s, at)
+        self._chains = tuple(np.ascontiguousarray(a, dtype=np.float64) for a in (threshold_factors(eps_on),
+                                                                                 threshold_factors(eps_off), a_on,
+                                                                                 a_off))
         self._model = (float(params.bias_pr), float(params.reset_memory), 1.0 / params.trial_rate_hz,
                        params.refractory_us * 1e-6)
         self.rates = np.empty(len(levels))
         b, k, dt_s, refr_s = self._model
-        level = self._levels[1]
         by_level = np.argsort(level, kind="stable").astype(np.int64)  # a level's chains together
 
         def run(i, j):  # the chains by_level[i:j]
@@ -667,13 +664,13 @@ class _OwnChainStarts:
         from ._kernels.memory_start import start_pixels
         from .terms.memory import ITERATED_STEPS
 
-        # pixels by chain, chains by light level (the kernel iterates the chains of a level together)
+        # pixels by (light level, chain): a chain's pixels together, a level's chains together (iterated together)
         level = self._levels[1]
         group = np.asarray(group, dtype=np.int64)
         order = np.lexsort((group, level[group])).astype(np.int64)
-        chains, first = np.unique(group[order], return_index=True)  # chains sorted by id: put back in pixel order
-        by_level = np.argsort(first, kind="stable")
-        chains, first = chains[by_level].astype(np.int64), first[by_level]
+        by_chain = group[order]
+        first = np.flatnonzero(np.concatenate([[True], by_chain[1:] != by_chain[:-1]])) if order.size else order
+        chains = by_chain[first]
         first = np.append(first, order.size).astype(np.int64)
         b, k, dt_s, refr_s = self._model
 
@@ -725,10 +722,13 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
     from ._kernels.simulate import trial_window
 
     width = frames.shape[1]
+
+    def lam_of(i):
+        return params.photons_per_trial(frames.get(i)).ravel()
+
     mem = None
     if memory_on(params):
-        mem = _memory_chains(params.photons_per_trial(frames.get(0)).ravel(), params, bg, eps_on, eps_off, threads,
-                             memory_plan, renewal)
+        mem = _memory_chains(lam_of(0), params, bg, eps_on, eps_off, threads, memory_plan, renewal)
         if mem.tables is None:
             static = np.zeros_like(static)
     dt = params.trial_us
@@ -738,9 +738,6 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
     dyn_pix = np.flatnonzero(~static)
     c_on = np.expm1(eps_on)
     c_off = np.expm1(eps_off)
-
-    def lam_of(i):
-        return params.photons_per_trial(frames.get(i)).ravel()
 
     def lam_first_trial():
         """The changing pixels' photons per trial at the first trial's centre (their reference at the start)."""

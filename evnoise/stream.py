@@ -198,7 +198,7 @@ def _memory_spans(levels, group, stored, pending) -> np.ndarray:
     its pixels bring from another light,
     up to :data:`~evnoise.terms.memory.MAX_STATES` states (counts beyond are clamped into the range: only a
     step of the light by many times its own photon noise at hundreds of photons per trial goes that far)."""
-    from .terms.memory import MAX_STATES
+    from .terms.memory import MAX_STATES, level_spans
 
     low = np.full(len(levels), np.inf)
     high = np.full(len(levels), -np.inf)
@@ -206,9 +206,8 @@ def _memory_spans(levels, group, stored, pending) -> np.ndarray:
         known = np.isfinite(counts)
         np.minimum.at(low, group[known], counts[known])
         np.maximum.at(high, group[known], counts[known])
-    distinct, which = np.unique(np.asarray(levels, dtype=np.float64), return_inverse=True)
-    ranges = np.array([_state_range(float(lam))[:2] for lam in distinct], dtype=np.int64).reshape(-1, 2)
-    lo, n = ranges[which.ravel(), 0], ranges[which.ravel(), 1]
+    which, _, lo_level, n_level = level_spans(levels, _state_range)
+    lo, n = lo_level[which], n_level[which]
     hi = lo + n - 1
     brought = np.isfinite(low)
     room = np.maximum(0, MAX_STATES - n)

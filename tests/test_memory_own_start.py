@@ -24,12 +24,16 @@ DAVIS = ev.load_preset("davis346").replace(reset_memory=0.3, leak_regularity=0.0
 
 
 def _law_here(lam, eps_on, eps_off, bias, k, a_on, a_off, dt_s, refr_s, steps=memory.ITERATED_STEPS):
+    """The start's law of one chain, as ``start_pixels`` computes it (``_block``, ``_finish``)."""
     lo, n_s, _ = memory.state_range(lam)
     pmf = np.empty(n_s)
     ms.level_pmf(float(lam), float(lo), n_s, pmf)
+    zero = np.zeros(1, dtype=np.int64)
+    _, x, p, _ = ms._block(pmf, zero, np.array([float(lo)]), np.array([n_s]), zero,
+                           memory.threshold_factors([eps_on]), memory.threshold_factors([eps_off]),
+                           np.array([float(a_on)]), np.array([float(a_off)]), float(bias), float(k), steps, zero, 0)
     cum, dead = np.empty(n_s), np.empty(n_s)
-    ms.start_law(pmf, float(lo), n_s, memory._expm1(eps_on), memory._expm1(eps_off), float(bias), float(k),
-                 float(a_on), float(a_off), steps, dt_s, refr_s, cum, dead)
+    ms._finish(np.ascontiguousarray(x[:, 0]), np.ascontiguousarray(p[0]), pmf, n_s, dt_s, refr_s, cum, dead)
     return cum, dead
 
 

@@ -99,11 +99,27 @@ def draw_initial(s, table, o, n_s, refr_us):
     ``(0, refr_us]``; else ``elapsed_us`` is ``-1`` (eligible: the next event's trial is geometric from trial 0,
     memoryless). Always two uniforms, three when dead.
     """
-    cum = table[ROW_CUM_INIT, o:o + n_s]
+    return draw_start(s, table[ROW_CUM_INIT, o:o + n_s], table[ROW_DEAD, o:o + n_s], n_s, refr_us)
+
+
+@kernel
+def draw_start(s, cum, dead, n_s, refr_us):
+    """:func:`draw_initial` from a chain's rows themselves: ``cum`` its ``ROW_CUM_INIT``, ``dead`` its ``ROW_DEAD``
+    (also for chains without tables, :mod:`evnoise._kernels.memory_start`)."""
     st = float(search_up(cum, 0, n_s - 1, uniform_pos(s) * cum[n_s - 1]))
-    if uniform(s) < table[ROW_DEAD, o + int(st)]:
+    if uniform(s) < dead[int(st)]:
         return st, uniform_pos(s) * refr_us
     return st, -1.0
+
+
+@kernel
+def store_start(fstate, k, stored, elapsed, dt):
+    """Pixel ``k``'s start in the trial kernel's state: its stored count, and, where ``t = 0`` is in its dead time
+    (``elapsed > 0`` µs since its last event), that event's time and trial (``dt``: the trial, µs)."""
+    fstate[k, STORED] = stored
+    if elapsed > 0.0:
+        fstate[k, LAST_TAU] = -elapsed
+        fstate[k, LAST_TRIAL] = np.floor(-elapsed / dt)
 
 
 @kernel
@@ -128,11 +144,8 @@ def initial_stored(states, fstate, group, offsets, sizes, lo, table, dt, refr_us
             s[w] = states[k, w]
         g = group[k]
         st, elapsed = draw_initial(s, table, offsets[g], sizes[g], refr_us)
-        fstate[k, STORED] = lo[g] + st
-        if elapsed > 0.0:
-            fstate[k, LAST_TAU] = -elapsed
-            fstate[k, LAST_TRIAL] = np.floor(-elapsed / dt)
-        elif has_timer and timer[0, g] < math.inf and bg.shape[1] > 0:
+        store_start(fstate, k, lo[g] + st, elapsed, dt)
+        if not elapsed > 0.0 and has_timer and timer[0, g] < math.inf and bg.shape[1] > 0:
             l_all = background_intensity(bg, k, lam_first[k], lux_per_photon, dark_lux)[1]
             if l_all > 0.0:
                 d_t, l1m_t = timer_shape(l_all, dt * 1e-6, bg[4, k] if own_reg else regularity)

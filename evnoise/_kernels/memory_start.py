@@ -23,10 +23,8 @@ import math
 import numpy as np
 
 from ._jit import kernel
-from .memory import fill_counts, search_up
+from .memory import draw_start, fill_counts, store_start
 from .poisson import threshold_count
-from .rng import uniform, uniform_pos
-from .simulate import LAST_TAU, LAST_TRIAL, STORED
 
 #: Arrays of one chain in :func:`chain_arrays`' scratch ``(N_ARRAYS, S)``.
 (A_PMF, A_HEAD, A_TAIL, A_FRESH_ON, A_FRESH_OFF, A_NONE, A_P_ON, A_P_OFF) = range(8)
@@ -214,8 +212,9 @@ def _iterate(pmf_level, n_s, fk, a, bb, inv_p, steps, x, from_x=False):
 
 @kernel
 def _finish(x, p, pmf_level, n_s, dt_s, refr_s, cum, dead):
-    """:func:`evnoise.terms.memory.initial_law` of an embedded law ``x`` (changed in place): ``cum``, ``dead`` as
-    :func:`start_law`'s."""
+    """:func:`evnoise.terms.memory.initial_law` of an embedded law ``x`` (changed in place): ``cum`` the cumulative
+    time-stationary law of the state at a trial start (unnormalised, as ``ROW_CUM_INIT``), ``dead`` the probability,
+    per state, that ``t = 0`` is in the dead time (``ROW_DEAD``)."""
     absorbed = False
     pi_total = 0.0
     for s in range(n_s):
@@ -241,23 +240,6 @@ def _finish(x, p, pmf_level, n_s, dt_s, refr_s, cum, dead):
     for s in range(n_s):
         acc += weight[s] / weight_total
         cum[s] = acc
-
-
-@kernel
-def start_law(pmf_level, lo, n_s, c_on, c_off, b, k, a_on, a_off, steps, dt_s, refr_s, cum, dead):
-    """A chain's start at a trial start: ``cum`` the cumulative time-stationary law of its state (unnormalised,
-    as ``ROW_CUM_INIT``) and ``dead`` the probability, per state, that ``t = 0`` is in the dead time (``ROW_DEAD``)
-    (:func:`evnoise.terms.memory.initial_law` of the law after ``steps`` embedded steps from ``Poisson(lam)``;
-    arguments as :func:`chain_arrays`')."""
-    fk = np.empty((n_s, 1, 4))
-    a = np.empty((n_s, 1), dtype=np.int64)
-    bb = np.empty((n_s, 1), dtype=np.int64)
-    p = np.empty(n_s)
-    inv_p = np.empty((n_s, 1))
-    _prepare(pmf_level, lo, n_s, c_on, c_off, b, k, a_on, a_off, fk[:, 0], a[:, 0], bb[:, 0], p, inv_p[:, 0])
-    x = np.empty((n_s, 1))
-    _iterate(pmf_level, n_s, fk, a, bb, inv_p, steps, x)
-    _finish(np.ascontiguousarray(x[:, 0]), p, pmf_level, n_s, dt_s, refr_s, cum, dead)
 
 
 @kernel
@@ -374,13 +356,8 @@ def start_pixels(pmf, level, lo, n_s, at, c_on, c_off, a_on, a_off, b, k, steps,
                 r = members[r_i]
                 for w in range(4):
                     s[w] = states[r, w]
-                st = search_up(cum, 0, n - 1, uniform_pos(s) * cum[n - 1])
-                fstate[r, STORED] = lo[lv] + st
-                if uniform(s) < dead[st]:
-                    elapsed = uniform_pos(s) * refr_us
-                    if elapsed > 0.0:
-                        fstate[r, LAST_TAU] = -elapsed
-                        fstate[r, LAST_TRIAL] = np.floor(-elapsed / dt_us)
+                st, elapsed = draw_start(s, cum, dead, n, refr_us)
+                store_start(fstate, r, lo[lv] + st, elapsed, dt_us)
                 for w in range(4):
                     states[r, w] = s[w]
         i += g_n

@@ -209,18 +209,21 @@ def chain_plan(lam, params, background=None, thresholds=None):
     return groups, chain_timer(a_on, a_off, reg, params), table_states(levels)
 
 
-def level_spans(levels):
-    """``(lo, n_states)`` of :func:`state_range` for each light level of ``levels`` (each distinct one computed
-    once), as two int64 arrays."""
-    levels = np.asarray(levels, dtype=np.float64)
-    distinct, inverse = np.unique(levels, return_inverse=True)
-    ranges = np.array([state_range(lam)[:2] for lam in distinct.tolist()], dtype=np.int64).reshape(-1, 2)
-    return ranges[inverse.ravel(), 0], ranges[inverse.ravel(), 1]
+def level_spans(levels, range_of=None):
+    """The distinct light levels of ``levels`` (photons per trial, one entry per chain or pixel) and their states:
+    ``(which, lam, lo, n_states)``, ``which`` (int64, per entry) indexing ``lam`` (the distinct levels, sorted) and
+    their :func:`state_range` ``lo``, ``n_states`` (int64; each computed once; ``range_of``: a function standing in
+    for :func:`state_range`, e.g. one that remembers)."""
+    range_of = state_range if range_of is None else range_of
+    lam, which = np.unique(np.asarray(levels, dtype=np.float64), return_inverse=True)
+    ranges = np.array([range_of(x)[:2] for x in lam.tolist()], dtype=np.int64).reshape(-1, 2)
+    return which.ravel().astype(np.int64), lam, ranges[:, 0].copy(), ranges[:, 1].copy()
 
 
 def table_states(levels) -> int:
     """The states the tables of chains at ``levels`` (photons per trial, one entry per chain) hold."""
-    return int(level_spans(levels)[1].sum())
+    which, _, _, n_states = level_spans(levels)
+    return int(n_states[which].sum())
 
 
 def too_many_states(n_chains: int, states: int, why: str = ""):
@@ -564,8 +567,8 @@ def kernel_tables(levels, params, spans=None, background=None, thresholds=None, 
     from .._kernels import memory as km
 
     if spans is None:
-        by_lam = {lam: state_range(lam) for lam in set(np.asarray(levels, dtype=np.float64).tolist())}
-        ranges = [by_lam[float(lam)] for lam in levels]
+        which, _, lo, n_states = level_spans(levels)
+        ranges = list(zip(lo[which].tolist(), n_states[which].tolist()))
     else:
         ranges = list(spans)
     sizes = np.array([r[1] for r in ranges], dtype=np.int64)
