@@ -370,6 +370,26 @@ def memory_step(state: PixelState, mem, width, group, tables, dt, refr_us, j_min
     return map_chunks(run, state.pix.size, threads)
 
 
+def trial_step(state: PixelState, width, frames_lam, frame_us, j_start: int, j_end: int, thr, bg_rows, model,
+               tau_limit_us, t0_us, threads, fast_static=False):
+    """Run the trial kernel (:func:`evnoise._kernels.simulate.trial_window`) over all pixels of ``state`` for trials
+    ``j_start .. j_end - 1``; returns chunk parts ``(t, x, y, p)`` (views of ``state``'s buffers: use them before the
+    next window). ``thr`` ``(4, n)`` and ``bg_rows`` (the background rows, ``(4 or 5, n)`` or ``(4, 0)``) are per
+    pixel of ``state``; ``frames_lam``, ``frame_us``, ``model``, ``fast_static`` as the kernel's; events at or after
+    ``tau_limit_us`` (µs from ``t0_us``) are not emitted."""
+    from ._kernels.simulate import trial_window
+
+    def run(lo, hi):
+        out, n = run_to_end(lambda buf, n, k: trial_window(
+            width, state.pix[lo:hi], frames_lam, frame_us, j_start, j_end, thr[:, lo:hi], bg_rows[:, lo:hi],
+            state.states[lo:hi], state.fstate[lo:hi], model, float(tau_limit_us), np.int64(t0_us), buf, n, k,
+            fast_static), state.buffers(lo, 256), hi - lo)
+        state.keep(lo, out)
+        return tuple(a[:n] for a in out)
+
+    return map_chunks(run, state.pix.size, threads)
+
+
 def progress_bar(total, enabled, desc, unit="s", scale=None):
     """A tqdm bar (None unless ``enabled``); with ``scale`` the counts are shown multiplied by it.
 

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import collections
 import math
-import threading
 from typing import Iterator
 
 import numpy as np
@@ -33,15 +32,15 @@ from ._engine import (
     Collector,
     PixelState,
     check_t_start,
-    map_chunks,
     memory_step,
     progress_bar,
     renewal_step,
-    run_to_end,
     select_background,
     sorted_window,
     static_inputs,
+    trial_step,
 )
+from ._memory_chains import RENEWAL_NEEDS_TABLES, memory_chains
 from ._run import run_setup
 from .errors import InputError, ParameterError
 from .events import EVENT_DTYPE, empty_events
@@ -238,7 +237,7 @@ def _still_memory_windows(lux, params, key, t_start_us, duration_us, threads, pr
                           method="auto"):
     """The windows of a still scene with reset memory: the renewal tier over its chains' tables
     (:func:`_iter_memory`) or, where the chains are too many for tables (:data:`~evnoise.terms.memory.MAX_TABLE_STATES`)
-    and ``method`` is ``"auto"``, the trial tier, each chain's start computed on its own (:class:`_OwnChainStarts`)."""
+    and ``method`` is ``"auto"``, the trial tier, each chain's start computed on its own (:class:`OwnChainStarts`)."""
     from .terms.memory import MAX_TABLE_STATES, chain_plan, too_many_states
 
     plan = chain_plan(params.photons_per_trial(lux).ravel(), params, bg, thresholds)
@@ -246,7 +245,7 @@ def _still_memory_windows(lux, params, key, t_start_us, duration_us, threads, pr
         return _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, sink, bg=bg,
                             thresholds=thresholds, plan=plan)
     if method == "renewal":
-        raise too_many_states(len(plan[0][0]), plan[2], _RENEWAL_NEEDS_TABLES)
+        raise too_many_states(len(plan[0][0]), plan[2], RENEWAL_NEEDS_TABLES)
     return _still_trial_windows(lux, params, key, t_start_us, duration_us, threads, progress, sink, bg, thresholds,
                                 plan)
 
@@ -583,144 +582,12 @@ def _fill_static_cache(state: PixelState, frames_lam: np.ndarray, params: NoiseP
     state.cache_lam[sel] = lam0
 
 
-class _MemoryChains:
-    """The reset-memory chains of a changing scene's pixels (:mod:`evnoise.terms.memory`): each pixel's chain at
-    the first frame's light (the scene before the video starts: each pixel's stored count is drawn from its steady
-    state there; the first frame's distinct values, not the interpolated first trial's, so that pixels share chains
-    as in a still scene), grouped as :func:`~evnoise.terms.memory.pixel_groups` does over the whole sensor.
-    ``group`` (per flat pixel) indexes ``tables`` (:func:`~evnoise.terms.memory.kernel_tables`, without the rates)
-    and ``rates`` (events/s)."""
-
-    def __init__(self, lam_start, params, bg, eps_on, eps_off, plan=None):
-        from .terms.memory import level_spans, still_chains
-
-        levels, self.group, self.tables, self.rates, self.timer = still_chains(lam_start, params, bg,
-                                                                               (eps_on, eps_off), plan)
-        which, _, lo, _ = level_spans(levels)  # chains share light levels
-        self.lo = lo[which].astype(np.float64)
-
-    def start_trials(self, state: PixelState, group, dt, refr_us, threads, bg_rows, lam_first, model,
-                     progress=False):
-        """The trial tier's pixels ``state`` (chains ``group``, background rows ``bg_rows`` of the trial kernel,
-        photons per trial ``lam_first`` at trial 0, its ``model``: :data:`evnoise.terms.MODEL`) start in their
-        steady state: stored count, the dead time of a last event before ``t = 0``, the regular timer's first
-        arrival (:func:`evnoise._kernels.memory.initial_stored`). ``progress``: not used (the tables are built)."""
-        from ._kernels.memory import initial_stored
-
-        table, _, offsets, sizes = self.tables
-        timer = np.zeros((3, 0)) if self.timer is None else self.timer
-        lux_per_photon, dark_lux, regularity = (float(model[terms.MODEL.index(name)])
-                                                for name in ("lux_per_photon", "dark_lux", "regularity"))
-
-        def run(lo, hi):
-            initial_stored(state.states[lo:hi], state.fstate[lo:hi], group[lo:hi], offsets, sizes, self.lo, table,
-                           float(dt), float(refr_us), timer, np.ascontiguousarray(bg_rows[:, lo:hi]),
-                           np.ascontiguousarray(lam_first[lo:hi]), lux_per_photon, dark_lux, regularity)
-
-        map_chunks(run, state.pix.size, threads)
-
-
-class _OwnChainStarts:
-    """Reset-memory chains too many for tables (their states pass :data:`~evnoise.terms.memory.MAX_TABLE_STATES`:
-    a large sensor with threshold mismatch has nearly a chain per pixel). Their pixels all run in the trial tier,
-    which needs of a chain only its start: computed chain by chain when the pixels start and not kept
-    (:mod:`evnoise._kernels.memory_start`: the law the tables would give, to rounding, and the same draws, so the
-    events are those of the table path's trial tier, to rounding). ``group``, ``rates`` as :class:`_MemoryChains`';
-    no ``tables``. ``plan``:
-    :func:`~evnoise.terms.memory.chain_plan`'s (without a regular timer: refused by the caller)."""
-
-    tables = None
-    timer = None
-
-    def __init__(self, params, plan, threads):
-        from ._kernels.memory_start import chain_rates, level_pmf
-        from .terms.memory import ITERATED_STEPS, level_spans, threshold_factors
-
-        (levels, a_on, a_off, _, self.group, (eps_on, eps_off)), _, _ = plan
-        level, lam, lo, n_s = level_spans(levels)
-        at = np.concatenate([[0], np.cumsum(n_s)[:-1]]).astype(np.int64)
-        pmf = np.empty(int(n_s.sum()))
-        for lv in range(lam.size):  # each light level's Poisson pmf once, for all its chains
-            level_pmf(float(lam[lv]), float(lo[lv]), int(n_s[lv]), pmf[at[lv]:at[lv] + n_s[lv]])
-        self._levels = (pmf, level, lo.astype(np.float64), n_s, at)
-        self._chains = tuple(np.ascontiguousarray(a, dtype=np.float64) for a in (threshold_factors(eps_on),
-                                                                                 threshold_factors(eps_off), a_on,
-                                                                                 a_off))
-        self._model = (float(params.bias_pr), float(params.reset_memory), 1.0 / params.trial_rate_hz,
-                       params.refractory_us * 1e-6)
-        self.rates = np.empty(len(levels))
-        b, k, dt_s, refr_s = self._model
-        by_level = np.argsort(level, kind="stable").astype(np.int64)  # a level's chains together
-
-        def run(i, j):  # the chains by_level[i:j]
-            chain_rates(*self._levels, *self._chains, b, k, dt_s, refr_s, ITERATED_STEPS, by_level[i:j], self.rates)
-
-        map_chunks(run, len(levels), threads)
-
-    def start_trials(self, state: PixelState, group, dt, refr_us, threads, bg_rows, lam_first, model,
-                     progress=False):
-        """As :meth:`_MemoryChains.start_trials` (no regular timer here); ``progress``: a bar over the chains (the
-        starts of a megapixel sensor take tens of seconds)."""
-        from ._kernels.memory_start import start_pixels
-        from .terms.memory import ITERATED_STEPS
-
-        # pixels by (light level, chain): a chain's pixels together, a level's chains together (iterated together)
-        level = self._levels[1]
-        group = np.asarray(group, dtype=np.int64)
-        order = np.lexsort((group, level[group])).astype(np.int64)
-        by_chain = group[order]
-        first = np.flatnonzero(np.concatenate([[True], by_chain[1:] != by_chain[:-1]])) if order.size else order
-        chains = by_chain[first]
-        first = np.append(first, order.size).astype(np.int64)
-        b, k, dt_s, refr_s = self._model
-
-        bar = progress_bar(int(chains.size), progress, "memory starts", unit="chains")
-        lock = threading.Lock()  # chunks finish in worker threads
-
-        def run(i, j):  # the pixels of chains[i:j]
-            start_pixels(*self._levels, *self._chains, b, k, ITERATED_STEPS, dt_s, refr_s, float(dt), float(refr_us),
-                         chains[i:j], first[i:j + 1], order, state.states, state.fstate)
-            if bar is not None:
-                with lock:
-                    bar.update(j - i)
-
-        map_chunks(run, chains.size, threads)
-        if bar is not None:
-            bar.close()
-
-
-#: Why a scene whose chains are too many for tables cannot run with ``method="renewal"``.
-_RENEWAL_NEEDS_TABLES = (" for the renewal tier (method='auto' or 'trials' runs them trial by trial, without "
-                         "tables)")
-
-
-def _memory_chains(lam_start, params, bg, eps_on, eps_off, threads, plan=None, renewal=False):
-    """The reset-memory chains of a run's pixels at ``lam_start``: :class:`_MemoryChains` (tables) where their states
-    fit :data:`~evnoise.terms.memory.MAX_TABLE_STATES`, else :class:`_OwnChainStarts` (every pixel in the trial
-    tier), or a :class:`~evnoise.ParameterError` when the chains also have the regular timer or the caller asked for
-    the renewal tier (``renewal``)."""
-    from .terms.memory import MAX_TABLE_STATES, chain_plan, too_many_states
-
-    plan = chain_plan(lam_start, params, bg, (eps_on, eps_off)) if plan is None else plan
-    if plan[2] <= MAX_TABLE_STATES:
-        return _MemoryChains(lam_start, params, bg, eps_on, eps_off, plan)
-    if renewal:
-        raise too_many_states(len(plan[0][0]), plan[2], _RENEWAL_NEEDS_TABLES)
-    if plan[1] is not None:
-        raise too_many_states(len(plan[0][0]), plan[2], " and they have the regular background timer "
-                              "(leak_regularity or hot_pixel_regularity > 0), which the trial tier's start without "
-                              "tables does not cover")
-    return _OwnChainStarts(params, plan, threads)
-
-
 def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us, duration_us, threads,
                   progress, labels=False, bg=None, memory_plan=None, renewal=False):
     """Generator over windows of a changing scene (renewal for ``static`` pixels, trials for the rest; with reset
     memory whose chains are too many for tables, trials for every pixel, unless ``renewal``: the caller asked for the
     renewal tier, refused then). ``memory_plan``: :func:`~evnoise.terms.memory.chain_plan`'s at the first frame's
     light, when the caller has it."""
-    from ._kernels.simulate import trial_window
-
     width = frames.shape[1]
 
     def lam_of(i):
@@ -728,7 +595,7 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
 
     mem = None
     if memory_on(params):
-        mem = _memory_chains(lam_of(0), params, bg, eps_on, eps_off, threads, memory_plan, renewal)
+        mem = memory_chains(lam_of(0), params, bg, eps_on, eps_off, threads, memory_plan, renewal)
         if mem.tables is None:
             static = np.zeros_like(static)
     dt = params.trial_us
@@ -831,17 +698,8 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
                     _fill_static_cache(dyn_state, stack, params, dyn_e_on, dyn_e_off,
                                        None if bg is None else select_background(bg, dyn_pix))
 
-                def run(lo, hi, stack=stack, f_us=f_us, j_a=j_a, j_b=j_b):
-                    s = dyn_state
-                    out, n = run_to_end(lambda buf, n, k: trial_window(
-                        width, s.pix[lo:hi], stack, f_us, j_a, j_b, dyn_thr[:, lo:hi], dyn_bg[:, lo:hi],
-                        s.states[lo:hi], s.fstate[lo:hi], model, float(duration_us), np.int64(t0_us), buf, n, k,
-                        fast_static,
-                    ), s.buffers(lo, 256), hi - lo)
-                    s.keep(lo, out)
-                    return tuple(a[:n] for a in out)
-
-                parts += map_chunks(run, dyn_pix.size, threads)
+                parts += trial_step(dyn_state, width, stack, f_us, j_a, j_b, dyn_thr, dyn_bg, model, duration_us,
+                                    t0_us, threads, fast_static)
             yield sorted_window([p[:4] for p in parts], t0_us + w_lo, t0_us + w_hi, labels=labels)
             if bar is not None:
                 bar.update(w_hi - w_lo)

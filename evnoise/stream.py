@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import math
 
 import numpy as np
 
@@ -54,9 +55,12 @@ class NoiseStream:
     with a change of its intensity, as without memory) and threshold mismatch are part of the memory model.
     With mismatch or a spread leak most
     pixels have a chain of their own, and after a change of light each chain's tables widen to hold the counts
-    stored under the old light, so a large sensor can pass the table budget
-    (``evnoise.terms.memory.MAX_TABLE_STATES``) at the change (a :class:`~evnoise.ParameterError` then) where a
-    stream at either light alone fits.
+    stored under the old light. Where the tables would pass the table budget
+    (``evnoise.terms.memory.MAX_TABLE_STATES``: a large sensor with mismatch, at the first interval or at a change
+    of light) the stream goes on trial by trial for the rest of its life, as ``simulate_events`` runs such a scene:
+    from the first interval its events are ``simulate_events``' with the same seed, event for event; from a later
+    interval each pixel keeps its stored count (unclamped from then on) and an event pending from the last
+    interval. The regular background timer is not covered there (a :class:`~evnoise.ParameterError`).
     """
 
     def __init__(self, shape, params: NoiseParams, rng=None, *, t_start_us: int = 0, thresholds=None,
@@ -79,6 +83,8 @@ class NoiseStream:
         self._grouping = None  # reset memory: (class spans, lam, pixel_groups) of the last interval
         self._stored = np.full(self.shape[0] * self.shape[1], np.nan)  # stored photon counts (NaN: none yet)
         self._pending_count = np.full(self.shape[0] * self.shape[1], np.nan)  # new state of a pending event
+        self._trials = None  # reset memory beyond the table budget: the trial kernel's (thresholds, background, model)
+        self._carry = None  # ... and the events of the last interval's last trial at or after its end
 
     @property
     def t_us(self) -> int:
@@ -130,8 +136,10 @@ class NoiseStream:
         stored state is kept as a photon count between intervals (a level's tables index counts from its
         lowest one), and so is the new state of an event pending in a trial that started in the last interval."""
         from ._kernels.simulate import PEND_ON, PEND_TAU
-        from .terms.memory import TABLES_FOR_EVERY_EVENT, chain_timer, kernel_tables, pixel_groups
+        from .terms.memory import MAX_TABLE_STATES, chain_timer, kernel_tables, pixel_groups
 
+        if self._trials is not None:
+            return self._advance_trials(lam, t_end)
         p = self.params
         dt = p.trial_us
         thresholds = (self._eps_on, self._eps_off)
@@ -154,9 +162,11 @@ class NoiseStream:
         if (self._memory is None or not np.array_equal(key, self._memory[0])
                 or not np.array_equal(spans, self._memory[4])):
             timer = chain_timer(a_on, a_off, reg, p)
+            if int(spans[:, 1].sum()) > MAX_TABLE_STATES:  # what kernel_tables would refuse: trial by trial from now
+                self._to_trials(lam, len(levels), int(spans[:, 1].sum()), timer is not None)
+                return self._advance_trials(lam, t_end)
             table, itable, offsets, sizes, rates = kernel_tables(levels, p, spans.tolist(), background=(a_on, a_off),
-                                                                 thresholds=eps, timer=timer,
-                                                                 refused_why=TABLES_FOR_EVERY_EVENT)
+                                                                 thresholds=eps, timer=timer)
             lowest = spans[:, 0].astype(np.float64)
             self._memory = (key, (table, itable, offsets, sizes), lowest, rates, spans, timer)
         _, tables, lowest, rates, _, timer = self._memory
@@ -179,6 +189,79 @@ class NoiseStream:
         self._stored = mem + lo
         code = fstate[:, PEND_ON]
         self._pending_count = np.where(np.isfinite(fstate[:, PEND_TAU]), code // 2.0 - 1.0 + lo, np.nan)
+        self._t_rel = t_end
+        return out
+
+
+    def _to_trials(self, lam, n_chains: int, n_states: int, timer: bool):
+        """From now on every pixel trial by trial (the trial kernel): the chains' tables would pass
+        :data:`~evnoise.terms.memory.MAX_TABLE_STATES` (``n_chains`` chains, ``n_states`` states; ``timer``: they
+        have the regular background timer, which this does not cover: refused). Before the first interval each
+        pixel starts in its steady state (:class:`evnoise._memory_chains.OwnChainStarts`, as ``simulate_events``);
+        later its stored count carries over, and an event pending from the last interval (its trial started
+        there) is kept as that interval's last event: given its stored count a pixel's trials are independent
+        until its next event, so going on trial by trial from here is exact."""
+        from ._kernels import simulate as ks
+        from ._memory_chains import TIMER_NEEDS_TABLES, memory_chains
+        from .terms.memory import too_many_states
+
+        if timer:
+            raise too_many_states(n_chains, n_states, TIMER_NEEDS_TABLES)
+        p = self.params
+        state = self._state
+        bg_rows = terms.kernel_coefficients(p, self._bg, state.pix)
+        model = terms.kernel_model(p)
+        thr = np.stack([np.expm1(self._eps_on), np.expm1(self._eps_off), self._eps_on, self._eps_off])
+        state.lam_ref[:] = lam
+        state.lam_prev[:] = lam
+        fstate = state.fstate
+        carry = None
+        if np.isnan(self._stored).all():  # nothing run yet: each pixel's steady state at this light
+            chains = memory_chains(lam, p, self._bg, self._eps_on, self._eps_off, self.threads)
+            chains.start_trials(state, chains.group, p.trial_us, p.refractory_us, self.threads, bg_rows, lam, model)
+        else:
+            pend = np.flatnonzero(np.isfinite(fstate[:, ks.PEND_TAU]))
+            tau = fstate[pend, ks.PEND_TAU]
+            width = self.shape[1]
+            polarity = (fstate[pend, ks.PEND_ON].astype(np.int64) % 2).astype(np.uint8)  # code: on + 2 (state + 1)
+            carry = (self._t0 + np.floor(tau).astype(np.int64), (pend % width).astype(np.uint16),
+                     (pend // width).astype(np.uint16), polarity)
+            stored = self._stored.copy()
+            stored[pend] = self._pending_count[pend]
+            fstate[pend, ks.LAST_TRIAL] = fstate[pend, ks.PEND_TRIAL]
+            fstate[pend, ks.LAST_TAU] = tau
+            fstate[:, ks.STORED] = stored
+            for col in (ks.PEND_TRIAL, ks.PEND_TAU, ks.PEND_ON):
+                fstate[:, col] = np.nan
+        self._trials = (thr, bg_rows, model)
+        self._carry = carry
+        self._memory = self._grouping = None  # the tables are not needed again
+
+    def _advance_trials(self, lam, t_end: int) -> np.ndarray:
+        """:meth:`advance` trial by trial (reset memory beyond the table budget, :meth:`_to_trials`): the trials that
+        start in the interval, at its light; an event of its last trial that falls at or after ``t_end`` is kept for
+        the next interval (as the renewal kernels keep a pending event)."""
+        from ._engine import trial_step
+
+        p = self.params
+        dt = p.trial_us
+        thr, bg_rows, model = self._trials
+        state = self._state
+        state.lam_ref[:] = lam  # the host's light: no signal crossings here, noise only
+        state.lam_prev[:] = lam
+        j_a = int(_first_trial_at_or_after(self._t_rel, dt))
+        j_b = int(_first_trial_at_or_after(t_end, dt))
+        parts = [self._carry] if self._carry is not None else []
+        if j_b > j_a:
+            parts += trial_step(state, self.shape[1], lam[None, :], np.zeros(1), j_a, j_b, thr, bg_rows, model,
+                                math.inf, self._t0, self.threads)
+        cols = [np.concatenate([c[i] for c in parts]) for i in range(4)] if parts else None
+        if cols is None:
+            self._t_rel = t_end
+            return empty_events(0)
+        late = cols[0] >= self._t0 + t_end
+        self._carry = tuple(c[late] for c in cols)
+        out = sorted_window([tuple(c[~late] for c in cols)], self._t0 + self._t_rel, self._t0 + t_end)
         self._t_rel = t_end
         return out
 

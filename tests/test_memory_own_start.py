@@ -187,8 +187,110 @@ def test_without_tables_refuses_what_it_does_not_cover(no_tables):
         ev.simulate_events(lux, DAVIS.replace(leak_regularity=0.5), 1.0, rng=1)
     with pytest.raises(ev.ParameterError, match="regular background timer"):
         ev.simulate_events(lux, ev.load_preset("dvs128").replace(reset_memory=0.3), 1.0, rng=1)
-    with pytest.raises(ev.ParameterError, match=r"NoiseStream.*need them for every event; simulate_events"):
-        ev.NoiseStream(lux.shape, DAVIS, rng=1).advance(lux, 100_000)
+    with pytest.raises(ev.ParameterError, match="regular background timer"):
+        ev.NoiseStream(lux.shape, DAVIS.replace(leak_regularity=0.5), rng=1).advance(lux, 100_000)
+    from evnoise.plugins.tonic import PhotonNoise
+
+    with pytest.raises(ev.ParameterError, match=r"tonic transform needs them for every event; simulate_events"):
+        PhotonNoise((lux.shape[1], lux.shape[0], 2), DAVIS, lux, rng=1)
+
+
+def _advance_through(stream, lux, ends):
+    """``stream`` advanced to each of ``ends`` (µs) under ``lux``: the events of every interval, each checked to be
+    sorted and inside its interval."""
+    out = []
+    for t_end in ends:
+        t_start = stream.t_us
+        e = stream.advance(lux, t_end)
+        assert np.all(np.diff(e["t"].astype(np.int64)) >= 0) and np.all((e["t"] >= t_start) & (e["t"] < t_end))
+        out.append(e)
+    return np.concatenate(out)
+
+
+def _in_order(e):
+    return e[np.lexsort((e["p"], e["x"], e["y"], e["t"]))]
+
+
+def test_stream_without_tables_is_simulate_events(no_tables):
+    """A NoiseStream whose tables would pass the budget goes trial by trial from its first interval: through
+    irregular intervals (1 µs, shorter than a trial, ends inside trials) and with 4 threads its events are those of
+    ``simulate_events`` with the same seed, event for event (an event of an interval's last trial that falls after
+    the interval's end comes with the next one)."""
+    lux = _scene()
+    want = ev.simulate_events(lux, DAVIS, 3.0, rng=5)
+    assert want.size > 1000
+    ends = [1, 2, 250_000, 250_900, 1_000_003, 1_000_004, 2_345_678, 2_999_999, 3_000_000]
+    got = _advance_through(ev.NoiseStream(lux.shape, DAVIS, rng=5, threads=4), lux, ends)
+    np.testing.assert_array_equal(_in_order(got), _in_order(want))
+
+
+@pytest.mark.parametrize("params, background_hz", [(MEM, (0.0, 0.0)), (MEM.replace(eps_pos=1.5, eps_neg=1.5,
+                                                                                    leak_on_hz=2.0, leak_off_hz=0.5),
+                                                                        (2.0, 0.5))], ids=["memory", "background"])
+def test_stream_goes_trial_by_trial_at_a_change_of_light(params, background_hz, monkeypatch):
+    """A stream on tables whose next light would pass the budget goes on trial by trial: the events pending from the
+    last interval on tables come with the next interval, and the light steps 0.5 -> 0 -> 2 lux (the switch at the
+    first step) give per-pixel counts, ON share and alternation in each phase and right after each step of the
+    plain per-trial simulation of the same schedule (as the tables' stream is checked in test_memory_term)."""
+    from evnoise._kernels import simulate as ks
+    from test_memory_term import K_SIGMA, _ratio, _reference_schedule, _summaries
+
+    shape, steps = (20, 20), [(0.5, 2000), (0.0, 1000), (2.0, 2000)]
+    n_pix = shape[0] * shape[1]
+    dt = params.trial_us
+    lam = np.concatenate([np.full(n, lux) for lux, n in steps]) * params.photons_per_lux
+    ref = _reference_schedule(lam, params, n_pix, seed=8, background_hz=background_hz)
+    stream = ev.NoiseStream(shape, params, rng=9)
+    ends = np.cumsum([n for _, n in steps]) * dt
+    ends[0] -= 0.5 * dt  # inside the last trial of the first light: the trials that start after it have the next one
+    rng = np.random.default_rng(5)
+    chunks = []
+    for i, ((lux, _), end) in enumerate(zip(steps, ends)):
+        if i == 1:  # the stream is on tables here; its pending events (in that last trial) carry over
+            assert stream._trials is None
+            fstate = stream._state.fstate
+            pend = np.flatnonzero(np.isfinite(fstate[:, ks.PEND_TAU]))
+            assert pend.size > 0
+            pending = set(zip((stream._t0 + np.floor(fstate[pend, ks.PEND_TAU])).astype(int).tolist(),
+                              (pend % shape[1]).tolist(), (pend // shape[1]).tolist()))
+            monkeypatch.setattr(memory, "MAX_TABLE_STATES", 1)  # the dark's tables hold the counts stored before
+            first = stream.advance(np.full(shape, lux), int(stream.t_us + 5 * dt))
+            assert stream._trials is not None
+            got = set(zip(first["t"].astype(int).tolist(), first["x"].tolist(), first["y"].tolist()))
+            assert pending <= got
+            chunks.append(first)
+        while stream.t_us < int(end):
+            t_next = min(int(end), stream.t_us + int(rng.integers(1, 90_000)))
+            chunks.append(stream.advance(np.full(shape, lux), t_next))
+    e = np.concatenate(chunks)
+    assert np.all(np.diff(e["t"].astype(np.int64)) >= 0)
+    got = (e["y"].astype(np.int64) * shape[1] + e["x"], e["t"].astype(np.float64), e["p"])
+    for lo_s, hi_s in ((1.0, 2.0), (2.0, 2.05), (2.05, 3.0), (3.0, 3.05), (3.05, 5.0)):
+        sums = []
+        for pix, t, p in (ref, got):
+            sel = (t >= lo_s * 1e6) & (t < hi_s * 1e6)
+            sums.append(_summaries(pix[sel], np.floor(t[sel]), p[sel], n_pix))
+        a, b = sums[0]["events"], sums[1]["events"]
+        se = np.sqrt(a.var() / n_pix + b.var() / n_pix)
+        assert abs(a.mean() - b.mean()) <= K_SIGMA * se, (lo_s, a.mean(), b.mean())
+        for num, den in (("opp", "trans"), ("on", "events")):
+            if sums[0][den].sum() < 100 or sums[1][den].sum() == 0:  # the dark phase: one event per pixel, at most
+                assert sums[1][den].sum() <= 2 * sums[0][den].sum() + 20, (lo_s, num)
+                continue
+            (ra, sa), (rb, sb) = _ratio(sums[0][num], sums[0][den]), _ratio(sums[1][num], sums[1][den])
+            assert abs(ra - rb) <= K_SIGMA * np.hypot(sa, sb), (lo_s, num, ra, rb)
+
+
+def test_stream_with_the_timer_refuses_to_go_trial_by_trial(monkeypatch):
+    """The regular timer is not covered trial by trial without tables: a stream on tables with it refuses at the
+    change of light that would pass the budget (and says why)."""
+    lux = np.full((6, 6), 2.0)
+    params = MEM.replace(leak_on_hz=2.0, leak_off_hz=0.5, leak_regularity=0.5)
+    stream = ev.NoiseStream(lux.shape, params, rng=2)
+    stream.advance(lux, 200_000)
+    monkeypatch.setattr(memory, "MAX_TABLE_STATES", 10)
+    with pytest.raises(ev.ParameterError, match="regular background timer"):
+        stream.advance(3.0 * lux, 400_000)
 
 
 @pytest.mark.parametrize("k", [0.3, 0.9])

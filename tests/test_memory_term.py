@@ -320,10 +320,18 @@ def _stream_events(stream, lux_until, seed):
     return e["y"].astype(np.int64) * lux_until[0][0].shape[1] + e["x"], e["t"].astype(np.float64), e["p"]
 
 
-def test_noise_stream_with_memory_against_the_closed_form():
+#: NoiseStream's two paths with reset memory: over the chains' tables, and trial by trial (where the tables would pass
+#: MAX_TABLE_STATES, lowered here to send every scene down that path)
+STREAM_PATHS = pytest.mark.parametrize("tables", [True, False], ids=["tables", "trial-by-trial"])
+
+
+@STREAM_PATHS
+def test_noise_stream_with_memory_against_the_closed_form(tables, monkeypatch):
     """NoiseStream with reset memory, advanced through irregular intervals: rates, ON share, alternation,
     transition matrix and mean intervals of the stationary closed form (the pixels keep their stored level
     across interval boundaries), and the intervals' distribution (KS) per polarity pair."""
+    if not tables:
+        monkeypatch.setattr(memory, "MAX_TABLE_STATES", 10)
     lux = np.full((20, 30), 2.0)
     duration_s = 10.0
     stream = ev.NoiseStream(lux.shape, MEM, rng=21)
@@ -338,12 +346,16 @@ def test_noise_stream_with_memory_against_the_closed_form():
             assert p_ks > 1e-3, (a, b, p_ks)
 
 
+@STREAM_PATHS
 @pytest.mark.parametrize("params, background_hz", [(MEM, (0.0, 0.0)), (BG, (2.0, 0.5))])
-def test_noise_stream_with_memory_through_changes_of_light_against_the_per_trial_reference(params, background_hz):
+def test_noise_stream_with_memory_through_changes_of_light_against_the_per_trial_reference(params, background_hz,
+                                                                                         tables, monkeypatch):
     """The light steps 0.5 -> 0 -> 2 lux (at 2 s and 3 s): per-pixel counts, ON share and alternation in each
     phase and right after each step (the stored levels of the old light meet the new one: a transient; in the
     dark the stored-level comparison still fires once), against the plain per-trial simulation of the same
     schedule (two-sample, k-sigma from the per-pixel spread of each); without and with a background."""
+    if not tables:
+        monkeypatch.setattr(memory, "MAX_TABLE_STATES", 10)
     shape, steps = (20, 20), [(0.5, 2000), (0.0, 1000), (2.0, 2000)]
     n_pix = shape[0] * shape[1]
     dt = params.trial_us

@@ -477,3 +477,32 @@ def test_v2e_setting_an_emulator_attribute_reaches_the_emulator():
     assert wrapper.log_input is True and emulator.log_input is False
     wrapper.new_name = 1  # not the emulator's: stays on the wrapper
     assert wrapper.new_name == 1 and not hasattr(emulator, "new_name")
+
+
+def test_v2e_with_memory_beyond_the_table_budget_runs_trial_by_trial(monkeypatch):
+    """Reset memory on a sensor whose chains' tables would pass the budget (lowered here: davis346's mismatch gives
+    nearly a chain per pixel) runs through the v2e wrapper (its NoiseStream goes trial by trial) instead of being
+    refused: the noise of each grey band is within k sigma of what simulate_events expects of that band's light and
+    the stream's own threshold and background maps (the chains' rates; Poisson's sigma is ample for the
+    under-dispersed counts of memory pixels)."""
+    from evnoise.terms import memory
+
+    monkeypatch.setattr(memory, "MAX_TABLE_STATES", 10)
+    params = ev.load_preset("davis346").replace(reset_memory=0.5, leak_regularity=0.0, hot_pixel_regularity=0.0)
+    white_lux, levels = 20.0, (32, 128, 255)
+    frame = _band_frame(height=16, width=48, levels=levels)
+    wrapper = v2e_plugin.PhotonNoise(StandInEmulator(), params, white_lux, rng=3)
+    assert wrapper.generate_events(frame, 0.0) is None
+    rows = [wrapper.generate_events(frame, k / 10.0) for k in range(1, 21)]
+    rows = np.concatenate([r for r in rows if r is not None])
+    stream = wrapper._stream
+    assert stream._trials is not None
+    maps = [np.reshape(m, (2, *frame.shape)) for m in ((stream._eps_on, stream._eps_off), stream._bg)]
+    band = frame.shape[1] // len(levels)
+    for k, g in enumerate(levels):
+        lux = np.full((frame.shape[0], band), white_lux * g / 255.0)
+        cols = slice(k * band, (k + 1) * band)
+        expected = ev.iter_events(lux, params, 2.0, rng=0, thresholds=maps[0][:, :, cols],
+                                  background=maps[1][:, :, cols]).expected_events
+        in_band = (rows[:, 1] >= k * band) & (rows[:, 1] < (k + 1) * band)
+        _check_within(np.count_nonzero(in_band), expected, f"noise at grey {g}")

@@ -70,8 +70,9 @@ of photons per trial, a few ms at thousands; :data:`MAX_TABLE_STATES` bounds the
 whose chains pass it (``evk4`` at 1280 x 720 with its mismatch: 624 000 chains at 2 lux) runs in the trial tier with
 each chain's start computed on its own, without tables (:mod:`evnoise._kernels.memory_start`: the law of the table
 path for many chains, to rounding, and its draws, so the same events as ``method="trials"`` with tables but where a
-uniform falls within a rounding of a law's step, about 1e-16 per pixel); not with
-the regular timer, ``method="renewal"``, :class:`evnoise.NoiseStream` or the tonic transform, which refuse it.
+uniform falls within a rounding of a law's step, about 1e-16 per pixel); :class:`evnoise.NoiseStream` goes on
+trial by trial where its tables would pass it (at its first interval or a change of light); not with the regular
+timer, ``method="renewal"`` or the tonic transform, which refuse it.
 
 Background (Poisson: the ``leak_*`` rates and hot pixels, :func:`level_background` for the nominal pixel; the
 simulators group pixels by ``(lam, background, thresholds)``, :func:`pixel_groups`, so hot pixels and a spread leak
@@ -238,8 +239,8 @@ def too_many_states(n_chains: int, states: int, why: str = ""):
 
 
 #: What a caller that needs tables for every event says when they would pass :data:`MAX_TABLE_STATES`.
-TABLES_FOR_EVERY_EVENT = (" (NoiseStream, and so the v2e and frames plugins, and the tonic transform need them for "
-                          "every event; simulate_events, simulate_video and sample_counts run such scenes trial by "
+TABLES_FOR_EVERY_EVENT = (" (the tonic transform needs them for every event; simulate_events, simulate_video, "
+                          "sample_counts and NoiseStream, and so the v2e and frames plugins, run such scenes trial by "
                           "trial)")
 
 
