@@ -117,6 +117,20 @@ def run_large(shape, duration_s: float, force: bool = False) -> list[dict]:
             total, events = _timed(lambda: ev.simulate_events(lux, params, duration_s, rng=2, method=method))
             rows.append({"name": name, "setup_s": setup, "run_s": total, "events": int(events.size),
                          "rate": events.size / lux.size / duration_s})
+        # the same scene through NoiseStream (what the v2e and frames plugins drive), 30 intervals per second
+        params = evk4.replace(reset_memory=0.3)
+        n = max(1, int(round(30 * duration_s)))
+
+        def stream(seed, t_end_s, intervals):
+            st = ev.NoiseStream(lux.shape, params, rng=seed)
+            return np.concatenate([st.advance(lux, int(round((i + 1) * t_end_s * 1e6 / intervals)))
+                                   for i in range(intervals)])
+
+        setup, _ = _timed(lambda: stream(1, 0.001, 1))
+        total, events = _timed(lambda: stream(2, duration_s, n))
+        rows.append({"name": f"evk4, k = 0.3, NoiseStream in {n} intervals (trial tier, starts without tables)",
+                     "setup_s": setup, "run_s": total, "events": int(events.size),
+                     "rate": events.size / lux.size / duration_s})
     finally:
         memory.MAX_TABLE_STATES = budget
     return rows
@@ -153,7 +167,9 @@ def section(rows, side, duration_s, command, large=(), large_shape=None, large_s
                   "`MAX_TABLE_STATES` (refused before); the run goes trial by trial, each chain's start computed on "
                   "its own (`evnoise._kernels.memory_start`). Its events are those of the table path's trial tier "
                   "with the same seed (`tests/test_memory_own_start.py`, on scenes small enough for tables), so its "
-                  "error is the trial tier's (validated against the closed form in `tests/test_memory_video.py`).", "",
+                  "error is the trial tier's (validated against the closed form in `tests/test_memory_video.py`). "
+                  "`NoiseStream` (the v2e and frames plugins) goes the same way, its events `simulate_events`' event "
+                  "for event (same test file; through changes of light: `tests/test_memory_term.py`).", "",
                   "| scene | set-up (s) | run (s) | events | rate / pixel (events/s) |", "|---|---|---|---|---|"]
         for r in large:
             lines.append(f"| {r['name']} | {r['setup_s']:.2f} | {r['run_s']:.2f} | {r['events']:,} | "

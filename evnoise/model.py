@@ -9,10 +9,13 @@ scene it has the same probability function). Two closed forms:
     by a windowed sum whose cost grows like ``sqrt(lam)``; for arrays with one ``(eps, bias)``
     an adaptive piecewise-Chebyshev table in ``log(lam)`` is built from that sum and
     verified against it panel by panel (absolute error in ``log p`` below
-    ``1e-13 + 1e-14 |log p|``, i.e. relative error below about 1e-11 wherever ``p > 1e-300``). Where
-    that sum's ripples defeat the table (lam above ~2e4, up to 1.2e6), panels in ``lam`` with a proven
-    error bound take over (``evnoise._kernels.certified``: relative error of p at most 1e-10 plus the
-    exact sum's own ~128 ulp of ``log p`` carried through; table speed, millions of values per second).
+    ``1e-13 + 1e-14 |log p|`` at check points between its nodes, i.e. relative error below about 1e-11
+    wherever ``p > 1e-300``; measured, not proven). From lam = 1e4 up to 1.2e6 (where the sum's ripples
+    defeat that table from ~2e4 on), an array with many values there (20 000 in a unit of ``log lam``,
+    distinct ones where the log-spaced table covers it) gets panels in ``lam`` with a proven error bound
+    instead (``evnoise._kernels.certified``: relative error of p at most 1e-10 plus the exact sum's own
+    ~128 ulp of ``log p`` carried through; table speed, millions of values per second); with fewer values
+    the log-spaced table answers where it covers, the exact sum elsewhere.
     Built tables are kept in evnoise's cache folder (module ``evnoise._cache``; ``EVNOISE_TABLE_CACHE=0``
     turns that off), and a table-sized array with few distinct ``lam`` (a flat field, an 8-bit
     image) is evaluated once per value and scattered: the same bits either way.

@@ -217,25 +217,45 @@ def test_bound_holds_where_the_truncation_error_is_visible(eps, b, lam):
     assert not par[6] <= certified.CERT_TOL  # far too wide: refused
 
 
-def test_unchanged_below_1e4_and_in_tabulated_units(private_cache, monkeypatch):
-    """Certification touches only direct units above 1e4: elsewhere the values are bit for bit those of the
-    table without it; in the certified range they are within the bound of the exact sum."""
+def test_unchanged_below_1e4_and_certified_from_1e4(private_cache, monkeypatch):
+    """Below 1e4 the values are bit for bit those of the table without certification; from 1e4 on every value,
+    in the units the log-spaced panels tabulate (1e4 .. e^10, and e^10 .. e^11 at eps = 2) as in those left to the
+    exact sum, comes from a certified panel and is within its bound of the exact sum."""
     eps, b = 2.0, 1.7
     lam = np.concatenate([np.geomspace(30.0, 9999.0, 3000), np.geomspace(1e4, 2.2e5, 3000)])
     new = _table(eps, b)
     got = new.evaluate(lam)
     units = np.floor(np.log(lam)).astype(int)
-    direct = np.array([new.certifiable(int(u)) for u in units])
+    tabulated = np.array([not new._is_direct(int(u)) for u in units])
     monkeypatch.setattr(chebyshev, "CERT_LAST_UNIT", 0)
     monkeypatch.setenv("EVNOISE_TABLE_CACHE", "0")
     old = _table(eps, b).evaluate(lam)
-    same = (lam < 1e4) | ~direct
-    assert np.array_equal(got[same].view(np.uint64), old[same].view(np.uint64))
-    assert direct.sum() > 1000 and (~direct & (lam >= 1e4)).sum() > 100  # eps = 2: unit 10 is tabulated
+    below = lam < 1e4
+    assert np.array_equal(got[below].view(np.uint64), old[below].view(np.uint64))
+    assert (tabulated & ~below).sum() > 500 and (~tabulated & ~below).sum() > 1000  # both kinds above 1e4
+    assert not np.array_equal(got[tabulated & ~below], old[tabulated & ~below])  # the certified panels answer
+    panels = new.certified_panels()
     c = math.expm1(eps)
-    for x, g_ in zip(lam[direct][::97], got[direct][::97]):
+    for x, g_ in zip(lam[~below][::37], got[~below][::37]):
+        par = next(par for _, par in panels[int(math.floor(math.log(x)))] if par[0] <= x <= par[1])
         exact = log_event_probability_exact(x, c, b)
-        assert abs(g_ - exact) <= 2e-10 + 1e3 * U * abs(exact)
+        assert abs(g_ - exact) <= par[6] + par[7] + certified.NODE_REL_ERR + certified.NODE_ULPS * U * abs(exact)
+
+
+@pytest.mark.parametrize("eps, b", [(0.05, 0.0), (0.2, 1000.0), (1.0, 1.7)])
+def test_tabulated_band_from_1e4_is_certified_against_mpmath(eps, b, private_cache):
+    """From 1e4 to e^10 (= 2.2e4) the log-spaced panels tabulate log p for eps <= 1: a call with many values there
+    gets certified panels; each point's value is within its panel's proven bound of mpmath's."""
+    points = np.array([1.0e4 + 0.3, 1.47e4 + 0.71, 2.2e4 - 0.4])
+    table = _table(eps, b)
+    got = table.evaluate(np.concatenate([points, np.geomspace(1e4, 2.2e4, 500)]))
+    assert not table._is_direct(9)
+    panels = table.certified_panels()[9]
+    assert all(coef is not None and par[6] <= certified.CERT_TOL for coef, par in panels)
+    assert panels[0][1][0] <= 1e4 and panels[-1][1][1] >= math.exp(10)
+    for x, g_ in zip(points, got[:3]):
+        par = next(par for _, par in panels if par[0] <= x <= par[1])
+        assert abs(g_ - REF(float(x), eps, b)) <= par[6] + par[7]
 
 
 def test_fallback_panels_use_the_exact_sum(private_cache):
@@ -308,3 +328,27 @@ def test_small_calls_sum_exactly_and_large_ones_use_the_panels(private_cache, mo
     assert np.all(np.abs(got_many - exact) <= 2e-10 * np.maximum(1.0, np.abs(exact)))
     again = table.evaluate(few)  # the unit is built now: a small call still sums exactly
     assert np.array_equal(again.view(np.uint64), want.view(np.uint64))
+
+
+def test_tabulated_unit_counts_distinct_values(private_cache, monkeypatch):
+    """In a unit the log-spaced panels tabulate, a call is certified only with ``CERT_MIN_VALUES`` distinct values:
+    a flat field evaluated pixel by pixel keeps the log-spaced values it gets once per distinct value (the scene
+    path, test_scene_cost), bit for bit; distinct values get the certified panels."""
+    monkeypatch.setattr(chebyshev, "CERT_MIN_VALUES", 300)
+    eps, b = 0.1, 1.7
+    repeated = np.repeat(np.geomspace(1.1e4, 2.1e4, 10), 100)
+    distinct = np.geomspace(1.1e4, 2.1e4, 300)
+    table = _table(eps, b)
+    got_repeated = table.evaluate(repeated)
+    assert table.certified_panels() == {}
+    got_distinct = table.evaluate(distinct)
+    assert 9 in table.certified_panels()
+    with monkeypatch.context() as m:
+        m.setattr(chebyshev, "CERT_LAST_UNIT", 0)
+        m.setenv("EVNOISE_TABLE_CACHE", "0")
+        plain = _table(eps, b)
+        assert np.array_equal(got_repeated.view(np.uint64), plain.evaluate(repeated).view(np.uint64))
+        tabulated = plain.evaluate(distinct)
+    assert not np.array_equal(got_distinct, tabulated)
+    assert np.array_equal(table.evaluate(repeated).view(np.uint64), got_repeated.view(np.uint64))  # built: same rule
+    assert np.all(np.abs(got_distinct - tabulated) <= 1e-10 * np.abs(tabulated))

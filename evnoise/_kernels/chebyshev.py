@@ -9,9 +9,12 @@ it reproduces the exact kernel at check points between its nodes to within the t
 otherwise it is halved (down to a minimum width, below which the panel is evaluated with
 the exact kernel directly). Evaluation does a binary search for the panel and Clenshaw.
 
-A unit left to the exact kernel gets, from ``lam = 1e4`` up to :data:`CERT_LAST_UNIT`, certified
-panels in ``lam`` (:mod:`evnoise._kernels.certified`: Chebyshev interpolation of a rescaled ``p`` with
-a proven error bound); the units that the log-spaced panels tabulate keep them, bit for bit.
+From ``lam = 1e4`` up to :data:`CERT_LAST_UNIT` a call with many values in a unit (:data:`CERT_MIN_VALUES`;
+distinct ones in a tabulated unit) gets certified panels in ``lam`` there (:mod:`evnoise._kernels.certified`:
+Chebyshev interpolation of a rescaled ``p`` with a proven error bound), in the units left to the exact kernel and
+in those the log-spaced panels tabulate alike (from 1e4 to e^10 = 2.2e4, and to e^11 for the largest thresholds):
+their checks between nodes are measured, not proven. Below 1e4, and for calls with fewer values, the values are
+the log-spaced panels' or the exact sum's, bit for bit.
 """
 
 from __future__ import annotations
@@ -228,13 +231,11 @@ class LogPTable:
             pass
 
     def certifiable(self, unit: int) -> bool:
-        """Whether ``unit`` is (once built) a direct unit that gets certified panels."""
-        panels = self._units.get(unit)
-        return (panels is not None and len(panels) == 1 and panels[0][2] is None and unit <= CERT_LAST_UNIT
-                and math.exp(unit + 1) > certified.LAM_MIN)
+        """Whether ``unit`` (once built; direct or tabulated) gets certified panels (from ``LAM_MIN`` up)."""
+        return unit in self._units and unit <= CERT_LAST_UNIT and math.exp(unit + 1) > certified.LAM_MIN
 
     def ensure_certified(self, units) -> None:
-        """Build (or read from disk) the certified panels of the direct units among ``units``."""
+        """Build (or read from disk) the certified panels of the certifiable units among ``units``."""
         new = [u for u in units if self.certifiable(u) and u not in self._certified]
         if not new:
             return
@@ -330,7 +331,8 @@ class LogPTable:
         returned where it shows ``log p < skip_below``. Tabulated values cost no more than the
         bound, so they are returned as they are (``exp`` of them underflows to 0 all the same).
         """
-        units = np.floor(np.log(lam[(lam > 0) & np.isfinite(lam)]))
+        valid = lam[(lam > 0) & np.isfinite(lam)]
+        units = np.floor(np.log(valid))
         if units.size:
             lo = int(max(units.min(), self.first_unit))
             hi = int(min(units.max(), self.last_unit))
@@ -338,10 +340,11 @@ class LogPTable:
                 present = np.bincount((np.clip(units, lo, hi) - lo).astype(np.int64), minlength=hi - lo + 1)
                 wanted = [lo + int(i) for i in np.flatnonzero(present)]
                 self.ensure(wanted)
-                # certified panels where a direct unit has many values and is not skipped as a whole by its bound
-                many = {u for u in wanted if present[u - lo] >= CERT_MIN_VALUES}
+                # certified panels where a unit has many values and (direct) is not skipped as a whole by its bound
+                many = {u for u in wanted if present[u - lo] >= CERT_MIN_VALUES
+                        and (self._is_direct(u) or _many_distinct(valid[units == u]))}
                 need = [u for u in many if self.certifiable(u) and u not in self._certified
-                        and not self._unit_bound(u) < skip_below]
+                        and not (self._is_direct(u) and self._unit_bound(u) < skip_below)]
                 self.ensure_certified(need)
                 certify = np.array([u in many for u in range(self.first_unit, self.last_unit + 1)], dtype=np.bool_)
             else:
@@ -355,9 +358,25 @@ class LogPTable:
         run(lam, *self._arrays, certify, self.first_unit, self.c, self.b, float(skip_below), float(skip_min_lam), out)
         return out
 
+    def _is_direct(self, unit: int) -> bool:
+        """Whether built ``unit`` is one panel left to the exact kernel (the log-spaced panels gave up there)."""
+        panels = self._units[unit]
+        return len(panels) == 1 and panels[0][2] is None
+
     def _unit_bound(self, unit: int) -> float:
         """The Chernoff bound on log p over a direct unit (as the evaluation uses it to skip the unit)."""
         return panel_log_bound(math.exp(unit), math.exp(unit + 1), self.c, self.b)
+
+
+def _many_distinct(values: np.ndarray) -> bool:
+    """Whether ``values`` hold at least :data:`CERT_MIN_VALUES` distinct ones. A tabulated unit is certified only
+    then: a field with few distinct values (a flat field, an image) evaluated pixel by pixel keeps the values it
+    gets when evaluated once per distinct value (:func:`evnoise.model.same_path_values`), and where it is not
+    certified the log-spaced panels answer as fast (a direct unit counts every value: its other path is the exact
+    sum, whose cost follows the values)."""
+    from .levels import find_levels
+
+    return CERT_MIN_VALUES <= 1 or find_levels(values, CERT_MIN_VALUES - 1) is None
 
 
 @kernel
@@ -409,6 +428,10 @@ def _evaluate_one(x, unit_start, bounds, coef, direct, panel_bound, cert_start, 
             if not math.isnan(v):
                 return v
         return _exact_or_skip(x, c, b, skip_below, skip_min_lam)
+    if certify[unit] and x >= certified.LAM_MIN and cert_start[unit] < cert_start[unit + 1]:
+        # a tabulated unit with certified panels: theirs (or, where a panel has no certificate, the exact sum)
+        v = certified.evaluate_one(x, cert_start[unit], cert_start[unit + 1], cert_par, cert_coef)
+        return v if not math.isnan(v) else log_event_probability_exact(x, c, b)
     u_lo = bounds[lo, 0]
     u_hi = bounds[lo, 1]
     t = (2.0 * u - u_lo - u_hi) / (u_hi - u_lo)
