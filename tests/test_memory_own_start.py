@@ -233,7 +233,7 @@ def test_stream_goes_trial_by_trial_at_a_change_of_light(params, background_hz, 
     first step) give per-pixel counts, ON share and alternation in each phase and right after each step of the
     plain per-trial simulation of the same schedule (as the tables' stream is checked in test_memory_term)."""
     from evnoise._kernels import simulate as ks
-    from test_memory_term import K_SIGMA, _ratio, _reference_schedule, _summaries
+    from test_memory_term import _reference_schedule, check_steps_against_reference
 
     shape, steps = (20, 20), [(0.5, 2000), (0.0, 1000), (2.0, 2000)]
     n_pix = shape[0] * shape[1]
@@ -264,21 +264,8 @@ def test_stream_goes_trial_by_trial_at_a_change_of_light(params, background_hz, 
             chunks.append(stream.advance(np.full(shape, lux), t_next))
     e = np.concatenate(chunks)
     assert np.all(np.diff(e["t"].astype(np.int64)) >= 0)
-    got = (e["y"].astype(np.int64) * shape[1] + e["x"], e["t"].astype(np.float64), e["p"])
-    for lo_s, hi_s in ((1.0, 2.0), (2.0, 2.05), (2.05, 3.0), (3.0, 3.05), (3.05, 5.0)):
-        sums = []
-        for pix, t, p in (ref, got):
-            sel = (t >= lo_s * 1e6) & (t < hi_s * 1e6)
-            sums.append(_summaries(pix[sel], np.floor(t[sel]), p[sel], n_pix))
-        a, b = sums[0]["events"], sums[1]["events"]
-        se = np.sqrt(a.var() / n_pix + b.var() / n_pix)
-        assert abs(a.mean() - b.mean()) <= K_SIGMA * se, (lo_s, a.mean(), b.mean())
-        for num, den in (("opp", "trans"), ("on", "events")):
-            if sums[0][den].sum() < 100 or sums[1][den].sum() == 0:  # the dark phase: one event per pixel, at most
-                assert sums[1][den].sum() <= 2 * sums[0][den].sum() + 20, (lo_s, num)
-                continue
-            (ra, sa), (rb, sb) = _ratio(sums[0][num], sums[0][den]), _ratio(sums[1][num], sums[1][den])
-            assert abs(ra - rb) <= K_SIGMA * np.hypot(sa, sb), (lo_s, num, ra, rb)
+    check_steps_against_reference(ref, (e["y"].astype(np.int64) * shape[1] + e["x"], e["t"].astype(np.float64), e["p"]),
+                                  n_pix)
 
 
 def test_stream_with_the_timer_refuses_to_go_trial_by_trial(monkeypatch):

@@ -364,6 +364,13 @@ def test_noise_stream_with_memory_through_changes_of_light_against_the_per_trial
     stream = ev.NoiseStream(shape, params, rng=9)
     ends = np.cumsum([n for _, n in steps]) * dt
     got = _stream_events(stream, [(np.full(shape, lux), int(end)) for (lux, _), end in zip(steps, ends)], seed=5)
+    check_steps_against_reference(ref, got, n_pix)
+
+
+def check_steps_against_reference(ref, got, n_pix):
+    """The light steps 0.5 -> 0 -> 2 lux at 2 s and 3 s: ``got`` (``(pix, t, p)``) against the per-trial reference
+    ``ref`` in each phase and right after each step: the mean per-pixel events, the alternation and the ON share
+    within k sigma (in the dark, where the reference has almost no transitions: at most about as many)."""
     for lo_s, hi_s in ((1.0, 2.0), (2.0, 2.05), (2.05, 3.0), (3.0, 3.05), (3.05, 5.0)):
         sums = []
         for pix, t, p in (ref, got):
