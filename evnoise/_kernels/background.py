@@ -146,21 +146,22 @@ def regular_mean_rate(p_own, mass, p_other, l_own, l_other, weight, trial_rate_h
             d0 = np.floor(d)  # a float: math.floor is an int64 in Numba and overflows beyond 9.2e18
             phi = d - d0
             one_m_a2 = math.exp(log1m_a2)
+            a2 = -math.expm1(log1m_a2)
             share_l = l_own[b] / l_all
             for a in range(n_atoms):
                 pa = p[a]
                 x = (d0 + 1.0) * log1m_p[a]
-                qd = math.exp(x)
-                if pa <= 0.0:
-                    head = d0 + 1.0
-                elif x < -0.5:  # 1 - q^(d0+1) without cancellation: no expm1 needed
+                if x < -0.5:  # 1 - q^(d0+1) without cancellation: no expm1 needed
+                    qd = math.exp(x)
                     head = (1.0 - qd) * inv_p[a]
-                else:
-                    head = -math.expm1(x) * inv_p[a]
+                else:  # one expm1 gives both (q^(d0+1) = 1 + expm1 to a rounding: it is near 1 here)
+                    em1 = math.expm1(x)
+                    qd = 1.0 + em1
+                    head = -em1 * inv_p[a] if pa > 0.0 else d0 + 1.0
                 e_min = head + phi * qd
                 if qd > 0.0:  # the geometric rest after the whole part; nothing left once q^(d0+1) underflows
-                    # 1 - q (1 - a2) = p + a2 - p a2, without cancellation when both are small
-                    e_min += qd * one_m_a2 / -math.expm1(log1m_p[a] + log1m_a2) * (1.0 - phi + phi * q[a])
+                    # 1 - q (1 - a2) = p + q a2: a sum of two non-negative terms, no cancellation when both are small
+                    e_min += qd * one_m_a2 / (pa + q[a] * a2) * (1.0 - phi + phi * q[a])
                 if e_min < math.inf:  # else the pixel never fires: rate 0
                     photon = min(pa * e_min, 1.0)  # the photon events' share: <= 1 after rounding
                     acc += mass[a] * n / (dead + e_min) * (photon * share_p[a] + (1.0 - photon) * share_l)
