@@ -192,7 +192,6 @@ class NoiseStream:
         self._t_rel = t_end
         return out
 
-
     def _to_trials(self, lam, n_chains: int, n_states: int, timer: bool):
         """From now on every pixel trial by trial (the trial kernel): the chains' tables would pass
         :data:`~evnoise.terms.memory.MAX_TABLE_STATES` (``n_chains`` chains, ``n_states`` states; ``timer``: they

@@ -152,7 +152,10 @@ def test_counts_right_timing_wrong_is_rejected():
     fit = q.fit_quiet([w], hot="off", regularity="off")
     assert all(g["p_value"] >= q.GOODNESS_P for g in fit.goodness)
     iei = _timing(fit)["intervals"]
-    assert iei["p_value"] < 1e-6 and iei["median_s"] < 0.5 * iei["model_median_s"]
+    # no window simulated from the model comes near (the smallest p-value the simulation gives); as independent
+    # intervals, far below
+    assert iei["p_value"] == 1.0 / (qg.INTERVAL_REPLICAS + 1) and iei["p_value_independent"] < 1e-6
+    assert iei["median_s"] < 0.5 * iei["model_median_s"]
     assert fit.fit_status == "rejected"
     assert any("inter-event intervals do not match" in r for r in fit.rejections)
 
@@ -182,3 +185,74 @@ def test_compare_intervals_of_a_preset_on_its_own_window(tmp_path):
     assert poisson["ks_2samp_p_value"] < 1e-3
     with pytest.raises(ev.InputError, match="no events"):
         window_intervals(QuietWindow(w.counts, T, "counts only"))
+
+
+def _spread_model(n_side, duration_s, regularity):
+    """A fitted model's values as the interval test sees them, without a fit: a DVS128-like population (leak spread
+    sigma 1, 3 % hot pixels five times as busy with their own spread, a regular ordinary timer) on an
+    ``n_side`` x ``n_side`` window."""
+    v = dict(rate_on_hz=0.3, rate_off_hz=0.0, growth_on=0.0, growth_off=0.0, sigma=1.0, hot_fraction=0.03,
+             hot_rate_hz=1.5, hot_sigma=1.0, hot_on_fraction=1.0, regularity=regularity, hot_regularity=0.0)
+    w = QuietWindow(np.zeros((2, n_side, n_side), dtype=np.int64), duration_s, "x")
+    groups = ql.window_groups([w])
+    model = ql.Model(False, True, [np.zeros((1, 2))], False, [np.zeros(1)], False)
+    return v, model, groups[0]
+
+
+def test_renewal_intervals_have_the_count_law_and_the_interval_law():
+    """Simulated pixels (the interval test's null windows): the number of intervals per pixel is, on average,
+    ``E[N] - P(N >= 1)`` of the stationary count law (:func:`counts.count_survival`, an independent closed form),
+    and the pooled intervals of equal pixels follow the window-truncated interval law (:func:`interval_cdf`)."""
+    from scipy.stats import kstest
+
+    from evnoise.calibration.quiet.counts import count_survival
+
+    rng = np.random.default_rng(12)
+    n_pix, lam, T = 20_000, 2.0, 5.0
+    for r in (0.0, 0.7, 1.0):
+        xs = qg.renewal_intervals(np.full(n_pix, lam), np.full(n_pix, r), T, rng)
+        k = np.arange(1, 60, dtype=np.float64)
+        mean_n = float(np.sum(count_survival(k, lam, T, r)))  # E[N] = sum_k P(N >= k)
+        want = n_pix * (mean_n - float(count_survival(1.0, lam, T, r)))
+        assert abs(mean_n - lam * T) < 1e-6  # stationary: E[N] = lam T
+        assert abs(xs.size - want) < 5 * np.sqrt(want), (r, xs.size, want)
+        if r < 1.0:  # periodic pixels have one interval length
+            v = dict(rate_on_hz=lam, rate_off_hz=0.0, growth_on=0.0, growth_off=0.0, sigma=0.0, hot_fraction=0.0,
+                     hot_rate_hz=0.0, hot_sigma=0.0, hot_on_fraction=1.0, regularity=r)
+            w = QuietWindow(np.zeros((2, 1, 1), dtype=np.int64), T, "x")
+            groups = ql.window_groups([w])
+            model = ql.Model(False, True, [np.zeros((1, 2))], False, [np.zeros(1)], False)
+            sub = xs[rng.choice(xs.size, 4000, replace=False)]  # one or two per pixel: nearly independent
+            assert kstest(sub, lambda x: qg.interval_cdf(x, v, model, 0, groups[0], 0)).pvalue > 1e-3
+        else:
+            np.testing.assert_allclose(xs, 1.0 / lam, rtol=1e-12)
+
+
+def test_interval_p_value_holds_its_level_where_intervals_are_not_independent():
+    """Windows drawn from the model itself (a population of pixels with spread rates and busy hot pixels, whose
+    intervals share their pixel's rate): the KS p-value of independent intervals rejects them far more often than
+    its level; the p-value from simulated windows holds it (binomial k-sigma over the null windows)."""
+    from scipy.stats import kstwo
+
+    v, model, grp = _spread_model(16, 6.0, 0.7)  # ~330 intervals a window, most from its ~8 hot pixels
+    draw = qg.interval_sampler(v, model, 0, grp, 0)
+
+    def cdf(x):
+        return qg.interval_cdf(x, v, model, 0, grp, 0)
+
+    rng = np.random.default_rng(3)
+    plain, simulated = [], []
+    fast = qg._tabulated_cdf(cdf, 6.0)
+    grid = np.linspace(0.0, 6.0, 2001)
+    assert np.max(np.abs(fast(grid) - cdf(grid))) < 1e-4  # the table the simulated windows are measured with
+    for m in range(60):
+        xs = draw(rng)
+        n = xs.size
+        plain.append(float(kstwo.sf(qg._ks_distance(xs, n, cdf), n)))
+        simulated.append(qg.simulated_ks_p_value(xs, n, draw, fast, seed=1000 + m)[0])
+    plain, simulated = np.array(plain), np.array(simulated)
+    alpha, n_win = 0.05, plain.size
+    sd = np.sqrt(alpha * (1 - alpha) / n_win)
+    assert np.mean(plain < alpha) > alpha + 4 * sd, np.mean(plain < alpha)  # the defect: over-rejection
+    assert np.mean(simulated < alpha) < alpha + 3 * sd, np.mean(simulated < alpha)
+    assert np.mean(simulated < 0.5) > 0.5 - 4 * np.sqrt(0.25 / n_win)  # not conservative to uselessness

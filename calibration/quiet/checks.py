@@ -87,6 +87,7 @@ import numpy as np
 from evnoise._clock import seconds_text
 
 __all__ = ["window_checks", "failed_checks", "check_verdict", "polarity_pairs", "same_pixel_timing",
+           "stored_order_statistics",
            "polarity_transitions", "stationarity", "stationary_span", "scene_motion", "spatial_structure",
            "PAIR_GAP_S", "CHECK_P", "MIN_INTERVALS", "STORED_INTERVALS"]
 
@@ -212,6 +213,14 @@ def polarity_pairs(events: np.ndarray, shape: tuple, t_start_us: int, duration_u
     return out
 
 
+def stored_order_statistics(intervals: np.ndarray) -> np.ndarray:
+    """The order statistics kept of sorted ``intervals``: all of them, or :data:`STORED_INTERVALS` evenly spaced
+    ones (ranks ``round(linspace(0, n - 1, STORED_INTERVALS))``)."""
+    if intervals.size > STORED_INTERVALS:
+        return intervals[np.round(np.linspace(0, intervals.size - 1, STORED_INTERVALS)).astype(np.int64)]
+    return intervals
+
+
 def same_pixel_timing(events: np.ndarray, shape: tuple) -> dict:
     """Consecutive events of one pixel (module doc, polarity transitions): how many, how many opposite in
     polarity, the memoryless model's mean and sd of that number given the pixels' ON/OFF counts, and the
@@ -224,9 +233,7 @@ def same_pixel_timing(events: np.ndarray, shape: tuple) -> dict:
     same = pix[1:] == pix[:-1]
     n_trans = int(np.count_nonzero(same))
     observed = int(np.count_nonzero(same & (on[1:] != on[:-1])))
-    intervals = np.sort((t[1:] - t[:-1])[same] * 1e-6)
-    if intervals.size > STORED_INTERVALS:
-        intervals = intervals[np.round(np.linspace(0, intervals.size - 1, STORED_INTERVALS)).astype(np.int64)]
+    intervals = stored_order_statistics(np.sort((t[1:] - t[:-1])[same] * 1e-6))
     n_pix = int(shape[0]) * width
     n_on = np.bincount(pix[on], minlength=n_pix).astype(np.float64)
     n = np.bincount(pix, minlength=n_pix).astype(np.float64)
