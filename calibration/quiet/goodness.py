@@ -13,7 +13,8 @@ from .likelihood import component_rates
 from .window import QuietWindow, drop_pixels
 
 __all__ = ["GOF_MAX_COUNT", "simulate_window", "compare_to_recording", "interval_cdf", "timing_tests",
-           "window_intervals", "compare_intervals", "renewal_intervals", "interval_sampler"]
+           "window_intervals", "compare_intervals", "renewal_intervals", "interval_sampler", "simulated_ks_p_value",
+           "pixel_permutation_ks"]
 
 
 #: Largest count evaluated one by one in the goodness-of-fit histograms (higher ones form the tail bin).
@@ -211,15 +212,13 @@ def simulated_ks_p_value(xs, n: int, draw, cdf, seed=0):
 
     observed = float(kstwo.sf(_ks_distance(xs, n, cdf), n))
     rng = np.random.default_rng(seed)
-    hits = 0
-    for b in range(1, INTERVAL_REPLICAS + 1):
+
+    def as_extreme(_):
         sim = draw(rng)
         m = sim.size
-        p_b = float(kstwo.sf(_ks_distance(stored_order_statistics(sim), m, cdf), m)) if m else 1.0
-        hits += p_b <= observed
-        if hits >= INTERVAL_EXCEEDANCES:
-            return hits / b, b
-    return (hits + 1) / (INTERVAL_REPLICAS + 1), INTERVAL_REPLICAS
+        return (float(kstwo.sf(_ks_distance(stored_order_statistics(sim), m, cdf), m)) if m else 1.0) <= observed
+
+    return _monte_carlo_p(as_extreme)
 
 
 def _tabulated_cdf(cdf, duration_s: float):
@@ -367,15 +366,84 @@ def compare_to_recording(params, window: QuietWindow, *, replicas: int = 20, see
 
 def window_intervals(window: QuietWindow) -> np.ndarray:
     """Same-pixel inter-event intervals (s) of a window read with its events (either polarity)."""
+    return _pixel_intervals(window)[0]
+
+
+def _pixel_intervals(window: QuietWindow):
+    """``(intervals (s), pixel)``: :func:`window_intervals` and the flat index of each interval's pixel."""
     if window.events is None:
         from evnoise.errors import InputError
 
         raise InputError(f"{window.describe()}: no events (a QuietWindow made from counts alone; quiet_window "
                          "reads them)")
-    t, pix = window.events["t_s"], window.events["pixel"]
+    return _intervals_of(window.events["pixel"], window.events["t_s"])
+
+
+def _intervals_of(pix, t):
+    """``(intervals, pixel)`` of events at flat pixels ``pix`` and times ``t``: consecutive events of one pixel."""
     order = np.lexsort((t, pix))
     t, pix = t[order], pix[order]
-    return np.diff(t)[pix[1:] == pix[:-1]]
+    same = pix[1:] == pix[:-1]
+    return np.diff(t)[same], pix[1:][same]
+
+
+def _monte_carlo_p(as_extreme):
+    """Besag and Clifford's sequential Monte Carlo p-value: ``as_extreme(b)`` tells whether the ``b``-th simulated
+    statistic is at least as extreme as the observed one; at most :data:`INTERVAL_REPLICAS` of them, stopped after
+    :data:`INTERVAL_EXCEEDANCES` hits. Returns ``(p_value, replicas)``."""
+    hits = 0
+    for b in range(1, INTERVAL_REPLICAS + 1):
+        hits += bool(as_extreme(b))
+        if hits >= INTERVAL_EXCEEDANCES:
+            return hits / b, b
+    return (hits + 1) / (INTERVAL_REPLICAS + 1), INTERVAL_REPLICAS
+
+
+def pixel_permutation_ks(real, real_pixel, simulated, simulated_pixel, n_pixels: int, seed=0) -> dict:
+    """Two-sample KS test of a window's same-pixel intervals against simulated windows', pixels as the units.
+
+    ``real``, ``real_pixel``: the window's intervals and the index (``0 .. n_pixels - 1``) of each one's pixel;
+    ``simulated``, ``simulated_pixel``: those of ``R`` simulated windows of the same ``n_pixels`` pixels, replica
+    ``r``'s pixels numbered ``(r + 1) n_pixels ..``. A pixel's intervals are not independent (they share its rate),
+    so the KS distribution of independent samples is too narrow; under the model the ``(R + 1) n_pixels`` pixels are
+    exchangeable, and the p-value is the share of random relabellings (``n_pixels`` pixels drawn as "the window")
+    whose KS distance is at least the observed one (:func:`_monte_carlo_p`). Returns ``{statistic, p_value,
+    replicas, p_value_independent}`` (the last: SciPy's ``ks_2samp`` as if the intervals were independent)."""
+    from scipy.stats import ks_2samp
+
+    real = np.asarray(real, dtype=np.float64)
+    simulated = np.asarray(simulated, dtype=np.float64)
+    values = np.concatenate([real, simulated])
+    units = np.concatenate([np.asarray(real_pixel, dtype=np.int64), np.asarray(simulated_pixel, dtype=np.int64)])
+    order = np.argsort(values, kind="stable")
+    values, units = values[order], units[order]
+    last = np.flatnonzero(np.append(values[1:] != values[:-1], True))  # the ECDFs at each distinct value
+    n_units = int(units.max()) + 1 if units.size else 1
+    n_units = max(n_units, (n_units + n_pixels - 1) // n_pixels * n_pixels)
+
+    def distance(in_window):
+        first = in_window[units]
+        n1 = int(np.count_nonzero(first))
+        n2 = first.size - n1
+        if n1 == 0 or n2 == 0:
+            return 0.0
+        c1 = np.cumsum(first)[last] / n1
+        c2 = np.cumsum(~first)[last] / n2
+        return float(np.max(np.abs(c1 - c2)))
+
+    observed_mask = np.zeros(n_units, dtype=bool)
+    observed_mask[:n_pixels] = True
+    observed = distance(observed_mask)
+    rng = np.random.default_rng(seed)
+
+    def as_extreme(_):
+        mask = np.zeros(n_units, dtype=bool)
+        mask[rng.choice(n_units, size=n_pixels, replace=False)] = True
+        return distance(mask) >= observed - 1e-12
+
+    p, replicas = _monte_carlo_p(as_extreme)
+    return {"statistic": observed, "p_value": p, "replicas": replicas,
+            "p_value_independent": float(ks_2samp(real, simulated).pvalue)}
 
 
 def compare_intervals(params, window: QuietWindow, *, replicas: int = 4, seed: int = 0, real_intervals=None) -> dict:
@@ -383,8 +451,11 @@ def compare_intervals(params, window: QuietWindow, *, replicas: int = 4, seed: i
 
     Returns events per replica, the simulated same-pixel intervals' count, median and CV, the share of consecutive
     same-pixel events of opposite polarity, and a two-sample KS test of the intervals against the real ones
-    (``real_intervals``, else :func:`window_intervals`; NaN with fewer than 20 on either side); the real
-    intervals' median and CV beside them.
+    (NaN with fewer than 20 on either side): ``ks_2samp_p_value`` from relabelling pixels between the window and
+    the replicas (:func:`pixel_permutation_ks`: a pixel's intervals are not independent), where the window has its
+    events; ``ks_2samp_p_value_independent`` as if they were (SciPy's ``ks_2samp``, also what a window without
+    events gets). The real intervals' median and CV beside them (``real_intervals``, else
+    :func:`window_intervals`).
     """
     from scipy.stats import ks_2samp
 
@@ -392,16 +463,22 @@ def compare_intervals(params, window: QuietWindow, *, replicas: int = 4, seed: i
 
     from .checks import same_pixel_timing
 
-    real = np.asarray(window_intervals(window) if real_intervals is None else real_intervals, dtype=np.float64)
+    own = _pixel_intervals(window) if window.events is not None else None
+    real = np.asarray(own[0] if real_intervals is None else real_intervals, dtype=np.float64)
     lux = np.zeros(window.shape)
-    counts, ivals, opp, trans = [], [], 0, 0
-    for s in np.random.SeedSequence(seed).spawn(replicas):
+    position = np.cumsum(window.kept()) - 1  # a kept pixel's index among the kept ones
+    n_pix = window.n_pixels
+    width = window.shape[1]
+    counts, ivals, units, opp, trans = [], [], [], 0, 0
+    for r, s in enumerate(np.random.SeedSequence(seed).spawn(replicas)):
         events = ev.simulate_events(lux, params, window.duration_s, rng=np.random.default_rng(s))
         if window.excluded.size:  # the pixels the window leaves out, left out here too
-            events = drop_pixels(events, window.shape[1], window.excluded)
+            events = drop_pixels(events, width, window.excluded)
         counts.append([int(np.count_nonzero(events["p"] == 1)), int(np.count_nonzero(events["p"] == 0))])
         sp = same_pixel_timing(events, window.shape)
-        ivals.append(np.asarray(sp["intervals_s"]))
+        gaps, pix = _intervals_of(events["y"].astype(np.int64) * width + events["x"], events["t"].astype(np.int64))
+        ivals.append(gaps * 1e-6)
+        units.append(position[pix] + (r + 1) * n_pix)
         opp += sp["opposite"]
         trans += sp["transitions"]
     xs = np.concatenate(ivals)
@@ -410,11 +487,19 @@ def compare_intervals(params, window: QuietWindow, *, replicas: int = 4, seed: i
     def cv(x):
         return float(np.std(x, ddof=1) / np.mean(x)) if x.size > 1 and np.mean(x) > 0 else math.nan
 
+    test = {"statistic": math.nan, "p_value": math.nan, "replicas": 0, "p_value_independent": math.nan}
+    if real.size >= 20 and xs.size >= 20:
+        if own is not None:
+            test = pixel_permutation_ks(own[0], position[own[1]], xs, np.concatenate(units), n_pix, seed=seed)
+        else:
+            plain = ks_2samp(real, xs)
+            test = {"statistic": float(plain.statistic), "p_value": float(plain.pvalue), "replicas": 0,
+                    "p_value_independent": float(plain.pvalue)}
     return {"replicas": replicas, "events_on_per_replica": float(counts[:, 0].mean()),
             "events_off_per_replica": float(counts[:, 1].mean()),
             "events_sd_per_replica": float(counts.sum(axis=1).std(ddof=1)) if replicas > 1 else math.nan,
             "intervals": int(xs.size), "median_s": float(np.median(xs)) if xs.size else math.nan, "cv": cv(xs),
             "opposite_share": opp / trans if trans else math.nan,
             "real_intervals": int(real.size), "real_median_s": float(np.median(real)) if real.size else math.nan,
-            "real_cv": cv(real),
-            "ks_2samp_p_value": float(ks_2samp(real, xs).pvalue) if real.size >= 20 and xs.size >= 20 else math.nan}
+            "real_cv": cv(real), "ks_statistic": test["statistic"], "ks_2samp_p_value": test["p_value"],
+            "ks_2samp_p_value_independent": test["p_value_independent"], "ks_relabellings": test["replicas"]}
