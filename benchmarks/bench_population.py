@@ -39,7 +39,7 @@ def broadcast_reference(stats) -> np.ndarray:
             l_o = stats.bg_l[1 - k, :, j][:, None]
             p_on, p_off, l_on, l_off = (p, po, l_k, l_o) if k == 0 else (po, p, l_o, l_k)
             nu = regular_rates(p_on, p_off, l_on, l_off, stats.trial_rate_hz, stats.refractory_s,
-                               stats.regularity)[k]
+                               stats.node_regularity[:, None])[k]  # each node's own (hot pixels: theirs)
             out[k, j] = float(stats.bg_weight @ (nu @ stats.mass[k][j]))
     return out
 
