@@ -286,7 +286,7 @@ def test_pixel_permutation_ks_holds_its_level_where_scipy_does_not():
     for m in range(60):
         real, real_units = _population_intervals(n_pix, T, rng)
         sim, sim_units = _population_intervals(4 * n_pix, T, rng, first_unit=n_pix)
-        out = qg.pixel_permutation_ks(real, real_units, sim, sim_units, n_pix, seed=m)
+        out = qg.pixel_permutation_ks(real, real_units, sim, sim_units, n_pix, 4, seed=m)
         assert out["statistic"] == pytest.approx(ks_2samp(real, sim).statistic, abs=1e-12)
         plain.append(out["p_value_independent"])
         relabelled.append(out["p_value"])
@@ -303,4 +303,4 @@ def test_pixel_permutation_ks_holds_its_level_where_scipy_does_not():
         t = np.cumsum(rng.exponential(1.0 / (0.4 * np.exp(0.25 * rng.standard_normal())), size=40))
         other.append(np.diff(t[t < T]))
     other_units = np.concatenate([np.full(g.size, n_pix + k) for k, g in enumerate(other)])
-    assert qg.pixel_permutation_ks(real, real_units, np.concatenate(other), other_units, n_pix)["p_value"] < 1e-3
+    assert qg.pixel_permutation_ks(real, real_units, np.concatenate(other), other_units, n_pix, 4)["p_value"] < 1e-3

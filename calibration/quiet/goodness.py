@@ -400,15 +400,17 @@ def _monte_carlo_p(as_extreme):
     return (hits + 1) / (INTERVAL_REPLICAS + 1), INTERVAL_REPLICAS
 
 
-def pixel_permutation_ks(real, real_pixel, simulated, simulated_pixel, n_pixels: int, seed=0) -> dict:
+def pixel_permutation_ks(real, real_pixel, simulated, simulated_pixel, n_pixels: int, n_replicas: int,
+                         seed=0) -> dict:
     """Two-sample KS test of a window's same-pixel intervals against simulated windows', pixels as the units.
 
     ``real``, ``real_pixel``: the window's intervals and the index (``0 .. n_pixels - 1``) of each one's pixel;
-    ``simulated``, ``simulated_pixel``: those of ``R`` simulated windows of the same ``n_pixels`` pixels, replica
-    ``r``'s pixels numbered ``(r + 1) n_pixels ..``. A pixel's intervals are not independent (they share its rate),
-    so the KS distribution of independent samples is too narrow; under the model the ``(R + 1) n_pixels`` pixels are
-    exchangeable, and the p-value is the share of random relabellings (``n_pixels`` pixels drawn as "the window")
-    whose KS distance is at least the observed one (:func:`_monte_carlo_p`). Returns ``{statistic, p_value,
+    ``simulated``, ``simulated_pixel``: those of ``n_replicas`` simulated windows of the same ``n_pixels`` pixels,
+    replica ``r``'s pixels numbered ``(r + 1) n_pixels ..`` (pixels without intervals count too). A pixel's
+    intervals are not independent (they share its rate), so the KS distribution of independent samples is too
+    narrow; under the model the ``(n_replicas + 1) n_pixels`` pixels are exchangeable, and the p-value is the
+    share of random relabellings (``n_pixels`` pixels drawn as "the window") whose KS distance is at least the
+    observed one (:func:`_monte_carlo_p`). Returns ``{statistic, p_value,
     replicas, p_value_independent}`` (the last: SciPy's ``ks_2samp`` as if the intervals were independent)."""
     from scipy.stats import ks_2samp
 
@@ -419,8 +421,7 @@ def pixel_permutation_ks(real, real_pixel, simulated, simulated_pixel, n_pixels:
     order = np.argsort(values, kind="stable")
     values, units = values[order], units[order]
     last = np.flatnonzero(np.append(values[1:] != values[:-1], True))  # the ECDFs at each distinct value
-    n_units = int(units.max()) + 1 if units.size else 1
-    n_units = max(n_units, (n_units + n_pixels - 1) // n_pixels * n_pixels)
+    n_units = (int(n_replicas) + 1) * int(n_pixels)
 
     def distance(in_window):
         first = in_window[units]
@@ -491,7 +492,8 @@ def compare_intervals(params, window: QuietWindow, *, replicas: int = 4, seed: i
     test = {"statistic": math.nan, "p_value": math.nan, "replicas": 0, "p_value_independent": math.nan}
     if real.size >= 20 and xs.size >= 20:
         if own is not None:
-            test = pixel_permutation_ks(own[0], position[own[1]], xs, np.concatenate(units), n_pix, seed=seed)
+            test = pixel_permutation_ks(own[0], position[own[1]], xs, np.concatenate(units), n_pix, replicas,
+                                        seed=seed)
         else:
             plain = ks_2samp(real, xs)
             test = {"statistic": float(plain.statistic), "p_value": float(plain.pvalue), "replicas": 0,
