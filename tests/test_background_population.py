@@ -277,6 +277,22 @@ def test_regular_mean_rate_kernel_matches_the_broadcast_formula(regularity, refr
             assert got == pytest.approx(float(weight @ (nu @ mass)), rel=1e-12, abs=1e-300), (p_other, own_is_on)
 
 
+def test_regular_mean_rate_with_a_subnormal_p():
+    """An atom whose p is subnormal (below 1 / DBL_MAX: 1 / p overflows) has the rate of a pixel without photon
+    noise, the timer's alone (it came out 0), and p = 1e-300 the same to rounding; without background N p."""
+    from evnoise._kernels.background import regular_mean_rate
+
+    def rate(p, l_own=0.5):
+        return regular_mean_rate(np.array([p]), np.ones(1), 0.0, np.array([l_own]), np.zeros(1), np.ones(1), 1e4, 1e-3,
+                                 np.array([0.5]), True)
+
+    timer_alone = rate(0.0)
+    assert timer_alone == pytest.approx(0.5 / (1.0 + 0.5e-3), rel=1e-3)  # the background's rate, less its dead time
+    for p in (1e-310, 5e-324, 1e-300):
+        assert rate(p) == pytest.approx(timer_alone, rel=1e-12), p
+    assert rate(1e-310, l_own=0.0) == pytest.approx(1e4 * 1e-310, rel=1e-12)
+
+
 def test_regular_rates_at_the_smallest_intensities():
     """A background of 1e-300 events/s beside photon noise as rare as p = 1e-300: the timer's
     ``1 - q (1 - a2)`` is below the float epsilon (computed as 1 - q (1 - a2) it rounds to 0, and the rate

@@ -352,3 +352,12 @@ def test_tabulated_unit_counts_distinct_values(private_cache, monkeypatch):
     assert not np.array_equal(got_distinct, tabulated)
     assert np.array_equal(table.evaluate(repeated).view(np.uint64), got_repeated.view(np.uint64))  # built: same rule
     assert np.all(np.abs(got_distinct - tabulated) <= 1e-10 * np.abs(tabulated))
+
+
+def test_values_below_1e4_certify_nothing(private_cache, monkeypatch):
+    """Unit 9 straddles 1e4; a call whose values in it all lie below 1e4 (which no certified panel serves) builds
+    no certified panels, however many it has."""
+    monkeypatch.setattr(chebyshev, "CERT_MIN_VALUES", 300)
+    table = _table(0.1, 1.7)
+    table.evaluate(np.geomspace(8200.0, 9990.0, 400))
+    assert table.certified_panels() == {}

@@ -252,11 +252,13 @@ def test_stream_goes_trial_by_trial_at_a_change_of_light(params, background_hz, 
             pend = np.flatnonzero(np.isfinite(fstate[:, ks.PEND_TAU]))
             assert pend.size > 0
             pending = set(zip((stream._t0 + np.floor(fstate[pend, ks.PEND_TAU])).astype(int).tolist(),
-                              (pend % shape[1]).tolist(), (pend // shape[1]).tolist()))
+                              (pend % shape[1]).tolist(), (pend // shape[1]).tolist(),
+                              (fstate[pend, ks.PEND_ON].astype(int) % 2).tolist()))  # the kernel's code
             monkeypatch.setattr(memory, "MAX_TABLE_STATES", 1)  # the dark's tables hold the counts stored before
             first = stream.advance(np.full(shape, lux), int(stream.t_us + 5 * dt))
             assert stream._trials is not None
-            got = set(zip(first["t"].astype(int).tolist(), first["x"].tolist(), first["y"].tolist()))
+            got = set(zip(first["t"].astype(int).tolist(), first["x"].tolist(), first["y"].tolist(),
+                          first["p"].astype(int).tolist()))
             assert pending <= got
             chunks.append(first)
         while stream.t_us < int(end):

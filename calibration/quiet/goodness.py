@@ -194,7 +194,7 @@ def _ks_distance(xs, n, cdf):
     return float(max(np.max((ranks + 1) / n - model_cdf), np.max(model_cdf - ranks / n)))
 
 
-def simulated_ks_p_value(xs, n: int, draw, cdf, seed=0):
+def simulated_ks_p_value(xs, n: int, draw, cdf, seed=0, min_intervals: int = 1):
     """P-value of a KS test of intervals that are not independent, from windows simulated under the model.
 
     A pixel's intervals share its rate (and the fitted model's spread and hot pixels make the rates differ), so the
@@ -204,7 +204,8 @@ def simulated_ks_p_value(xs, n: int, draw, cdf, seed=0):
     stored order statistics of ``n``, :func:`.checks.stored_order_statistics`; ``cdf``: the model's CDF, a
     function); the returned p-value is the share of windows simulated from the model (``draw(rng)``: their sorted
     intervals) whose statistic is as small or smaller: Besag and Clifford's sequential estimate, at most
-    :data:`INTERVAL_REPLICAS` windows, stopped after :data:`INTERVAL_EXCEEDANCES` as extreme. Returns
+    :data:`INTERVAL_REPLICAS` windows, stopped after :data:`INTERVAL_EXCEEDANCES` as extreme; only windows with at
+    least ``min_intervals`` intervals count, as only those are tested (others are drawn again). Returns
     ``(p_value, windows simulated)``; deterministic for a ``seed``."""
     from scipy.stats import kstwo
 
@@ -214,9 +215,14 @@ def simulated_ks_p_value(xs, n: int, draw, cdf, seed=0):
     rng = np.random.default_rng(seed)
 
     def as_extreme(_):
-        sim = draw(rng)
-        m = sim.size
-        return (float(kstwo.sf(_ks_distance(stored_order_statistics(sim), m, cdf), m)) if m else 1.0) <= observed
+        # a window is tested only with at least min_intervals intervals: the simulated ones as well (redrawn; a
+        # model that rarely gives that many counts a window without them as not extreme)
+        for _attempt in range(100):
+            sim = draw(rng)
+            m = sim.size
+            if m >= min_intervals:
+                return float(kstwo.sf(_ks_distance(stored_order_statistics(sim), m, cdf), m)) <= observed
+        return False
 
     return _monte_carlo_p(as_extreme)
 
@@ -272,7 +278,8 @@ def timing_tests(v, model, groups, *, p_opposite: float | None = None) -> list:
             stat = _ks_distance(xs, n, cdf)
             p_independent = float(kstwo.sf(stat, n))
             pv, replicas = simulated_ks_p_value(xs, n, interval_sampler(v, model, gi, grp, wi),
-                                                _tabulated_cdf(cdf, w.duration_s), seed=[gi, wi])
+                                                _tabulated_cdf(cdf, w.duration_s), seed=[gi, wi],
+                                                min_intervals=MIN_INTERVALS)
 
             def half(x):
                 return interval_cdf(np.array([x]), v, model, gi, grp, wi)[0] - 0.5
@@ -465,7 +472,12 @@ def compare_intervals(params, window: QuietWindow, *, replicas: int = 4, seed: i
 
     from .checks import same_pixel_timing
 
-    own = _pixel_intervals(window) if window.events is not None else None
+    own = None
+    if window.events is not None:
+        gaps, pix = _pixel_intervals(window)
+        kept = window.kept()[pix]  # a hand-made window may still hold its left-out pixels' events
+        # on the simulated intervals' grid: whole microseconds (the window's times are microseconds too)
+        own = np.rint(gaps[kept] * 1e6) * 1e-6, pix[kept]
     real = np.asarray(own[0] if real_intervals is None else real_intervals, dtype=np.float64)
     lux = np.zeros(window.shape)
     position = np.cumsum(window.kept()) - 1  # a kept pixel's index among the kept ones

@@ -125,7 +125,6 @@ def regular_mean_rate(p_own, mass, p_other, l_own, l_other, weight, trial_rate_h
     q = np.empty(n_atoms)
     log1m_p = np.empty(n_atoms)
     share_p = np.empty(n_atoms)
-    inv_p = np.empty(n_atoms)
     for a in range(n_atoms):
         pa = min(p_own[a] + p_other, 1.0)
         p[a] = pa
@@ -135,7 +134,6 @@ def regular_mean_rate(p_own, mass, p_other, l_own, l_other, weight, trial_rate_h
             share_p[a] = p_own[a] / pa if own_is_on else 1.0 - p_other / pa
         else:
             share_p[a] = 0.0
-        inv_p[a] = 1.0 / pa if pa > 0.0 else 0.0
     dead = refractory_s * n
     per_node = np.zeros(l_own.size)
     for b in prange(l_own.size):
@@ -153,11 +151,12 @@ def regular_mean_rate(p_own, mass, p_other, l_own, l_other, weight, trial_rate_h
                 x = (d0 + 1.0) * log1m_p[a]
                 if x < -0.5:  # 1 - q^(d0+1) without cancellation: no expm1 needed
                     qd = math.exp(x)
-                    head = (1.0 - qd) * inv_p[a]
+                    head = (1.0 - qd) / pa
                 else:  # one expm1 gives both (q^(d0+1) = 1 + expm1 to a rounding: it is near 1 here)
                     em1 = math.expm1(x)
                     qd = 1.0 + em1
-                    head = -em1 * inv_p[a] if pa > 0.0 else d0 + 1.0
+                    # divided by p, not times 1 / p: that overflows for a subnormal p (the rate came out 0)
+                    head = -em1 / pa if pa > 0.0 else d0 + 1.0
                 e_min = head + phi * qd
                 if qd > 0.0:  # the geometric rest after the whole part; nothing left once q^(d0+1) underflows
                     # 1 - q (1 - a2) = p + q a2: a sum of two non-negative terms, no cancellation when both are small
@@ -168,7 +167,7 @@ def regular_mean_rate(p_own, mass, p_other, l_own, l_other, weight, trial_rate_h
         else:  # no background: photon noise alone, nu = N p / (1 + N p R)
             for a in range(n_atoms):
                 if p[a] > 0.0:
-                    acc += mass[a] * n / (dead + 1.0 / p[a]) * share_p[a]
+                    acc += mass[a] * n * p[a] / (1.0 + dead * p[a]) * share_p[a]
         per_node[b] = acc
     total = 0.0
     for b in range(l_own.size):

@@ -9,12 +9,12 @@ it reproduces the exact kernel at check points between its nodes to within the t
 otherwise it is halved (down to a minimum width, below which the panel is evaluated with
 the exact kernel directly). Evaluation does a binary search for the panel and Clenshaw.
 
-From ``lam = 1e4`` up to :data:`CERT_LAST_UNIT` a call with many values in a unit (:data:`CERT_MIN_VALUES`;
-distinct ones in a tabulated unit) gets certified panels in ``lam`` there (:mod:`evnoise._kernels.certified`:
-Chebyshev interpolation of a rescaled ``p`` with a proven error bound), in the units left to the exact kernel and
-in those the log-spaced panels tabulate alike (from 1e4 to e^10 = 2.2e4, and to e^11 for the largest thresholds):
-their checks between nodes are measured, not proven. Below 1e4, and for calls with fewer values, the values are
-the log-spaced panels' or the exact sum's, bit for bit.
+From ``lam = 1e4`` up to :data:`CERT_LAST_UNIT` a call with many values at or above 1e4 in a unit
+(:data:`CERT_MIN_VALUES`; distinct ones in a tabulated unit) gets certified panels in ``lam`` there
+(:mod:`evnoise._kernels.certified`: Chebyshev interpolation of a rescaled ``p`` with a proven error bound), in the
+units left to the exact kernel and in those the log-spaced panels tabulate alike (from 1e4 to e^10 = 2.2e4, and to
+e^11 for the largest thresholds): their checks between nodes are measured, not proven. Below 1e4, and for calls
+with fewer values, the values are the log-spaced panels' or the exact sum's, bit for bit.
 """
 
 from __future__ import annotations
@@ -341,8 +341,10 @@ class LogPTable:
                 wanted = [lo + int(i) for i in np.flatnonzero(present)]
                 self.ensure(wanted)
                 # certified panels where a unit has many values and (direct) is not skipped as a whole by its bound
-                many = {u for u in wanted if present[u - lo] >= CERT_MIN_VALUES
-                        and (self._is_direct(u) or _many_distinct(valid[units == u]))}
+                high = units[valid >= certified.LAM_MIN]  # only these can use certified panels
+                counted = np.bincount((np.clip(high, lo, hi) - lo).astype(np.int64), minlength=hi - lo + 1)
+                many = {u for u in wanted if counted[u - lo] >= CERT_MIN_VALUES
+                        and (self._is_direct(u) or _many_distinct(valid[(units == u) & (valid >= certified.LAM_MIN)]))}
                 need = [u for u in many if self.certifiable(u) and u not in self._certified
                         and not (self._is_direct(u) and self._unit_bound(u) < skip_below)]
                 self.ensure_certified(need)
