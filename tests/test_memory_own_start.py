@@ -233,15 +233,10 @@ def test_stream_goes_trial_by_trial_at_a_change_of_light(params, background_hz, 
     first step) give per-pixel counts, ON share and alternation in each phase and right after each step of the
     plain per-trial simulation of the same schedule (as the tables' stream is checked in test_memory_term)."""
     from evnoise._kernels import simulate as ks
-    from test_memory_term import _reference_schedule, check_steps_against_reference
+    from test_memory_term import STEPS, STEPS_SHAPE, check_steps_against_reference, steps_setup
 
-    shape, steps = (20, 20), [(0.5, 2000), (0.0, 1000), (2.0, 2000)]
-    n_pix = shape[0] * shape[1]
-    dt = params.trial_us
-    lam = np.concatenate([np.full(n, lux) for lux, n in steps]) * params.photons_per_lux
-    ref = _reference_schedule(lam, params, n_pix, seed=8, background_hz=background_hz)
-    stream = ev.NoiseStream(shape, params, rng=9)
-    ends = np.cumsum([n for _, n in steps]) * dt
+    shape, steps, n_pix, dt = STEPS_SHAPE, STEPS, STEPS_SHAPE[0] * STEPS_SHAPE[1], params.trial_us
+    ref, stream, ends = steps_setup(params, background_hz)
     ends[0] -= 0.5 * dt  # inside the last trial of the first light: the trials that start after it have the next one
     rng = np.random.default_rng(5)
     chunks = []

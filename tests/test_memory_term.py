@@ -356,15 +356,21 @@ def test_noise_stream_with_memory_through_changes_of_light_against_the_per_trial
     schedule (two-sample, k-sigma from the per-pixel spread of each); without and with a background."""
     if not tables:
         monkeypatch.setattr(memory, "MAX_TABLE_STATES", 10)
-    shape, steps = (20, 20), [(0.5, 2000), (0.0, 1000), (2.0, 2000)]
-    n_pix = shape[0] * shape[1]
-    dt = params.trial_us
-    lam = np.concatenate([np.full(n, lux) for lux, n in steps]) * params.photons_per_lux
-    ref = _reference_schedule(lam, params, n_pix, seed=8, background_hz=background_hz)
-    stream = ev.NoiseStream(shape, params, rng=9)
-    ends = np.cumsum([n for _, n in steps]) * dt
-    got = _stream_events(stream, [(np.full(shape, lux), int(end)) for (lux, _), end in zip(steps, ends)], seed=5)
-    check_steps_against_reference(ref, got, n_pix)
+    ref, stream, ends = steps_setup(params, background_hz)
+    got = _stream_events(stream, [(np.full(STEPS_SHAPE, lux), int(end)) for (lux, _), end in zip(STEPS, ends)],
+                         seed=5)
+    check_steps_against_reference(ref, got, STEPS_SHAPE[0] * STEPS_SHAPE[1])
+
+
+#: The light steps 0.5 -> 0 -> 2 lux (trials of each) of the change-of-light tests, on a 20 x 20 sensor
+STEPS_SHAPE, STEPS = (20, 20), [(0.5, 2000), (0.0, 1000), (2.0, 2000)]
+
+
+def steps_setup(params, background_hz):
+    """The steps' per-trial reference schedule (``(pix, t, p)``), a fresh stream and the steps' ends (µs)."""
+    lam = np.concatenate([np.full(n, lux) for lux, n in STEPS]) * params.photons_per_lux
+    ref = _reference_schedule(lam, params, STEPS_SHAPE[0] * STEPS_SHAPE[1], seed=8, background_hz=background_hz)
+    return ref, ev.NoiseStream(STEPS_SHAPE, params, rng=9), np.cumsum([n for _, n in STEPS]) * params.trial_us
 
 
 def check_steps_against_reference(ref, got, n_pix):
