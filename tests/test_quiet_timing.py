@@ -185,6 +185,8 @@ def test_compare_intervals_of_a_preset_on_its_own_window(tmp_path):
     assert poisson["ks_2samp_p_value"] < 1e-3
     with pytest.raises(ev.InputError, match="no events"):
         window_intervals(QuietWindow(w.counts, T, "counts only"))
+    with pytest.raises(ev.InputError, match="no events"):
+        compare_intervals(params, QuietWindow(w.counts, T, "counts only"))
 
 
 def _spread_model(n_side, duration_s, regularity):

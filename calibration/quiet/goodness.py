@@ -472,15 +472,18 @@ def compare_intervals(params, window: QuietWindow, *, replicas: int = 4, seed: i
 
     from .checks import same_pixel_timing
 
+    keep = window.kept()
     own = None
     if window.events is not None:
         gaps, pix = _pixel_intervals(window)
-        kept = window.kept()[pix]  # a hand-made window may still hold its left-out pixels' events
+        kept = keep[pix]  # a hand-made window may still hold its left-out pixels' events
         # on the simulated intervals' grid: whole microseconds (the window's times are microseconds too)
         own = np.rint(gaps[kept] * 1e6) * 1e-6, pix[kept]
-    real = np.asarray(own[0] if real_intervals is None else real_intervals, dtype=np.float64)
+    if real_intervals is None:  # a window without events: window_intervals says so (InputError)
+        real_intervals = own[0] if own is not None else window_intervals(window)
+    real = np.asarray(real_intervals, dtype=np.float64)
     lux = np.zeros(window.shape)
-    position = np.cumsum(window.kept()) - 1  # a kept pixel's index among the kept ones
+    position = np.cumsum(keep) - 1  # a kept pixel's index among the kept ones
     n_pix = window.n_pixels
     width = window.shape[1]
     counts, ivals, units, opp, trans = [], [], [], 0, 0

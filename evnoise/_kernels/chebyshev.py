@@ -341,10 +341,10 @@ class LogPTable:
                 wanted = [lo + int(i) for i in np.flatnonzero(present)]
                 self.ensure(wanted)
                 # certified panels where a unit has many values and (direct) is not skipped as a whole by its bound
-                high = units[valid >= certified.LAM_MIN]  # only these can use certified panels
-                counted = np.bincount((np.clip(high, lo, hi) - lo).astype(np.int64), minlength=hi - lo + 1)
+                above = valid >= certified.LAM_MIN  # only these can use certified panels
+                counted = np.bincount((np.clip(units[above], lo, hi) - lo).astype(np.int64), minlength=hi - lo + 1)
                 many = {u for u in wanted if counted[u - lo] >= CERT_MIN_VALUES
-                        and (self._is_direct(u) or _many_distinct(valid[(units == u) & (valid >= certified.LAM_MIN)]))}
+                        and (self._is_direct(u) or _many_distinct(valid[above & (units == u)]))}
                 need = [u for u in many if self.certifiable(u) and u not in self._certified
                         and not (self._is_direct(u) and self._unit_bound(u) < skip_below)]
                 self.ensure_certified(need)
