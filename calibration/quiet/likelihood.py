@@ -29,7 +29,7 @@ import numpy as np
 
 from evnoise.errors import InputError
 
-from .counts import count_survival
+from .counts import count_log_pmf
 from .timing import log_point_density, log_spread_integral, timing_statistics
 
 #: Grid points of the standard normal (over +-7 sd) for the integrals over the spread.
@@ -164,11 +164,9 @@ def _log_component(vec, rates, share_on, weights, grp: _Group, regularity):
     acc = np.zeros((vec.shape[0], rates.shape[0]))
     for wi, w in enumerate(grp.windows):
         needed, where = np.unique(n_tot[:, wi], return_inverse=True)
-        k = np.concatenate([needed, needed + 1]).astype(np.float64)
-        surv = count_survival(k[None, :], rates[:, wi, None], w.duration_s, regularity)  # (M, 2 n)
-        pmf = np.maximum(surv[:, :needed.size] - surv[:, needed.size:], 0.0)
+        log_pmf = count_log_pmf(needed[None, :].astype(np.float64), rates[:, wi, None], w.duration_s,
+                                regularity)[:, where]  # (M, U)
         with np.errstate(divide="ignore"):
-            log_pmf = np.log(np.maximum(pmf, 1e-300))[:, where]  # (M, U)
             lq = np.log(np.maximum(share_on[:, wi], 1e-300))
             l1q = np.log(np.maximum(1.0 - share_on[:, wi], 1e-300))
         k_on = vec[:, wi, 0].astype(np.float64)
