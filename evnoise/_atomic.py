@@ -75,7 +75,7 @@ class AtomicFile:
 
     def commit(self) -> Path:
         """Rename the temporary file to its final name (``OutputError`` if ``path`` appeared and not ``overwrite``)."""
-        if not self.overwrite and self.path.exists():
+        if not self.overwrite and os.path.lexists(self.path):  # a link, even a broken one, counts
             raise OutputError(f"{self.what} {self.path} appeared while writing; not replacing it")
         os.replace(self.tmp, self.path)
         self.done = True
@@ -139,7 +139,7 @@ def atomic_output(path, *, overwrite: bool = True, what: str = "file"):
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
         raise OutputError(f"cannot write {what} {path}: directory {folder} does not exist")
-    if path.exists() and not overwrite:
+    if os.path.lexists(path) and not overwrite:  # a symbolic link counts, even a broken one
         raise OutputError(f"{what} {path} already exists; pass overwrite=True to replace it")
     out = AtomicFile(path, overwrite=overwrite, what=what)
     try:

@@ -7,11 +7,14 @@ Public names in an internal module (they were ``io._open_h5``, ``_event_datasets
 from __future__ import annotations
 
 import json
+import logging
 
 import numpy as np
 
 from ._checks import check_input_file
 from .errors import InputError
+
+log = logging.getLogger("evnoise")
 
 #: Events read at a time when scanning a file.
 READ_BLOCK = 1 << 22
@@ -233,9 +236,10 @@ def event_datasets(f, path) -> dict:
     if not found:
         raise InputError(f"{path} is not an events.h5 file (no /events/x, y, t, p datasets)")
     ds = {k: group[k] for k in "xytp"}
-    sizes = {ds[k].shape for k in "xytp"}
-    if len(sizes) != 1 or len(next(iter(sizes))) != 1:
-        raise InputError(f"{path}: /events/x, y, t, p must be 1-D and of equal length, got {sorted(sizes)}")
+    sizes = {ds[k].shape for k in "xytp"}  # None: a dataset without a dataspace (h5py.Empty)
+    if len(sizes) != 1 or None in sizes or len(next(iter(sizes))) != 1:
+        shapes = sorted("no dataspace" if s is None else str(s) for s in sizes)
+        raise InputError(f"{path}: /events/x, y, t, p must be 1-D and of equal length, got {', '.join(shapes)}")
     for k in "xytp":
         kind = ds[k].dtype.kind
         if kind not in "iub":
@@ -330,17 +334,30 @@ def sensor_shape(f, path) -> tuple:
     return height, width
 
 
-def first_index(f, t_ds, t_us: int) -> int:
-    """Index of the first event with ``t >= t_us``, reading only one millisecond of events."""
-    n = t_ds.shape[0]
-    ms = f.get("ms_to_idx")
-    k = t_us // 1000
-    if ms is not None and 0 <= k < ms.shape[0]:
+def _indexed_range(f, n: int, k: int):
+    """``(range, damaged)``: millisecond ``k``'s ``[lo, hi)`` from the file's ``/ms_to_idx``; None where it has none
+    (no index, or ``k`` beyond it: not damage) or where the index is damaged (not a 1-D integer dataset, unreadable,
+    or entries outside ``0 <= lo <= hi <= n``)."""
+    import h5py
+
+    try:
+        ms = f.get("ms_to_idx")
+        if ms is None:
+            return None, False
+        if not isinstance(ms, h5py.Dataset) or ms.shape is None or len(ms.shape) != 1 or ms.dtype.kind not in "iu":
+            return None, True
+        if not 0 <= k < ms.shape[0]:
+            return None, False
         lo = int(ms[k])
         hi = int(ms[k + 1]) if k + 1 < ms.shape[0] else n
-    else:
-        lo, hi = 0, n  # no index for this time: search the whole column in blocks
-    # binary search over [lo, hi) in blocks, reading at most READ_BLOCK values at a time
+    except (OSError, RuntimeError, ValueError, TypeError, KeyError):
+        return None, True
+    return ((lo, hi), False) if 0 <= lo <= hi <= n else (None, True)
+
+
+def _search(t_ds, t_us: int, lo: int, hi: int) -> int:
+    """Index of the first event with ``t >= t_us`` within ``[lo, hi)`` (``hi`` if none): a binary search in blocks,
+    reading at most :data:`READ_BLOCK` values at a time."""
     while hi - lo > READ_BLOCK:
         mid = (lo + hi) // 2
         if int(t_ds[mid]) < t_us:
@@ -348,3 +365,25 @@ def first_index(f, t_ds, t_us: int) -> int:
         else:
             hi = mid
     return lo + int(np.searchsorted(t_ds[lo:hi], t_us, side="left"))
+
+
+def first_index(f, t_ds, t_us: int) -> int:
+    """Index of the first event with ``t >= t_us``, reading only one millisecond of events where the file's
+    ``/ms_to_idx`` indexes it.
+
+    The index is a shortcut, not trusted: the answer is checked against the events beside it (the one before is
+    earlier than ``t_us``, the one found is not), and where the index is damaged (wrong type or shape, entries
+    outside the file, or entries that do not bracket ``t_us``) the whole column is searched instead, with a warning.
+    """
+    n = int(t_ds.shape[0])
+    k = t_us // 1000
+    got, damaged = _indexed_range(f, n, k)
+    if got is not None:
+        i = _search(t_ds, t_us, *got)
+        if (i == 0 or int(t_ds[i - 1]) < t_us) and (i == n or int(t_ds[i]) >= t_us):
+            return i
+        damaged = True
+    if damaged:
+        log.warning("%s: /ms_to_idx does not index millisecond %d (damaged); searching the event times instead",
+                    f.filename, k)
+    return _search(t_ds, t_us, 0, n)

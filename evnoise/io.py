@@ -72,7 +72,7 @@ def open_output_path(path, *, overwrite: bool = False, what: str = "output") -> 
         raise OutputError(f"cannot write {what} {path}: {parent} is not a directory")
     if path.is_dir():
         raise OutputError(f"cannot write {what} {path}: it is a directory")
-    if path.exists() and not overwrite:
+    if os.path.lexists(path) and not overwrite:  # a symbolic link counts, even a broken one
         raise OutputError(f"{what} {path} already exists; pass overwrite=True to replace it")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise OutputError(f"cannot write {what} {path}: directory {parent} is not writable")

@@ -264,3 +264,133 @@ def test_h5_event_times_past_2_to_62_are_refused(tmp_path):
         f["events/t"] = t
     with pytest.raises(InputError, match=r"/events/t\[\d+\] puts an event at -9223372036854775808 us"):
         read_any(path)
+
+
+# --------------------------------------------------------------------------------------
+# twelfth session's campaign: the millisecond index, datasets without a dataspace, special files, damaged zips,
+# control bytes in messages, broken links as outputs
+# --------------------------------------------------------------------------------------
+def _ms_file(tmp_path, index):
+    """100 events one millisecond apart (t = 0 .. 99 ms) and ``index`` as ``/ms_to_idx`` (a callable gets the file)."""
+    path = tmp_path / "indexed.h5"
+    n = 100
+    ev.write_events(path, make_events(np.arange(n) * 1000, np.zeros(n), np.zeros(n), np.ones(n)), (48, 64))
+    with h5py.File(path, "a") as f:
+        if "ms_to_idx" in f:
+            del f["ms_to_idx"]
+        if callable(index):
+            index(f)
+        else:
+            f["ms_to_idx"] = index
+    return path
+
+
+@pytest.mark.parametrize("index", [
+    np.full(200, np.nan),                                  # floats
+    np.array([b"abc"] * 200),                              # strings
+    np.zeros((200, 2), dtype=np.int64),                    # 2-D
+    lambda f: f.create_group("ms_to_idx"),                 # a group
+    lambda f: f.create_dataset("ms_to_idx", data=np.int64(5)),           # a scalar
+    lambda f: f.create_dataset("ms_to_idx", data=h5py.Empty("<i8")),     # no dataspace
+    np.full(200, -5, dtype=np.int64),                      # negative: would count from the end
+    np.full(200, 1 << 62, dtype=np.int64),                 # past the file
+    np.arange(200, dtype=np.int64)[::-1].copy(),           # decreasing
+    np.arange(200, dtype=np.int64) // 2,                   # in range, but indexes the wrong events
+], ids=["nan", "strings", "2d", "group", "scalar", "empty", "negative", "huge", "decreasing", "wrong"])
+def test_a_damaged_millisecond_index_gives_the_right_window(tmp_path, index, caplog):
+    """A windowed read of an events.h5 whose /ms_to_idx is damaged (ValueError, TypeError, AttributeError,
+    IndexError before; a negative or wrong index silently gave 5 or 0 of the 99 events): the index is checked
+    against the events beside the answer and the event times searched instead, with a warning."""
+    path = _ms_file(tmp_path, index)
+    got, _ = ev.read_events(path, t_start_us=5, t_end_us=50_500)
+    np.testing.assert_array_equal(got["t"], np.arange(1, 51) * 1000)
+    assert "ms_to_idx" in caplog.text
+    chunks = list(ev.iter_event_chunks(path, t_start_us=5, t_end_us=10**12))
+    assert sum(len(c) for c in chunks) == 99
+
+
+def test_a_sound_millisecond_index_is_used_without_a_warning(tmp_path, caplog):
+    path = _ms_file(tmp_path, np.arange(101, dtype=np.int64))  # event k at k ms: the first at or after k ms is k
+    got, _ = ev.read_events(path, t_start_us=5, t_end_us=10**12)  # past the index's end: not damage
+    np.testing.assert_array_equal(got["t"], np.arange(1, 100) * 1000)
+    assert "ms_to_idx" not in caplog.text
+
+
+def test_h5_event_datasets_without_a_dataspace_are_one_error_line(tmp_path):
+    path = tmp_path / "null.h5"
+    with h5py.File(path, "w") as f:
+        g = f.create_group("events")
+        for k in "xytp":
+            g.create_dataset(k, data=h5py.Empty("<i8"))
+        f.attrs["width"], f.attrs["height"] = 64, 48
+    with pytest.raises(InputError, match="no dataspace"):
+        ev.read_events(path)
+    assert "1-D" in _one_error_line(_cli(tmp_path, ["info", str(path)]))
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no named pipes here")
+@pytest.mark.parametrize("suffix", [".h5", ".csv", ".raw", ".png"])
+def test_a_named_pipe_is_refused_not_read_for_ever(tmp_path, suffix):
+    """A FIFO passed as an input blocked the first read for ever (readers, read_image, info, simulate)."""
+    fifo = tmp_path / f"pipe{suffix}"
+    os.mkfifo(fifo)
+    reader = "read_image" if suffix == ".png" else "read_events"
+    code = (f"import evnoise as ev\ntry:\n    ev.{reader}({str(fifo)!r})\nexcept ev.InputError as e:\n    print(e)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)  # a hang fails
+    assert "special file" in out.stdout, out.stdout + out.stderr[-2000:]
+    for argv in (["info", str(fifo), "--stats"], ["simulate", str(fifo), "--out", "out.h5", "--duration", "0.01"]):
+        line = _one_error_line(_cli(tmp_path, argv, timeout=60))
+        assert "special file" in line or "not found" in line, line
+    assert not (tmp_path / "out.h5").exists()
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/zero"), reason="no /dev/zero")
+def test_a_link_to_a_device_is_refused_not_read_to_the_end(tmp_path):
+    """``evnoise info`` on a link to /dev/zero read the device until memory ran out (MemoryError traceback)."""
+    link = tmp_path / "zero.h5"
+    link.symlink_to("/dev/zero")
+    line = _one_error_line(_cli(tmp_path, ["info", str(link)], address_space=2 << 30, timeout=60))
+    assert "special file" in line
+    with pytest.raises(InputError, match="special file"):
+        ev.read_events(tmp_path / "zero.h5")
+
+
+def _damaged_zip(path):
+    import io
+    import zipfile
+
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as z:
+        z.writestr("model/data.pkl", b"\x80\x02}q\x00.")
+    data = bytearray(buf.getvalue())
+    end = data.rfind(b"PK\x05\x06")
+    central = struct.unpack_from("<I", data, end + 16)[0]
+    data[central:central + 4] = b"XXXX"  # the central directory's signature
+    path.write_bytes(bytes(data))
+    return path
+
+
+def test_info_on_a_damaged_zip_is_one_error_line(tmp_path):
+    """``evnoise info`` on a .pt whose zip directory is damaged raised zipfile.BadZipFile."""
+    path = _damaged_zip(tmp_path / "model.pt")
+    assert "damaged zip" in _one_error_line(_cli(tmp_path, ["info", str(path)]))
+
+
+def test_control_bytes_from_a_file_are_escaped_in_the_error_line(tmp_path):
+    """An AEDAT 2.0 camera name holding ESC and NUL bytes reached the terminal raw in the error line."""
+    path = tmp_path / "chip.aedat"
+    path.write_bytes(b"#!AER-DAT2.0\r\n# AEChip: evil\x1b[2J\x00chip\r\n# End Of ASCII Header\r\n" + bytes(16))
+    proc = _cli(tmp_path, ["info", str(path), "--stats"])
+    line = _one_error_line(proc)
+    assert "\x1b" not in proc.stderr and "\x00" not in proc.stderr
+    assert "evil\\x1b[2J\\x00chip" in line
+
+
+def test_a_broken_link_as_output_is_not_replaced_without_overwrite(tmp_path):
+    link = tmp_path / "out.h5"
+    link.symlink_to(tmp_path / "nowhere.h5")
+    with pytest.raises(ev.OutputError, match="already exists"):
+        ev.write_events(link, _events(), (48, 64))
+    assert link.is_symlink() and not (tmp_path / "nowhere.h5").exists()
+    ev.write_events(link, _events(), (48, 64), overwrite=True)  # replaces the link itself, not its target
+    assert not link.is_symlink() and not (tmp_path / "nowhere.h5").exists()

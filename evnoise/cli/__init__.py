@@ -88,7 +88,7 @@ def main(argv=None) -> int:
         code = args.func(args)
     except EvnoiseError as exc:
         _close_progress_bars()
-        print(f"evnoise: error: {_flag_names(str(exc), args)}", file=sys.stderr)
+        print(f"evnoise: error: {printable(_flag_names(str(exc), args))}", file=sys.stderr)
         return 2
     except Terminated:
         _close_progress_bars()
@@ -112,7 +112,7 @@ def main(argv=None) -> int:
         line = _known_failure(exc)
         if line is None:
             raise
-        print(f"evnoise: error: {line}", file=sys.stderr)
+        print(f"evnoise: error: {printable(line)}", file=sys.stderr)
         return 2
     finally:
         _restore_sigterm(previous)
@@ -245,6 +245,16 @@ def _restore_sigterm(previous) -> None:
     signal.signal(signal.SIGTERM, term if term is not None else signal.SIG_DFL)
 
 
+def printable(text: str, keep: str = "") -> str:
+    """``text`` with control characters (bytes a file put into a message: a camera name, a column header) written
+    as escapes, but those in ``keep``: an error stays one line, and a hostile file cannot send escape sequences to
+    the terminal."""
+    if text.isprintable():
+        return text
+    return "".join(ch if ch.isprintable() or ch in keep else ch.encode("unicode_escape").decode("ascii")
+                   for ch in text)
+
+
 class _ProgressAwareHandler(logging.Handler):
     """Log records to standard error through ``tqdm.write`` when tqdm is loaded, so that a warning
     does not land on the line of a progress bar (the bar is redrawn below the message). ``flags``: the
@@ -260,6 +270,7 @@ class _ProgressAwareHandler(logging.Handler):
             text = self.format(record)
             if self.flags:
                 text = flag_names(text, self.flags)
+            text = printable(text, keep="\n")
             tqdm_module = sys.modules.get("tqdm")
             if tqdm_module is not None and getattr(tqdm_module.tqdm, "_instances", None):
                 tqdm_module.tqdm.write(text, file=sys.stderr)

@@ -67,6 +67,8 @@ def detect_kind(path) -> str:
     path = Path(path)
     if not path.exists():
         raise InputError(f"file not found: {path}")
+    if not (path.is_file() or path.is_dir()):  # a pipe would block the first read for ever, /dev/zero never ends
+        raise InputError(f"expected a file or a dataset folder, got a special file (a pipe, device or socket): {path}")
     for name, (detect, _) in KINDS.items():
         if detect(path):
             return name

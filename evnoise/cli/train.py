@@ -116,10 +116,15 @@ def _register_info_kind() -> None:
     def detect(path):
         import zipfile
 
+        from ..errors import InputError
+
         if not zipfile.is_zipfile(path):
             return False
-        with zipfile.ZipFile(path) as z:
-            return any(name.endswith("data.pkl") for name in z.namelist())
+        try:
+            with zipfile.ZipFile(path) as z:
+                return any(name.endswith("data.pkl") for name in z.namelist())
+        except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:  # a damaged archive: no checkpoint of ours
+            raise InputError(f"{path}: a damaged zip archive ({exc}), not a model checkpoint evnoise reads") from None
 
     def summarise(path):
         from ..reconstruct.checkpoint import checkpoint_summary

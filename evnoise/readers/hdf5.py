@@ -54,6 +54,8 @@ class H5Source(EventSource):
             except (OSError, RuntimeError, ValueError, TypeError) as exc:
                 raise InputError(f"cannot read events from {self.path}: {exc}") from None
         for t in (first, last):
+            if t is not None and not -(1 << 63) <= t < (1 << 63):
+                raise InputError(f"{self.path}: /events/t holds {t}, past the int64 range of event times (damaged)")
             if t is not None and not -(1 << 63) <= t + self.t_offset_us < (1 << 63):
                 raise InputError(f"{self.path}: /t_offset {self.t_offset_us} puts event times past the int64 range")
             if t is not None and abs(t + self.t_offset_us) > MAX_ABS_T_US:
