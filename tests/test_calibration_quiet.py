@@ -389,3 +389,24 @@ def test_a_polarity_without_events_is_at_its_bound_and_the_others_keep_their_err
     n, n_pix = on.sum(), on.size
     assert fit.values["rate_on_hz"] == pytest.approx(n / (T * n_pix), rel=1e-4)
     assert se == pytest.approx(math.sqrt(n) / (T * n_pix), rel=1e-2)
+
+
+def test_a_polarity_whose_events_are_all_the_hot_pixels_is_at_its_bound():
+    """Every OFF event from hot pixels (all OFF): the ordinary OFF rate runs to 0, where the likelihood is flat in its
+    log and the numerical curvature is rounding noise of either sign: the rate is at its lower bound and held there,
+    and the others keep their standard errors (a real DVS128 window lost them all when that noise came out
+    negative)."""
+    rng = np.random.default_rng(9)
+    shape, T = (64, 64), 20.0
+    on = rng.poisson(0.05 * T, shape)
+    hot = rng.random(shape) < 0.01
+    off = np.where(hot, rng.poisson(1.0 * T, shape), 0)
+    w = qw.QuietWindow(np.stack([on, off]), T, source="OFF only from hot pixels")
+    fit = q.fit_quiet([w], spread="off", hot="on", regularity="off")
+    assert fit.values["rate_off_hz"] * T * on.size < q.NEGLIGIBLE_EVENTS
+    assert fit.status["rate_off_hz"].startswith("at lower bound (0: "), fit.status["rate_off_hz"]
+    assert fit.std_error["rate_off_hz"] is None
+    n, n_pix = on.sum(), on.size  # the ON rate: the Poisson MLE and its standard error, directly
+    assert fit.values["rate_on_hz"] == pytest.approx(n / (T * n_pix), rel=1e-3)
+    assert fit.std_error["rate_on_hz"] == pytest.approx(math.sqrt(n) / (T * n_pix), rel=3e-2)
+    assert fit.std_error["hot_fraction"] is not None and fit.std_error["hot_fraction"] > 0

@@ -605,6 +605,9 @@ def _coordinates(model: Model) -> list:
 #: A parameter held in an interval by its fitted coordinate (a logit, a log of the excess over a floor) counts as
 #: at that bound when it is within this fraction of the interval (the coordinate beyond about +-9.2).
 BOUND_TOL = 1e-4
+#: An ordinary pixels' rate that accounts for fewer events than this in all the windows together is at its lower
+#: bound, 0 (the events of its polarity are the hot pixels')
+NEGLIGIBLE_EVENTS = 1e-3
 #: A log-normal spread (``sigma``, ``hot_sigma``, fitted as its log) below this is at its lower bound, 0.
 SIGMA_FLOOR = 1e-3
 
@@ -615,9 +618,15 @@ def _at_bounds(v: dict, model: Model, windows=()) -> dict:
     observed information gives it no standard error. A polarity without any event in ``windows`` has its rate's
     maximum at 0 (the optimiser stops wherever its log's gradient falls below its tolerance)."""
     out = {}
+    exposure = sum(w.duration_s * w.pixel_counts().shape[1] for w in windows)  # pixel-seconds
     for k, name in enumerate(("rate_on_hz", "rate_off_hz")):
+        pol = "ON" if k == 0 else "OFF"
         if windows and not any(int(w.pixel_counts()[k].sum()) for w in windows):
-            out[name] = f"at lower bound (0: no {'ON' if k == 0 else 'OFF'} events"
+            out[name] = f"at lower bound (0: no {pol} events"
+        elif windows and v[name] * exposure < NEGLIGIBLE_EVENTS:
+            # the polarity's events are the hot pixels': the likelihood is flat in the log of this rate, whose
+            # numerical curvature is rounding noise of either sign
+            out[name] = f"at lower bound (0: {v[name] * exposure:.1g} of the {pol} events expected from it"
     if model.spread and v["sigma"] < SIGMA_FLOOR:
         out["sigma"] = "at lower bound (0: no spread"
     if model.hot:
