@@ -334,6 +334,10 @@ def sensor_shape(f, path) -> tuple:
     return height, width
 
 
+#: Files whose damaged /ms_to_idx this process has warned about (the warning says what happens for every read).
+_WARNED_INDEX: set = set()
+
+
 def _indexed_range(f, n: int, k: int):
     """``(range, damaged)``: millisecond ``k``'s ``[lo, hi)`` from the file's ``/ms_to_idx``; None where it has none
     (no index, or ``k`` beyond it: not damage) or where the index is damaged (not a 1-D integer dataset, unreadable,
@@ -383,7 +387,8 @@ def first_index(f, t_ds, t_us: int) -> int:
         if (i == 0 or int(t_ds[i - 1]) < t_us) and (i == n or int(t_ds[i]) >= t_us):
             return i
         damaged = True
-    if damaged:
+    if damaged and f.filename not in _WARNED_INDEX:  # once per file: a recording read in blocks asks per block
+        _WARNED_INDEX.add(f.filename)
         log.warning("%s: /ms_to_idx does not index millisecond %d (damaged); searching the event times instead",
                     f.filename, k)
     return _search(t_ds, t_us, 0, n)

@@ -126,8 +126,14 @@ def test_poisson_count_log_pmf_has_no_floor():
     np.testing.assert_allclose(qn.count_log_pmf(k, 100.0, 10.0, 0.0), poisson.logpmf(k, 1000.0), rtol=1e-13)
     assert qn.count_log_pmf(0.0, 100.0, 10.0, 0.0) == pytest.approx(-1000.0, rel=1e-15)  # far below 1e-300
     np.testing.assert_array_equal(qn.count_log_pmf(np.array([0.0, 1.0]), 0.0, 10.0, 0.0), [0.0, -np.inf])
-    # a regular timer's unreachable count (gaps of at least 0.05 s: at most 120 events in 6 s) is at the floor
+    # a subnormal rate is a rate: finite log-probabilities (k log(rate T) - rate T - log k!)
+    np.testing.assert_allclose(qn.count_log_pmf(np.array([1.0, 2.0]), 1e-310, 2.0, 0.0),
+                               poisson.logpmf([1, 2], 2e-310), rtol=1e-12)
+    # a regular timer's unreachable count (gaps of at least 0.05 s: at most 120 events in 6 s) is at the floor,
+    # and a count merely below it in double precision is not scored lower than that
     assert qn.count_log_pmf(150.0, 10.0, 6.0, 0.5) == qn.LOG_PMF_FLOOR
+    tail = qn.count_log_pmf(np.arange(300.0, 330.0), 87.6003852925707, 2.3500871561213788, 0.64745009074246)
+    assert np.all(tail >= qn.LOG_PMF_FLOOR) and np.any(tail == qn.LOG_PMF_FLOOR)
 
 
 # --------------------------------------------------------------------------------------

@@ -126,9 +126,9 @@ def count_log_pmf(k, rate_hz, duration_s, regularity):
     r = float(regularity)
     if r == 0.0:
         with np.errstate(over="ignore", invalid="ignore"):
-            m = np.where(rate > RATE_TINY_HZ, rate, 0.0) * float(duration_s)
+            m = np.maximum(rate, 0.0) * float(duration_s)  # a subnormal rate is still a rate: xlogy takes m = 0
             out = xlogy(k, m) - m - gammaln(k + 1.0)
-            return np.where(m == np.inf, -np.inf, out)
+            return np.where((m == np.inf) | (rate == np.inf), -np.inf, out)
     k, rate = np.broadcast_arrays(k, rate)
     pmf = np.empty(k.shape)
     # below the mean count P(N <= k) is the smaller tail (near the mean both are about 1/2 and either is accurate)
@@ -138,8 +138,8 @@ def count_log_pmf(k, rate_hz, duration_s, regularity):
             at = _tails(k[side], rate[side], duration_s, r, upper=upper, lower=not upper)[0 if upper else 1]
             after = _tails(k[side] + 1.0, rate[side], duration_s, r, upper=upper, lower=not upper)[0 if upper else 1]
             pmf[side] = at - after if upper else after - at
-    with np.errstate(divide="ignore"):
-        return np.where(pmf > 0.0, np.log(np.maximum(pmf, 1e-320)), LOG_PMF_FLOOR)
+    with np.errstate(divide="ignore"):  # below the floor counts as the floor: never below an impossible count
+        return np.where(pmf > 0.0, np.maximum(np.log(np.maximum(pmf, 1e-320)), LOG_PMF_FLOOR), LOG_PMF_FLOOR)
 
 
 def count_pmf(n_max: int, rate_hz, duration_s, regularity) -> np.ndarray:

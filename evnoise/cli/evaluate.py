@@ -9,6 +9,7 @@ stretched (baseline a). Reported: mean and standard error over the pairs.
 from __future__ import annotations
 
 import logging
+import os
 
 log = logging.getLogger("evnoise")
 
@@ -66,7 +67,7 @@ def _check_outputs(args):
             raise OutputError(f"output folder {folder} does not exist")
         if path.is_dir():
             raise OutputError(f"{path} is a folder")
-        if path.exists() and not args.overwrite:
+        if os.path.lexists(path) and not args.overwrite:  # a link counts, even a broken one
             raise OutputError(f"{path} exists (use --overwrite)")
         outputs.append((flag, path))
     return outputs

@@ -9,6 +9,7 @@ trained for the ``evk3-hd`` preset) is used.
 from __future__ import annotations
 
 import logging
+import os
 
 log = logging.getLogger("evnoise")
 
@@ -151,7 +152,7 @@ def run(args) -> int:
     refuse_writing_inputs([("--out", path) for path in targets],
                           [("the events file", args.events), ("the --model", args.model)])
     for path in targets:
-        if path.exists() and not args.overwrite:
+        if os.path.lexists(path) and not args.overwrite:  # a link counts, even a broken one
             raise OutputError(f"{path} exists (use --overwrite)")
     times = []
     for t0, path in zip(starts, targets, strict=True):

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -316,7 +317,7 @@ def train(train_data, out, *, val_data=None, config: TrainConfig | None = None, 
     out = Path(out)
     if not out.parent.is_dir():
         raise OutputError(f"output folder {out.parent} does not exist")
-    if out.exists() and not resume and not overwrite:
+    if os.path.lexists(out) and not resume and not overwrite:  # a link counts, even a broken one
         raise OutputError(f"{out} exists: use resume to continue it or overwrite to replace it")
     if len(train_data) == 0:
         raise InputError("the training set is empty")
