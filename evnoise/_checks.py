@@ -42,17 +42,19 @@ def resolve_threads(threads) -> int:
     return default_threads() if threads is None else max(1, int(threads))
 
 
-def check_input_file(path, *, missing: str, kind: str):
+def check_input_file(path, *, missing: str, kind: str, folders: bool = False):
     """``Path(path)`` of an input that must be an existing file; :class:`InputError` naming it otherwise.
 
     ``missing`` names it when absent (``"image"`` -> "image not found: ..."), ``kind`` when it is a
     folder or a special file (``"an image file"`` -> "expected an image file, got a folder: ..."). A symbolic link
-    counts as what it points to.
+    counts as what it points to. ``folders``: a folder is fine too (``evnoise info`` reads dataset folders).
     """
     path = Path(path)
     if not path.exists():
         raise InputError(f"{missing} not found: {path}")
     if path.is_dir():
+        if folders:
+            return path
         raise InputError(f"expected {kind}, got a folder: {path}")
     if not path.is_file():  # a pipe would block the read for ever, a device (/dev/zero) never ends
         raise InputError(f"expected {kind}, got a special file (a pipe, device or socket): {path}")

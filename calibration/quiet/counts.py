@@ -135,8 +135,8 @@ def count_log_pmf(k, rate_hz, duration_s, regularity):
     low = k < rate * float(duration_s)
     for side, upper in ((~low, True), (low, False)):
         if np.any(side):
-            at = _tails(k[side], rate[side], duration_s, r, upper=upper, lower=not upper)[0 if upper else 1]
-            after = _tails(k[side] + 1.0, rate[side], duration_s, r, upper=upper, lower=not upper)[0 if upper else 1]
+            at, after = (_tails(j, rate[side], duration_s, r, upper=upper, lower=not upper)[0 if upper else 1]
+                         for j in (k[side], k[side] + 1.0))
             pmf[side] = at - after if upper else after - at
     with np.errstate(divide="ignore"):  # below the floor counts as the floor: never below an impossible count
         return np.where(pmf > 0.0, np.maximum(np.log(np.maximum(pmf, 1e-320)), LOG_PMF_FLOOR), LOG_PMF_FLOOR)

@@ -618,10 +618,11 @@ def _at_bounds(v: dict, model: Model, windows=()) -> dict:
     observed information gives it no standard error. A polarity without any event in ``windows`` has its rate's
     maximum at 0 (the optimiser stops wherever its log's gradient falls below its tolerance)."""
     out = {}
-    exposure = sum(w.duration_s * w.pixel_counts().shape[1] for w in windows)  # pixel-seconds
+    counts = [w.pixel_counts() for w in windows]
+    exposure = sum(w.duration_s * c.shape[1] for w, c in zip(windows, counts))  # pixel-seconds
     for k, name in enumerate(("rate_on_hz", "rate_off_hz")):
         pol = "ON" if k == 0 else "OFF"
-        if windows and not any(int(w.pixel_counts()[k].sum()) for w in windows):
+        if windows and not any(int(c[k].sum()) for c in counts):
             out[name] = f"at lower bound (0: no {pol} events"
         elif windows and v[name] * exposure < NEGLIGIBLE_EVENTS:
             # the polarity's events are the hot pixels': the likelihood is flat in the log of this rate, whose

@@ -64,11 +64,9 @@ _EVENT_FLAGS = ("sensor", "t_start", "t_end", "csv_columns", "hot_threshold", "p
 
 def detect_kind(path) -> str:
     """Name of the registered kind of ``path``; :class:`~evnoise.InputError` if none fits."""
-    path = Path(path)
-    if not path.exists():
-        raise InputError(f"file not found: {path}")
-    if not (path.is_file() or path.is_dir()):  # a pipe would block the first read for ever, /dev/zero never ends
-        raise InputError(f"expected a file or a dataset folder, got a special file (a pipe, device or socket): {path}")
+    from .._checks import check_input_file
+
+    path = check_input_file(path, missing="file", kind="a file or a dataset folder", folders=True)
     for name, (detect, _) in KINDS.items():
         if detect(path):
             return name
