@@ -392,6 +392,34 @@ def _starts(model: Model, previous: dict, hot_guess):
     return starts
 
 
+#: The screen of a timing model's starts (:func:`_screen`): every combination of these values of the terms the model
+#: has, the rates from the data.
+SCREEN_SIGMAS = (0.3, 1.2)
+SCREEN_REGULARITIES = (0.01, 0.5)
+SCREEN_HOT_REGULARITIES = (0.01, 0.3)
+SCREEN_HOT_FRACTIONS = (0.005, 0.03)
+
+
+def _screen(model: Model, previous: dict, hot_guess):
+    """A timing model's screened starts (:func:`.likelihood.maximise` runs BFGS from the best few): the spread,
+    regularity, hot pixels' regularity and hot fraction at every combination of :data:`SCREEN_SIGMAS` ...
+    (one value for a term the model does not have), the rates from ``previous``, the hot pixels' rate from the data
+    (as :func:`_starts`). Empty for a count model (its starts are few and cheap to run)."""
+    import itertools
+
+    if not model.timing:
+        return []
+    ordinary = previous["rate_on_hz"] + previous["rate_off_hz"]
+    grid = itertools.product(SCREEN_SIGMAS if model.spread else (0.0,),
+                             SCREEN_REGULARITIES if model.regular else (0.0,),
+                             SCREEN_HOT_REGULARITIES if model.hot and model.hot_regular else (0.0,),
+                             SCREEN_HOT_FRACTIONS if model.hot else (0.0,))
+    hot_rate = max(hot_guess[1], (HOT_MIN_RATIO + 1.0) * ordinary)
+    return [theta_of(dict(previous, sigma=sigma, regularity=reg, hot_regularity=hot_reg, hot_fraction=fraction,
+                          hot_rate_hz=hot_rate, hot_sigma=0.5, hot_on_fraction=0.5), model)
+            for sigma, reg, hot_reg, fraction in grid]
+
+
 OPTIONS = ("auto", "on", "off")
 
 
@@ -472,7 +500,8 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
     with Phases("quiet fit", 3 + sum(full.values()), enabled=progress) as phases:
         with phases.phase("full model"):
             model = model_of(full)
-            res = maximise(model, groups, _with_count_start(model, groups, _starts(model, values0, hot_guess)))
+            res = maximise(model, groups, _with_count_start(model, groups, _starts(model, values0, hot_guess)),
+                           _screen(model, values0, hot_guess))
         values = dict(values0, **unpack(res.x, model))
         tests = {}
         dofs = {"regular": 1, "spread": 1, "hot": 4 + full["hot_regular"], "hot_regular": 1}
@@ -491,7 +520,7 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
                 # start afresh too
                 red_starts = _with_count_start(reduced, groups, [theta_of(red_values, reduced)]
                                                + _starts(reduced, values0, hot_guess))
-                red_res = maximise(reduced, groups, red_starts)
+                red_res = maximise(reduced, groups, red_starts, _screen(reduced, values0, hot_guess))
                 if use_timing and red_res.fun < res.fun - 1e-6:
                     # the full model holds the reduced one, so BFGS stopped at a lower maximum (seen on real windows
                     # with hot pixels): start the full model again from the reduced one's maximum
@@ -511,7 +540,8 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
                 kept_values = dict(values, **({} if keep["hot"] else {"hot_fraction": 0.0}))
                 starts = _starts(model, values0, hot_guess)
                 starts = starts[:1] if use_timing else starts  # (a timing model takes the best of its starts)
-                res = maximise(model, groups, [theta_of(kept_values, model)] + starts)
+                res = maximise(model, groups, [theta_of(kept_values, model)] + starts,
+                               _screen(model, values0, hot_guess))
         with phases.phase("standard errors"):
             se, notes = _standard_errors(model, groups, res)
         with phases.phase("goodness of fit"):
