@@ -442,10 +442,13 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
         where every window carries its events (:func:`~evnoise.calibration.quiet_window` keeps them),
         ``"on"`` requires it.
         Default ``"off"`` (the counts are fitted, the timing *tested*): the timing fit costs several times the
-        count fit (about 20 s against 6 s for the documentation's 128 x 128 window of 58 000 events, longer
+        count fit (about 30 s against 6 s for the documentation's 128 x 128 window of 58 000 events, longer
         with hot pixels, whose eight parameters each cost a likelihood evaluation per gradient), and on real
         sensors it can reach other conclusions than the counts (a Poisson background where the counts
-        suggest a periodic one), so it is asked for, not implied.
+        suggest a periodic one), so it is asked for, not implied. Its likelihood can have maxima far apart
+        (a near-periodic leak, or a Poisson one with a broad spread and regular hot pixels), so BFGS runs
+        from the count fit's maximum, starts near Poisson and the best of a screen of starts over the spread,
+        regularities and hot fraction (:func:`.likelihood.maximise`), and the highest maximum is kept.
     hot_regularity : {"auto", "on", "off"}
         Give the hot pixels their own regularity (``hot_regularity``; else they share the ordinary pixels'):
         the preset (:meth:`QuietFit.to_params`) carries it as ``hot_pixel_regularity``, which the simulators

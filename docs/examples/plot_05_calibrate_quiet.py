@@ -48,7 +48,7 @@ print("standard errors:", {k: float(f"{v:.3g}") for k, v in fit.std_error.items(
 # The event *times* say much more about the regularity: a near-periodic leak leaves gaps of at least
 # ``r / rate`` between a pixel's events. ``timing="on"`` fits each pixel's event times (a renewal
 # process with the simulator's gap law, integrated over the spread of the rates) instead of its counts:
-# several times slower (about 20 s here against 6 s), and the regularity's standard error shrinks
+# several times slower (about 30 s here against 6 s), and the regularity's standard error shrinks
 # about sixty-fold. Compare such numbers against a simulation of your own, as done here, before
 # relying on them.
 timed = fit_quiet([window], base="davis346", hot="off", timing="on")
