@@ -448,7 +448,7 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
         suggest a periodic one), so it is asked for, not implied. Its likelihood can have maxima far apart
         (a near-periodic leak, or a Poisson one with a broad spread and regular hot pixels), so BFGS runs
         from the count fit's maximum, starts near Poisson and the best of a screen of starts over the spread,
-        regularities and hot fraction (:func:`.likelihood.maximise`), and the highest maximum is kept.
+        regularities and hot fraction (``likelihood.maximise``), and the highest maximum is kept.
     hot_regularity : {"auto", "on", "off"}
         Give the hot pixels their own regularity (``hot_regularity``; else they share the ordinary pixels'):
         the preset (:meth:`QuietFit.to_params`) carries it as ``hot_pixel_regularity``, which the simulators
