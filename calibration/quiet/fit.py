@@ -64,6 +64,7 @@ comparison of a preset with a recording in :mod:`.goodness`, the checks that a w
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from dataclasses import dataclass, field
 
@@ -384,12 +385,15 @@ def _starts(model: Model, previous: dict, hot_guess):
         v = dict(previous, sigma=sigma if model.spread else 0.0, regularity=reg if model.regular else 0.0,
                  hot_regularity=1e-3)
         if model.hot and not previous.get("hot_fraction"):
-            ordinary = v["rate_on_hz"] + v["rate_off_hz"]
-            v.update(hot_fraction=min(hot_guess[0], 0.9 * HOT_MAX_FRACTION),
-                     hot_rate_hz=max(hot_guess[1], (HOT_MIN_RATIO + 1.0) * ordinary), hot_sigma=0.5,
-                     hot_on_fraction=0.5)
+            v.update(hot_fraction=min(hot_guess[0], 0.9 * HOT_MAX_FRACTION), hot_rate_hz=_hot_rate_start(v, hot_guess),
+                     hot_sigma=0.5, hot_on_fraction=0.5)
         starts.append(theta_of(v, model))
     return starts
+
+
+def _hot_rate_start(values: dict, hot_guess) -> float:
+    """The hot pixels' rate a start takes: the data's (``hot_guess``), at least the lowest a hot pixel may have."""
+    return max(hot_guess[1], (HOT_MIN_RATIO + 1.0) * (values["rate_on_hz"] + values["rate_off_hz"]))
 
 
 #: The screen of a timing model's starts (:func:`_screen`): every combination of these values of the terms the model
@@ -405,16 +409,13 @@ def _screen(model: Model, previous: dict, hot_guess):
     regularity, hot pixels' regularity and hot fraction at every combination of :data:`SCREEN_SIGMAS` ...
     (one value for a term the model does not have), the rates from ``previous``, the hot pixels' rate from the data
     (as :func:`_starts`). Empty for a count model (its starts are few and cheap to run)."""
-    import itertools
-
     if not model.timing:
         return []
-    ordinary = previous["rate_on_hz"] + previous["rate_off_hz"]
     grid = itertools.product(SCREEN_SIGMAS if model.spread else (0.0,),
                              SCREEN_REGULARITIES if model.regular else (0.0,),
                              SCREEN_HOT_REGULARITIES if model.hot and model.hot_regular else (0.0,),
                              SCREEN_HOT_FRACTIONS if model.hot else (0.0,))
-    hot_rate = max(hot_guess[1], (HOT_MIN_RATIO + 1.0) * ordinary)
+    hot_rate = _hot_rate_start(previous, hot_guess)
     return [theta_of(dict(previous, sigma=sigma, regularity=reg, hot_regularity=hot_reg, hot_fraction=fraction,
                           hot_rate_hz=hot_rate, hot_sigma=0.5, hot_on_fraction=0.5), model)
             for sigma, reg, hot_reg, fraction in grid]
