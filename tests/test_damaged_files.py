@@ -260,6 +260,53 @@ def test_real_dat_with_a_damaged_version_line_says_so(tmp_path, capsys):
     _one_line(capsys, path)
 
 
+def _dat_with_times(tmp_path, name, kind: int, times) -> Path:
+    """A DAT file of ``kind`` (0 Event2d, 0x0C CD) whose records have the raw 32-bit ``times``."""
+    n = len(times)
+    records = np.empty((n, 2), dtype="<u4")
+    records[:, 0] = np.asarray(times, dtype=np.int64) % (1 << 32)
+    records[:, 1] = (np.arange(n) % 304) | ((np.arange(n) % 240) << 14) | ((np.arange(n) % 2) << 28)
+    header = b"% Data file\n% Version 2\n% Height 240\n% Width 304\n" + bytes([kind, 8])
+    (tmp_path / name).write_bytes(header + records.tobytes())
+    return tmp_path / name
+
+
+@pytest.mark.parametrize("kind", [0x00, 0x0C], ids=["Event2d", "CD"])
+def test_dat_time_going_back_is_an_error_not_clamped_or_unwrapped(tmp_path, capfd, kind):
+    """faery clamped a CD file's time that goes back to the one before it (4990, 4990, ...) and expelliarmus
+    took an Event2d file's for a wrap of its clock (+2^32 us) and printed "WARNING: The timestamps are not
+    monotonic." on standard output: either way the file read as if whole. A window that ends before the damage
+    still reads."""
+    if kind == 0x0C:
+        pytest.importorskip("faery")
+    times = np.arange(1000) * 10
+    times[500:] -= 4000  # the 501st record is 1000 us, after 4990 us
+    path = _dat_with_times(tmp_path, "back.dat", kind, times)
+    with pytest.raises(InputError, match=r"go back in time at event 501 \(1000 us after 4990 us\)"):
+        read_events(path)
+    before, _ = read_events(path, t_end=4e-3)
+    np.testing.assert_array_equal(before["t"], times[:400])
+    out, err = capfd.readouterr()
+    assert "WARNING" not in out + err
+    wrapped = _dat_with_times(tmp_path, "wrap.dat", kind, 0xFFFFF000 + np.arange(1000) * 10)
+    with pytest.raises(InputError, match="32-bit clock of the DAT file wraps at event 411"):
+        read_events(wrapped)
+
+
+def test_dat_event2d_reads_as_expelliarmus_does():
+    """Event2d DAT is read by evnoise itself (expelliarmus printed its own warnings): the real N-CARS files
+    read the same as through expelliarmus, the independent reader."""
+    expelliarmus = pytest.importorskip("expelliarmus")
+    for name in ("tonic/sample_ncars.dat", "loris/NCARS_obj_004397_td.dat"):
+        got, meta = read_events(_real(name), sensor="304x240")
+        assert meta["event_type"] == "Event2d"
+        other = expelliarmus.Wizard(encoding="dat", fpath=str(_real(name))).read()
+        assert got.size == other.size > 1000
+        for column in ("t", "x", "y"):
+            np.testing.assert_array_equal(got[column], other[column])
+        np.testing.assert_array_equal(got["p"], other["p"] != 0)
+
+
 def test_real_aedat4_damaged_packet_is_named_and_the_events_before_it_read(tmp_path, capsys):
     """A packet whose LZ4 data is damaged: the message names the packet, what failed and the time reached
     (faery's own words alone, "LZ4 error: ERROR_decompressionFailed", said none of it), and a window ending

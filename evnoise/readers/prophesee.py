@@ -1,13 +1,16 @@
-"""Prophesee files: RAW (EVT 2.0, 2.1, 3.0) and DAT, through faery (and expelliarmus for Event2d DAT).
+"""Prophesee files: RAW (EVT 2.0, 2.1, 3.0) and DAT, through faery (Event2d DAT read here).
 
 - ``.raw``: the ``% key value`` text header, then EVT words. faery decodes all three EVT versions
   (version and geometry from the header: ``% evt 3.0``, ``% format EVT3;height=720;width=1280``
   or ``% geometry``). EVT words carry no absolute index, so a time window is found by decoding
   from the start; decoding stops at the window's end and memory stays at one packet.
 - ``.dat``: the ``%`` header, then 8-byte records. ``CD`` files (as faery and Metavision write
-  them) go through faery; ``Event2d`` files (ATIS datasets such as N-CARS), which faery refuses,
-  through expelliarmus, in chunks. expelliarmus is never used for EVT3 (it decodes EVT3
-  timestamps wrongly).
+  them) go through faery; ``Event2d`` files (ATIS datasets such as N-CARS), which faery refuses, are
+  read here (:func:`dat_records`: the same 8-byte layout, read in blocks from a memory map; the tests
+  compare them with expelliarmus'). Before either decodes, the records' raw 32-bit times are checked to go
+  forward (:func:`check_dat_times`): faery clamps a time that goes back to the one before and expelliarmus
+  takes it for a wrap of the clock (printing a warning of its own on standard output), so a damaged file
+  would otherwise read as if whole.
 """
 
 from __future__ import annotations
@@ -108,7 +111,7 @@ class RawSource(EventSource):
 
 
 class DatSource(EventSource):
-    """Prophesee DAT (CD through faery, Event2d through expelliarmus)."""
+    """Prophesee DAT (CD through faery, Event2d read here: :func:`dat_records`)."""
 
     format = "dat"
 
@@ -138,8 +141,6 @@ class DatSource(EventSource):
             raise InputError(f"{self.path}: a DAT file of {kind} events holds no change-detection events")
         self.meta["event_type"] = "CD" if kind == "cd" else "Event2d"
         self._kind = kind
-        if kind == "2d":
-            require("expelliarmus", "Prophesee DAT Event2d files")
         self._fallback = NO_GEOMETRY
         self._set_shape((dims[1], dims[0]) if geometry and dims else None)
         if self.shape is None and not geometry:
@@ -150,6 +151,7 @@ class DatSource(EventSource):
             warn_no_data(self.path, "Prophesee DAT")
 
     def _chunks(self, t_start_us, t_end_us):
+        check_dat_times(self.path, self._data_offset + 2, t_end_us)
         if self._kind == "cd":
             from faery.extension import dat
 
@@ -160,13 +162,72 @@ class DatSource(EventSource):
             except BaseException as exc:  # noqa: BLE001 - see decoder_error
                 raise decoder_error(self.path, "Prophesee DAT", exc) from None
             return
-        import expelliarmus
+        yield from packets_in_window(dat_records(self.path, self._data_offset + 2, t_end_us), t_start_us, t_end_us)
 
-        wiz = expelliarmus.Wizard(encoding="dat", fpath=str(self.path), chunk_size=1 << 20)
-        try:
-            for packet in packets_in_window(wiz.read_chunk(), t_start_us, t_end_us):
-                if np.any(packet["x"] < 0) or np.any(packet["y"] < 0):
-                    raise InputError(f"{self.path}: negative coordinates in a DAT file (corrupt?)")
-                yield to_events(packet["t"], packet["x"], packet["y"], packet["p"])
-        except BaseException as exc:  # noqa: BLE001 - see decoder_error
-            raise decoder_error(self.path, "Prophesee DAT (Event2d)", exc) from None
+
+#: Records that :func:`check_dat_times` and :func:`dat_records` read at a time (8 MB of the file).
+DAT_CHECK_RECORDS = 1 << 20
+
+
+def _dat_table(path, offset: int):
+    """The file's 8-byte records from ``offset`` as a read-only ``(n, 2)`` map of little-endian uint32 (time, address);
+    None for fewer than one record."""
+    body = path.stat().st_size - offset
+    if body < 8:
+        return None
+    return np.memmap(path, dtype="<u4", mode="r", offset=offset, shape=(body // 8, 2))
+
+
+def dat_records(path, offset: int, t_end_us: int | None = None):
+    """Event arrays of a DAT file's records (Event2d or CD: address bits 0-13 x, 14-27 y, 28-31 polarity, nonzero
+    ON), :data:`DAT_CHECK_RECORDS` at a time, in the file's order, up to the first record that reaches ``t_end_us``
+    (:func:`check_dat_times` first: up to there they go forward)."""
+    table = _dat_table(path, offset)
+    if table is None:
+        return
+    for start in range(0, table.shape[0], DAT_CHECK_RECORDS):
+        block = np.asarray(table[start:start + DAT_CHECK_RECORDS])
+        reached = np.flatnonzero(block[:, 0] >= t_end_us) if t_end_us is not None else ()
+        if len(reached):
+            block = block[:int(reached[0]) + 1]
+        address = block[:, 1]
+        yield to_events(block[:, 0], address & 0x3FFF, (address >> 14) & 0x3FFF, address >> 28)
+        if len(reached):
+            return
+
+
+def check_dat_times(path, offset: int, t_end_us: int | None = None) -> None:
+    """An :class:`InputError` naming the first DAT record whose raw 32-bit time is before the previous one's.
+
+    Reads the time column of the 8-byte records from ``offset`` (the first record) in blocks of
+    :data:`DAT_CHECK_RECORDS`, up to the first record that reaches ``t_end_us`` (a window's read ends there, so
+    damage after it does not stop the read, wherever the blocks fall).
+    A drop of more than half the clock's range is named as the clock wrapping (a recording longer than
+    71.6 min), which evnoise's DAT decoders do not unwrap; any other drop as the file being corrupt.
+    """
+    table = _dat_table(path, offset)
+    if table is None:
+        return
+    times = table[:, 0]
+    previous = None
+    for start in range(0, times.size, DAT_CHECK_RECORDS):
+        t = np.asarray(times[start:start + DAT_CHECK_RECORDS], dtype=np.int64)
+        if previous is not None:
+            t = np.concatenate(([previous], t))
+        end = t.size
+        if t_end_us is not None:  # records after the first that reaches the window's end are not read
+            reached = np.flatnonzero(t >= t_end_us)
+            end = int(reached[0]) + 1 if reached.size else end
+        back = np.flatnonzero(t[1:end] < t[:end - 1])
+        if back.size:
+            k = int(back[0])
+            before, after = int(t[k]), int(t[k + 1])
+            index = start + k + (0 if previous is not None else 1) + 1  # counting records from 1
+            if before - after > 1 << 31:
+                raise InputError(f"{path}: the 32-bit clock of the DAT file wraps at event {index} ({after} us after "
+                                 f"{before} us: a recording longer than 71.6 min); evnoise does not unwrap DAT clocks")
+            raise InputError(f"{path}: timestamps go back in time at event {index} ({after} us after {before} us); "
+                             "the file is corrupt or not time-sorted")
+        if end < t.size:
+            return
+        previous = int(t[-1])
