@@ -425,7 +425,7 @@ OPTIONS = ("auto", "on", "off")
 
 
 def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", regularity: str = "auto",
-              timing: str = "off", hot_regularity: str = "off", progress: bool = False) -> QuietFit:
+              timing: str = "off", hot_regularity: str = "off", start=None, progress: bool = False) -> QuietFit:
     """Fit background rates, their regularity and spread, and hot pixels to quiet windows (module doc).
 
     Parameters
@@ -454,6 +454,14 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
         Give the hot pixels their own regularity (``hot_regularity``; else they share the ordinary pixels'):
         the preset (:meth:`QuietFit.to_params`) carries it as ``hot_pixel_regularity``, which the simulators
         run. Default ``"off"`` (one regularity for every pixel).
+    start : QuietFit or dict, optional
+        An earlier fit of the same windows (or its ``values``), typically of a model this one holds (the fit
+        without the hot pixels' own regularity for one with it): one more start for every maximisation (the full
+        model, each likelihood-ratio test's reduced model, the refit), each model taking the values it has (a
+        regularity of the hot pixels the earlier fit lacks starts at the ordinary one). Every maximisation keeps
+        the best of its runs and BFGS never descends, so the fit ends at least as high as ``start``'s values
+        (projected into the model's bounds): a model cannot end below a model it holds, which a timing fit's
+        local maxima otherwise allow (the module doc's real window, ``calibration/README.md``).
     progress : bool
         Show a progress line naming the running phase (the full model, each likelihood-ratio test, the
         standard errors, the goodness of fit) with its elapsed time.
@@ -470,6 +478,7 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
         if opt not in OPTIONS:
             raise ParameterError(f"{name} must be 'auto', 'on' or 'off', got {opt!r}")
     base = ev.load_preset(base) if isinstance(base, str) else base
+    start_values = _start_values(start)
     if any(w.lux is not None for w in windows) and base is None:
         raise ParameterError("windows with a lux need a base preset for the shot noise (base=...)")
     groups = window_groups(windows)
@@ -498,13 +507,17 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
         return Model(flags["spread"], flags["hot"], shot, growth, lux, flags["regular"], use_timing,
                      flags["hot_regular"] and flags["hot"])
 
+    def given(model):  # ``start`` in the model's coordinates (none without it)
+        return [] if start_values is None else [theta_of(dict(values0, **start_values), model)]
+
     # backward selection: the full model first, then each term dropped in turn (likelihood-ratio test)
     full = {t: option != "off" for t, option in options.items()}
     full["hot_regular"] = full["hot_regular"] and full["hot"]
     with Phases("quiet fit", 3 + sum(full.values()), enabled=progress) as phases:
         with phases.phase("full model"):
             model = model_of(full)
-            res = maximise(model, groups, _with_count_start(model, groups, _starts(model, values0, hot_guess)),
+            res = maximise(model, groups,
+                           _with_count_start(model, groups, given(model) + _starts(model, values0, hot_guess)),
                            _screen(model, values0, hot_guess))
         values = dict(values0, **unpack(res.x, model))
         tests = {}
@@ -522,7 +535,7 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
                     red_values["regularity"] = 0.0
                 # the full fit's values may sit where the reduced model forbids what the window has (a gap, a count):
                 # start afresh too
-                red_starts = _with_count_start(reduced, groups, [theta_of(red_values, reduced)]
+                red_starts = _with_count_start(reduced, groups, [theta_of(red_values, reduced)] + given(reduced)
                                                + _starts(reduced, values0, hot_guess))
                 red_res = maximise(reduced, groups, red_starts, _screen(reduced, values0, hot_guess))
                 if use_timing and red_res.fun < res.fun - 1e-6:
@@ -544,7 +557,7 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
                 kept_values = dict(values, **({} if keep["hot"] else {"hot_fraction": 0.0}))
                 starts = _starts(model, values0, hot_guess)
                 starts = starts[:1] if use_timing else starts  # (a timing model takes the best of its starts)
-                res = maximise(model, groups, [theta_of(kept_values, model)] + starts,
+                res = maximise(model, groups, [theta_of(kept_values, model)] + given(model) + starts,
                                _screen(model, values0, hot_guess))
         with phases.phase("standard errors"):
             se, notes = _standard_errors(model, groups, res)
@@ -553,6 +566,25 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
             timing = timing_tests(unpack(res.x, model), model, groups)
     return _quiet_fit(model, res, se, notes, tests, goodness, windows, base, spread, hot, regularity, lux_levels,
                       timing, hot_regularity)
+
+
+def _start_values(start) -> dict | None:
+    """The values of :func:`fit_quiet`'s ``start`` (a :class:`QuietFit` or its ``values``), checked; ``None``
+    without one. A regularity of the hot pixels that ``start`` lacks is the ordinary one (the nested value)."""
+    if start is None:
+        return None
+    values = start.values if isinstance(start, QuietFit) else start
+    if not isinstance(values, dict):
+        raise ParameterError(f"start must be a QuietFit or a dict of its values, got {type(start).__name__}")
+    for name in ("rate_on_hz", "rate_off_hz"):
+        if name not in values:
+            raise ParameterError(f"start lacks {name!r} (a QuietFit's values hold it)")
+    values = {k: v for k, v in values.items() if k in NAMES or k in ("growth_on", "growth_off")}
+    for k, v in values.items():
+        if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+            raise ParameterError(f"start's {k} must be a finite number >= 0, got {v!r}")
+    values.setdefault("hot_regularity", values.get("regularity", 0.0))
+    return values
 
 
 def _standard_errors(model: Model, groups, res):
