@@ -336,16 +336,21 @@ def test_the_written_preset_reproduces_its_own_window_total():
         assert abs(sim[:, pol].mean() - real[pol]) < 4 * sd + 1, (pol, sim[:, pol], real[pol])
 
 
+def _quiet_segment(rel: str, from_s: float):
+    """The window of ``quiet_segments.json`` that starts at ``from_s`` in recording ``rel``, its events kept and its
+    oscillating pixels left out (as ``quiet_timing`` reads it)."""
+    segments = json.loads((REALDATA / "quiet_segments.json").read_text(encoding="utf-8"))["segments"]
+    seg = next(s for s in segments[rel] if s["from_s"] == from_s)
+    return qw.quiet_window(REALDATA / rel, seg["t_from_us"] * 1e-6, seg["t_to_us"] * 1e-6, drop_oscillating=True)
+
+
 @needs_realdata
 def test_the_timing_fit_reaches_the_maximum_of_the_other_basin():
     # issue 32: a real window's timing likelihood has maxima far apart; the fit's starts (its count fit's maximum and
     # two near Poisson) all lead BFGS to a near-periodic leak with little spread (log L -2662.5), 6.7 below a Poisson
     # leak with much spread and regular hot pixels that an earlier run had found. The screened starts must reach
     # that one: the fit's maximum is at least what BFGS reaches from a start in that basin (the earlier run's values)
-    segments = json.loads((REALDATA / "quiet_segments.json").read_text(encoding="utf-8"))["segments"]
-    rel = "dvs128dataanalysis/cam255_alex_standing_up2.aedat"
-    seg = next(s for s in segments[rel] if s["from_s"] == 27.5)
-    w = qw.quiet_window(REALDATA / rel, seg["t_from_us"] * 1e-6, seg["t_to_us"] * 1e-6, drop_oscillating=True)
+    w = _quiet_segment("dvs128dataanalysis/cam255_alex_standing_up2.aedat", 27.5)
     groups = ql.window_groups([w])
     model = ql.Model(True, True, [np.zeros((1, 2))], False, [np.zeros(1)], True, True, True)  # the after-hot model
     rates = w.pixel_counts().sum(axis=1) / (w.duration_s * w.n_pixels)
@@ -367,10 +372,7 @@ def test_a_fit_started_from_a_model_it_holds_does_not_end_below_it():
     # ON-only, event-time log L -3760.75) ended below the fit without it (hot pixels OFF-only, -3759.01), which it
     # holds (hot_regularity = regularity). Started from that fit's values (fit_quiet(start=...)) it must reach at
     # least their log-likelihood, evaluated here under the model without the term (the earlier run's values)
-    segments = json.loads((REALDATA / "quiet_segments.json").read_text(encoding="utf-8"))["segments"]
-    rel = "dvs128dataanalysis/cam255_alex_standing_up.aedat"
-    seg = next(s for s in segments[rel] if s["from_s"] == 23.75)
-    w = qw.quiet_window(REALDATA / rel, seg["t_from_us"] * 1e-6, seg["t_to_us"] * 1e-6, drop_oscillating=True)
+    w = _quiet_segment("dvs128dataanalysis/cam255_alex_standing_up.aedat", 23.75)
     after = dict(rate_on_hz=0.024593, rate_off_hz=0.00024142, sigma=1.3212, regularity=1e-9, hot_fraction=0.05,
                  hot_rate_hz=0.1242, hot_sigma=0.05, hot_on_fraction=1e-9)
     nested = ql.Model(True, True, [np.zeros((1, 2))], False, [np.zeros(1)], True, True, False)
@@ -388,3 +390,24 @@ def test_a_fit_start_is_checked():
                          ({"rate_on_hz": 0.1, "rate_off_hz": float("nan")}, "finite")):
         with pytest.raises(ParameterError, match=words):
             q.fit_quiet([w], start=start)
+
+
+def test_a_start_takes_a_fits_values_as_they_were():
+    # fit_quiet(start=...) maps a fit's values back to coordinates: a spread of 5e-29 (a real window's fitted value)
+    # floored at 0.05 as a fresh start is put lowered the started fit 0.003 below the fit it started from. Every
+    # model's coordinates, wherever unpack maps them to values strictly inside their ranges, come back to the same
+    # values
+    import itertools
+
+    rng = np.random.default_rng(0)
+    for spread, hot, regular, hot_regular, growth in itertools.product((False, True), repeat=5):
+        model = ql.Model(spread, hot, [np.zeros((1, 2))], growth, [np.zeros(1)], regular, True, hot_regular and hot)
+        n = 2 + spread + 4 * hot + 2 * growth + regular + (hot_regular and hot)
+        for theta in rng.normal(0.0, 8.0, (40, n)):
+            values = ql.unpack(theta, model)
+            again = ql.unpack(np.array(q.theta_of(values, model, exact=True)), model)
+            for name, value in values.items():
+                assert again[name] == pytest.approx(value, rel=1e-12, abs=0.0), (name, model, theta)
+    sigma_floor = q.theta_of(dict(rate_on_hz=1.0, rate_off_hz=1.0, sigma=5e-29), ql.Model(
+        True, False, [np.zeros((1, 2))], False, [np.zeros(1)], False, True, False))[2]
+    assert sigma_floor == pytest.approx(np.log(0.05))  # a fresh start keeps its floor

@@ -163,3 +163,24 @@ def test_the_count_fits_periodic_timer_is_impossible_for_the_event_times():
     poisson = q.fit_quiet([w], hot="off", regularity="off", spread="off", timing="off")
     assert math.isfinite(timing_log_likelihood(poisson))
     assert timing_log_likelihood(counts_fit) < timing_log_likelihood(poisson) - 1e6
+
+
+def test_a_fits_event_time_likelihood_is_its_own_at_a_bound():
+    # event_time_log_likelihood evaluates a fit's values: a spread fitted to ~0 (Poisson pixels of one rate) was
+    # floored at 0.05 on its way back to coordinates, so a timing fit's event-time log-likelihood differed from the
+    # maximum it had reached (a real window: -1389.1 against -1388.5). Three events in every pixel: counts less
+    # dispersed than Poisson, so the spread's maximum is at its end, 0
+    rng = np.random.default_rng(3)
+    shape, T = (32, 32), 4.0
+    n = np.full(shape[0] * shape[1], 3)
+    pix = np.repeat(np.arange(n.size), n)
+    ev = np.zeros(pix.size, dtype=EVENT_DTYPE)
+    ev["t"] = np.round(rng.uniform(0.0, T, pix.size) * 1e6).astype(np.int64)
+    ev["x"], ev["y"], ev["p"] = pix % shape[1], pix // shape[1], rng.random(pix.size) < 0.6
+    ev = ev[np.argsort(ev["t"], kind="stable")]
+    counts = np.zeros((2, n.size), dtype=np.int64)
+    np.add.at(counts, (1 - ev["p"].astype(np.int64), ev["y"].astype(np.int64) * shape[1] + ev["x"]), 1)
+    w = qw.QuietWindow(counts.reshape(2, *shape), T, "sim", events=qw.window_events(ev, shape, 0))
+    fit = q.fit_quiet([w], timing="on", spread="on", hot="off", regularity="off")
+    assert fit.values["sigma"] < 0.05  # the case: the spread's maximum below the starts' floor
+    assert q.event_time_log_likelihood(fit) == pytest.approx(fit.log_likelihood, rel=1e-12, abs=1e-9)

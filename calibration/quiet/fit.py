@@ -340,25 +340,37 @@ def event_time_log_likelihood(fit: QuietFit) -> float:
     """The log-likelihood of the windows' event *times* (the timing likelihood) at a fit's values, whichever
     likelihood the fit maximised: a count fit and a timing fit compare on it (windows read with their events)."""
     model, groups = fit_model(fit, timing=True)
-    return float(mixture_log_likelihood(np.array(theta_of(fit.values, model)), model, groups))
+    return float(mixture_log_likelihood(np.array(theta_of(fit.values, model, exact=True)), model, groups))
 
 
-def theta_of(values: dict, model: Model):
-    """Fitted coordinates of a values dict (the inverse of :func:`_unpack`)."""
-    x = [math.log(max(values["rate_on_hz"], 1e-12)), math.log(max(values["rate_off_hz"], 1e-12))]
+def theta_of(values: dict, model: Model, exact: bool = False):
+    """Fitted coordinates of a values dict (the inverse of :func:`_unpack`).
+
+    Values are floored away from their coordinate's end (a rate at 1e-12, a spread of the pixels or of the hot
+    pixels at 0.05, a hot rate's excess at 1e-3, a fraction or regularity within 1e-9 of 0 and 1, a lux growth at
+    1e-9): a start there would sit on a flat stretch. With ``exact`` only a value that is 0 (or 1) is moved, a term
+    the values lack, so that a fit's values (:func:`unpack`'s, from these coordinates) come back as they were.
+    """
+    def log(value, floor):
+        return math.log(value if exact and value > 0 else max(value, floor))
+
+    def logit(value):
+        return math.log(value / (1.0 - value)) if exact and 0.0 < value < 1.0 else _logit(value)
+
+    x = [log(values["rate_on_hz"], 1e-12), log(values["rate_off_hz"], 1e-12)]
     if model.spread:
-        x.append(math.log(max(values.get("sigma", 0.5), 0.05)))
+        x.append(log(values.get("sigma", 0.5), 0.05))
     if model.hot:
         ordinary = values["rate_on_hz"] + values["rate_off_hz"]
-        x += [_logit(values["hot_fraction"] / HOT_MAX_FRACTION),
-              math.log(max(values["hot_rate_hz"] / max(ordinary, 1e-12) - HOT_MIN_RATIO, 1e-3)),
-              math.log(max(values["hot_sigma"], 0.05)), _logit(values["hot_on_fraction"])]
+        x += [logit(values["hot_fraction"] / HOT_MAX_FRACTION),
+              log(values["hot_rate_hz"] / max(ordinary, 1e-12) - HOT_MIN_RATIO, 1e-3),
+              log(values["hot_sigma"], 0.05), logit(values["hot_on_fraction"])]
     if model.growth:
-        x += [math.log(max(values.get("growth_on", 1e-3), 1e-9)), math.log(max(values.get("growth_off", 1e-3), 1e-9))]
+        x += [log(values.get("growth_on", 1e-3), 1e-9), log(values.get("growth_off", 1e-3), 1e-9)]
     if model.regular:
-        x.append(_logit(values.get("regularity", 0.5)))
+        x.append(logit(values.get("regularity", 0.5)))
     if model.hot and model.hot_regular:
-        x.append(_logit(values.get("hot_regularity", values.get("regularity", 0.5))))
+        x.append(logit(values.get("hot_regularity", values.get("regularity", 0.5))))
     return x
 
 
@@ -508,7 +520,7 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
                      flags["hot_regular"] and flags["hot"])
 
     def given(model):  # ``start`` in the model's coordinates (none without it)
-        return [] if start_values is None else [theta_of(dict(values0, **start_values), model)]
+        return [] if start_values is None else [theta_of(dict(values0, **start_values), model, exact=True)]
 
     # backward selection: the full model first, then each term dropped in turn (likelihood-ratio test)
     full = {t: option != "off" for t, option in options.items()}
@@ -541,7 +553,8 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
                 if use_timing and red_res.fun < res.fun - 1e-6:
                     # the full model holds the reduced one, so BFGS stopped at a lower maximum (seen on real windows
                     # with hot pixels): start the full model again from the reduced one's maximum
-                    again = maximise(model, groups, [theta_of(dict(values, **unpack(red_res.x, reduced)), model)])
+                    again = maximise(model, groups,
+                                     [theta_of(dict(values, **unpack(red_res.x, reduced)), model, exact=True)])
                     if again.fun < res.fun:
                         res = again
                         values = dict(values0, **unpack(res.x, model))
