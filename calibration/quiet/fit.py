@@ -470,10 +470,10 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
         An earlier fit of the same windows (or its ``values``), typically of a model this one holds (the fit
         without the hot pixels' own regularity for one with it): one more start for every maximisation (the full
         model, each likelihood-ratio test's reduced model, the refit), each model taking the values it has (a
-        regularity of the hot pixels the earlier fit lacks starts at the ordinary one). Every maximisation keeps
-        the best of its runs and BFGS never descends, so the fit ends at least as high as ``start``'s values
-        (projected into the model's bounds): a model cannot end below a model it holds, which a timing fit's
-        local maxima otherwise allow (the module doc's real window, ``calibration/README.md``).
+        regularity of the hot pixels the earlier fit lacks starts at the ordinary one), run besides the fit's own
+        starts, which it does not displace. Every maximisation keeps the best of its runs and BFGS never descends,
+        so the fit ends at least as high as ``start``'s values: a model cannot end below a model it holds, which
+        a timing fit's local maxima otherwise allow (a real window, ``calibration/README.md``).
     progress : bool
         Show a progress line naming the running phase (the full model, each likelihood-ratio test, the
         standard errors, the goodness of fit) with its elapsed time.
@@ -528,9 +528,8 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
     with Phases("quiet fit", 3 + sum(full.values()), enabled=progress) as phases:
         with phases.phase("full model"):
             model = model_of(full)
-            res = maximise(model, groups,
-                           _with_count_start(model, groups, given(model) + _starts(model, values0, hot_guess)),
-                           _screen(model, values0, hot_guess))
+            res = maximise(model, groups, _with_count_start(model, groups, _starts(model, values0, hot_guess)),
+                           _screen(model, values0, hot_guess), given(model))
         values = dict(values0, **unpack(res.x, model))
         tests = {}
         dofs = {"regular": 1, "spread": 1, "hot": 4 + full["hot_regular"], "hot_regular": 1}
@@ -547,9 +546,9 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
                     red_values["regularity"] = 0.0
                 # the full fit's values may sit where the reduced model forbids what the window has (a gap, a count):
                 # start afresh too
-                red_starts = _with_count_start(reduced, groups, [theta_of(red_values, reduced)] + given(reduced)
+                red_starts = _with_count_start(reduced, groups, [theta_of(red_values, reduced)]
                                                + _starts(reduced, values0, hot_guess))
-                red_res = maximise(reduced, groups, red_starts, _screen(reduced, values0, hot_guess))
+                red_res = maximise(reduced, groups, red_starts, _screen(reduced, values0, hot_guess), given(reduced))
                 if use_timing and red_res.fun < res.fun - 1e-6:
                     # the full model holds the reduced one, so BFGS stopped at a lower maximum (seen on real windows
                     # with hot pixels): start the full model again from the reduced one's maximum
@@ -570,8 +569,8 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
                 kept_values = dict(values, **({} if keep["hot"] else {"hot_fraction": 0.0}))
                 starts = _starts(model, values0, hot_guess)
                 starts = starts[:1] if use_timing else starts  # (a timing model takes the best of its starts)
-                res = maximise(model, groups, [theta_of(kept_values, model)] + given(model) + starts,
-                               _screen(model, values0, hot_guess))
+                res = maximise(model, groups, [theta_of(kept_values, model)] + starts,
+                               _screen(model, values0, hot_guess), given(model))
         with phases.phase("standard errors"):
             se, notes = _standard_errors(model, groups, res)
         with phases.phase("goodness of fit"):

@@ -292,13 +292,14 @@ TIMING_STARTS = 2
 SCREEN_STARTS = 2
 
 
-def maximise(model, groups, start, screen=()):
+def maximise(model, groups, start, screen=(), always=()):
     """BFGS from every start (numerical gradients of a smooth likelihood), a Nelder-Mead polish of the best.
 
-    A timing model (``model.timing``) runs BFGS from its :data:`TIMING_STARTS` best starts and its
-    :data:`SCREEN_STARTS` best ``screen`` starts, and is not polished: its likelihood is smooth (:mod:`.timing`) and
-    each evaluation integrates every pixel, where the counts' takes the few distinct count vectors. The best of the
-    runs is returned (the first on a tie): with the screen it is never below the runs from ``start`` alone.
+    A timing model (``model.timing``) runs BFGS from its :data:`TIMING_STARTS` best starts, its
+    :data:`SCREEN_STARTS` best ``screen`` starts and every ``always`` start, and is not polished: its likelihood is
+    smooth (:mod:`.timing`) and each evaluation integrates every pixel, where the counts' takes the few distinct
+    count vectors. The best of the runs is returned (the first on a tie): never below the runs from ``start``
+    alone, nor below any ``always`` start's value (BFGS does not descend). A count model runs every start.
     """
     from scipy.optimize import minimize
 
@@ -306,6 +307,9 @@ def maximise(model, groups, start, screen=()):
         val = -mixture_log_likelihood(theta, model, groups)
         return val if math.isfinite(val) else INFEASIBLE_NLL
 
+    always = [np.asarray(x0, dtype=np.float64) for x0 in always]
+    if not model.timing:
+        start = list(start) + always
     start = [np.asarray(x0, dtype=np.float64) for x0 in start]
     if model.timing:
         # the TIMING_STARTS best starts, BFGS's first steps scaled by the curvature there: the identity of a plain
@@ -316,6 +320,7 @@ def maximise(model, groups, start, screen=()):
         screened = [nll(x0) for x0 in screen]
         picked += [(screen[i], screened[i]) for i in np.argsort(screened, kind="stable")[:SCREEN_STARTS]
                    if screened[i] < INFEASIBLE_NLL]
+        picked += [(x0, nll(x0)) for x0 in always]
         best = None
         for x0, f0 in picked:
             if f0 >= INFEASIBLE_NLL and best is not None:
