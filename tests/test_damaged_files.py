@@ -271,14 +271,18 @@ def _dat_with_times(tmp_path, name, kind: int, times) -> Path:
     return tmp_path / name
 
 
+@pytest.mark.parametrize("block", [1 << 20, 7, 500], ids=["one-block", "blocks-of-7", "damage-at-a-block-start"])
 @pytest.mark.parametrize("kind", [0x00, 0x0C], ids=["Event2d", "CD"])
-def test_dat_time_going_back_is_an_error_not_clamped_or_unwrapped(tmp_path, capfd, kind):
+def test_dat_time_going_back_is_an_error_not_clamped_or_unwrapped(tmp_path, capfd, monkeypatch, kind, block):
     """faery clamped a CD file's time that goes back to the one before it (4990, 4990, ...) and expelliarmus
     took an Event2d file's for a wrap of its clock (+2^32 us) and printed "WARNING: The timestamps are not
     monotonic." on standard output: either way the file read as if whole. A window that ends before the damage
-    still reads."""
+    still reads, and the record named is the same whichever blocks the file is read in."""
+    import evnoise.readers.prophesee as prophesee
+
     if kind == 0x0C:
         pytest.importorskip("faery")
+    monkeypatch.setattr(prophesee, "DAT_CHECK_RECORDS", block)
     times = np.arange(1000) * 10
     times[500:] -= 4000  # the 501st record is 1000 us, after 4990 us
     path = _dat_with_times(tmp_path, "back.dat", kind, times)

@@ -7,10 +7,10 @@
 - ``.dat``: the ``%`` header, then 8-byte records. ``CD`` files (as faery and Metavision write
   them) go through faery; ``Event2d`` files (ATIS datasets such as N-CARS), which faery refuses, are
   read here (:func:`dat_records`: the same 8-byte layout, read in blocks from a memory map; the tests
-  compare them with expelliarmus'). Before either decodes, the records' raw 32-bit times are checked to go
-  forward (:func:`check_dat_times`): faery clamps a time that goes back to the one before and expelliarmus
-  takes it for a wrap of the clock (printing a warning of its own on standard output), so a damaged file
-  would otherwise read as if whole.
+  compare them with expelliarmus'). The records' raw 32-bit times are checked to go forward
+  (:func:`dat_blocks`; for CD files in a pass before faery decodes): faery clamps a time that goes back
+  to the one before and expelliarmus takes it for a wrap of the clock (printing a warning of its own on
+  standard output), so a damaged file would otherwise read as if whole.
 """
 
 from __future__ import annotations
@@ -151,10 +151,10 @@ class DatSource(EventSource):
             warn_no_data(self.path, "Prophesee DAT")
 
     def _chunks(self, t_start_us, t_end_us):
-        check_dat_times(self.path, self._data_offset + 2, t_end_us)
         if self._kind == "cd":
             from faery.extension import dat
 
+            check_dat_times(self.path, self._data_offset + 2, t_end_us)
             try:
                 with dat.Decoder(self.path, self._fallback, None) as dec:
                     for packet in packets_in_window(dec, t_start_us, t_end_us):
@@ -165,69 +165,57 @@ class DatSource(EventSource):
         yield from packets_in_window(dat_records(self.path, self._data_offset + 2, t_end_us), t_start_us, t_end_us)
 
 
-#: Records that :func:`check_dat_times` and :func:`dat_records` read at a time (8 MB of the file).
+#: Records that :func:`dat_blocks` reads at a time (8 MB of the file).
 DAT_CHECK_RECORDS = 1 << 20
 
 
-def _dat_table(path, offset: int):
-    """The file's 8-byte records from ``offset`` as a read-only ``(n, 2)`` map of little-endian uint32 (time, address);
-    None for fewer than one record."""
+def dat_blocks(path, offset: int, t_end_us: int | None = None):
+    """A DAT file's 8-byte records from ``offset`` (the first record), as ``(n, 2)`` little-endian uint32 arrays
+    ``(time, address)`` of :data:`DAT_CHECK_RECORDS` records (read from a memory map), up to the first record that
+    reaches ``t_end_us`` (a window's read ends there, so damage after it does not stop the read, wherever the blocks
+    fall), each checked to go forward in time before it is yielded.
+
+    A time before the previous record's is an :class:`InputError` naming the record: a drop of more than half the
+    clock's range as the clock wrapping (a recording longer than 71.6 min), which evnoise's DAT decoders do not
+    unwrap; any other as the file being corrupt.
+    """
     body = path.stat().st_size - offset
     if body < 8:
-        return None
-    return np.memmap(path, dtype="<u4", mode="r", offset=offset, shape=(body // 8, 2))
-
-
-def dat_records(path, offset: int, t_end_us: int | None = None):
-    """Event arrays of a DAT file's records (Event2d or CD: address bits 0-13 x, 14-27 y, 28-31 polarity, nonzero
-    ON), :data:`DAT_CHECK_RECORDS` at a time, in the file's order, up to the first record that reaches ``t_end_us``
-    (:func:`check_dat_times` first: up to there they go forward)."""
-    table = _dat_table(path, offset)
-    if table is None:
         return
+    table = np.memmap(path, dtype="<u4", mode="r", offset=offset, shape=(body // 8, 2))
+    previous = None
     for start in range(0, table.shape[0], DAT_CHECK_RECORDS):
         block = np.asarray(table[start:start + DAT_CHECK_RECORDS])
-        reached = np.flatnonzero(block[:, 0] >= t_end_us) if t_end_us is not None else ()
-        if len(reached):
-            block = block[:int(reached[0]) + 1]
-        address = block[:, 1]
-        yield to_events(block[:, 0], address & 0x3FFF, (address >> 14) & 0x3FFF, address >> 28)
-        if len(reached):
-            return
-
-
-def check_dat_times(path, offset: int, t_end_us: int | None = None) -> None:
-    """An :class:`InputError` naming the first DAT record whose raw 32-bit time is before the previous one's.
-
-    Reads the time column of the 8-byte records from ``offset`` (the first record) in blocks of
-    :data:`DAT_CHECK_RECORDS`, up to the first record that reaches ``t_end_us`` (a window's read ends there, so
-    damage after it does not stop the read, wherever the blocks fall).
-    A drop of more than half the clock's range is named as the clock wrapping (a recording longer than
-    71.6 min), which evnoise's DAT decoders do not unwrap; any other drop as the file being corrupt.
-    """
-    table = _dat_table(path, offset)
-    if table is None:
-        return
-    times = table[:, 0]
-    previous = None
-    for start in range(0, times.size, DAT_CHECK_RECORDS):
-        t = np.asarray(times[start:start + DAT_CHECK_RECORDS], dtype=np.int64)
-        if previous is not None:
-            t = np.concatenate(([previous], t))
-        end = t.size
-        if t_end_us is not None:  # records after the first that reaches the window's end are not read
-            reached = np.flatnonzero(t >= t_end_us)
-            end = int(reached[0]) + 1 if reached.size else end
-        back = np.flatnonzero(t[1:end] < t[:end - 1])
+        t = block[:, 0].astype(np.int64)
+        reached = np.flatnonzero(t >= t_end_us) if t_end_us is not None else ()
+        end = int(reached[0]) + 1 if len(reached) else t.size
+        t = t[:end] if previous is None else np.concatenate(([previous], t[:end]))
+        back = np.flatnonzero(t[1:] < t[:-1])
         if back.size:
             k = int(back[0])
             before, after = int(t[k]), int(t[k + 1])
-            index = start + k + (0 if previous is not None else 1) + 1  # counting records from 1
+            index = start + k + (1 if previous is None else 0) + 1  # counting records from 1
             if before - after > 1 << 31:
                 raise InputError(f"{path}: the 32-bit clock of the DAT file wraps at event {index} ({after} us after "
                                  f"{before} us: a recording longer than 71.6 min); evnoise does not unwrap DAT clocks")
             raise InputError(f"{path}: timestamps go back in time at event {index} ({after} us after {before} us); "
                              "the file is corrupt or not time-sorted")
-        if end < t.size:
+        yield block[:end]
+        if len(reached):
             return
         previous = int(t[-1])
+
+
+def dat_records(path, offset: int, t_end_us: int | None = None):
+    """Event arrays of a DAT file's records (Event2d or CD: address bits 0-13 x, 14-27 y, 28-31 polarity, nonzero
+    ON), block by block as :func:`dat_blocks` reads and checks them."""
+    for block in dat_blocks(path, offset, t_end_us):
+        address = block[:, 1]
+        yield to_events(block[:, 0], address & 0x3FFF, (address >> 14) & 0x3FFF, address >> 28)
+
+
+def check_dat_times(path, offset: int, t_end_us: int | None = None) -> None:
+    """An :class:`InputError` naming the first DAT record, up to the one that reaches ``t_end_us``, whose time goes
+    back (:func:`dat_blocks`' check), for a decoder that does not check it (faery clamps such a time)."""
+    for _ in dat_blocks(path, offset, t_end_us):
+        pass
