@@ -371,22 +371,25 @@ def test_a_fit_started_from_a_model_it_holds_does_not_end_below_it():
     # issue 32: in cam255_alex_standing_up 23.75-25.25 s the fit with the hot pixels' own regularity (hot pixels
     # ON-only, event-time log L -3760.75) ended below the fit without it (hot pixels OFF-only, -3759.01), which it
     # holds (hot_regularity = regularity). Started from that fit's values (fit_quiet(start=...)) it must reach at
-    # least their log-likelihood, evaluated here under the model without the term (the earlier run's values)
+    # least their log-likelihood, evaluated here under the model without the term (the earlier run's values).
+    # start="nested" (what evnoise calibrate passes) fits that model first and starts from its fit (a QuietFit)
     w = _quiet_segment("dvs128dataanalysis/cam255_alex_standing_up.aedat", 23.75)
     after = dict(rate_on_hz=0.024593, rate_off_hz=0.00024142, sigma=1.3212, regularity=1e-9, hot_fraction=0.05,
                  hot_rate_hz=0.1242, hot_sigma=0.05, hot_on_fraction=1e-9)
     nested = ql.Model(True, True, [np.zeros((1, 2))], False, [np.zeros(1)], True, True, False)
     held = ql.mixture_log_likelihood(np.array(q.theta_of(after, nested)), nested, ql.window_groups([w]))
-    fit = q.fit_quiet([w], timing="auto", spread="on", hot="on", regularity="on", hot_regularity="on", start=after)
+    options = dict(timing="auto", spread="on", hot="on", regularity="on", hot_regularity="on")
+    fit = q.fit_quiet([w], **options, start="nested")
     assert fit.log_likelihood >= held - 1e-3, (fit.log_likelihood, held, fit.values)
     assert fit.tests["hot_regularity"]["lr"] < 1.0  # its reduced fit starts there too: no spurious evidence
+    assert any(n.startswith("started from the fit without the hot pixels' own regularity") for n in fit.notes)
 
 
 def test_a_fit_start_is_checked():
     from evnoise.errors import ParameterError
 
     w = qw.QuietWindow(np.ones((2, 4, 4), dtype=np.int64), 1.0)
-    for start, words in ((5.0, "QuietFit or a dict"), ({"rate_on_hz": 0.1}, "rate_off_hz"),
+    for start, words in ((5.0, "QuietFit, a dict"), ("nest", "or 'nested'"), ({"rate_on_hz": 0.1}, "rate_off_hz"),
                          ({"rate_on_hz": 0.1, "rate_off_hz": float("nan")}, "finite")):
         with pytest.raises(ParameterError, match=words):
             q.fit_quiet([w], start=start)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -359,7 +360,12 @@ def test_cli_writes_the_hot_pixels_own_regularity(tmp_path, capsys):
     else:
         assert params.hot_pixel_regularity == -1.0
     assert params.leak_regularity == 0.0  # --regularity off: the ordinary pixels are Poisson
-    assert "hot_regularity" in capsys.readouterr().out
+    shown = capsys.readouterr().out
+    assert "hot_regularity" in shown
+    # the fit without the term ran first and started this one (fit_quiet(start="nested")): it cannot end lower
+    started = re.search(r"started from the fit without the hot pixels' own regularity \(log-likelihood (\S+)\)",
+                        shown)
+    assert started and doc["fit"]["log_likelihood"] >= float(started.group(1)) - 0.01  # (both rounded)
 
 
 def test_count_fit_of_a_window_short_against_the_leak_leaves_the_regular_plateau():

@@ -12,8 +12,8 @@ of the per-pixel count histograms, ON and OFF). Writes ``evnoise/presets/dvs128.
 ``calibration/dvs128-fit.png``. The recordings are third-party data: they are read, never copied.
 
 ``--timing`` fits the pixels' event times instead of their counts (``fit_quiet(timing="auto",
-hot_regularity="auto")``: the hot pixels may have a regularity of their own, the preset's
-``hot_pixel_regularity``) and records both fits' log-likelihoods of the event times in the provenance.
+hot_regularity="auto", start="nested")``: the hot pixels may have a regularity of their own, the preset's
+``hot_pixel_regularity``, and the fit without it runs first and starts this one) and records both fits' log-likelihoods of the event times in the provenance.
 ``--drop-oscillating`` leaves the oscillating pixels out of every window (one DVS128 pixel fires ON every 185 ms
 in two of the fit windows; :func:`evnoise.calibration.quiet.window.oscillating_pixels`).
 """
@@ -116,7 +116,7 @@ def main(argv=None) -> int:
         from ..quiet.fit import event_time_log_likelihood
 
         counts_fit = fit
-        fit = fit_quiet(fit_windows, base=base_params(), timing="auto", hot_regularity="auto")
+        fit = fit_quiet(fit_windows, base=base_params(), timing="auto", hot_regularity="auto", start="nested")
         likelihoods = {"count_fit": event_time_log_likelihood(counts_fit), "timing_fit": fit.log_likelihood}
         print(f"log-likelihood of the event times: count fit {likelihoods['count_fit']:.1f}, "
               f"timing fit {likelihoods['timing_fit']:.1f}")
@@ -228,9 +228,9 @@ def main(argv=None) -> int:
             "log_likelihood_event_times": (f"count fit {likelihoods['count_fit']:.1f}, timing fit "
                                            f"{likelihoods['timing_fit']:.1f} (natural log, the fit windows' event "
                                            "times)"),
-            "method": "evnoise.calibration.quiet (timing=auto, hot_regularity=auto): the pixels' event times, "
-                      "log-normal spread, hot pixels with their own regularity, likelihood-ratio selection; pixels not "
-                      "tied across recordings"} if args.timing else {}),
+            "method": "evnoise.calibration.quiet (timing=auto, hot_regularity=auto, started from the fit with "
+                      "'off'): the pixels' event times, log-normal spread, hot pixels with their own regularity, "
+                      "likelihood-ratio selection; pixels not tied across recordings"} if args.timing else {}),
         **_light_range(values),
         "edvs_window": "the eDVS128 window (jaer_colleenpamchen) is another camera on a serial link, at a third of the "
                        "cam255 rate: it is checked against this preset anyway and is expected to differ",

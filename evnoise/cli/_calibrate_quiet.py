@@ -55,7 +55,8 @@ def add_arguments(p) -> None:
                         "time; default: off, the counts are fitted and the timing tested)")
     g.add_argument("--hot-regularity", choices=("auto", "on", "off"), default="off",
                    help="give the hot pixels a regularity of their own (the preset's hot_pixel_regularity; identified "
-                        "by the event times: use with --timing; default: off, one regularity for every pixel)")
+                        "by the event times: use with --timing; the fit without it runs first and starts this one, "
+                        "so it cannot end lower; default: off, one regularity for every pixel)")
     g.add_argument("--drop-oscillating", action="store_true",
                    help="leave out of the fit the pixels that fire near-periodically far above the others (at least 15 "
                         "events of one polarity, 10 times the mean, interval CV < 0.3; no term of the model makes a "
@@ -127,7 +128,7 @@ def run(args, recordings) -> int:
             log.info("%s: %d events in %d pixels over %.3g s", w.describe(), int(w.counts.sum()),
                      w.n_pixels, w.duration_s)
     fit = fit_quiet(windows, base=base, spread=args.spread, hot=args.hot, regularity=args.regularity,
-                    timing=args.timing, hot_regularity=args.hot_regularity, progress=not args.quiet)
+                    timing=args.timing, hot_regularity=args.hot_regularity, start="nested", progress=not args.quiet)
     print(fit.summary())
     params = fit.to_params(base)
     height, width = windows[0].shape
