@@ -13,7 +13,8 @@ of the per-pixel count histograms, ON and OFF). Writes ``evnoise/presets/dvs128.
 
 ``--timing`` fits the pixels' event times instead of their counts (``fit_quiet(timing="auto",
 hot_regularity="auto", start="nested")``: the hot pixels may have a regularity of their own, the preset's
-``hot_pixel_regularity``, and the fit without it runs first and starts this one) and records both fits' log-likelihoods of the event times in the provenance.
+``hot_pixel_regularity``, and the fit without it runs first and starts this one) and records both fits'
+log-likelihoods of the event times in the provenance.
 ``--drop-oscillating`` leaves the oscillating pixels out of every window (one DVS128 pixel fires ON every 185 ms
 in two of the fit windows; :func:`evnoise.calibration.quiet.window.oscillating_pixels`).
 """
