@@ -61,6 +61,13 @@ __all__ = [
 ]
 
 TARGET_EVENTS_PER_WINDOW = 1_000_000
+#: Every window advances every pixel (~30 ns a pixel on one core here, whatever its events): a static scene's
+#: windows hold at least this many events per pixel, so that pass stays a small part of a window's cost (a
+#: 1280x720 scene at 2 lux, 4.9 M events: 98 ns per event in windows of 1 M events, 75 in one window, the same
+#: events bit for bit; benchmarks/REPORT.md), up to :data:`MAX_EVENTS_PER_WINDOW` (a window's transient memory is
+#: ~40 bytes per event).
+EVENTS_PER_PIXEL_PER_WINDOW = 8
+MAX_EVENTS_PER_WINDOW = 16_000_000
 TARGET_PIXEL_TRIALS_PER_WINDOW = 40_000_000
 MAX_WINDOW_US = 1 << 22  # bounds the counting sort's histogram
 # Trial tier: pixels static within a window (lam = lam_ref) jump between events with geometric
@@ -267,17 +274,24 @@ def _into_sink(windows: "EventWindows", sink) -> "EventWindows":
                         duration_us=windows.duration_us)
 
 
+def events_per_window(n_pixels: int) -> int:
+    """Events a static scene's window of ``n_pixels`` pixels aims at: :data:`TARGET_EVENTS_PER_WINDOW`, or
+    :data:`EVENTS_PER_PIXEL_PER_WINDOW` per pixel where that is more, at most :data:`MAX_EVENTS_PER_WINDOW`
+    (the output is the same for any window length)."""
+    return max(TARGET_EVENTS_PER_WINDOW, min(MAX_EVENTS_PER_WINDOW, EVENTS_PER_PIXEL_PER_WINDOW * n_pixels))
+
+
 def _static_windows(n_pixels, key, threads, total, t_start_us, duration_us, progress, sink, reserve, step):
     """The windows of a static scene, whatever advances its pixels (the body :func:`_iter_static` and
     :func:`_iter_memory` share).
 
     ``total`` is the expected number of events; the run is cut into windows of about
-    :data:`TARGET_EVENTS_PER_WINDOW` events (and at most :data:`MAX_WINDOW_US` long), their ends whole
+    :func:`events_per_window` events (and at most :data:`MAX_WINDOW_US` long), their ends whole
     microseconds made one at a time, so any duration streams in bounded memory. ``reserve``: the events a
     ``sink`` is sized for. ``step(state, t_prev_us, w_end_us)`` advances every pixel (``state``: their
     :class:`PixelState`) to ``w_end_us`` and returns the window's unsorted parts.
     """
-    n_win = max(1, math.ceil(total / TARGET_EVENTS_PER_WINDOW), -(-duration_us // MAX_WINDOW_US))
+    n_win = max(1, math.ceil(total / events_per_window(n_pixels)), -(-duration_us // MAX_WINDOW_US))
     if sink is not None:
         _check_memory(total)
         sink.__init__(int(math.ceil(reserve)))

@@ -163,6 +163,7 @@ def test_output_does_not_depend_on_threads_or_windows(monkeypatch, params):
     two = ev.simulate_events(lux, params, 0.2, rng=7, threads=2)
     assert one.size > 10_000 and np.array_equal(one, two)
     monkeypatch.setattr(sim, "TARGET_EVENTS_PER_WINDOW", 3000)  # many windows, events pending across them
+    monkeypatch.setattr(sim, "EVENTS_PER_PIXEL_PER_WINDOW", 0)
     windows = list(ev.iter_events(lux, params, 0.2, rng=7, threads=2))
     assert len(windows) > 5 and np.array_equal(np.concatenate(windows), one)
 

@@ -135,6 +135,7 @@ def test_same_seed_same_events_and_independent_of_windows(monkeypatch):
     assert np.array_equal(a, ev.simulate_events(lux, PARAMS, 10.0, rng=5))
     assert not np.array_equal(a, ev.simulate_events(lux, PARAMS, 10.0, rng=6))
     monkeypatch.setattr(sim, "TARGET_EVENTS_PER_WINDOW", 500)  # many more windows
+    monkeypatch.setattr(sim, "EVENTS_PER_PIXEL_PER_WINDOW", 0)
     from evnoise import _engine
 
     monkeypatch.setattr(_engine, "CHUNK_PIXELS", 37)  # other chunking

@@ -273,6 +273,7 @@ def test_simulate_events_collects_windows_in_place_identically(monkeypatch):
 
     lux = np.full((40, 60), 5.0)
     monkeypatch.setattr(sim, "TARGET_EVENTS_PER_WINDOW", 500)
+    monkeypatch.setattr(sim, "EVENTS_PER_PIXEL_PER_WINDOW", 0)
     windows = list(ev.iter_events(lux, PRESET, 3.0, rng=4))
     assert len(windows) > 5
     want = np.concatenate(windows)
@@ -285,3 +286,21 @@ def test_simulate_events_collects_windows_in_place_identically(monkeypatch):
     init = Collector.__init__
     monkeypatch.setattr(Collector, "__init__", lambda self, capacity: init(self, capacity // 10))
     assert np.array_equal(ev.simulate_events(lux, PRESET, 3.0, rng=4), want)
+
+
+def test_a_large_scene_takes_few_windows_and_the_same_events(monkeypatch):
+    """Every window advances every pixel, so a 1280x720 scene's windows hold at least EVENTS_PER_PIXEL_PER_WINDOW
+    events per pixel (one window for its 1.2 M events of 1 s at 2 lux, not two of 1 M); the events are those of
+    windows of 1 M events, bit for bit."""
+    from evnoise import simulate as sim
+
+    lux = np.full((720, 1280), 2.0)
+    params = ev.load_preset("evk3-hd")
+    assert sim.events_per_window(lux.size) == sim.EVENTS_PER_PIXEL_PER_WINDOW * lux.size
+    assert sim.events_per_window(10) == sim.TARGET_EVENTS_PER_WINDOW
+    assert sim.events_per_window(1 << 24) == sim.MAX_EVENTS_PER_WINDOW
+    few = list(ev.iter_events(lux, params, 1.0, rng=3))
+    monkeypatch.setattr(sim, "EVENTS_PER_PIXEL_PER_WINDOW", 0)
+    many = list(ev.iter_events(lux, params, 1.0, rng=3))
+    assert len(few) == 1 and len(many) == 2 and few[0].size > sim.TARGET_EVENTS_PER_WINDOW
+    assert np.array_equal(few[0], np.concatenate(many))
