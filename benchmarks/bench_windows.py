@@ -127,6 +127,7 @@ def main(argv=None) -> int:
 
     import evnoise as ev
     from evnoise import simulate
+    from evnoise.events import EVENT_DTYPE
 
     durations = args.duration or [1.0, 4.0, 16.0]
     load0 = os.getloadavg()
@@ -138,7 +139,8 @@ def main(argv=None) -> int:
             digests.setdefault(d, set()).add(r["digest"])
             rows.append((d, label, r, f))
             print(d, label, r["windows"], fmt(r["times"]), fmt(f), flush=True)
-    touches = [first_touch(int(rows[-1][2]["events"]) * 16) for _ in range(args.repeats)]
+    longest = max(rows, key=lambda row: row[2]["events"])[2]["events"]
+    touches = [first_touch(longest * EVENT_DTYPE.itemsize) for _ in range(args.repeats)]
     load1 = os.getloadavg()
     lines = [TITLE, "",
              f"Machine: {cpu_name()}, {os.cpu_count()} cores shared with other jobs, {platform.system()}; "
@@ -157,11 +159,11 @@ def main(argv=None) -> int:
         same = "yes" if len(digests[d]) == 1 else "**NO**"
         lines.append(f"| {d:g} | {label} | {r['windows']} | {r['events']:,} | {fmt(r['times'])} | "
                      f"{statistics.median(r['times']) / r['events'] * 1e9:.0f} | {fmt(f)} | {same} |")
-    lines += ["", f"First touch of memory: writing every page of a fresh {rows[-1][2]['events'] * 16 / 1e6:.0f} MB "
+    lines += ["", f"First touch of memory: writing every page of a fresh {longest * EVENT_DTYPE.itemsize / 1e6:.0f} MB "
               f"array (the longest run's output) took {fmt([t[0] for t in touches])} s the first time in a process "
               f"and {fmt([t[1] for t in touches])} s the second ({args.repeats} processes; the machine's cost of "
               "memory a process has not used before, which a fresh process's long run pays for its output and its "
-              "windows' buffers; on this virtual machine it has varied from 0.03 to 0.6 s for this size).", "",
+              "windows' buffers; on this virtual machine it has varied from 0.03 to 0.6 s for 256 MB).", "",
               "Reading it: in one process (the steady cost, what a long or repeated job pays) fewer windows save "
               "the pixel pass of each window they no longer make. A fresh process's first call pays besides for "
               "the memory it touches first, and a larger window's buffers (~40 bytes per event, no longer reused "

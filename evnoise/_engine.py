@@ -23,9 +23,9 @@ from .params import NoiseParams
 from .rates import trial_probabilities
 
 CHUNK_PIXELS = 1 << 14
-#: event buffers of a chunk larger than this are not kept between windows (13 bytes per event: 0.85 MB per chunk,
-#: ~48 MB at 1280x720; a window of ~1 M events needs ~20 k per chunk)
-KEEP_EVENTS_PER_CHUNK = 1 << 16
+#: event buffers of a chunk larger than this are not kept between windows (13 bytes per event: 3.4 MB per chunk,
+#: ~190 MB at 1280x720; a static scene's window of 8 events per pixel needs ~131 k per chunk, 1.7 MB)
+KEEP_EVENTS_PER_CHUNK = 1 << 18
 
 
 def pixel_chunks(n: int):

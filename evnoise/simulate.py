@@ -61,13 +61,14 @@ __all__ = [
 ]
 
 TARGET_EVENTS_PER_WINDOW = 1_000_000
-#: Every window advances every pixel (~30 ns a pixel on one core here, whatever its events): a static scene's
-#: windows hold at least this many events per pixel, so that pass stays a small part of a window's cost (a
-#: 1280x720 scene at 2 lux, 4.9 M events: 98 ns per event in windows of 1 M events, 75 in one window, the same
-#: events bit for bit; benchmarks/REPORT.md), up to :data:`MAX_EVENTS_PER_WINDOW` (a window's transient memory is
-#: ~40 bytes per event).
+#: Every window advances every static pixel (a pass over their state, ~30 ns a pixel on one core here, whatever
+#: their events): a static scene's windows hold at least this many events per pixel, so that pass stays a small part
+#: of a window's cost (a 1280x720 scene at 2 lux, 4.9 M events, 2 threads: 61 ns per event in windows of 1 M events,
+#: 46 in one window, the same events bit for bit; benchmarks/bench_windows.py), up to
+#: :data:`MAX_EVENTS_PER_WINDOW` (a window's working memory is about :data:`WINDOW_BYTES_PER_EVENT` per event).
 EVENTS_PER_PIXEL_PER_WINDOW = 8
-MAX_EVENTS_PER_WINDOW = 16_000_000
+MAX_EVENTS_PER_WINDOW = 8_000_000
+WINDOW_BYTES_PER_EVENT = 40
 TARGET_PIXEL_TRIALS_PER_WINDOW = 40_000_000
 MAX_WINDOW_US = 1 << 22  # bounds the counting sort's histogram
 # Trial tier: pixels static within a window (lam = lam_ref) jump between events with geometric
@@ -119,9 +120,11 @@ def _check_span(t_start_us: int, duration_us: int) -> None:
                              f"64-bit timestamp ({INT64_MAX} us, about 292,000 years)")
 
 
-def _check_memory(expected_events: float, what: str = "simulate_events") -> None:
-    """Refuse to hold an event array that cannot fit in memory (before allocating it)."""
+def _check_memory(expected_events: float, what: str = "simulate_events", window_events: float = 0.0) -> None:
+    """Refuse to hold an event array that cannot fit in memory (before allocating it); ``window_events``: the
+    events of a window made while the array fills (its working memory counts too)."""
     need = (expected_events + 8.0 * math.sqrt(max(expected_events, 0.0))) * EVENT_DTYPE.itemsize
+    need += min(window_events, expected_events) * WINDOW_BYTES_PER_EVENT
     check_allocation(need, f"{what} would return about {expected_events:,.0f} events; they",
                      hint="shorten the duration, or stream the windows (iter_events, iter_video) into a file "
                           "(EventWriter)", error=ParameterError)
@@ -200,8 +203,8 @@ def iter_events(
     """Simulate a static scene, yielding time-sorted event arrays window by window.
 
     Same parameters as :func:`simulate_events`; the concatenation of the yielded arrays is
-    the full, sorted event stream, and memory stays bounded by one window (a few million
-    events). Validation happens at the call, before the first window.
+    the full, sorted event stream, and memory stays bounded by one window (at most eight million
+    events, about 8 per pixel of the scene). Validation happens at the call, before the first window.
     """
     return _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, threads, progress,
                         background=background)
@@ -293,7 +296,7 @@ def _static_windows(n_pixels, key, threads, total, t_start_us, duration_us, prog
     """
     n_win = max(1, math.ceil(total / events_per_window(n_pixels)), -(-duration_us // MAX_WINDOW_US))
     if sink is not None:
-        _check_memory(total)
+        _check_memory(total, window_events=events_per_window(n_pixels))
         sink.__init__(int(math.ceil(reserve)))
 
     def gen():
@@ -666,7 +669,7 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
     if stat_pix.size:
         stat_rate = float(nu.sum())
         if stat_rate > 0:
-            per_window = min(per_window, max(1, int(TARGET_EVENTS_PER_WINDOW / (stat_rate * dt * 1e-6))))
+            per_window = min(per_window, max(1, int(events_per_window(stat_pix.size) / (stat_rate * dt * 1e-6))))
     n_windows = -(-n_trials // per_window)  # windows of per_window trials, made one at a time
 
     def gen():

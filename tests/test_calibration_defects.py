@@ -395,6 +395,21 @@ def test_a_fit_start_is_checked():
             q.fit_quiet([w], start=start)
 
 
+def test_a_nested_start_adds_no_fit_where_the_fit_has_no_hot_regularity_of_its_own(monkeypatch):
+    # evnoise calibrate always passes start="nested": a count fit (its default), a fit without hot pixels or without
+    # their own regularity, and windows without their events (no timing) must not pay for a second fit
+    rng = np.random.default_rng(3)
+    w = qw.QuietWindow(np.stack([rng.poisson(0.3, (12, 12)), rng.poisson(0.1, (12, 12))]), 2.0)
+    calls = []
+    fit_quiet = q.fit_quiet
+    monkeypatch.setattr(q, "fit_quiet", lambda *a, **k: calls.append(k) or fit_quiet(*a, **k))
+    for options in (dict(timing="off", hot_regularity="on"), dict(timing="auto", hot="off", hot_regularity="on"),
+                    dict(timing="auto", hot_regularity="off"), dict(timing="auto", hot_regularity="on")):
+        fit = fit_quiet([w], spread="off", regularity="off", start="nested", **options)
+        assert not any("started from" in n for n in fit.notes), options
+    assert calls == []
+
+
 def test_a_start_takes_a_fits_values_as_they_were():
     # fit_quiet(start=...) maps a fit's values back to coordinates: a spread of 5e-29 (a real window's fitted value)
     # floored at 0.05 as a fresh start is put lowered the started fit 0.003 below the fit it started from. Every

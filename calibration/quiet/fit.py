@@ -476,7 +476,9 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
         a timing fit's local maxima otherwise allow (a real window, ``calibration/README.md``).
         ``"nested"``: where this fit has the hot pixels' own regularity (``hot_regularity`` "auto" or "on" with
         hot pixels, timing fitted), first fit the same windows with the same options and ``hot_regularity="off"``
-        and start from that (about 1.5-2x the time; ``evnoise calibrate`` does so); elsewhere no start.
+        and start from that (about 1.5-2x the time; ``evnoise calibrate`` does so); elsewhere no start. The notes
+        give that fit's log-likelihood; with ``"auto"`` terms the two fits' tests may keep different terms, and
+        where this one keeps fewer it can end below that fit (the note says so).
     progress : bool
         Show a progress line naming the running phase (the full model, each likelihood-ratio test, the
         standard errors, the goodness of fit) with its elapsed time.
@@ -586,8 +588,12 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
     fit = _quiet_fit(model, res, se, notes, tests, goodness, windows, base, spread, hot, regularity, lux_levels,
                      timing, hot_regularity)
     if nested and start is not None:
+        # the two fits choose their terms each by its own likelihood-ratio tests: where this one dropped a term the
+        # other kept, it no longer holds that fit and can end below it (said so, not claimed otherwise)
+        held = fit.log_likelihood >= start.log_likelihood - 1e-6 * max(1.0, abs(start.log_likelihood))
         fit.notes.append(f"started from the fit without the hot pixels' own regularity (log-likelihood "
-                         f"{start.log_likelihood:.2f}), which this model holds: it ends at least as high")
+                         f"{start.log_likelihood:.2f}), " + ("which this model holds: it ends at least as high" if held
+                         else "but ends below it: the terms kept differ (each fit's likelihood-ratio tests)"))
     return fit
 
 
