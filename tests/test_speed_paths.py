@@ -304,3 +304,32 @@ def test_a_large_scene_takes_few_windows_and_the_same_events(monkeypatch):
     many = list(ev.iter_events(lux, params, 1.0, rng=3))
     assert len(few) == 1 and len(many) == 2 and few[0].size > sim.TARGET_EVENTS_PER_WINDOW
     assert np.array_equal(few[0], np.concatenate(many))
+
+
+def test_the_window_sort_is_stable_whatever_its_blocks():
+    """sort_into_events (every window's sort) against NumPy's stable argsort, on more events than one block of its
+    parallel first pass holds and with many ties (pixel order must survive), for one and several threads; the
+    signal flag goes to the labels."""
+    import numba
+
+    from evnoise._engine import sorted_window
+    from evnoise._kernels import simulate as kernels
+
+    rng = np.random.default_rng(11)
+    n = 5 * kernels.SORT_BLOCK_MIN + 123
+    assert kernels.SORT_BLOCKS >= 5
+    t_lo, t_hi = 1000, 1000 + 300_000
+    t = rng.integers(t_lo, t_hi, n)
+    x = rng.integers(0, 1280, n).astype(np.uint16)
+    y = rng.integers(0, 720, n).astype(np.uint16)
+    p = rng.integers(0, 4, n).astype(np.uint8)  # bit 1: the signal flag
+    order = np.argsort(t, kind="stable")
+    try:
+        for threads in (1, 2):
+            numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+            out, labels = sorted_window([(t, x, y, p)], t_lo, t_hi, labels=True)
+            assert np.array_equal(out["t"], t[order]) and np.array_equal(out["x"], x[order])
+            assert np.array_equal(out["y"], y[order]) and np.array_equal(out["p"], p[order] & 1)
+            assert np.array_equal(labels, (p[order] >> 1).astype(bool))
+    finally:
+        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)

@@ -205,6 +205,10 @@ def renewal_window(width, pix, log1m_p, q_on, timer, states, fstate, dt, refr_us
 
 
 SIGNAL_FLAG = 2  # or-ed into a kernel's polarity output for signal (threshold-crossing) events
+#: :func:`sort_into_events`' first pass runs in up to this many blocks of at least SORT_BLOCK_MIN events (the
+#: result is the same for any number: the pass is stable)
+SORT_BLOCKS = 8
+SORT_BLOCK_MIN = 1 << 17
 
 
 @kernel(parallel=True)
@@ -212,7 +216,8 @@ def sort_into_events(t, x, y, p, t_lo, t_hi, out, labels):
     """Scatter the columns into the event array ``out`` sorted stably by ``t`` (in ``[t_lo, t_hi)``).
 
     A two-pass (MSD) counting sort, O(n + t_hi - t_lo): the events are first scattered into
-    at most 256 coarse time buckets (few write streams, so the writes stay in cache), then
+    at most 256 coarse time buckets (few write streams, so the writes stay in cache; in parallel
+    over contiguous blocks of the input, each block's share of a bucket after the earlier blocks'), then
     each bucket is counting-sorted by the remaining low bits of ``t`` in parallel (a bucket's
     histogram and output fit in cache). Both passes are stable: ties keep the input order
     (pixel order, then time order within a pixel), so the result does not depend on how the
@@ -226,24 +231,36 @@ def sort_into_events(t, x, y, p, t_lo, t_hi, out, labels):
     while (span >> shift) >= 256:
         shift += 1
     n_coarse = (span >> shift) + 1
+    # the first pass in contiguous blocks of the input, in parallel: each block's events of a bucket go after the
+    # earlier blocks' (offsets bucket by bucket, block by block), so the pass stays stable whatever the blocks
+    n_blocks = max(1, min(SORT_BLOCKS, n // SORT_BLOCK_MIN))
+    size = (n + n_blocks - 1) // n_blocks
+    hist = np.zeros((n_blocks, n_coarse), dtype=np.int64)
+    for b in prange(n_blocks):
+        for i in range(b * size, min(n, (b + 1) * size)):
+            hist[b, (t[i] - t_lo) >> shift] += 1
     starts = np.zeros(n_coarse + 1, dtype=np.int64)
-    for i in range(n):
-        starts[((t[i] - t_lo) >> shift) + 1] += 1
+    fill = np.empty((n_blocks, n_coarse), dtype=np.int64)
+    acc = 0
     for c in range(n_coarse):
-        starts[c + 1] += starts[c]
+        starts[c] = acc
+        for b in range(n_blocks):
+            fill[b, c] = acc
+            acc += hist[b, c]
+    starts[n_coarse] = acc
     tt = np.empty(n, dtype=np.int64)
     xx = np.empty(n, dtype=np.uint16)
     yy = np.empty(n, dtype=np.uint16)
     pp = np.empty(n, dtype=np.uint8)
-    fill = starts.copy()
-    for i in range(n):
-        c = (t[i] - t_lo) >> shift
-        j = fill[c]
-        fill[c] = j + 1
-        tt[j] = t[i]
-        xx[j] = x[i]
-        yy[j] = y[i]
-        pp[j] = p[i]
+    for b in prange(n_blocks):
+        for i in range(b * size, min(n, (b + 1) * size)):
+            c = (t[i] - t_lo) >> shift
+            j = fill[b, c]
+            fill[b, c] = j + 1
+            tt[j] = t[i]
+            xx[j] = x[i]
+            yy[j] = y[i]
+            pp[j] = p[i]
     fine = np.int64(1) << shift
     mask = fine - 1
     want_labels = labels.shape[0] == n
