@@ -63,7 +63,7 @@ __all__ = [
 TARGET_EVENTS_PER_WINDOW = 1_000_000
 #: Every window advances every static pixel (a pass over their state, ~30 ns a pixel on one core here, whatever
 #: their events): a static scene's windows hold at least this many events per pixel, so that pass stays a small part
-#: of a window's cost (a 1280x720 scene at 2 lux, 1.2-20 M events, 2 threads: 5-20 % less time per event in one
+#: of a window's cost (a 1280x720 scene at 2 lux, 1.2-20 M events, 2 threads: 5-30 % less time per event in one
 #: process than in windows of 1 M events, the same events bit for bit; benchmarks/bench_windows.py), up to
 #: :data:`MAX_EVENTS_PER_WINDOW` (a window's working memory is about :data:`WINDOW_BYTES_PER_EVENT` per event).
 EVENTS_PER_PIXEL_PER_WINDOW = 8
