@@ -203,8 +203,9 @@ def iter_events(
     """Simulate a static scene, yielding time-sorted event arrays window by window.
 
     Same parameters as :func:`simulate_events`; the concatenation of the yielded arrays is
-    the full, sorted event stream, and memory stays bounded by one window (at most eight million
-    events, about 8 per pixel of the scene). Validation happens at the call, before the first window.
+    the full, sorted event stream, and memory stays bounded by one window (about a million events or
+    8 per pixel of the scene, whichever is more, at most eight million). Validation happens at the call,
+    before the first window.
     """
     return _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, threads, progress,
                         background=background)
