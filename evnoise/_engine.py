@@ -92,6 +92,9 @@ class PixelState:
         # each chunk's event buffers, reused window after window (fresh pages cost page faults per event);
         # what a window kernel returns are views of them, valid until the next window
         self._buffers: dict[int, tuple] = {}
+        # or, for the next window, each chunk's region of one set of columns (:meth:`share`)
+        self._shared = None
+        self._regions: dict[int, tuple] = {}
 
     def restart(self, streams: np.ndarray) -> None:
         """Back to the state of a fresh :class:`PixelState` whose random streams are ``streams`` (a copy of
@@ -102,8 +105,30 @@ class PixelState:
 
         map_chunks(reset, self.pix.size, self._threads)
 
+    def share(self, capacities) -> None:
+        """Give each chunk (:func:`pixel_chunks` order) a region of one set of event columns with room for
+        ``capacities[c]`` events, which its next :meth:`buffers` call returns: the window's parts are then views of
+        the same columns, which :func:`sorted_window` sorts where they are (no concatenation). The columns are
+        kept for the next window unless large (as :meth:`keep`)."""
+        chunks = pixel_chunks(self.pix.size)
+        total = int(sum(capacities))
+        buf = self._shared
+        if buf is None or buf[0].size < total:
+            self._shared = buf = None
+            buf = event_buffers(total)
+        if total <= KEEP_EVENTS_PER_CHUNK * len(chunks):
+            self._shared = buf
+        off = 0
+        for (lo, _), cap in zip(chunks, capacities):
+            self._regions[lo] = tuple(c[off:off + cap] for c in buf)
+            off += cap
+
     def buffers(self, lo: int, capacity: int):
-        """Event buffers of the chunk starting at pixel ``lo`` with room for at least ``capacity`` events."""
+        """Event buffers of the chunk starting at pixel ``lo`` with room for at least ``capacity`` events (its region
+        of the shared columns where :meth:`share` gave it one)."""
+        out = self._regions.pop(lo, None)
+        if out is not None and out[0].size >= capacity:
+            return out
         out = self._buffers.get(lo)
         if out is None or out[0].size < capacity:
             out = event_buffers(capacity)
@@ -111,7 +136,10 @@ class PixelState:
 
     def keep(self, lo: int, out) -> None:
         """Keep ``out`` (perhaps grown) as the buffers of chunk ``lo``, unless it is large (one long window, e.g.
-        a long ``NoiseStream.advance``, must not pin its memory for the life of the state)."""
+        a long ``NoiseStream.advance``, must not pin its memory for the life of the state); a region of the shared
+        columns stays where it is."""
+        if out[0].base is not None and self._shared is not None and out[0].base is self._shared[0]:
+            return
         if out[0].size <= KEEP_EVENTS_PER_CHUNK:
             self._buffers[lo] = out
         else:
@@ -176,25 +204,75 @@ class Collector:
 
 
 def sorted_window(parts, t_lo: int, t_hi: int, labels: bool = False, sink: Collector | None = None):
-    """Concatenate ``(t, x, y, p)`` parts (in a fixed order) into one event array sorted stably by time.
+    """The events of ``(t, x, y, p)`` parts (in a fixed order) in one event array sorted stably by time.
 
     With ``labels`` also returns a bool array, True for signal events. With ``sink`` the window
     is sorted straight into the sink's next slots (and that view is returned).
     """
-    from ._kernels.simulate import sort_into_events
+    from ._kernels import simulate as k
 
     parts = [p for p in parts if p[0].size]
+    n = sum(p[0].size for p in parts)
     if not parts:
         return (empty_events(0), np.zeros(0, dtype=bool)) if labels else empty_events(0)
-    cols = [np.concatenate([p[i] for p in parts]) if len(parts) > 1 else parts[0][i] for i in range(4)]
-    del parts
-    out = np.empty(cols[0].size, dtype=EVENT_DTYPE) if sink is None else sink.reserve(cols[0].size)
+    out = np.empty(n, dtype=EVENT_DTYPE) if sink is None else sink.reserve(n)
     # touch its fresh pages in order, from this thread: the sort's parallel scatter faulting them in
     # costs ~14 ns per event (measured: 21 ms per million events into fresh memory, 8.7 touched first)
     out.view(np.uint8)[::4096] = 0
-    lab = np.empty(cols[0].size if labels else 0, dtype=np.uint8)
-    sort_into_events(*cols, np.int64(t_lo), np.int64(t_hi), out, lab)
+    lab = np.empty(n if labels else 0, dtype=np.uint8)
+    if (t_hi - t_lo) >> k.SORT_FINE_BITS_MAX >= 256:  # a window too long for the counting sort's histograms
+        _sort_long_window(parts, out, lab)
+    else:
+        cols, segments = _in_place(parts)
+        del parts
+        k.sort_into_events(*cols, segments, np.int64(t_lo), np.int64(t_hi), out, lab)
     return (out, lab.astype(bool)) if labels else out
+
+
+_COLUMN_TYPES = (np.int64, np.uint16, np.uint16, np.uint8)
+
+
+def _in_place(parts):
+    """``(columns, segments)``: four columns and the ``(first, end)`` rows that hold the parts' events in order.
+
+    Parts that are views of the same columns (:meth:`PixelState.share`) are read where they are; otherwise they
+    are concatenated into new columns (one segment).
+    """
+    segments = _segments_of(parts)
+    if segments is not None:
+        return [c.base for c in parts[0][:4]], segments
+    cols = [np.ascontiguousarray(parts[0][i] if len(parts) == 1 else np.concatenate([p[i] for p in parts]), dtype=d)
+            for i, d in enumerate(_COLUMN_TYPES)]
+    return cols, np.array([[0, cols[0].size]], dtype=np.int64)
+
+
+def _segments_of(parts):
+    """Where the parts lie in the columns their first part is a view of, or None if they are not all views of them
+    (in :data:`_COLUMN_TYPES`, contiguous, each part at one offset in every column)."""
+    bases = [c.base for c in parts[0][:4]]
+    if not all(b is not None and b.ndim == 1 and b.dtype == d and b.flags.c_contiguous
+               for b, d in zip(bases, _COLUMN_TYPES)):
+        return None
+    address = [b.__array_interface__["data"][0] for b in bases]
+    segments = np.empty((len(parts), 2), dtype=np.int64)
+    for j, part in enumerate(parts):
+        first = {(a.__array_interface__["data"][0] - at) // a.itemsize if a.base is b and a.flags.c_contiguous
+                 else -1 for a, b, at in zip(part[:4], bases, address)}
+        if len(first) != 1 or -1 in first:
+            return None
+        segments[j, 0] = first.pop()
+        segments[j, 1] = segments[j, 0] + part[0].size
+    return segments
+
+
+def _sort_long_window(parts, out, lab):
+    """The counting sort's result for a window whose span would need too large a histogram: NumPy's stable sort."""
+    t, x, y, p = (np.concatenate([part[i] for part in parts]) for i in range(4))
+    order = np.argsort(t, kind="stable")
+    out["t"], out["x"], out["y"] = t[order], x[order], y[order]
+    out["p"] = p[order] & 1
+    if lab.size:
+        lab[:] = (p[order] >> 1) & 1
 
 
 def renewal_inputs(p_on: np.ndarray, p_off: np.ndarray):
@@ -323,12 +401,13 @@ def renewal_step(state: PixelState, width, log1m_p, q_on, dt, refr_us, j_min, w_
     from ._kernels.simulate import renewal_window
 
     no_timer = np.zeros((3, 0))
+    caps = {lo: int(1.2 * expected[lo:hi].sum() + 64) if expected is not None else 1024
+            for lo, hi in pixel_chunks(state.pix.size)}
+    if store:
+        state.share(list(caps.values()))
 
     def run(lo, hi):
-        cap = 0
-        if store:
-            cap = int(1.2 * expected[lo:hi].sum() + 64) if expected is not None else 1024
-        out = state.buffers(lo, cap) if store else event_buffers(0)
+        out = state.buffers(lo, caps[lo]) if store else event_buffers(0)
         on = np.zeros(hi - lo, dtype=np.int64)
         off = np.zeros(hi - lo, dtype=np.int64)
         out, n = run_to_end(lambda buf, n, k: renewal_window(
@@ -355,9 +434,11 @@ def memory_step(state: PixelState, mem, width, group, tables, dt, refr_us, j_min
 
     table, itable, offsets, sizes = tables
     timer = np.zeros((3, 0)) if timer is None else timer
+    caps = {lo: int(1.2 * expected[lo:hi].sum() + 64) for lo, hi in pixel_chunks(state.pix.size)}
+    state.share(list(caps.values()))
 
     def run(lo, hi):
-        out = state.buffers(lo, int(1.2 * expected[lo:hi].sum() + 64))
+        out = state.buffers(lo, caps[lo])
         on = np.zeros(hi - lo, dtype=np.int64)
         off = np.zeros(hi - lo, dtype=np.int64)
         out, n = run_to_end(lambda buf, n, k: memory_window(

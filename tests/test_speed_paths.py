@@ -14,6 +14,7 @@ the live values are compared to them within a stated tolerance (``_assert_same_p
 """
 
 import hashlib
+import math
 from pathlib import Path
 
 import numpy as np
@@ -333,3 +334,69 @@ def test_the_window_sort_is_stable_whatever_its_blocks():
             assert np.array_equal(labels, (p[order] >> 1).astype(bool))
     finally:
         numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+
+
+def _stable_reference(parts):
+    t, x, y, p = (np.concatenate([part[i] for part in parts]) for i in range(4))
+    order = np.argsort(t, kind="stable")
+    return t[order], x[order], y[order], p[order]
+
+
+def _random_columns(rng, n, t_lo, t_hi):
+    return (rng.integers(t_lo, t_hi, n), rng.integers(0, 1280, n).astype(np.uint16),
+            rng.integers(0, 720, n).astype(np.uint16), rng.integers(0, 4, n).astype(np.uint8))
+
+
+@pytest.mark.parametrize("layout", ["regions of shared columns", "separate arrays", "long window"])
+def test_the_window_sort_reads_parts_where_they_are_and_keeps_their_order(layout):
+    """Parts that are regions of one set of columns (with gaps, an empty one, one beyond a block) are sorted where
+    they lie; separate parts are concatenated; a window too long for the counting sort's histograms takes NumPy's
+    stable sort: each gives NumPy's stable argsort of the parts in order (labels from the signal flag)."""
+    from evnoise import _engine
+    from evnoise._kernels import simulate as kernels
+
+    rng = np.random.default_rng(5)
+    t_lo = 7000
+    span = (1 << (kernels.SORT_FINE_BITS_MAX + 9)) if layout == "long window" else 3_000_000
+    sizes = (150_000, 0, kernels.SORT_BLOCK_MIN * 3 + 5, 7, 90_000)
+    shared = _engine.event_buffers(sum(sizes) + 1000 * len(sizes))
+    parts, first, where = [], 0, []
+    for m in sizes:
+        cols = _random_columns(rng, m, t_lo, t_lo + span)
+        if layout == "separate arrays":
+            parts.append(cols)
+            continue
+        for column, values in zip(shared, cols):
+            column[first:first + m] = values
+        parts.append(tuple(c[first:first + m] for c in shared))
+        if m:
+            where.append([first, first + m])
+        first += m + 1000
+    found = _engine._segments_of([p for p in parts if p[0].size])
+    if layout == "separate arrays":
+        assert found is None
+    else:
+        assert found is not None and found.tolist() == where
+    t, x, y, p = _stable_reference(parts)
+    out, labels = _engine.sorted_window(parts, t_lo, t_lo + span, labels=True)
+    assert np.array_equal(out["t"], t) and np.array_equal(out["x"], x) and np.array_equal(out["y"], y)
+    assert np.array_equal(out["p"], p & 1) and np.array_equal(labels, (p >> 1).astype(bool))
+
+
+def test_a_static_windows_parts_are_sorted_where_the_kernel_wrote_them():
+    """The renewal and memory steps give every chunk a region of one set of columns, so the window's sort reads them
+    in place (no concatenation of the window's events): the parts must be regions of the same columns."""
+    from evnoise import _engine
+    from evnoise.simulate import PixelState
+
+    params = ev.load_preset("evk3-hd")
+    shape = (40, 1000)  # more pixels than one chunk
+    lam = params.photons_per_trial(np.full(shape, 2.0)).ravel()
+    log1m_p, q_on, timer, nu = _engine.static_inputs(lam, params, np.full(lam.size, params.eps_pos),
+                                                     np.full(lam.size, params.eps_neg), None)
+    state = PixelState(np.arange(lam.size), np.arange(4, dtype=np.uint64) + 1, 2)
+    assert len(_engine.pixel_chunks(lam.size)) > 1
+    parts = _engine.renewal_step(state, shape[1], log1m_p, q_on, params.trial_us, params.refractory_us, 0, 2e6,
+                                 math.inf, 0, 2, expected=nu * 2.0, timer=timer)
+    parts = [p[:4] for p in parts if p[0].size]
+    assert len(parts) > 1 and _engine._segments_of(parts) is not None

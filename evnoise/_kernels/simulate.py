@@ -205,39 +205,64 @@ def renewal_window(width, pix, log1m_p, q_on, timer, states, fstate, dt, refr_us
 
 
 SIGNAL_FLAG = 2  # or-ed into a kernel's polarity output for signal (threshold-crossing) events
-#: :func:`sort_into_events`' first pass runs in up to this many blocks of at least SORT_BLOCK_MIN events (the
-#: result is the same for any number: the pass is stable)
+#: :func:`sort_into_events`' first pass runs over blocks of its segments, a segment of more than SORT_BLOCK_MIN events
+#: cut into up to SORT_BLOCKS blocks (the result is the same for any blocks: the pass is stable)
 SORT_BLOCKS = 8
 SORT_BLOCK_MIN = 1 << 17
+#: the most low bits of ``t - t_lo`` the second pass counts (a histogram of ``2**bits`` per coarse bucket); a
+#: window longer than ``256 * 2**SORT_FINE_BITS_MAX`` µs is sorted another way (:func:`evnoise._engine.sorted_window`)
+SORT_FINE_BITS_MAX = 20
+_X_SHIFT = 18  # a packed event: fine time bits << 34 | x << 18 | y << 2 | p (p: polarity bit and SIGNAL_FLAG)
+_FINE_SHIFT = 34
+
+
+@kernel
+def _sort_blocks(segments):
+    """``(first, end)`` rows: the blocks of the first pass, in input order (segments in order, a segment of more
+    than SORT_BLOCK_MIN events cut into up to SORT_BLOCKS blocks)."""
+    n_blocks = 0
+    for s in range(segments.shape[0]):
+        n_blocks += max(1, min(SORT_BLOCKS, (segments[s, 1] - segments[s, 0]) // SORT_BLOCK_MIN))
+    blocks = np.empty((n_blocks, 2), dtype=np.int64)
+    r = 0
+    for s in range(segments.shape[0]):
+        lo = segments[s, 0]
+        m = segments[s, 1] - lo
+        k = max(1, min(SORT_BLOCKS, m // SORT_BLOCK_MIN))
+        size = (m + k - 1) // k
+        for b in range(k):
+            blocks[r, 0] = lo + min(m, b * size)
+            blocks[r, 1] = lo + min(m, (b + 1) * size)
+            r += 1
+    return blocks
 
 
 @kernel(parallel=True)
-def sort_into_events(t, x, y, p, t_lo, t_hi, out, labels):
-    """Scatter the columns into the event array ``out`` sorted stably by ``t`` (in ``[t_lo, t_hi)``).
+def sort_into_events(t, x, y, p, segments, t_lo, t_hi, out, labels):
+    """Sort the events of the columns ``(t, x, y, p)`` in the ``segments`` ``(first, end)`` rows (in order) into
+    the event array ``out``, stably by ``t`` (in ``[t_lo, t_hi)``; at most :data:`SORT_FINE_BITS_MAX` + 8 bits
+    of span).
 
-    A two-pass (MSD) counting sort, O(n + t_hi - t_lo): the events are first scattered into
-    at most 256 coarse time buckets (few write streams, so the writes stay in cache; in parallel
-    over contiguous blocks of the input, each block's share of a bucket after the earlier blocks'), then
-    each bucket is counting-sorted by the remaining low bits of ``t`` in parallel (a bucket's
-    histogram and output fit in cache). Both passes are stable: ties keep the input order
-    (pixel order, then time order within a pixel), so the result does not depend on how the
-    work was split. The kernels mark signal events with :data:`SIGNAL_FLAG` in ``p``; the
-    flag is removed from ``out.p`` and, if ``labels`` has room for every event, written there
-    (1 = signal).
+    A two-pass (MSD) counting sort, O(n + t_hi - t_lo), that reads the segments where they are: the first pass packs
+    each event into one 64-bit word (the low bits of its time, x, y, p) and scatters it into one of at most 256
+    coarse time buckets (one write stream per bucket, so the writes stay in cache), in parallel over blocks of
+    the input, each block's share of a bucket after the earlier blocks' (offsets bucket by bucket, block by
+    block); the second counting-sorts each bucket by the low bits in parallel (a bucket's histogram and output
+    fit in cache) and unpacks it into ``out``. Both passes are stable: ties keep the input order (part order,
+    then each segment's own order), so the result does not depend on how the work was split. The kernels mark
+    signal events with :data:`SIGNAL_FLAG` in ``p``; the flag is removed from ``out.p`` and, if ``labels``
+    has room for every event, written there (1 = signal).
     """
-    n = t.shape[0]
     span = t_hi - t_lo
     shift = 0
     while (span >> shift) >= 256:
         shift += 1
     n_coarse = (span >> shift) + 1
-    # the first pass in contiguous blocks of the input, in parallel: each block's events of a bucket go after the
-    # earlier blocks' (offsets bucket by bucket, block by block), so the pass stays stable whatever the blocks
-    n_blocks = max(1, min(SORT_BLOCKS, n // SORT_BLOCK_MIN))
-    size = (n + n_blocks - 1) // n_blocks
+    blocks = _sort_blocks(segments)
+    n_blocks = blocks.shape[0]
     hist = np.zeros((n_blocks, n_coarse), dtype=np.int64)
     for b in prange(n_blocks):
-        for i in range(b * size, min(n, (b + 1) * size)):
+        for i in range(blocks[b, 0], blocks[b, 1]):
             hist[b, (t[i] - t_lo) >> shift] += 1
     starts = np.zeros(n_coarse + 1, dtype=np.int64)
     fill = np.empty((n_blocks, n_coarse), dtype=np.int64)
@@ -248,22 +273,18 @@ def sort_into_events(t, x, y, p, t_lo, t_hi, out, labels):
             fill[b, c] = acc
             acc += hist[b, c]
     starts[n_coarse] = acc
-    tt = np.empty(n, dtype=np.int64)
-    xx = np.empty(n, dtype=np.uint16)
-    yy = np.empty(n, dtype=np.uint16)
-    pp = np.empty(n, dtype=np.uint8)
-    for b in prange(n_blocks):
-        for i in range(b * size, min(n, (b + 1) * size)):
-            c = (t[i] - t_lo) >> shift
-            j = fill[b, c]
-            fill[b, c] = j + 1
-            tt[j] = t[i]
-            xx[j] = x[i]
-            yy[j] = y[i]
-            pp[j] = p[i]
     fine = np.int64(1) << shift
     mask = fine - 1
-    want_labels = labels.shape[0] == n
+    keys = np.empty(acc, dtype=np.uint64)
+    for b in prange(n_blocks):
+        for i in range(blocks[b, 0], blocks[b, 1]):
+            d = t[i] - t_lo
+            c = d >> shift
+            j = fill[b, c]
+            fill[b, c] = j + 1
+            keys[j] = ((np.uint64(d & mask) << np.uint64(_FINE_SHIFT)) | (np.uint64(x[i]) << np.uint64(_X_SHIFT))
+                       | (np.uint64(y[i]) << np.uint64(2)) | np.uint64(p[i] & 3))
+    want_labels = labels.shape[0] == acc
     for c in prange(n_coarse):
         lo = starts[c]
         hi = starts[c + 1]
@@ -271,19 +292,21 @@ def sort_into_events(t, x, y, p, t_lo, t_hi, out, labels):
             continue
         counts = np.zeros(fine + 1, dtype=np.int64)
         for i in range(lo, hi):
-            counts[((tt[i] - t_lo) & mask) + 1] += 1
+            counts[np.int64(keys[i] >> np.uint64(_FINE_SHIFT)) + 1] += 1
         for f in range(fine):
             counts[f + 1] += counts[f]
+        base = t_lo + (np.int64(c) << shift)
         for i in range(lo, hi):
-            f = (tt[i] - t_lo) & mask
+            key = keys[i]
+            f = np.int64(key >> np.uint64(_FINE_SHIFT))
             j = lo + counts[f]
             counts[f] += 1
-            out[j].t = tt[i]
-            out[j].x = xx[i]
-            out[j].y = yy[i]
-            out[j].p = pp[i] & 1
+            out[j].t = base + f
+            out[j].x = np.uint16((key >> np.uint64(_X_SHIFT)) & np.uint64(0xFFFF))
+            out[j].y = np.uint16((key >> np.uint64(2)) & np.uint64(0xFFFF))
+            out[j].p = np.uint8(key & np.uint64(1))
             if want_labels:
-                labels[j] = pp[i] >> 1
+                labels[j] = np.uint8((key >> np.uint64(1)) & np.uint64(1))
 
 
 @kernel
