@@ -53,29 +53,52 @@ def seed_state(key, index, state):
         state[0] = _GOLDEN  # the all-zero state is the one forbidden state
 
 
+@kernel(inline=True)
+def xoshiro_step(s0, s1, s2, s3):
+    """One xoshiro256++ step on a state held in four scalars: ``(output, s0, s1, s2, s3)``.
+
+    A kernel that keeps its stream in scalars (registers) instead of a 4-word array draws several times faster:
+    an array's words go through memory on every draw, since a store to any output array might alias them.
+    """
+    result = _rotl(s0 + s3, _U23) + s0
+    t = s1 << _U17
+    s2 ^= s0
+    s3 ^= s1
+    s1 ^= s2
+    s0 ^= s3
+    s2 ^= t
+    s3 = _rotl(s3, _U45)
+    return result, s0, s1, s2, s3
+
+
 @kernel
 def next_u64(s):
-    result = _rotl(s[0] + s[3], _U23) + s[0]
-    t = s[1] << _U17
-    s[2] ^= s[0]
-    s[3] ^= s[1]
-    s[1] ^= s[2]
-    s[0] ^= s[3]
-    s[2] ^= t
-    s[3] = _rotl(s[3], _U45)
+    result, s[0], s[1], s[2], s[3] = xoshiro_step(s[0], s[1], s[2], s[3])
     return result
+
+
+@kernel(inline=True)
+def unit(r):
+    """The uniform double in [0, 1) of a 64-bit output ``r`` (its 53 high bits)."""
+    return float(r >> _U11) * _TWO_M53
+
+
+@kernel(inline=True)
+def unit_pos(r):
+    """The uniform double in (0, 1] of a 64-bit output ``r``."""
+    return (float(r >> _U11) + 1.0) * _TWO_M53
 
 
 @kernel
 def uniform(s):
     """Uniform double in [0, 1) with 53 random bits."""
-    return float(next_u64(s) >> _U11) * _TWO_M53
+    return unit(next_u64(s))
 
 
 @kernel
 def uniform_pos(s):
     """Uniform double in (0, 1]."""
-    return (float(next_u64(s) >> _U11) + 1.0) * _TWO_M53
+    return unit_pos(next_u64(s))
 
 
 @kernel
@@ -88,7 +111,13 @@ def geometric(s, log1m_p):
         return math.inf
     if log1m_p == -math.inf:
         return 1.0
-    return np.floor(math.log(uniform_pos(s)) / log1m_p) + 1.0  # np.floor: a float (math.floor's int64 overflows)
+    return geometric_of(uniform_pos(s), log1m_p)
+
+
+@kernel(inline=True)
+def geometric_of(u, log1m_p):
+    """:func:`geometric`'s draw from ``u`` in (0, 1] where ``log1m_p`` is neither 0 nor ``-inf``."""
+    return np.floor(math.log(u) / log1m_p) + 1.0  # np.floor: a float (math.floor's int64 overflows)
 
 
 POISSON_NORMAL_LAM = 2.0**52  # from here on poisson draws the normal limit (see poisson_emlam)

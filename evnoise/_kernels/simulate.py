@@ -24,7 +24,7 @@ from numba import prange
 from ._jit import kernel
 from .background import draw_timer, draw_timer_stationary, timer_shape
 from .poisson import log_event_probability_exact, threshold_count
-from .rng import geometric, poisson_emlam, seed_state, uniform
+from .rng import geometric, geometric_of, poisson_emlam, seed_state, uniform, unit, unit_pos, xoshiro_step
 
 NO_EVENT = math.nan
 
@@ -110,15 +110,16 @@ def renewal_window(width, pix, log1m_p, q_on, timer, states, fstate, dt, refr_us
     t_out, x_out, y_out, p_out = out
     cap = t_out.shape[0] if store else 0
     n_pix = pix.shape[0]
-    s = np.empty(4, dtype=np.uint64)  # the pixel's stream in a local copy (a view per pixel costs reference counting)
+    # the pixel's stream in four scalars (registers: :func:`xoshiro_step`), copied into ``s`` around the timer's
+    # draws, which take an array
+    s = np.empty(4, dtype=np.uint64)
     for k in range(k_start, n_pix):
         tau = fstate[k, PEND_TAU]
         if tau >= w_end:  # (NaN compares false) an event pending beyond the window: nothing to draw
             if fstate[k, PEND_TRIAL] >= discard_from_trial:
                 fstate[k, PEND_TAU] = NO_EVENT
             continue
-        for w in range(4):
-            s[w] = states[k, w]
+        s0, s1, s2, s3 = states[k, 0], states[k, 1], states[k, 2], states[k, 3]
         jp = fstate[k, PEND_TRIAL]
         on = fstate[k, PEND_ON] == 1.0
         x_pix = pix[k] % width
@@ -142,6 +143,7 @@ def renewal_window(width, pix, log1m_p, q_on, timer, states, fstate, dt, refr_us
                     j_e = first_eligible_trial(lt, lta, refr_us, dt)
                 j_e = max(j_e, j_min)
                 if has_timer:
+                    s[0], s[1], s[2], s[3] = s0, s1, s2, s3
                     if math.isnan(nxt):
                         if lta == -math.inf:
                             nxt = j_e + draw_timer_stationary(s, timer[0, k], timer[1, k], l1p) - 1.0
@@ -155,24 +157,33 @@ def renewal_window(width, pix, log1m_p, q_on, timer, states, fstate, dt, refr_us
                     else:
                         jp = j_ph
                         on = uniform(s) < qk
+                    s0, s1, s2, s3 = s[0], s[1], s[2], s[3]
                     if jp == math.inf:
                         tau = math.inf
                         break
                 else:
-                    g = geometric(s, l1p)
+                    if l1p == 0.0:  # geometric()'s limits, then its draw
+                        g = math.inf
+                    elif l1p == -math.inf:
+                        g = 1.0
+                    else:
+                        r, s0, s1, s2, s3 = xoshiro_step(s0, s1, s2, s3)
+                        g = geometric_of(unit_pos(r), l1p)
                     if g == math.inf:
                         tau = math.inf
                         jp = math.inf
                         break
                     jp = j_e + g - 1.0
-                tau = (jp + uniform(s)) * dt
+                r, s0, s1, s2, s3 = xoshiro_step(s0, s1, s2, s3)
+                tau = (jp + unit(r)) * dt
             if tau >= w_end:
                 break
             if store and n == cap:
                 full = True  # the event stays pending (polarity drawn when it is stored; with a timer kept in PEND_ON)
                 break
             if not has_timer:  # the Poisson path draws the polarity of an event inside the window only
-                on = uniform(s) < qk
+                r, s0, s1, s2, s3 = xoshiro_step(s0, s1, s2, s3)
+                on = unit(r) < qk
             pol = np.uint8(on)  # counted without a branch on the polarity (it is a coin flip)
             n_on += pol
             n_off += 1 - pol
@@ -197,8 +208,7 @@ def renewal_window(width, pix, log1m_p, q_on, timer, states, fstate, dt, refr_us
         if has_timer:
             fstate[k, BG_NEXT] = nxt
             fstate[k, PEND_ON] = 1.0 if on else 0.0
-        for w in range(4):
-            states[k, w] = s[w]
+        states[k, 0], states[k, 1], states[k, 2], states[k, 3] = s0, s1, s2, s3
         if full:
             return n, k
     return n, n_pix
