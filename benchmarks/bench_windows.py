@@ -1,7 +1,8 @@
 """Windows of a static scene (issue 33): windows of about 1 M events against windows of at least
 ``evnoise.simulate.EVENTS_PER_PIXEL_PER_WINDOW`` events per pixel, on the v2e job's scene.
 
-    python benchmarks/bench_windows.py [--repeats 3] [--lux 2] [--duration 1 --duration 4 --duration 16] [--no-report]
+    python benchmarks/bench_windows.py [--repeats 3] [--lux 2] [--duration 1 --duration 4 --duration 16]
+        [--baseline-tree DIR --baseline-label TEXT] [--no-report]
 
 Every window advances every pixel (a pass over the pixels' state, ~30 ns a pixel on one core here), so a
 1280x720 scene in windows of 1 M events pays that pass once per million events. Each row runs
@@ -12,6 +13,8 @@ runs; and *first call of a fresh process* (as ``evnoise simulate`` and the v2e b
 column: whether both rules give the same events, bit for bit (SHA-256 of the event arrays), which the output must.
 The first-touch row times a process's first and second writing of a fresh array of the size of the longest run's
 output (the machine's cost of memory a process has not used before, which a fresh process's long run pays).
+``--baseline-tree DIR`` adds rows for the code in ``DIR`` (another checkout, imported through ``PYTHONPATH`` in
+child processes that run in an empty folder) with its own default windows, timed the same way.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ import platform
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -37,7 +41,8 @@ from _report import cpu_name, replace_section  # noqa: E402
 TITLE = "## Windows of a static scene (issue 33)"
 SHAPE = (720, 1280)
 PRESET = "evk3-hd"
-RULES = {"1 M events (before)": 0, "8 per pixel (now)": None}  # EVENTS_PER_PIXEL_PER_WINDOW (None: as shipped)
+RULES_LABEL_NOW = "8 per pixel (now)"
+RULES = {"1 M events (before)": 0, RULES_LABEL_NOW: None}  # EVENTS_PER_PIXEL_PER_WINDOW (None: as shipped)
 
 
 def _set_rule(per_pixel):
@@ -87,14 +92,20 @@ def in_process(lux, duration_s, per_pixel, repeats):
     return {"windows": len(windows), "digest": digest, "events": n, "times": times[1:]}
 
 
-def fresh(lux, duration_s, per_pixel, repeats):
+def _child(args, tree):
+    """The JSON a child process of this script prints, the code of ``tree`` (None: this one) imported."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    if tree is not None:
+        env["PYTHONPATH"] = str(tree)
+    with tempfile.TemporaryDirectory() as cwd:  # an empty folder: evnoise comes from PYTHONPATH or the install
+        done = subprocess.run([sys.executable, str(Path(__file__).resolve()), *args], capture_output=True,
+                              text=True, check=True, env=env, cwd=cwd)
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def fresh(lux, duration_s, per_pixel, repeats, tree=None):
     arg = "default" if per_pixel is None else str(per_pixel)
-    out = []
-    for _ in range(repeats):
-        done = subprocess.run([sys.executable, __file__, "--child", f"{lux}", f"{duration_s}", arg],
-                              capture_output=True, text=True, check=True)
-        out.append(json.loads(done.stdout.strip().splitlines()[-1]))
-    return [o["s"] for o in out]
+    return [_child(["--child", f"{lux}", f"{duration_s}", arg], tree)["s"] for _ in range(repeats)]
 
 
 def first_touch(n_bytes):
@@ -113,6 +124,9 @@ def fmt(times):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--child", nargs=3, help=argparse.SUPPRESS)
+    ap.add_argument("--child-in-process", nargs=3, help=argparse.SUPPRESS)
+    ap.add_argument("--baseline-tree", type=Path, default=None, help="another checkout, timed beside this code")
+    ap.add_argument("--baseline-label", default="baseline", help="what the baseline tree is, for the report")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--lux", type=float, default=2.0)
     ap.add_argument("--duration", type=float, action="append", default=None, help="simulated seconds (repeatable)")
@@ -122,6 +136,10 @@ def main(argv=None) -> int:
     if args.child:
         lux, duration_s, rule = args.child
         print(json.dumps(child(float(lux), float(duration_s), None if rule == "default" else int(rule))))
+        return 0
+    if args.child_in_process:
+        lux, duration_s, repeats = args.child_in_process
+        print(json.dumps(in_process(float(lux), float(duration_s), None, int(repeats))))
         return 0
     import numba
 
@@ -139,6 +157,13 @@ def main(argv=None) -> int:
             digests.setdefault(d, set()).add(r["digest"])
             rows.append((d, label, r, f))
             print(d, label, r["windows"], fmt(r["times"]), fmt(f), flush=True)
+        if args.baseline_tree is not None:
+            label = f"{RULES_LABEL_NOW}, {args.baseline_label}"
+            r = _child(["--child-in-process", f"{args.lux}", f"{d}", f"{args.repeats}"], args.baseline_tree)
+            f = fresh(args.lux, d, None, args.repeats, args.baseline_tree)
+            digests[d].add(r["digest"])
+            rows.append((d, label, r, f))
+            print(d, label, r["windows"], fmt(r["times"]), fmt(f), flush=True)
     longest = max(rows, key=lambda row: row[2]["events"])[2]["events"]
     touches = [first_touch(longest * EVENT_DTYPE.itemsize) for _ in range(args.repeats)]
     load1 = os.getloadavg()
@@ -147,12 +172,16 @@ def main(argv=None) -> int:
              f"{_dt.date.today()}. evnoise {ev.__version__} (Python {platform.python_version()}, NumPy "
              f"{np.__version__}, Numba {numba.__version__}), every core (Numba's default threads). Command: "
              f"`python benchmarks/bench_windows.py --repeats {args.repeats} --lux {args.lux:g}"
-             + "".join(f" --duration {d:g}" for d in durations) + "`. Load average (1 min): "
+             + "".join(f" --duration {d:g}" for d in durations)
+             + (f" --baseline-tree DIR --baseline-label '{args.baseline_label}'" if args.baseline_tree else "")
+             + "`. Load average (1 min): "
              f"{load0[0]:.2f} before, {load1[0]:.2f} after.", "",
              f"Flat 1280x720 field at {args.lux:g} lux, `{PRESET}`, `simulate_events` (events collected in memory). "
              f"Rules: windows of about {simulate.TARGET_EVENTS_PER_WINDOW:,} events (before), or at least "
              f"{simulate.EVENTS_PER_PIXEL_PER_WINDOW} events per pixel up to {simulate.MAX_EVENTS_PER_WINDOW:,} "
-             "(now). Seconds, median (min–max). 'same events': both rules' event arrays equal bit for bit.", "",
+             "(now)" + (f"; and the code of `--baseline-tree` ({args.baseline_label}) with its own default windows"
+                        if args.baseline_tree else "")
+             + ". Seconds, median (min–max). 'same events': every row's event arrays equal bit for bit.", "",
              "| simulated s | rule | windows | events | in one process (s) | ns/event | fresh process, first call (s) "
              "| same events |", "|---|---|---|---|---|---|---|---|"]
     for d, label, r, f in rows:

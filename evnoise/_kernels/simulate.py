@@ -220,8 +220,10 @@ SIGNAL_FLAG = 2  # or-ed into a kernel's polarity output for signal (threshold-c
 SORT_BLOCKS = 8
 SORT_BLOCK_MIN = 1 << 17
 #: the most low bits of ``t - t_lo`` the second pass counts (a histogram of ``2**bits`` per coarse bucket); a
-#: window longer than ``256 * 2**SORT_FINE_BITS_MAX`` µs is sorted another way (:func:`evnoise._engine.sorted_window`)
+#: window longer than ``SORT_COARSE * 2**SORT_FINE_BITS_MAX`` µs is sorted another way (:func:`evnoise._engine.sorted_window`)
 SORT_FINE_BITS_MAX = 20
+#: at most this many coarse time buckets in the first pass
+SORT_COARSE = 256
 _X_SHIFT = 18  # a packed event: fine time bits << 34 | x << 18 | y << 2 | p (p: polarity bit and SIGNAL_FLAG)
 _FINE_SHIFT = 34
 
@@ -265,7 +267,7 @@ def sort_into_events(t, x, y, p, segments, t_lo, t_hi, out, labels):
     """
     span = t_hi - t_lo
     shift = 0
-    while (span >> shift) >= 256:
+    while (span >> shift) >= SORT_COARSE:
         shift += 1
     n_coarse = (span >> shift) + 1
     blocks = _sort_blocks(segments)
