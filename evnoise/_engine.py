@@ -220,7 +220,7 @@ def sorted_window(parts, t_lo: int, t_hi: int, labels: bool = False, sink: Colle
     # costs ~14 ns per event (measured: 21 ms per million events into fresh memory, 8.7 touched first)
     out.view(np.uint8)[::4096] = 0
     lab = np.empty(n if labels else 0, dtype=np.uint8)
-    if (t_hi - t_lo) >> k.SORT_FINE_BITS_MAX >= k.SORT_COARSE:  # a window too long for the counting sort's histograms
+    if (t_hi - t_lo) >> k.SORT_FINE_BITS >= k.SORT_COARSE_MAX:  # a window too long for the counting sort's histograms
         _sort_long_window(parts, out, lab)
     else:
         cols, segments = _in_place(parts)

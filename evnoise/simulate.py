@@ -70,7 +70,12 @@ EVENTS_PER_PIXEL_PER_WINDOW = 8
 MAX_EVENTS_PER_WINDOW = 8_000_000
 WINDOW_BYTES_PER_EVENT = 40
 TARGET_PIXEL_TRIALS_PER_WINDOW = 40_000_000
-MAX_WINDOW_US = 1 << 22  # bounds the counting sort's histogram
+#: the trial tier's windows at most this long (a changing pixel's events are not bounded by events_per_window)
+MAX_WINDOW_US = 1 << 22
+#: a static scene's windows (bounded by events_per_window) at most this long (~67 s): at a low event rate a long
+#: window saves passes over the pixels' state (~0.6 events per pixel in a 4 s window of a 1280x720 scene at 0.01 or
+#: 300 lux); the window sort takes up to ~268 s (evnoise._kernels.simulate.SORT_COARSE_MAX)
+MAX_STATIC_WINDOW_US = 1 << 26
 # Trial tier: pixels static within a window (lam = lam_ref) jump between events with geometric
 # gaps (O(events)); False keeps the per-trial reference algorithm (tests compare the two).
 TRIAL_FAST_STATIC = True
@@ -290,12 +295,12 @@ def _static_windows(n_pixels, key, threads, total, t_start_us, duration_us, prog
     :func:`_iter_memory` share).
 
     ``total`` is the expected number of events; the run is cut into windows of about
-    :func:`events_per_window` events (and at most :data:`MAX_WINDOW_US` long), their ends whole
+    :func:`events_per_window` events (and at most :data:`MAX_STATIC_WINDOW_US` long), their ends whole
     microseconds made one at a time, so any duration streams in bounded memory. ``reserve``: the events a
     ``sink`` is sized for. ``step(state, t_prev_us, w_end_us)`` advances every pixel (``state``: their
     :class:`PixelState`) to ``w_end_us`` and returns the window's unsorted parts.
     """
-    n_win = max(1, math.ceil(total / events_per_window(n_pixels)), -(-duration_us // MAX_WINDOW_US))
+    n_win = max(1, math.ceil(total / events_per_window(n_pixels)), -(-duration_us // MAX_STATIC_WINDOW_US))
     if sink is not None:
         _check_memory(total, window_events=events_per_window(n_pixels))
         sink.__init__(int(math.ceil(reserve)))

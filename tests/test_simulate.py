@@ -429,13 +429,15 @@ def test_video_bad_input():
 def test_windows_are_made_lazily_whatever_the_duration(method):
     import tracemalloc
 
+    import evnoise.simulate as sim
     from evnoise.simulate import EventWindows
 
     lux = np.full((4, 4), 2.0)
     list(ev.iter_events(lux, PARAMS, 0.5, rng=1, method=method))  # compile outside the measurement
     tracemalloc.start()
     try:
-        # 1e7 s: 2.4 million windows of at most 4.2 s (the window list alone used to take ~90 MB; 1e12 s: GBs)
+        # 1e7 s: 150 thousand windows of at most 67 s (static), 2.4 million of at most 4.2 s (trials) (the window
+        # list alone used to take ~90 MB; 1e12 s: GBs)
         windows = ev.iter_events(lux, PARAMS, 1e7, rng=1, method=method)
         first = next(windows)
         peak = tracemalloc.get_traced_memory()[1]
@@ -444,7 +446,8 @@ def test_windows_are_made_lazily_whatever_the_duration(method):
     windows.close()
     assert isinstance(windows, EventWindows) and windows.duration_us == 10**13
     assert peak < 5_000_000, peak
-    assert first.size and first["t"].max() < 5_000_000  # the first window only
+    longest = sim.MAX_STATIC_WINDOW_US if method == "auto" else sim.MAX_WINDOW_US
+    assert first.size and first["t"].max() < longest  # the first window only
     rate = float(np.sum(ev.expected_rate(lux, PARAMS)))
     assert windows.expected_events == pytest.approx(rate * 1e7, rel=1e-9)
 
@@ -509,6 +512,7 @@ def test_progress_steps_add_up_to_the_total_without_warnings(monkeypatch, method
     import evnoise.simulate as sim
 
     monkeypatch.setattr(sim, "MAX_WINDOW_US", -(-20_000_000 // 7))  # 7 windows, as davis346 gave
+    monkeypatch.setattr(sim, "MAX_STATIC_WINDOW_US", sim.MAX_WINDOW_US)
     totals = []
     from tqdm import tqdm as real_tqdm
 

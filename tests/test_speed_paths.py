@@ -357,7 +357,7 @@ def test_the_window_sort_reads_parts_where_they_are_and_keeps_their_order(layout
 
     rng = np.random.default_rng(5)
     t_lo = 7000
-    span = (1 << (kernels.SORT_FINE_BITS_MAX + 9)) if layout == "long window" else 3_000_000
+    span = (kernels.SORT_COARSE_MAX << kernels.SORT_FINE_BITS) + 5 if layout == "long window" else 3_000_000
     sizes = (150_000, 0, kernels.SORT_BLOCK_MIN * 3 + 5, 7, 90_000)
     shared = _engine.event_buffers(sum(sizes) + 1000 * len(sizes))
     parts, first, where = [], 0, []

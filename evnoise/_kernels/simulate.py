@@ -219,11 +219,13 @@ SIGNAL_FLAG = 2  # or-ed into a kernel's polarity output for signal (threshold-c
 #: cut into up to SORT_BLOCKS blocks (the result is the same for any blocks: the pass is stable)
 SORT_BLOCKS = 8
 SORT_BLOCK_MIN = 1 << 17
-#: the most low bits of ``t - t_lo`` the second pass counts (a histogram of ``2**bits`` per coarse bucket); a
-#: window longer than ``SORT_COARSE * 2**SORT_FINE_BITS_MAX`` µs is sorted another way (:func:`evnoise._engine.sorted_window`)
-SORT_FINE_BITS_MAX = 20
-#: at most this many coarse time buckets in the first pass
+#: the first pass's coarse time buckets: up to SORT_COARSE, more (up to SORT_COARSE_MAX) where a window is so long
+#: that each would span more than ``2**SORT_FINE_BITS`` µs (the second pass's histogram per bucket: 32 k entries,
+#: 256 kB); a window longer than ``SORT_COARSE_MAX * 2**SORT_FINE_BITS`` µs (~268 s) is sorted another way
+#: (:func:`evnoise._engine.sorted_window`)
 SORT_COARSE = 256
+SORT_FINE_BITS = 15
+SORT_COARSE_MAX = 1 << 13
 _X_SHIFT = 18  # a packed event: fine time bits << 34 | x << 18 | y << 2 | p (p: polarity bit and SIGNAL_FLAG)
 _FINE_SHIFT = 34
 
@@ -252,12 +254,12 @@ def _sort_blocks(segments):
 @kernel(parallel=True)
 def sort_into_events(t, x, y, p, segments, t_lo, t_hi, out, labels):
     """Sort the events of the columns ``(t, x, y, p)`` in the ``segments`` ``(first, end)`` rows (in order) into
-    the event array ``out``, stably by ``t`` (in ``[t_lo, t_hi)``; at most :data:`SORT_FINE_BITS_MAX` + 8 bits
-    of span).
+    the event array ``out``, stably by ``t`` (in ``[t_lo, t_hi)``, shorter than ``SORT_COARSE_MAX << SORT_FINE_BITS``).
 
     A two-pass (MSD) counting sort, O(n + t_hi - t_lo), that reads the segments where they are: the first pass packs
-    each event into one 64-bit word (the low bits of its time, x, y, p) and scatters it into one of at most 256
-    coarse time buckets (one write stream per bucket, so the writes stay in cache), in parallel over blocks of
+    each event into one 64-bit word (the low bits of its time, x, y, p) and scatters it into one of
+    :data:`SORT_COARSE` coarse time buckets (more for very long windows; one write stream per bucket, so the writes
+    stay in cache), in parallel over blocks of
     the input, each block's share of a bucket after the earlier blocks' (offsets bucket by bucket, block by
     block); the second counting-sorts each bucket by the low bits in parallel (a bucket's histogram and output
     fit in cache) and unpacks it into ``out``. Both passes are stable: ties keep the input order (part order,
@@ -267,7 +269,7 @@ def sort_into_events(t, x, y, p, segments, t_lo, t_hi, out, labels):
     """
     span = t_hi - t_lo
     shift = 0
-    while (span >> shift) >= SORT_COARSE:
+    while (span >> shift) >= SORT_COARSE and shift < SORT_FINE_BITS:
         shift += 1
     n_coarse = (span >> shift) + 1
     blocks = _sort_blocks(segments)
