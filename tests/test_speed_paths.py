@@ -307,6 +307,22 @@ def test_a_large_scene_takes_few_windows_and_the_same_events(monkeypatch):
     assert np.array_equal(few[0], np.concatenate(many))
 
 
+def test_a_quiet_scene_takes_long_windows_and_the_same_events(monkeypatch):
+    """At a low event rate a static scene's windows run up to MAX_STATIC_WINDOW_US (one window for 20 s here, whose
+    sort takes more than SORT_COARSE coarse buckets), not the trial tier's MAX_WINDOW_US (five windows): the events
+    are those of the short windows, bit for bit."""
+    from evnoise import simulate as sim
+    from evnoise._kernels import simulate as kernels
+
+    lux = np.full((16, 16), 2.0)
+    assert sim.MAX_STATIC_WINDOW_US >> kernels.SORT_FINE_BITS > kernels.SORT_COARSE
+    long = list(ev.iter_events(lux, PRESET, 20.0, rng=8))
+    monkeypatch.setattr(sim, "MAX_STATIC_WINDOW_US", sim.MAX_WINDOW_US)
+    short = list(ev.iter_events(lux, PRESET, 20.0, rng=8))
+    assert len(long) == 1 and len(short) == 5 and long[0].size > 1000
+    assert np.array_equal(long[0], np.concatenate(short))
+
+
 def test_the_window_sort_is_stable_whatever_its_blocks():
     """sort_into_events (every window's sort) against NumPy's stable argsort, on more events than one block of its
     parallel first pass holds and with many ties (pixel order must survive), for one and several threads; the
