@@ -10,7 +10,9 @@ noise term feeds the kernels comes from :mod:`evnoise.terms`.
 
 from __future__ import annotations
 
+import contextlib
 import math
+import weakref
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -92,9 +94,11 @@ class PixelState:
         # each chunk's event buffers, reused window after window (fresh pages cost page faults per event);
         # what a window kernel returns are views of them, valid until the next window
         self._buffers: dict[int, tuple] = {}
-        # or, for the next window, each chunk's region of one set of columns (:meth:`share`)
+        # or, inside shared(), each chunk's region of the window's columns (kept in _shared unless large)
         self._shared = None
         self._regions: dict[int, tuple] = {}
+        self._window = None  # a weak reference to the columns of the window being made
+        self._outgrown: dict[int, int] = {}  # what a chunk needed when it outgrew its region
 
     def restart(self, streams: np.ndarray) -> None:
         """Back to the state of a fresh :class:`PixelState` whose random streams are ``streams`` (a copy of
@@ -105,27 +109,38 @@ class PixelState:
 
         map_chunks(reset, self.pix.size, self._threads)
 
-    def share(self, capacities) -> None:
-        """Give each chunk (:func:`pixel_chunks` order) a region of one set of event columns with room for
-        ``capacities[c]`` events, which its next :meth:`buffers` call returns: the window's parts are then views of
-        the same columns, which :func:`sorted_window` sorts where they are (no concatenation). The columns are
-        kept for the next window unless large (as :meth:`keep`)."""
+    @contextlib.contextmanager
+    def shared(self, capacities):
+        """For one window's kernels: each chunk's :meth:`buffers` returns its region of one set of event columns,
+        with room for ``capacities[c]`` events (chunks in :func:`pixel_chunks` order), or for what the chunk needed
+        when it outgrew its region (:meth:`keep`). The window's parts are then views of the same columns, which
+        :func:`sorted_window` sorts where they are (no concatenation). The columns are kept for the next window
+        unless large (as :meth:`keep`); the regions end with the block (the parts stay valid until the next window).
+        """
         chunks = pixel_chunks(self.pix.size)
-        total = int(sum(capacities))
+        caps = [max(int(cap), self._outgrown.get(lo, 0)) for (lo, _), cap in zip(chunks, capacities)]
+        total = sum(caps)
         buf = self._shared
         if buf is None or buf[0].size < total:
             self._shared = buf = None
             buf = event_buffers(total)
         if total <= KEEP_EVENTS_PER_CHUNK * len(chunks):
             self._shared = buf
+        self._window = weakref.ref(buf[0])
         off = 0
-        for (lo, _), cap in zip(chunks, capacities):
+        for (lo, _), cap in zip(chunks, caps):
             self._regions[lo] = tuple(c[off:off + cap] for c in buf)
             off += cap
+        del buf
+        try:
+            yield
+        finally:
+            self._regions = {}
+            self._window = None
 
     def buffers(self, lo: int, capacity: int):
         """Event buffers of the chunk starting at pixel ``lo`` with room for at least ``capacity`` events (its region
-        of the shared columns where :meth:`share` gave it one)."""
+        of the window's columns inside :meth:`shared`)."""
         out = self._regions.pop(lo, None)
         if out is not None and out[0].size >= capacity:
             return out
@@ -136,9 +151,13 @@ class PixelState:
 
     def keep(self, lo: int, out) -> None:
         """Keep ``out`` (perhaps grown) as the buffers of chunk ``lo``, unless it is large (one long window, e.g.
-        a long ``NoiseStream.advance``, must not pin its memory for the life of the state); a region of the shared
-        columns stays where it is."""
-        if out[0].base is not None and self._shared is not None and out[0].base is self._shared[0]:
+        a long ``NoiseStream.advance``, must not pin its memory for the life of the state). Inside :meth:`shared`
+        a region stays where it is, and a chunk that outgrew its region gets a region of that size next time
+        from then on, unless that is large (its grown buffer is not kept)."""
+        window = self._window() if self._window is not None else None
+        if window is not None:
+            if out[0].base is not window and out[0].size <= KEEP_EVENTS_PER_CHUNK:
+                self._outgrown[lo] = out[0].size
             return
         if out[0].size <= KEEP_EVENTS_PER_CHUNK:
             self._buffers[lo] = out
@@ -250,7 +269,7 @@ def _segments_of(parts):
     """Where the parts lie in the columns their first part is a view of, or None if they are not all views of them
     (in :data:`_COLUMN_TYPES`, contiguous, each part at one offset in every column)."""
     bases = [c.base for c in parts[0][:4]]
-    if not all(b is not None and b.ndim == 1 and b.dtype == d and b.flags.c_contiguous
+    if not all(isinstance(b, np.ndarray) and b.ndim == 1 and b.dtype == d and b.flags.c_contiguous
                for b, d in zip(bases, _COLUMN_TYPES)):
         return None
     address = [b.__array_interface__["data"][0] for b in bases]
@@ -403,8 +422,6 @@ def renewal_step(state: PixelState, width, log1m_p, q_on, dt, refr_us, j_min, w_
     no_timer = np.zeros((3, 0))
     caps = {lo: int(1.2 * expected[lo:hi].sum() + 64) if expected is not None else 1024
             for lo, hi in pixel_chunks(state.pix.size)}
-    if store:
-        state.share(list(caps.values()))
 
     def run(lo, hi):
         out = state.buffers(lo, caps[lo]) if store else event_buffers(0)
@@ -419,7 +436,8 @@ def renewal_step(state: PixelState, width, log1m_p, q_on, dt, refr_us, j_min, w_
             state.keep(lo, out)
         return (*(a[:n] for a in out), on, off)
 
-    return map_chunks(run, state.pix.size, threads)
+    with state.shared(list(caps.values())) if store else contextlib.nullcontext():
+        return map_chunks(run, state.pix.size, threads)
 
 
 def memory_step(state: PixelState, mem, width, group, tables, dt, refr_us, j_min, w_end, discard_from, t0_us,
@@ -435,7 +453,6 @@ def memory_step(state: PixelState, mem, width, group, tables, dt, refr_us, j_min
     table, itable, offsets, sizes = tables
     timer = np.zeros((3, 0)) if timer is None else timer
     caps = {lo: int(1.2 * expected[lo:hi].sum() + 64) for lo, hi in pixel_chunks(state.pix.size)}
-    state.share(list(caps.values()))
 
     def run(lo, hi):
         out = state.buffers(lo, caps[lo])
@@ -448,7 +465,8 @@ def memory_step(state: PixelState, mem, width, group, tables, dt, refr_us, j_min
         state.keep(lo, out)
         return tuple(a[:n] for a in out)
 
-    return map_chunks(run, state.pix.size, threads)
+    with state.shared(list(caps.values())):
+        return map_chunks(run, state.pix.size, threads)
 
 
 def trial_step(state: PixelState, width, frames_lam, frame_us, j_start: int, j_end: int, thr, bg_rows, model,

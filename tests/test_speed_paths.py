@@ -416,3 +416,60 @@ def test_a_static_windows_parts_are_sorted_where_the_kernel_wrote_them():
                                  math.inf, 0, 2, expected=nu * 2.0, timer=timer)
     parts = [p[:4] for p in parts if p[0].size]
     assert len(parts) > 1 and _engine._segments_of(parts) is not None
+
+
+def _window(state, capacities, need=None):
+    """What renewal_step does with each chunk's buffers in one window (``need``: events a chunk writes, growing its
+    buffers where they exceed the room it was given); returns the parts."""
+    from evnoise import _engine
+
+    parts = []
+    with state.shared(capacities):
+        for (lo, _), cap, m in zip(_engine.pixel_chunks(state.pix.size), capacities, need or capacities):
+            out = state.buffers(lo, cap)
+            while m > out[0].size:  # as run_to_end
+                out = _engine.grown(out, 0)
+            state.keep(lo, out)
+            parts.append(tuple(c[:m] for c in out))
+    return parts
+
+
+def test_a_long_windows_columns_are_not_held_after_it():
+    """A window too large to keep (a long NoiseStream.advance) must not stay pinned by the state through a small
+    chunk's region (the last chunk of 1280x720 is partial); short windows after it reuse small kept columns."""
+    import gc
+    import weakref
+
+    from evnoise._engine import CHUNK_PIXELS, KEEP_EVENTS_PER_CHUNK, PixelState
+
+    state = PixelState(np.arange(CHUNK_PIXELS + 4096), np.zeros(4, np.uint64), 1)
+    parts = _window(state, [2 * KEEP_EVENTS_PER_CHUNK, 1000])
+    big = weakref.ref(parts[0][0].base)
+    del parts
+    for _ in range(3):
+        _window(state, [1000, 250])
+    gc.collect()
+    assert big() is None
+
+
+def test_a_chunk_that_outgrew_its_region_gets_room_next_time():
+    """A chunk whose events exceeded its share grows once; the next windows give it a region of what it needed, so
+    their parts are again regions of one set of columns (sorted in place)."""
+    from evnoise import _engine
+    from evnoise._engine import CHUNK_PIXELS, PixelState
+
+    state = PixelState(np.arange(2 * CHUNK_PIXELS), np.zeros(4, np.uint64), 1)
+    first = _window(state, [500, 500], need=[500, 3000])
+    assert _engine._segments_of(first) is None  # the grown chunk is elsewhere: concatenated
+    for _ in range(2):
+        assert _engine._segments_of(_window(state, [500, 500], need=[500, 3000])) is not None
+
+
+def test_the_window_sort_takes_columns_of_any_origin():
+    """Columns whose base is not an array (np.frombuffer's bytes) are concatenated, not inspected as arrays."""
+    from evnoise._engine import sorted_window
+
+    t = np.frombuffer(np.array([5, 3, 4], dtype=np.int64).tobytes(), dtype=np.int64)
+    x = np.frombuffer(np.array([1, 2, 3], dtype=np.uint16).tobytes(), dtype=np.uint16)
+    out = sorted_window([(t, x, x.copy(), np.zeros(3, np.uint8))], 0, 10)
+    assert out["t"].tolist() == [3, 4, 5] and out["x"].tolist() == [2, 3, 1]
