@@ -152,8 +152,8 @@ class PixelState:
     def keep(self, lo: int, out) -> None:
         """Keep ``out`` (perhaps grown) as the buffers of chunk ``lo``, unless it is large (one long window, e.g.
         a long ``NoiseStream.advance``, must not pin its memory for the life of the state). Inside :meth:`shared`
-        a region stays where it is, and a chunk that outgrew its region gets a region of that size next time
-        from then on, unless that is large (its grown buffer is not kept)."""
+        a region stays where it is, and a chunk that outgrew its region gets a region of that size in later windows,
+        unless that is large (its grown buffer is not kept)."""
         window = self._window() if self._window is not None else None
         if window is not None:
             if out[0].base is not window and out[0].size <= KEEP_EVENTS_PER_CHUNK:
@@ -254,7 +254,7 @@ _COLUMN_TYPES = (np.int64, np.uint16, np.uint16, np.uint8)
 def _in_place(parts):
     """``(columns, segments)``: four columns and the ``(first, end)`` rows that hold the parts' events in order.
 
-    Parts that are views of the same columns (:meth:`PixelState.share`) are read where they are; otherwise they
+    Parts that are views of the same columns (:meth:`PixelState.shared`) are read where they are; otherwise they
     are concatenated into new columns (one segment).
     """
     segments = _segments_of(parts)
