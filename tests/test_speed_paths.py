@@ -400,8 +400,8 @@ def test_the_window_sort_reads_parts_where_they_are_and_keeps_their_order(layout
 
 
 def test_a_static_windows_parts_are_sorted_where_the_kernel_wrote_them():
-    """The renewal and memory steps give every chunk a region of one set of columns, so the window's sort reads them
-    in place (no concatenation of the window's events): the parts must be regions of the same columns."""
+    """The renewal step (as the memory step) gives every chunk a region of one set of columns, so the window's sort
+    reads them in place (no concatenation of the window's events): the parts must be regions of the same columns."""
     from evnoise import _engine
     from evnoise.simulate import PixelState
 

@@ -105,19 +105,21 @@ def uniform_pos(s):
 def geometric(s, log1m_p):
     """Trials up to and including the first success, ``>= 1``; ``log1m_p = log1p(-p)``.
 
-    Returns ``inf`` when ``p = 0`` (``log1m_p = 0``) and 1 when ``p = 1`` (``log1m_p = -inf``).
+    Returns ``inf`` when ``p = 0`` (``log1m_p = 0``) and 1 when ``p = 1`` (``log1m_p = -inf``), without a draw.
     """
-    if log1m_p == 0.0:
-        return math.inf
-    if log1m_p == -math.inf:
-        return 1.0
-    return geometric_of(uniform_pos(s), log1m_p)
+    g, s[0], s[1], s[2], s[3] = geometric_x(s[0], s[1], s[2], s[3], log1m_p)
+    return g
 
 
 @kernel(inline=True)
-def geometric_of(u, log1m_p):
-    """:func:`geometric`'s draw from ``u`` in (0, 1] where ``log1m_p`` is neither 0 nor ``-inf``."""
-    return np.floor(math.log(u) / log1m_p) + 1.0  # np.floor: a float (math.floor's int64 overflows)
+def geometric_x(s0, s1, s2, s3, log1m_p):
+    """:func:`geometric` on a stream held in four scalars (:func:`xoshiro_step`): ``(g, s0, s1, s2, s3)``."""
+    if log1m_p == 0.0:
+        return math.inf, s0, s1, s2, s3
+    if log1m_p == -math.inf:
+        return 1.0, s0, s1, s2, s3
+    r, s0, s1, s2, s3 = xoshiro_step(s0, s1, s2, s3)
+    return np.floor(math.log(unit_pos(r)) / log1m_p) + 1.0, s0, s1, s2, s3  # np.floor: a float, no int64 wrap
 
 
 POISSON_NORMAL_LAM = 2.0**52  # from here on poisson draws the normal limit (see poisson_emlam)

@@ -24,7 +24,7 @@ from numba import prange
 from ._jit import kernel
 from .background import draw_timer, draw_timer_stationary, timer_shape
 from .poisson import log_event_probability_exact, threshold_count
-from .rng import geometric, geometric_of, poisson_emlam, seed_state, uniform, unit, unit_pos, xoshiro_step
+from .rng import geometric, geometric_x, poisson_emlam, seed_state, uniform, unit, xoshiro_step
 
 NO_EVENT = math.nan
 
@@ -162,13 +162,7 @@ def renewal_window(width, pix, log1m_p, q_on, timer, states, fstate, dt, refr_us
                         tau = math.inf
                         break
                 else:
-                    if l1p == 0.0:  # geometric()'s limits, then its draw
-                        g = math.inf
-                    elif l1p == -math.inf:
-                        g = 1.0
-                    else:
-                        r, s0, s1, s2, s3 = xoshiro_step(s0, s1, s2, s3)
-                        g = geometric_of(unit_pos(r), l1p)
+                    g, s0, s1, s2, s3 = geometric_x(s0, s1, s2, s3, l1p)
                     if g == math.inf:
                         tau = math.inf
                         jp = math.inf
@@ -259,13 +253,12 @@ def sort_into_events(t, x, y, p, segments, t_lo, t_hi, out, labels):
     A two-pass (MSD) counting sort, O(n + t_hi - t_lo), that reads the segments where they are: the first pass packs
     each event into one 64-bit word (the low bits of its time, x, y, p) and scatters it into one of
     :data:`SORT_COARSE` coarse time buckets (more for very long windows; one write stream per bucket, so the writes
-    stay in cache), in parallel over blocks of
-    the input, each block's share of a bucket after the earlier blocks' (offsets bucket by bucket, block by
-    block); the second counting-sorts each bucket by the low bits in parallel (a bucket's histogram and output
-    fit in cache) and unpacks it into ``out``. Both passes are stable: ties keep the input order (part order,
-    then each segment's own order), so the result does not depend on how the work was split. The kernels mark
-    signal events with :data:`SIGNAL_FLAG` in ``p``; the flag is removed from ``out.p`` and, if ``labels``
-    has room for every event, written there (1 = signal).
+    stay in cache), in parallel over blocks of the input, each block's share of a bucket after the earlier blocks'
+    (offsets bucket by bucket, block by block); the second counting-sorts each bucket by the low bits in parallel (a
+    bucket's histogram and output fit in cache) and unpacks it into ``out``. Both passes are stable: ties keep the
+    input order (segment order, then each segment's own order), so the result does not depend on how the work was
+    split. The kernels mark signal events with :data:`SIGNAL_FLAG` in ``p``; the flag is removed from ``out.p``
+    and, if ``labels`` has room for every event, written there (1 = signal).
     """
     span = t_hi - t_lo
     shift = 0
