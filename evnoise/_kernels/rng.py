@@ -119,7 +119,14 @@ def geometric_x(s0, s1, s2, s3, log1m_p):
     if log1m_p == -math.inf:
         return 1.0, s0, s1, s2, s3
     r, s0, s1, s2, s3 = xoshiro_step(s0, s1, s2, s3)
-    return np.floor(math.log(unit_pos(r)) / log1m_p) + 1.0, s0, s1, s2, s3  # np.floor: a float, no int64 wrap
+    return geometric_of(r, log1m_p), s0, s1, s2, s3
+
+
+@kernel(inline=True)
+def geometric_of(r, log1m_p):
+    """The geometric variate (trials up to and including the first success) of a 64-bit output ``r``, for
+    ``-inf < log1m_p < 0``; no limits checked (:func:`geometric_x` checks them)."""
+    return np.floor(math.log(unit_pos(r)) / log1m_p) + 1.0  # np.floor: a float, no int64 wrap
 
 
 POISSON_NORMAL_LAM = 2.0**52  # from here on poisson draws the normal limit (see poisson_emlam)

@@ -24,7 +24,7 @@ from numba import prange
 from ._jit import kernel
 from .background import draw_timer, draw_timer_stationary, timer_shape
 from .poisson import log_event_probability_exact, threshold_count
-from .rng import geometric, geometric_x, poisson_emlam, seed_state, uniform, unit, xoshiro_step
+from .rng import geometric, geometric_of, geometric_x, poisson_emlam, seed_state, uniform, unit, xoshiro_step
 
 NO_EVENT = math.nan
 
@@ -76,6 +76,11 @@ def _restore(states, fstate, k, snap_s, snap_f):
 N_STATE = 13
 
 
+#: The renewal kernel's loop without branches for the limits takes pixels with ``log1p(-p) < -PLAIN_LOG1M_P``: there
+#: every geometric gap is finite (``|log u| <= 53 log 2`` for the smallest uniform ``u = 2**-53``)
+PLAIN_LOG1M_P = 1e-300
+
+
 @kernel
 def renewal_window(width, pix, log1m_p, q_on, timer, states, fstate, dt, refr_us, j_min, w_end, discard_from_trial,
                    t0_us, out, n, k_start, on_counts, off_counts, store):
@@ -113,6 +118,7 @@ def renewal_window(width, pix, log1m_p, q_on, timer, states, fstate, dt, refr_us
     # the pixel's stream in four scalars (registers: :func:`xoshiro_step`), copied into ``s`` around the timer's
     # draws, which take an array
     s = np.empty(4, dtype=np.uint64)
+    plain = not has_timer and refr_us == 0.0
     for k in range(k_start, n_pix):
         tau = fstate[k, PEND_TAU]
         if tau >= w_end:  # (NaN compares false) an event pending beyond the window: nothing to draw
@@ -133,6 +139,32 @@ def renewal_window(width, pix, log1m_p, q_on, timer, states, fstate, dt, refr_us
         n_on = 0
         n_off = 0
         full = False
+        if plain and -math.inf < l1p < -PLAIN_LOG1M_P:
+            # The common case (no timer, no refractory period, 0 < p < 1 with every gap finite): the loop below with
+            # the branches it does not take left out - the same draws and arithmetic, so the same bits. It stops at
+            # the first event beyond the window or a full buffer, which the loop below then sees first.
+            if math.isnan(tau):
+                r, s0, s1, s2, s3 = xoshiro_step(s0, s1, s2, s3)
+                jp = max(lt + 1.0, j_min) + geometric_of(r, l1p) - 1.0
+                r, s0, s1, s2, s3 = xoshiro_step(s0, s1, s2, s3)
+                tau = (jp + unit(r)) * dt
+            while tau < w_end and not (store and n == cap):
+                r, s0, s1, s2, s3 = xoshiro_step(s0, s1, s2, s3)
+                pol = np.uint8(unit(r) < qk)
+                n_on += pol
+                n_off += 1 - pol
+                if store:
+                    t_out[n] = t0_us + np.int64(math.floor(tau))
+                    x_out[n] = x_pix
+                    y_out[n] = y_pix
+                    p_out[n] = pol
+                    n += 1
+                lta = tau
+                lt = jp
+                r, s0, s1, s2, s3 = xoshiro_step(s0, s1, s2, s3)
+                jp = max(lt + 1.0, j_min) + geometric_of(r, l1p) - 1.0
+                r, s0, s1, s2, s3 = xoshiro_step(s0, s1, s2, s3)
+                tau = (jp + unit(r)) * dt
         while True:
             if math.isnan(tau):
                 if lta == -math.inf or refr_us == 0.0:
