@@ -128,8 +128,8 @@ def renewal_window(width, pix, log1m_p, q_on, timer, states, fstate, dt, refr_us
         s0, s1, s2, s3 = states[k, 0], states[k, 1], states[k, 2], states[k, 3]
         jp = fstate[k, PEND_TRIAL]
         on = fstate[k, PEND_ON] == 1.0
-        x_pix = pix[k] % width
-        y_pix = pix[k] // width
+        y_pix = pix[k] // width  # one division (pixel indices are >= 0)
+        x_pix = pix[k] - y_pix * width
         # the pixel's state in locals (not per event): same draws, same bits
         lt = fstate[k, LAST_TRIAL]
         lta = fstate[k, LAST_TAU]
