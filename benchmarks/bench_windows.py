@@ -2,7 +2,7 @@
 ``evnoise.simulate.EVENTS_PER_PIXEL_PER_WINDOW`` events per pixel, on the v2e job's scene.
 
     python benchmarks/bench_windows.py [--repeats 3] [--lux 2 --lux 300] [--duration 1 --duration 4 --duration 16]
-        [--baseline-tree DIR --baseline-label TEXT] [--no-report]
+        [--baseline-tree DIR --baseline-label TEXT] [--env-row NAME=VALUE ...] [--no-report]
 
 Every window advances every pixel (a pass over the pixels' state, ~30 ns a pixel on one core here), so a
 1280x720 scene in windows of 1 M events pays that pass once per million events. Each row runs
@@ -14,7 +14,10 @@ column: whether both rules give the same events, bit for bit (SHA-256 of the eve
 The first-touch row times a process's first and second writing of a fresh array of the size of the longest run's
 output (the machine's cost of memory a process has not used before, which a fresh process's long run pays).
 ``--baseline-tree DIR`` adds rows for the code in ``DIR`` (another checkout, imported through ``PYTHONPATH`` in
-child processes that run in an empty folder) with its own default windows, timed the same way.
+child processes that run in an empty folder) with its own default windows, timed the same way. ``--env-row
+NAME=VALUE`` (repeatable) adds rows for this code with that environment variable set, both columns timed in child
+processes (e.g. ``NUMPY_MADVISE_HUGEPAGE=0``: NumPy's arrays in ordinary pages instead of transparent huge pages),
+and a first-touch figure with it.
 """
 
 from __future__ import annotations
@@ -91,9 +94,10 @@ def in_process(lux, duration_s, per_pixel, repeats):
     return {"windows": len(windows), "digest": digest, "events": n, "times": times[1:]}
 
 
-def _child(args, tree):
-    """The JSON a child process of this script prints, the code of ``tree`` (None: this one) imported."""
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+def _child(args, tree, env_extra=None):
+    """The JSON a child process of this script prints, the code of ``tree`` (None: this one) imported, with the
+    environment variables ``env_extra`` set."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"} | (env_extra or {})
     if tree is not None:
         env["PYTHONPATH"] = str(tree)
     with tempfile.TemporaryDirectory() as cwd:  # an empty folder: evnoise comes from PYTHONPATH or the install
@@ -102,18 +106,23 @@ def _child(args, tree):
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
-def fresh(lux, duration_s, per_pixel, repeats, tree=None):
+def fresh(lux, duration_s, per_pixel, repeats, tree=None, env_extra=None):
     arg = "default" if per_pixel is None else str(per_pixel)
-    return [_child(["--child", f"{lux}", f"{duration_s}", arg], tree)["s"] for _ in range(repeats)]
+    return [_child(["--child", f"{lux}", f"{duration_s}", arg], tree, env_extra)["s"] for _ in range(repeats)]
 
 
-def first_touch(n_bytes):
+def first_touch(n_bytes, env_extra=None):
     """Seconds to write every page of a fresh array of ``n_bytes``, the first and the second time in a process."""
     code = ("import numpy as np, time, json\nout = []\nfor _ in range(2):\n"
             f"    t = time.perf_counter(); a = np.empty({n_bytes}, np.uint8); a[::4096] = 0\n"
             "    out.append(time.perf_counter() - t); del a\nprint(json.dumps(out))")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                          env=os.environ | (env_extra or {}))
     return json.loads(done.stdout)
+
+
+def _env_label(env):
+    return " ".join(f"{k}={v}" for k, v in env.items())
 
 
 def fmt(times):
@@ -126,6 +135,8 @@ def main(argv=None) -> int:
     ap.add_argument("--child-in-process", nargs=3, help=argparse.SUPPRESS)
     ap.add_argument("--baseline-tree", type=Path, default=None, help="another checkout, timed beside this code")
     ap.add_argument("--baseline-label", default="baseline", help="what the baseline tree is, for the report")
+    ap.add_argument("--env-row", action="append", default=[], metavar="NAME=VALUE",
+                    help="rows for this code with an environment variable set (repeatable)")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--lux", type=float, action="append", default=None, help="illuminance (repeatable; default 2)")
     ap.add_argument("--duration", type=float, action="append", default=None, help="simulated seconds (repeatable)")
@@ -146,6 +157,7 @@ def main(argv=None) -> int:
     from evnoise import simulate
     from evnoise.events import EVENT_DTYPE
 
+    env_rows = [dict([item.split("=", 1)]) for item in args.env_row]
     durations = args.duration or [1.0, 4.0, 16.0]
     luxes = args.lux or [2.0]
     load0 = os.getloadavg()
@@ -158,12 +170,18 @@ def main(argv=None) -> int:
                 runs.append((args.baseline_label,
                              _child(["--child-in-process", f"{lux}", f"{d}", f"{args.repeats}"], args.baseline_tree),
                              fresh(lux, d, None, args.repeats, args.baseline_tree)))
+            for env in env_rows:
+                runs.append((f"this code, {_env_label(env)}",
+                             _child(["--child-in-process", f"{lux}", f"{d}", f"{args.repeats}"], None, env),
+                             fresh(lux, d, None, args.repeats, None, env)))
             for label, r, f in runs:
                 digests.setdefault((lux, d), set()).add(r["digest"])
                 rows.append((lux, d, label, r, f))
                 print(lux, d, label, r["windows"], fmt(r["times"]), fmt(f), flush=True)
     longest = max(row[3]["events"] for row in rows)
     touches = [first_touch(longest * EVENT_DTYPE.itemsize) for _ in range(args.repeats)]
+    env_touches = [(env, [first_touch(longest * EVENT_DTYPE.itemsize, env) for _ in range(args.repeats)])
+                   for env in env_rows]
     load1 = os.getloadavg()
     lines = [TITLE, "",
              f"Machine: {cpu_name()}, {os.cpu_count()} cores shared with other jobs, {platform.system()}; "
@@ -172,6 +190,7 @@ def main(argv=None) -> int:
              f"`python benchmarks/bench_windows.py --repeats {args.repeats}"
              + "".join(f" --lux {lux:g}" for lux in luxes) + "".join(f" --duration {d:g}" for d in durations)
              + (f" --baseline-tree DIR --baseline-label '{args.baseline_label}'" if args.baseline_tree else "")
+             + "".join(f" --env-row {item}" for item in args.env_row)
              + "`. Load average (1 min): "
              f"{load0[0]:.2f} before, {load1[0]:.2f} after.", "",
              f"Flat 1280x720 field, `{PRESET}`, `simulate_events` (events collected in memory). 'this code': its "
@@ -180,6 +199,8 @@ def main(argv=None) -> int:
              f"~1 M events': the same code with windows of about {simulate.TARGET_EVENTS_PER_WINDOW:,} events"
              + (f"; '{args.baseline_label}': the code of `--baseline-tree` with its own windows"
                 if args.baseline_tree else "")
+             + "".join(f"; 'this code, {_env_label(env)}': this code with that environment variable (both columns "
+                       "in child processes)" for env in env_rows)
              + ". Seconds, median (min–max). 'same events': the event arrays of every row of that lux and duration "
              "equal bit for bit.", "",
              "| lux | simulated s | code | windows | events | in one process (s) | ns/event "
@@ -192,7 +213,9 @@ def main(argv=None) -> int:
               f"array (the longest run's output) took {fmt([t[0] for t in touches])} s the first time in a process "
               f"and {fmt([t[1] for t in touches])} s the second ({args.repeats} processes; the machine's cost of "
               "memory a process has not used before, which a fresh process's long run pays for its output and its "
-              "windows' buffers; on this virtual machine it has varied from 0.03 to 0.6 s for 256 MB).", "",
+              "windows' buffers; on this virtual machine it has varied from 0.03 to 0.6 s for 256 MB)"
+              + "".join(f"; with {_env_label(env)} {fmt([t[0] for t in ts])} s and {fmt([t[1] for t in ts])} s"
+                        for env, ts in env_touches) + ".", "",
               "Reading it: in one process (the steady cost, what a long or repeated job pays) fewer windows save "
               "the pixel pass of each window they no longer make (at a low event rate, ~0.1 events per pixel and "
               "second, that pass is most of a window's cost). A fresh process's first call pays besides for "
