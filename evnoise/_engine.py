@@ -99,6 +99,7 @@ class PixelState:
         self._regions: dict[int, tuple] = {}
         self._window = None  # a weak reference to the columns of the window being made
         self._outgrown: dict[int, int] = {}  # what a chunk needed when it outgrew its region
+        self._sort_keys = np.empty(0, dtype=np.uint64)  # the window sort's packed keys, reused (sort_keys)
 
     def restart(self, streams: np.ndarray) -> None:
         """Back to the state of a fresh :class:`PixelState` whose random streams are ``streams`` (a copy of
@@ -148,6 +149,15 @@ class PixelState:
         if out is None or out[0].size < capacity:
             out = event_buffers(capacity)
         return out
+
+    def sort_keys(self, n: int) -> np.ndarray:
+        """Room for the window sort's ``n`` packed keys (:func:`sorted_window`), reused window after window as the
+        event columns are (a fresh array's pages cost a fault each, every window), unless large (as :meth:`keep`)."""
+        keys = self._sort_keys
+        if keys.size < n:
+            keys = np.empty(n, dtype=np.uint64)
+            self._sort_keys = keys if n <= KEEP_EVENTS_PER_CHUNK * len(pixel_chunks(self.pix.size)) else self._sort_keys
+        return keys
 
     def keep(self, lo: int, out) -> None:
         """Keep ``out`` (perhaps grown) as the buffers of chunk ``lo``, unless it is large (one long window, e.g.
@@ -222,11 +232,13 @@ class Collector:
         return buf
 
 
-def sorted_window(parts, t_lo: int, t_hi: int, labels: bool = False, sink: Collector | None = None):
+def sorted_window(parts, t_lo: int, t_hi: int, labels: bool = False, sink: Collector | None = None,
+                  state: PixelState | None = None):
     """The events of ``(t, x, y, p)`` parts (in a fixed order) in one event array sorted stably by time.
 
     With ``labels`` also returns a bool array, True for signal events. With ``sink`` the window
-    is sorted straight into the sink's next slots (and that view is returned).
+    is sorted straight into the sink's next slots (and that view is returned). With ``state`` (the pixels' state
+    of a run that sorts window after window) the sort's working memory is reused (:meth:`PixelState.sort_keys`).
     """
     from ._kernels import simulate as k
 
@@ -244,7 +256,8 @@ def sorted_window(parts, t_lo: int, t_hi: int, labels: bool = False, sink: Colle
     else:
         cols, segments = _in_place(parts)
         del parts
-        k.sort_into_events(*cols, segments, np.int64(t_lo), np.int64(t_hi), out, lab)
+        keys = state.sort_keys(n) if state is not None else np.empty(n, dtype=np.uint64)
+        k.sort_into_events(*cols, segments, np.int64(t_lo), np.int64(t_hi), out, lab, keys)
     return (out, lab.astype(bool)) if labels else out
 
 

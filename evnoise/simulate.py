@@ -312,7 +312,7 @@ def _static_windows(n_pixels, key, threads, total, t_start_us, duration_us, prog
         for k in range(n_win):
             w_end = duration_us * (k + 1) // n_win
             parts = step(state, t_prev, w_end)
-            window = sorted_window(parts, t_start_us + t_prev, t_start_us + w_end, sink=sink)
+            window = sorted_window(parts, t_start_us + t_prev, t_start_us + w_end, sink=sink, state=state)
             del parts  # not held while the caller has the window
             yield window
             del window
@@ -723,7 +723,8 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
 
                 parts += trial_step(dyn_state, width, stack, f_us, j_a, j_b, dyn_thr, dyn_bg, model, duration_us,
                                     t0_us, threads, fast_static)
-            yield sorted_window([p[:4] for p in parts], t0_us + w_lo, t0_us + w_hi, labels=labels)
+            yield sorted_window([p[:4] for p in parts], t0_us + w_lo, t0_us + w_hi, labels=labels,
+                                state=stat_state if stat_state is not None else dyn_state)
             if bar is not None:
                 bar.update(w_hi - w_lo)
         if bar is not None:

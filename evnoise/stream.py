@@ -118,7 +118,7 @@ class NoiseStream:
         parts = renewal_step(self._state, self.shape[1], log1m_p, q_on, dt, p.refractory_us, j_min,
                               float(t_end), discard, self._t0, self.threads,
                               expected=nu * (t_end - self._t_rel) * 1e-6, timer=timer)
-        out = sorted_window(parts, self._t0 + self._t_rel, self._t0 + t_end)
+        out = sorted_window(parts, self._t0 + self._t_rel, self._t0 + t_end, state=self._state)
         self._t_rel = t_end
         return out
 
@@ -185,7 +185,7 @@ class NoiseStream:
             self._state.rescale_timers(self._timer_intensity(lam), j_min)
         parts = memory_step(self._state, mem, self.shape[1], group, tables, dt, p.refractory_us, j_min, float(t_end),
                             discard, self._t0, self.threads, rates[group] * ((t_end - self._t_rel) * 1e-6), timer)
-        out = sorted_window(parts, self._t0 + self._t_rel, self._t0 + t_end)
+        out = sorted_window(parts, self._t0 + self._t_rel, self._t0 + t_end, state=self._state)
         self._stored = mem + lo
         code = fstate[:, PEND_ON]
         self._pending_count = np.where(np.isfinite(fstate[:, PEND_TAU]), code // 2.0 - 1.0 + lo, np.nan)

@@ -473,3 +473,56 @@ def test_the_window_sort_takes_columns_of_any_origin():
     x = np.frombuffer(np.array([1, 2, 3], dtype=np.uint16).tobytes(), dtype=np.uint16)
     out = sorted_window([(t, x, x.copy(), np.zeros(3, np.uint8))], 0, 10)
     assert out["t"].tolist() == [3, 4, 5] and out["x"].tolist() == [2, 3, 1]
+
+
+def test_the_window_sort_reuses_its_working_memory_and_gives_the_same_events():
+    """A run that sorts window after window takes the sort's packed keys from its pixel state (a fresh array's pages
+    cost a fault each, every window): the same array while it has room, a larger one kept when needed, none kept
+    beyond the limit the event columns have; and whatever the reused array held, the window is the same."""
+    from evnoise import _engine
+    from evnoise.simulate import PixelState
+
+    state = PixelState(np.arange(100), np.arange(4, dtype=np.uint64) + 1, 1)
+    limit = _engine.KEEP_EVENTS_PER_CHUNK * len(_engine.pixel_chunks(100))
+    first = state.sort_keys(1000)
+    assert first.size == 1000 and state.sort_keys(600) is first
+    bigger = state.sort_keys(5000)
+    assert bigger.size == 5000 and state.sort_keys(1000) is bigger
+    huge = state.sort_keys(limit + 1)
+    assert huge.size == limit + 1 and state.sort_keys(10) is bigger  # the large one is not kept
+
+    rng = np.random.default_rng(5)
+    n = 3000
+    part = (np.sort(rng.integers(0, 10**6, n)).astype(np.int64)[rng.permutation(n)], rng.integers(0, 100, n, np.uint16),
+            rng.integers(0, 50, n, np.uint16), rng.integers(0, 4, n, np.uint8))
+    bigger[:] = rng.integers(0, 2**63, bigger.size, dtype=np.uint64)  # stale keys from an earlier window
+    reused, labels = _engine.sorted_window([part], 0, 10**6, labels=True, state=state)
+    fresh, fresh_labels = _engine.sorted_window([part], 0, 10**6, labels=True)
+    order = np.argsort(part[0], kind="stable")
+    assert np.array_equal(reused, fresh) and np.array_equal(labels, fresh_labels)
+    assert np.array_equal(reused["t"], part[0][order]) and np.array_equal(reused["x"], part[1][order])
+    assert np.array_equal(reused["p"], part[3][order] & 1) and np.array_equal(labels, (part[3][order] & 2) > 0)
+
+
+def test_static_runs_and_streams_sort_with_their_states_working_memory(monkeypatch):
+    """Each window of a static run, a video and a NoiseStream's interval asks its pixel state for the sort's keys."""
+    from evnoise import _engine
+    from evnoise import simulate as sim
+
+    asked = []
+    plain = _engine.PixelState.sort_keys
+    monkeypatch.setattr(_engine.PixelState, "sort_keys", lambda self, n: asked.append(n) or plain(self, n))
+    monkeypatch.setattr(sim, "TARGET_EVENTS_PER_WINDOW", 300)
+    monkeypatch.setattr(sim, "EVENTS_PER_PIXEL_PER_WINDOW", 0)
+    params = ev.load_preset("evk3-hd")
+    lux = np.full((20, 30), 2.0)
+    windows = [w for w in ev.iter_events(lux, params, 2.0, rng=1) if w.size]
+    assert len(windows) > 2 and asked == [w.size for w in windows]
+    asked.clear()
+    stream = ev.NoiseStream(lux.shape, params, rng=2)
+    sizes = [stream.advance(lux, 300_000 * (i + 1)).size for i in range(3)]
+    assert asked == [s for s in sizes if s]
+    asked.clear()
+    frames = np.stack([lux, np.where(np.arange(30) < 15, 40.0, lux)])
+    events = ev.simulate_video(frames, [0.0, 0.5], params, rng=3)
+    assert len(asked) >= 1 and sum(asked) == events.size

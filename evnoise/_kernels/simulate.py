@@ -278,7 +278,7 @@ def _sort_blocks(segments):
 
 
 @kernel(parallel=True)
-def sort_into_events(t, x, y, p, segments, t_lo, t_hi, out, labels):
+def sort_into_events(t, x, y, p, segments, t_lo, t_hi, out, labels, keys):
     """Sort the events of the columns ``(t, x, y, p)`` in the ``segments`` ``(first, end)`` rows (in order) into
     the event array ``out``, stably by ``t`` (in ``[t_lo, t_hi)``, shorter than ``SORT_COARSE_MAX << SORT_FINE_BITS``).
 
@@ -290,7 +290,8 @@ def sort_into_events(t, x, y, p, segments, t_lo, t_hi, out, labels):
     bucket's histogram and output fit in cache) and unpacks it into ``out``. Both passes are stable: ties keep the
     input order (segment order, then each segment's own order), so the result does not depend on how the work was
     split. The kernels mark signal events with :data:`SIGNAL_FLAG` in ``p``; the flag is removed from ``out.p``
-    and, if ``labels`` has room for every event, written there (1 = signal).
+    and, if ``labels`` has room for every event, written there (1 = signal). ``keys``: working memory for the packed
+    events (a new array is taken if it has room for fewer than all of them).
     """
     span = t_hi - t_lo
     shift = 0
@@ -314,7 +315,8 @@ def sort_into_events(t, x, y, p, segments, t_lo, t_hi, out, labels):
     starts[n_coarse] = acc
     fine = np.int64(1) << shift
     mask = fine - 1
-    keys = np.empty(acc, dtype=np.uint64)
+    if keys.shape[0] < acc:
+        keys = np.empty(acc, dtype=np.uint64)
     for b in prange(n_blocks):
         for i in range(blocks[b, 0], blocks[b, 1]):
             d = t[i] - t_lo
