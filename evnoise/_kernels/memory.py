@@ -31,6 +31,7 @@ from .simulate import (
     PEND_TRIAL,
     STORED,
     background_intensity,
+    emit,
     first_eligible_trial,
 )
 
@@ -342,12 +343,7 @@ def memory_window(width, pix, group, offsets, sizes, table, itable, timer, state
             pol = np.uint8(int(code) % 2)
             n_on += pol
             n_off += 1 - pol
-            if store:
-                t_out[n] = t0_us + np.int64(math.floor(tau))
-                x_out[n] = x_pix
-                y_out[n] = y_pix
-                p_out[n] = pol
-                n += 1
+            n = emit(out, store, n, t0_us, tau, x_pix, y_pix, pol)
             st = float(int(code) // 2 - 1)
             lta = tau
             lt = jp

@@ -48,12 +48,22 @@ def first_eligible_trial(last_trial, tau, refr_us, dt):
 
 
 @kernel(inline=True)
-def _put(out, n, t, x, y, pol):
+def put_event(out, n, t, x, y, pol):
     """Write one event into slot ``n`` of the event columns ``out = (t, x, y, p)`` (room checked by the caller)."""
     out[0][n] = t
     out[1][n] = x
     out[2][n] = y
     out[3][n] = pol
+
+
+@kernel(inline=True)
+def emit(out, store, n, t0_us, tau, x, y, pol):
+    """The next free slot after an event at ``tau`` µs after ``t0_us`` (floored to whole µs): with ``store`` it goes
+    into slot ``n`` of ``out`` (:func:`put_event`), else only counted by the caller."""
+    if store:
+        put_event(out, n, t0_us + np.int64(math.floor(tau)), x, y, pol)
+        return n + 1
+    return n
 
 
 @kernel
@@ -112,8 +122,7 @@ def renewal_window(width, pix, log1m_p, q_on, timer, states, fstate, dt, refr_us
     the kernel: an array reassigned in the event loop costs Numba reference counting per event.)
     """
     has_timer = timer.shape[1] > 0
-    t_out, x_out, y_out, p_out = out
-    cap = t_out.shape[0] if store else 0
+    cap = out[0].shape[0] if store else 0
     n_pix = pix.shape[0]
     # the pixel's stream in four scalars (registers: :func:`xoshiro_step`), copied into ``s`` around the timer's
     # draws, which take an array
@@ -153,12 +162,7 @@ def renewal_window(width, pix, log1m_p, q_on, timer, states, fstate, dt, refr_us
                 pol = np.uint8(unit(r) < qk)
                 n_on += pol
                 n_off += 1 - pol
-                if store:
-                    t_out[n] = t0_us + np.int64(math.floor(tau))
-                    x_out[n] = x_pix
-                    y_out[n] = y_pix
-                    p_out[n] = pol
-                    n += 1
+                n = emit(out, store, n, t0_us, tau, x_pix, y_pix, pol)
                 lta = tau
                 lt = jp
                 r, s0, s1, s2, s3 = xoshiro_step(s0, s1, s2, s3)
@@ -213,12 +217,7 @@ def renewal_window(width, pix, log1m_p, q_on, timer, states, fstate, dt, refr_us
             pol = np.uint8(on)  # counted without a branch on the polarity (it is a coin flip)
             n_on += pol
             n_off += 1 - pol
-            if store:
-                t_out[n] = t0_us + np.int64(math.floor(tau))
-                x_out[n] = x_pix
-                y_out[n] = y_pix
-                p_out[n] = pol
-                n += 1
+            n = emit(out, store, n, t0_us, tau, x_pix, y_pix, pol)
             lta = tau
             lt = jp
             tau = NO_EVENT
@@ -468,8 +467,7 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
     grow the buffers and call again from ``k`` (same draws, same events as one call; the buffers are
     never replaced inside the kernel, where Numba would count references on every trial).
     """
-    t_out, x_out, y_out, p_out = out
-    cap = t_out.shape[0]
+    cap = out[0].shape[0]
     snap_s = np.empty(4, dtype=np.uint64)
     snap_f = np.empty(fstate.shape[1])
     n_frames = frames_lam.shape[0]
@@ -534,7 +532,7 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
                     if n == cap:
                         full = True
                         break
-                    _put(out, n, t0_us + np.int64(math.floor(tau)), x_pix, y_pix, 1 if on else 0)
+                    put_event(out, n, t0_us + np.int64(math.floor(tau)), x_pix, y_pix, 1 if on else 0)
                     n += 1
                     fstate[k, LAST_TAU] = tau
                     fstate[k, LAST_TRIAL] = jp
@@ -596,7 +594,8 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
                     if n == cap:
                         full = True
                         break
-                    _put(out, n, t0_us + np.int64(math.floor(tau)), x_pix, y_pix, (1 if sign == 0 else 0) | SIGNAL_FLAG)
+                    put_event(out, n, t0_us + np.int64(math.floor(tau)), x_pix, y_pix,
+                              (1 if sign == 0 else 0) | SIGNAL_FLAG)
                     n += 1
                     emitted += 1
                     fired = True
@@ -660,7 +659,7 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
                     if n == cap:
                         full = True
                         break
-                    _put(out, n, t0_us + np.int64(math.floor(tau)), x_pix, y_pix, pol)
+                    put_event(out, n, t0_us + np.int64(math.floor(tau)), x_pix, y_pix, pol)
                     n += 1
                     fstate[k, LAST_TAU] = tau
                     fstate[k, LAST_TRIAL] = j
