@@ -115,14 +115,24 @@ class PairDataset:
         if f is None:
             import h5py
 
+            from evnoise._h5 import check_global_heaps, check_stored_inside
+
             from .shards import read_meta
 
             path = self._paths[k]
+            check_global_heaps(path)
             try:
                 f = h5py.File(path, "r")
             except OSError as exc:
                 raise InputError(f"cannot open shard {path}: {exc}") from None
-            self._meta[k] = read_meta(f, path)
+            try:
+                # as for events.h5 (evnoise._h5.open_h5): nothing is read from other files (external links, external
+                # storage, virtual datasets), so a shard cannot make a reader open what the user did not name
+                check_stored_inside(f, path)
+                self._meta[k] = read_meta(f, path)
+            except BaseException:
+                f.close()
+                raise
             self._handles[k] = f
         return f
 

@@ -238,6 +238,8 @@ def read_meta(f, path) -> dict:
         n = f["counts"].shape[0]
         for key in META_COLUMNS:
             ds = f[key]
+            if ds.ndim < 1 or ds.shape[0] != n:  # checked before reading: a declared length is not memory to take
+                raise InputError(f"{path}: column {key!r} has shape {ds.shape} for {n} pairs")
             if key == "source":
                 out[key] = [s.decode("utf-8") if isinstance(s, bytes) else str(s) for s in ds[()]]
             else:

@@ -68,3 +68,40 @@ def test_train_on_a_bad_npz_names_the_problem_not_numpys_pickle_advice(tmp_path,
     assert code == 2 and len(err.splitlines()) == 1
     assert why in err and "pickle" not in err
     assert not (tmp_path / "m.pt").exists()
+
+
+def _tiny_dataset(tmp_path, capsys):
+    out = tmp_path / "dl"
+    assert main(["make-dataset", "--procedural", "dead-leaves", "--count", "2", "--crop", "64", "--out", str(out),
+                 "--seed", "1", "-q"]) == 0
+    capsys.readouterr()
+    return out, sorted((out / "shards").glob("*.h5"))[0]
+
+
+@pytest.mark.parametrize("damage", ["external link", "external storage", "declared column"])
+def test_a_shard_that_points_outside_itself_or_declares_too_much_is_refused(tmp_path, capsys, damage):
+    """A shard's datasets are read only from the shard itself (as an events.h5 file's: no external links, external
+    storage or virtual datasets), and a metadata column's declared length is checked before it is read."""
+    import h5py
+    import numpy as np
+
+    out, shard = _tiny_dataset(tmp_path, capsys)
+    secret = tmp_path / "secret.bin"
+    secret.write_bytes(np.arange(64, dtype=np.float64).tobytes())
+    with h5py.File(shard, "r+") as f:
+        if damage == "external link":
+            with h5py.File(tmp_path / "other.h5", "w") as g:
+                g["c"] = np.zeros_like(f["counts"][()])
+            del f["counts"]
+            f["counts"] = h5py.ExternalLink(str(tmp_path / "other.h5"), "c")
+        elif damage == "external storage":
+            n = f["window_s"].shape[0]
+            del f["window_s"]
+            f.create_dataset("window_s", shape=(n,), dtype=np.float64, external=[(str(secret), 0, 8 * n)])
+        else:
+            del f["window_s"]
+            f.create_dataset("window_s", shape=(10**10,), dtype=np.float64, chunks=(1024,))
+    code = main(["info", str(out)])
+    err = capsys.readouterr().err.strip()
+    assert code != 0 and len(err.splitlines()) == 1, err
+    assert shard.name in err and ("another file" in err or "external file" in err or "shape" in err), err
