@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import stat
 from pathlib import Path
 
 import numpy as np
@@ -74,9 +75,20 @@ def open_output_path(path, *, overwrite: bool = False, what: str = "output") -> 
         raise OutputError(f"cannot write {what} {path}: it is a directory")
     if os.path.lexists(path) and not overwrite:  # a symbolic link counts, even a broken one
         raise OutputError(f"{what} {path} already exists; pass overwrite=True to replace it")
+    if os.path.lexists(path) and not (path.is_symlink() or path.is_file()):
+        # a pipe, socket or device node would be replaced by a regular file (the writers rename into place)
+        raise OutputError(f"cannot write {what} {path}: it is a {_special_kind(path)}, not a regular file; "
+                          "evnoise writes only regular files")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise OutputError(f"cannot write {what} {path}: directory {parent} is not writable")
     return path
+
+
+def _special_kind(path: Path) -> str:
+    """What a path that is neither a regular file, a folder nor a link is, in words."""
+    mode = path.lstat().st_mode
+    return ("named pipe (FIFO)" if stat.S_ISFIFO(mode) else "socket" if stat.S_ISSOCK(mode)
+            else "device node" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "special file")
 
 
 def _check_us(value, name: str) -> int | None:

@@ -478,3 +478,23 @@ def test_parameter_bound_is_an_upper_bound():
                dict(base_channels=32, channel_mults=(1, 2, 4, 8), blocks_per_level=2, in_channels=1)):
         config = UNetConfig(**kw)
         assert sum(p.numel() for p in UNet(config=config).parameters()) <= config.parameter_bound()
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="named pipes are a POSIX feature")
+@pytest.mark.parametrize("flag", ["--out", "--png"])
+def test_overwrite_does_not_replace_a_named_pipe_with_a_file(tmp_path, capsys, flag):
+    """``--overwrite`` replaces an existing file, not a pipe (or socket or device node) of that name: the writers
+    rename a finished file into place, which would have turned the pipe into a regular file (found by a review)."""
+    import stat
+
+    fifo = tmp_path / ("events.h5" if flag == "--out" else "maps.png")
+    os.mkfifo(fifo)
+    other = {"--out": tmp_path / "other.h5", "--png": tmp_path / "other.png"}
+    args = ["simulate", "--example", "--duration", "0.001", "--overwrite",
+            "--out", fifo if flag == "--out" else other["--out"], "--png", fifo if flag == "--png" else other["--png"]]
+    code, _, err = run_cli(capsys, *args)
+    one_error_line(code, err, "named pipe (FIFO), not a regular file")
+    assert stat.S_ISFIFO(fifo.lstat().st_mode)
+    if flag == "--out":
+        with pytest.raises(ev.OutputError, match="not a regular file"):
+            ev.write_events(fifo, np.zeros(0, ev.EVENT_DTYPE), (4, 4), overwrite=True)
