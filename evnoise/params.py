@@ -245,12 +245,10 @@ class NoiseParams:
                                  f"between 0 and 1, got {tied!r}")
         for spec in specs:
             name, value = spec.name, getattr(self, spec.name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                try:
-                    value = float(value)
-                except (TypeError, ValueError):
-                    raise ParameterError(f"NoiseParams.{name} must be a number, got {value!r}") from None
-            value = float(value)
+            try:  # an int beyond the double range (a TOML integer of 400 digits) overflows
+                value = float(value)
+            except (TypeError, ValueError, OverflowError):
+                raise ParameterError(f"NoiseParams.{name} must be a number, got {_short_repr(value)}") from None
             if not math.isfinite(value) or value < spec.low or (value == spec.low and not spec.low_inclusive):
                 raise ParameterError(f"NoiseParams.{name} must be finite and {spec.low_text}, got {value!r}")
             object.__setattr__(self, name, value)
@@ -388,6 +386,10 @@ def _read_toml(text: str, origin: str) -> dict:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ParameterError(f"preset {origin} is not valid TOML: {exc}") from None
+    except RecursionError:  # arrays nested beyond Python's recursion limit
+        raise ParameterError(f"preset {origin} is not a preset: its TOML nests too deeply") from None
+    except ValueError as exc:  # e.g. an integer longer than Python converts (4300 digits)
+        raise ParameterError(f"preset {origin} is not a preset: {str(exc).split(';')[0][:200]}") from None
 
 
 def load_preset_document(name_or_path) -> dict:
@@ -472,15 +474,27 @@ def _preset_label(name_or_path) -> str:
     return Path(text).stem if text.endswith(".toml") or Path(text).exists() else text
 
 
+def _short_repr(value, limit: int = 80) -> str:
+    """``repr(value)``, cut to ``limit`` characters (a 400-digit integer in an error line)."""
+    if isinstance(value, int) and value.bit_length() > 3 * limit:  # repr of a huge int is long (or refused)
+        return f"an integer of about {value.bit_length() * math.log10(2):.0f} digits"
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
 def _light_range_of(doc: dict):
     provenance = doc.get("provenance") if isinstance(doc.get("provenance"), dict) else {}
     value = provenance.get("fitted_lux")
     if not (isinstance(value, list) and len(value) == 2
             and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)):
         return None
-    lo, hi = float(value[0]), float(value[1])
+    try:
+        lo, hi = float(value[0]), float(value[1])
+    except OverflowError:  # an integer beyond the double range
+        lo = hi = math.nan
     if not (0.0 <= lo < hi < math.inf):
-        raise ParameterError(f"preset provenance.fitted_lux must be [lo, hi] lux with 0 <= lo < hi, got {value}")
+        raise ParameterError("preset provenance.fitted_lux must be [lo, hi] lux with 0 <= lo < hi, got "
+                             f"{_short_repr(value)}")
     return LightRange(lo, hi, str(provenance.get("fitted_lux_note", "")),
                       str(provenance.get("fitted_lux_meaning", "")))
 

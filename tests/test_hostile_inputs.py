@@ -498,3 +498,25 @@ def test_overwrite_does_not_replace_a_named_pipe_with_a_file(tmp_path, capsys, f
     if flag == "--out":
         with pytest.raises(ev.OutputError, match="not a regular file"):
             ev.write_events(fifo, np.zeros(0, ev.EVENT_DTYPE), (4, 4), overwrite=True)
+
+
+@pytest.mark.parametrize("edit, expect", [
+    (("eps_pos = ", "eps_pos = 1" + "0" * 400 + "  # "), "eps_pos must be a number, got an integer of about 400"),
+    (("eps_pos = ", "eps_pos = 1" + "0" * 5000 + "  # "), "is not a preset: Exceeds the limit (4300 digits)"),
+    (("fitted_lux = ", "fitted_lux = [0, 1" + "0" * 400 + "]  # "), "fitted_lux must be [lo, hi] lux"),
+    (None, "its TOML nests too deeply"),
+])
+def test_a_preset_with_absurd_numbers_or_nesting_is_one_error_line(tmp_path, capsys, edit, expect):
+    """Integers beyond the double range, beyond Python's digit limit, and arrays nested past the recursion limit
+    (found by a hostile-file review: OverflowError, ValueError and RecursionError tracebacks)."""
+    text = (Path(ev.__file__).parent / "presets" / "evk3-hd.toml").read_text()
+    if edit is None:
+        text += "\nzz = " + "[" * 100_000 + "]" * 100_000 + "\n"
+    else:
+        assert edit[0] in text
+        text = text.replace(edit[0], edit[1], 1)
+    preset = tmp_path / "odd.toml"
+    preset.write_text(text)
+    code, _, err = run_cli(capsys, "presets", preset)
+    one_error_line(code, err, expect)
+    assert len(err) < 400
