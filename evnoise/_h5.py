@@ -283,7 +283,7 @@ def h5_metadata(f, ds) -> dict:
     if json_keys is not None:
         try:
             keys = json.loads(json_keys)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, RecursionError):  # RecursionError: lists nested past the recursion limit
             keys = None
         if not isinstance(keys, list) or not all(isinstance(k, str) for k in keys):
             raise InputError(f"{path}: its json_attrs attribute is not a JSON list of attribute names")
@@ -291,7 +291,7 @@ def h5_metadata(f, ds) -> dict:
             if key in meta:
                 try:
                     meta[key] = json.loads(meta[key])
-                except (TypeError, ValueError):
+                except (TypeError, ValueError, RecursionError):  # kept as the text it is
                     pass
     if "height" in meta and "width" in meta:
         height = _int_attr(meta["height"], "the height attribute", path)

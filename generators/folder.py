@@ -40,7 +40,7 @@ def read_json(path: Path):
     """The JSON content of ``path``, or None if it cannot be read or parsed."""
     try:
         return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):  # RecursionError: arrays nested past the recursion limit
         return None
 
 

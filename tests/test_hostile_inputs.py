@@ -520,3 +520,28 @@ def test_a_preset_with_absurd_numbers_or_nesting_is_one_error_line(tmp_path, cap
     code, _, err = run_cli(capsys, "presets", preset)
     one_error_line(code, err, expect)
     assert len(err) < 400
+
+
+@pytest.mark.parametrize("where", ["h5 attribute", "h5 json_attrs", "aedat4 attribute"])
+def test_metadata_json_nested_past_the_recursion_limit_is_kept_as_text(tmp_path, capsys, where):
+    """An attribute whose JSON nests 100,000 deep (found by a hostile-file review: RecursionError in ``info``)."""
+    import h5py
+
+    from evnoise.io import read_metadata, write_aedat4
+
+    deep = "[" * 100_000 + "]" * 100_000
+    events = np.zeros(3, ev.EVENT_DTYPE)
+    events["t"] = [1, 2, 3]
+    if where.startswith("aedat4"):
+        path = write_aedat4(tmp_path / "e.aedat4", events, (4, 4), attrs={"foo_json": deep})
+    else:
+        path = ev.write_events(tmp_path / "e.h5", events, (4, 4))
+        with h5py.File(path, "a") as f:
+            f.attrs["json_attrs"] = '["foo"]' if where == "h5 attribute" else deep
+            f.attrs["foo"] = deep
+    code, out, err = run_cli(capsys, "info", path)
+    if where == "h5 json_attrs":
+        one_error_line(code, err, "json_attrs attribute is not a JSON list")
+    else:
+        assert code == 0, err
+        assert read_metadata(path)["foo"] == deep

@@ -51,7 +51,7 @@ def _description_attrs(nodes) -> dict:
                 if key.endswith("_json") and isinstance(value, str):
                     try:
                         value = json.loads(value)
-                    except ValueError:
+                    except (ValueError, RecursionError):  # kept as the text it is (RecursionError: nested too deep)
                         pass
                     key = key[:-5]
                 out[key] = value
