@@ -140,6 +140,12 @@ def test_a_recording_of_another_preset_warns_naming_both(tmp_path, capsys):
         assert len(warn) == 1 and "earlier version of preset evk3-hd" in warn[0]
     warn = recording_mismatch({"camera": "DAVIS346"}, doc)
     assert len(warn) == 1 and "DAVIS346" in warn[0] and "EVK3" in warn[0]
+    # a recording's metadata is a stranger's: values that are not numbers and an empty camera name are no
+    # reason to compare (found by a hostile-file review: ValueError, TypeError and IndexError tracebacks)
+    for odd in ("abc", [1], None, float("nan"), True, 10**400):
+        bad = dict(doc["input"]["params"], eps_pos=odd)
+        assert recording_mismatch({"preset": "evk3-hd", "params": bad}, doc) == []
+    assert recording_mismatch({"camera": " "}, doc) == [] and recording_mismatch({"sensor": ""}, doc) == []
 
 
 # -- issue 17 item 4: the stored end time ----------------------------------------------------

@@ -87,6 +87,17 @@ _PARAM_KEYS = ("eps_pos", "eps_neg", "bias_pr", "trial_rate_hz", "photons_per_lu
                "eps_sigma")
 
 
+def _number(value):
+    """``value`` as a finite float, or None where it is not one (text, a list, NaN, a bool)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    try:
+        value = float(value)
+    except OverflowError:
+        return None
+    return value if math.isfinite(value) else None
+
+
 def recording_mismatch(meta: dict, doc: dict) -> list:
     """Warnings (strings) when a recording's sensor or noise preset differs from the model's.
 
@@ -105,10 +116,10 @@ def recording_mismatch(meta: dict, doc: dict) -> list:
     differs = False
     if rec_params and model_params:
         for key in _PARAM_KEYS:
-            a, b = rec_params.get(key), model_params.get(key)
-            if a is None or b is None:
+            a, b = _number(rec_params.get(key)), _number(model_params.get(key))
+            if a is None or b is None:  # absent, or not a number (a recording's metadata is the stranger's)
                 continue
-            if not math.isclose(float(a), float(b), rel_tol=1e-6, abs_tol=1e-12):
+            if not math.isclose(a, b, rel_tol=1e-6, abs_tol=1e-12):
                 differs = True
                 break
     elif rec_preset and model_preset and Path(str(rec_preset)).stem != model_preset:
@@ -122,7 +133,8 @@ def recording_mismatch(meta: dict, doc: dict) -> list:
                    f"preset {model_preset or 'custom'} (different noise parameters): the image may be wrong")
     rec_sensor = meta.get("camera") or meta.get("sensor")
     model_sensor = card.get("sensor")
-    if isinstance(rec_sensor, str) and model_sensor and rec_sensor.split()[0].lower() not in model_sensor.lower():
+    if (isinstance(rec_sensor, str) and rec_sensor.split() and isinstance(model_sensor, str)
+            and rec_sensor.split()[0].lower() not in model_sensor.lower()):
         out.append(f"the recording's sensor is {rec_sensor} but the model was trained for {model_sensor}")
     return out
 
