@@ -164,12 +164,19 @@ def luminance(rgb, weights=REC709_LUMA) -> np.ndarray:
     return rgb[..., 0] * w[0] + rgb[..., 1] * w[1] + rgb[..., 2] * w[2]
 
 
-def _luma_from_chromaticities(c) -> np.ndarray:
-    """Luminance weights of the RGB primaries ``(xr, yr, xg, yg, xb, yb, xw, yw)``."""
+def _luma_from_chromaticities(c) -> np.ndarray | None:
+    """Luminance weights of the RGB primaries ``(xr, yr, xg, yg, xb, yb, xw, yw)``, or None where they describe no
+    RGB space (a y of 0 or not finite, primaries on one line: a file's attribute is the stranger's)."""
     xr, yr, xg, yg, xb, yb, xw, yw = (float(v) for v in c)
+    values = np.array([xr, yr, xg, yg, xb, yb, xw, yw])
+    if not np.all(np.isfinite(values)) or not np.all(values[1::2] > 0):
+        return None
     prim = np.array([[x / y, 1.0, (1.0 - x - y) / y] for x, y in ((xr, yr), (xg, yg), (xb, yb))]).T
     white = np.array([xw / yw, 1.0, (1.0 - xw - yw) / yw])
-    return np.linalg.solve(prim, white)  # scales of the primaries = their Y contributions
+    if not np.all(np.isfinite(prim)) or np.linalg.cond(prim) > 1e12:  # primaries (nearly) on one line
+        return None
+    weights = np.linalg.solve(prim, white)  # scales of the primaries = their Y contributions
+    return weights if np.all(np.isfinite(weights)) else None
 
 
 # --------------------------------------------------------------------------------------
@@ -412,6 +419,9 @@ def _read_exr(path: Path, limit: int = DEFAULT_MAX_IMAGE_PIXELS) -> np.ndarray:
         weights = REC709_LUMA
         if chroma is not None:
             weights = _luma_from_chromaticities(chroma)
+            if weights is None:
+                raise InputError(f"{name}: its chromaticities attribute {tuple(float(v) for v in chroma)} does not "
+                                 "describe RGB primaries and a white point (each y > 0, the primaries independent)")
         rgb = np.stack([channels[c].astype(np.float64) for c in "RGB"], axis=-1)
         return luminance(rgb, weights)
     raise InputError(f"{name}: EXR has channels {sorted(channels)}; expected 'Y' or 'R', 'G', 'B'")

@@ -179,6 +179,17 @@ def test_exr_chromaticities_set_the_luminance_weights(tmp_path):
         assert got == pytest.approx((0.2627, 0.6780, 0.0593)[k], abs=5e-4)
 
 
+@pytest.mark.parametrize("chroma", [(0.0,) * 8, (0.3, 0.3, 0.3, 0.3, 0.3, 0.3, 0.3127, 0.329),
+                                    (0.708, 0.292, 0.170, 0.797, 0.131, float("nan"), 0.3127, 0.3290)])
+def test_exr_chromaticities_that_describe_no_rgb_space_are_named(tmp_path, chroma):
+    """A y of 0, primaries on one point or line, a NaN: one InputError naming the attribute (found by a hostile-file
+    review: ZeroDivisionError, LinAlgError, and NaN weights reported as NaN pixels)."""
+    ones = np.ones((2, 2), dtype=np.float32)
+    path = write_exr(tmp_path / "odd.exr", {c: ones for c in "RGB"}, chromaticities=chroma)
+    with pytest.raises(InputError, match=r"odd\.exr: its chromaticities attribute .* does not describe RGB"):
+        read_image(path)
+
+
 def test_exr_with_nan_names_the_file(tmp_path):
     y = np.ones((3, 4), dtype=np.float32)
     y[1, 2] = np.nan
