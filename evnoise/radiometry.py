@@ -366,8 +366,11 @@ def _read_tiff(path: Path, limit: int = DEFAULT_MAX_IMAGE_PIXELS) -> np.ndarray:
             photometric = page.photometric
             if photometric not in (ph.MINISBLACK, ph.MINISWHITE, ph.RGB):
                 return _read_pillow(path, limit)  # palette, CMYK, YCbCr: let Pillow convert
-            arr = page.asarray()
             axes = page.axes
+            if page.imagedepth > 1 or axes not in ("YX", "YXS", "SYX"):
+                raise InputError(f"{name}: a TIFF whose first image has axes {axes!r} ({size}); expected a 2-D "
+                                 "image (YX), with samples per pixel (YXS or SYX)")
+            arr = page.asarray()
     except InputError:
         raise
     except Exception as exc:

@@ -399,3 +399,15 @@ def test_example_image_is_reproducible():
     with PIL_Image.open(str(path)) as im:
         stored = np.asarray(im)
     np.testing.assert_array_equal(render(), stored)
+
+
+def test_a_volumetric_tiff_is_refused_not_read_as_a_sideways_image(tmp_path):
+    """A TIFF of axes ZYX (an image depth of 5) was read as a 16x5 image of 3 colour columns (found by a hostile-file
+    review); 2-D images with or without samples per pixel still read."""
+    tifffile = pytest.importorskip("tifffile")
+    tifffile.imwrite(tmp_path / "vol.tif", np.ones((5, 16, 16), np.uint8), volumetric=True)
+    with pytest.raises(InputError, match=r"vol\.tif: a TIFF whose first image has axes 'ZYX'"):
+        read_image(tmp_path / "vol.tif")
+    tifffile.imwrite(tmp_path / "planar.tif", np.ones((3, 16, 20), np.uint8), photometric="rgb",
+                     planarconfig="separate")
+    assert read_image(tmp_path / "planar.tif").shape == (16, 20)
