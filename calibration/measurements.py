@@ -144,7 +144,7 @@ class Measurements:
 def _vector(values, name: str, where: str, *, positive=False, integer=False, allow_inf=False) -> np.ndarray:
     try:
         arr = np.asarray(values, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an integer beyond the double range
         raise InputError(f"{where}: {name} must be numeric") from None
     if arr.ndim != 1:
         raise InputError(f"{where}: {name} must be one value per level, got shape {arr.shape}")
@@ -318,7 +318,10 @@ def _read_csv_rows(path: Path) -> tuple[list[str], list[list[str]]]:
     lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
     if not lines:
         raise InputError(f"{path}: empty table (no header)")
-    rows = list(csv.reader(lines, skipinitialspace=True))
+    try:
+        rows = list(csv.reader(lines, skipinitialspace=True))
+    except csv.Error as exc:  # e.g. a field longer than the csv module's limit (128 kB)
+        raise InputError(f"{path}: not a table of rates or counts ({exc})") from None
     header = [h.strip().lower() for h in rows[0]]
     if len(set(header)) != len(header):
         raise InputError(f"{path}: duplicate column names in header {rows[0]}")
@@ -443,6 +446,10 @@ def _listing_entries(path: Path):
             raise InputError(f"file not found: {path}") from None
         except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
             raise InputError(f"{path} is not valid TOML: {exc}") from None
+        except RecursionError:  # arrays nested past the recursion limit
+            raise InputError(f"{path} is not a listing: its TOML nests too deeply") from None
+        except ValueError as exc:  # an integer of more than 4300 digits
+            raise InputError(f"{path} is not a listing: {str(exc).split(';')[0]}") from None
         levels = doc.get("level")
         if not isinstance(levels, list) or not levels or not all(isinstance(e, dict) for e in levels):
             raise InputError(f"{path}: expected [[level]] tables with file and lux (or grey)")
@@ -476,7 +483,10 @@ def _num(e, key, where):
         return None
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         raise InputError(f"{where}: {key} must be a number, got {v!r}")
-    v = float(v)
+    try:
+        v = float(v)
+    except OverflowError:  # an integer beyond the double range
+        v = math.inf
     if not math.isfinite(v) or v < 0:
         raise InputError(f"{where}: {key} must be finite and >= 0, got {v!r}")
     return v

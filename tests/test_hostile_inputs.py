@@ -545,3 +545,37 @@ def test_metadata_json_nested_past_the_recursion_limit_is_kept_as_text(tmp_path,
     else:
         assert code == 0, err
         assert read_metadata(path)["foo"] == deep
+
+
+@pytest.mark.parametrize("case", ["long cell", "csv_columns number", "huge t_start", "deep nesting"])
+def test_calibrate_inputs_with_odd_fields_are_one_error_line(tmp_path, capsys, case):
+    """A rate table with a cell over the csv module's 128 kB limit, a listing whose csv_columns is a number, one whose
+    t_start_s is an integer beyond the double range, one nested past the recursion limit (found by a hostile-file
+    review: csv.Error, TypeError, OverflowError and RecursionError tracebacks)."""
+    rec = ev.simulate_events(np.full((8, 8), 2.0), "evk3-hd", 1.0, rng=0)
+    csv_rec = tmp_path / "flat.csv"
+    ev.write_events(csv_rec, rec, (8, 8))
+    listing = tmp_path / "levels.toml"
+    level = f'[[level]]\nfile = "{csv_rec.name}"\nlux = 2.0\nsensor = "8x8"\n'
+    more = "".join(level.replace("lux = 2.0", f"lux = {lux}") for lux in (5.0, 20.0))
+    if case == "long cell":
+        listing = tmp_path / "rates.csv"
+        listing.write_text("lux,rate_on_hz,rate_off_hz\n1," + "9" * 200_000 + ",0.1\n")
+        expect = "not a table of rates or counts"
+    elif case == "csv_columns number":
+        listing.write_text(level + "csv_columns = 5\n" + more)
+        expect = "must be text such as 'x,y,p,t'"
+    elif case == "huge t_start":
+        listing.write_text(level + "t_start_s = 1" + "0" * 400 + "\n" + more)
+        expect = "level 1: "
+    else:
+        listing.write_text(level + "zz = " + "[" * 100_000 + "]" * 100_000 + "\n")
+        expect = "its TOML nests too deeply"
+    code, _, err = run_cli(capsys, "calibrate", listing, "--out", tmp_path / "fit.toml", "-q")
+    one_error_line(code, err, expect)
+    assert not (tmp_path / "fit.toml").exists()
+    if case == "huge t_start":
+        assert "must be finite and >= 0, got inf" in err
+    if case == "csv_columns number":
+        with pytest.raises(ev.ParameterError, match="csv_columns must be text"):
+            ev.read_events(csv_rec, csv_columns=5)

@@ -54,6 +54,8 @@ _HEAD_BYTES = 1 << 16
 
 def parse_columns(text) -> dict[str, int]:
     """``"x,y,p,t"`` (or a list of names) -> ``{"t": 3, "x": 0, "y": 1, "p": 2}``; other names are skipped columns."""
+    if not (isinstance(text, str) or (isinstance(text, (list, tuple)) and all(isinstance(n, str) for n in text))):
+        raise ParameterError(f"csv_columns must be text such as 'x,y,p,t' or a list of column names, got {text!r}")
     names = re.split(r"[,\s]+", text.strip()) if isinstance(text, str) else list(text)
     out: dict[str, int] = {}
     for i, name in enumerate(n.strip().lower() for n in names):
