@@ -105,3 +105,64 @@ def test_a_shard_that_points_outside_itself_or_declares_too_much_is_refused(tmp_
     err = capsys.readouterr().err.strip()
     assert code != 0 and len(err.splitlines()) == 1, err
     assert shard.name in err and ("another file" in err or "external file" in err or "shape" in err), err
+
+
+def _good_npz_arrays():
+    import numpy as np
+
+    return {"counts": np.ones((2, 2, 4, 4), np.uint16), "images": np.ones((2, 4, 4), np.float32),
+            "window_s": np.ones(2)}
+
+
+@pytest.mark.parametrize("change, expect", [
+    ({"params_json": "not json"}, "params_json, max_lux or window_s"),
+    ({"max_lux": [1.0, 2.0]}, "params_json, max_lux or window_s"),
+    ({"window_s": ["a", "b"]}, "params_json, max_lux or window_s"),
+    ({"counts": 3}, "counts must be (N, 2, h, w)"),
+    ({"counts": "nan"}, "counts must be whole numbers >= 0"),
+    ({"counts": "huge header"}, "declares shape (1000000000000,)"),
+])
+def test_a_damaged_npz_pairs_file_is_one_clear_error(tmp_path, change, expect):
+    """Found by a hostile-file review: tracebacks (JSON, TypeError), a 7 TiB allocation from a header's declared
+    shape, and NaN counts silently read as 0."""
+    import io
+    import zipfile
+
+    import numpy as np
+
+    from evnoise.errors import InputError
+    from evnoise.reconstruct.data import NpzPairs
+
+    arrays = _good_npz_arrays()
+    key, value = next(iter(change.items()))
+    if value == "nan":
+        arrays["counts"] = np.full((2, 2, 4, 4), np.nan)
+    elif value != "huge header":
+        arrays[key] = np.asarray(value)
+    path = tmp_path / "pairs.npz"
+    np.savez(path, **arrays)
+    if value == "huge header":  # a member whose header declares 10**12 values over a few bytes of data
+        buf = io.BytesIO()
+        np.lib.format.write_array_header_1_0(buf, {"descr": "<f8", "fortran_order": False, "shape": (10**12,)})
+        with zipfile.ZipFile(path, "a") as z:
+            z.writestr("sources.npy", buf.getvalue() + b"\0" * 64)
+    with pytest.raises(InputError, match=re_escape(expect)):
+        NpzPairs(path)
+
+
+def re_escape(text):
+    import re
+
+    return re.escape(text)
+
+
+def test_an_npz_pairs_file_reads_only_its_own_arrays(tmp_path):
+    """Only the pairs' own arrays are read (NPZ_KEYS): an archive with another member still reads as pairs."""
+    import numpy as np
+
+    from evnoise.reconstruct.data import NpzPairs
+
+    path = tmp_path / "pairs.npz"
+    np.savez_compressed(path, extra=np.zeros(10**8, np.uint8), **_good_npz_arrays())
+    pairs = NpzPairs(path)
+    assert len(pairs) == 2 and pairs[0]["counts"].shape == (2, 4, 4)

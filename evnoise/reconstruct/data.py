@@ -128,28 +128,71 @@ class NpzPairs(PairList):
         path = Path(path)
         if not path.is_file():
             raise InputError(f"pairs file not found: {path}")
+        if not zipfile.is_zipfile(path):
+            raise InputError(f"{path} is not a readable .npz pairs file (not a NumPy .npz archive)")
         try:
             with np.load(path, allow_pickle=False) as z:
-                data = {k: z[k] for k in z.files}
-        except (OSError, ValueError) as exc:
+                _check_npz_members(z, path)
+                # only the arrays a pairs file has (another member, however large, is not decompressed)
+                data = {k: z[k] for k in NPZ_KEYS if k in z.files}
+        except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
             # numpy's own words point at allow_pickle / pickle.load, which evnoise never uses on user files
             why = "it holds Python objects, not plain arrays" if "pickle" in str(exc) else str(exc)
-            if not zipfile.is_zipfile(path):
-                why = "not a NumPy .npz archive"
             raise InputError(f"{path} is not a readable .npz pairs file ({why})") from None
         for key in ("counts", "images", "window_s"):
             if key not in data:
                 raise InputError(f"{path} has no array {key!r}: not a pairs file")
+        counts = data["counts"]
+        if counts.ndim != 4 or counts.shape[1] != 2 or data["images"].ndim != 3:
+            raise InputError(f"{path}: counts must be (N, 2, h, w) and images (N, h, w), got {counts.shape} and "
+                             f"{data['images'].shape}")
+        if counts.dtype.kind not in "iuf" or (counts.dtype.kind == "f" and not np.all(
+                np.isfinite(counts) & (counts >= 0) & (counts == np.floor(counts)))) or (
+                counts.dtype.kind == "i" and counts.size and counts.min() < 0):
+            raise InputError(f"{path}: counts must be whole numbers >= 0 (dtype {counts.dtype})")
         params = None
-        if "params_json" in data:
-            import json
+        try:
+            if "params_json" in data:
+                import json
 
-            params = NoiseParams.from_dict(json.loads(str(data["params_json"])))
-        max_lux = float(data["max_lux"]) if "max_lux" in data else None
+                params = NoiseParams.from_dict(json.loads(str(data["params_json"][()])))
+            max_lux = float(data["max_lux"]) if "max_lux" in data else None
+            window_s = np.asarray(data["window_s"], dtype=np.float64)
+        except (TypeError, ValueError, RecursionError, AttributeError) as exc:
+            raise InputError(f"{path}: params_json, max_lux or window_s is not what a pairs file holds "
+                             f"({str(exc)[:200]})") from None
         sources = data["sources"].astype(str).tolist() if "sources" in data else None
-        super().__init__(list(data["counts"]), list(data["images"]), window_s=data["window_s"],
+        super().__init__(list(counts), list(data["images"]), window_s=window_s,
                          sources=sources, max_lux=max_lux, params=params)
         self.path = path
+
+
+#: The arrays of a :class:`NpzPairs` file (others are not read).
+NPZ_KEYS = ("counts", "images", "window_s", "sources", "max_lux", "params_json")
+
+
+def _check_npz_members(z, path) -> None:
+    """Refuse a pairs member whose header declares more data than the archive holds for it (a header of shape
+    ``(10**12,)`` made ``np.load`` ask for 7 TiB) or Python objects, before it is read."""
+    for key in NPZ_KEYS:
+        name = f"{key}.npy"
+        if name not in z.zip.namelist():
+            continue
+        info = z.zip.getinfo(name)
+        with z.zip.open(info) as fh:
+            version = np.lib.format.read_magic(fh)
+            if version == (1, 0):
+                shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
+            elif version == (2, 0):
+                shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
+            else:
+                continue  # (3, 0): np.load checks it as it reads
+        if dtype.hasobject:
+            raise ValueError(f"{key} holds Python objects, not plain arrays")
+        declared = math.prod(shape) * dtype.itemsize
+        if declared > info.file_size:
+            raise ValueError(f"{key} declares shape {shape} of {dtype} ({declared:,} bytes) but the archive holds "
+                             f"{info.file_size:,} bytes for it")
 
 
 def save_pairs_npz(path, dataset) -> Path:
