@@ -713,6 +713,41 @@ def _manifest(plan: Plan, records: dict) -> dict:
     }
 
 
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _manifest_problem(m: dict) -> str | None:
+    """What in a manifest's entries is not of the kind its readers (``info``, :class:`PairDataset`) use, or None."""
+    def ints(d, keys):
+        return isinstance(d, dict) and all(_is_int(d.get(k)) and d.get(k) >= 0 for k in keys)
+
+    cfg, totals, pair, splits = m.get("config"), m.get("totals"), m.get("pair"), m.get("splits")
+    if not (isinstance(cfg, dict) and ints(cfg, ("crops_per_image",)) and isinstance(cfg.get("windows_s"), list)
+            and cfg["windows_s"] and all(isinstance(w, (int, float)) and not isinstance(w, bool)
+                                         for w in cfg["windows_s"])):
+        return "its 'config' entry lacks crops_per_image or windows_s"
+    if not ints(totals, ("samples", "bytes", "shards")):
+        return "its 'totals' entry is not a record of counts"
+    counts = pair.get("counts") if isinstance(pair, dict) else None
+    shape = counts.get("shape") if isinstance(counts, dict) else None
+    if not (isinstance(shape, list) and len(shape) == 3 and all(_is_int(v) and v > 0 for v in shape)
+            and ints(counts, ("binning",))):
+        return "its 'pair' entry does not give the counts' shape [2, h, w] and binning"
+    if not (isinstance(splits, dict) and set(splits) <= set(SPLITS)
+            and all(ints(v, ("samples", "sources", "sources_planned", "shards")) for v in splits.values())):
+        return f"its 'splits' entry is not a record of {'/'.join(SPLITS)} counts"
+    skipped = m.get("skipped", [])
+    if not (isinstance(skipped, list) and all(isinstance(e, dict) and "source" in e and "reason" in e
+                                              for e in skipped)):
+        return "its 'skipped' entry is not a list of source/reason records"
+    for entry in m["shards"]:
+        if not (entry.get("split") in SPLITS and ints(entry, ("samples",)) and isinstance(entry.get("sources"), list)
+                and isinstance(entry.get("file"), str)):
+            return "a record of its 'shards' entry lacks split, samples, sources or file"
+    return None
+
+
 def load_manifest(path) -> tuple:
     """``(root, manifest)`` of a dataset folder (or its ``manifest.json``); InputError if incomplete."""
     path = Path(path)
@@ -728,12 +763,18 @@ def load_manifest(path) -> tuple:
     data = read_json(manifest_path)
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise InputError(f"{manifest_path} is not an evnoise pairs manifest")
-    if int(data.get("format_version", 0)) > FORMAT_VERSION:
-        raise InputError(f"{manifest_path} has format version {data.get('format_version')}; this evnoise "
+    version = data.get("format_version", 0)
+    if not _is_int(version):
+        raise InputError(f"{manifest_path} is damaged: its format_version is {str(version)[:40]!r}, not a number")
+    if version > FORMAT_VERSION:
+        raise InputError(f"{manifest_path} has format version {version}; this evnoise "
                          f"reads up to {FORMAT_VERSION} (upgrade evnoise)")
     shards = data.get("shards")
     if not isinstance(shards, list) or not all(isinstance(s, dict) for s in shards):
         raise InputError(f"{manifest_path} is damaged: its 'shards' entry is not a list of records")
+    problem = _manifest_problem(data)
+    if problem:
+        raise InputError(f"{manifest_path} is damaged: {problem}")
     for entry in shards:  # every file a manifest names is read only from inside the dataset folder
         dataset_member(root, entry.get("file"))
     return root, data

@@ -166,3 +166,25 @@ def test_an_npz_pairs_file_reads_only_its_own_arrays(tmp_path):
     np.savez_compressed(path, extra=np.zeros(10**8, np.uint8), **_good_npz_arrays())
     pairs = NpzPairs(path)
     assert len(pairs) == 2 and pairs[0]["counts"].shape == (2, 4, 4)
+
+
+@pytest.mark.parametrize("damage", [("format_version", "abc"), ("format_version", [1]), ("config", None),
+                                    ("totals", "x"), ("pair", {"counts": {"shape": [2, 3], "binning": 2}}),
+                                    ("skipped", 5), ("splits", {"bogus": {}})])
+def test_a_damaged_manifest_is_one_error_line_naming_it(tmp_path, capsys, damage):
+    """Found by a hostile-file review: ValueError, TypeError and KeyError tracebacks from info and the reader."""
+    import json
+
+    out, _ = _tiny_dataset(tmp_path, capsys)
+    manifest = out / "manifest.json"
+    data = json.loads(manifest.read_text())
+    key, value = damage
+    if value is None:
+        del data[key]
+    else:
+        data[key] = value
+    manifest.write_text(json.dumps(data))
+    code = main(["info", str(out)])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1, err
+    assert "manifest.json is damaged" in err, err
