@@ -211,7 +211,7 @@ def rate_table(lux, rate_on_hz, rate_off_hz, *, n_pixels=None, duration_s=None, 
         raise InputError(f"{where}: give both r_on and r_off, or neither")
     if r_on is not None:
         if dur is None:
-            raise InputError(f"{where}: measured NB shapes r_on, r_off need duration_s (the counting window)")
+            raise InputError(f"{where}: measured NB shapes r_on, r_off need 'duration_s' (the counting window)")
         shape = np.stack([_vector(r_on, "r_on", where, positive=True, allow_inf=True),
                           _vector(r_off, "r_off", where, positive=True, allow_inf=True)])
         if shape.shape != (2, j):
@@ -430,7 +430,7 @@ def read_rate_table(path, *, monitor: MonitorTable | None = None, monitor_model:
     src = str(path)
     if "count_on" in header or "count_off" in header:
         if npx is None or dur is None:
-            raise InputError(f"{path}: count columns need n_pixels and duration_s columns")
+            raise InputError(f"{path}: count columns need 'n_pixels' and 'duration_s' columns")
         return count_table(lux, col("count_on", True), col("count_off", True), npx, dur, r_on=r_on, r_off=r_off,
                            source=src, grey=grey)
     return rate_table(lux, col("rate_on_hz", True), col("rate_off_hz", True), n_pixels=npx, duration_s=dur,
@@ -482,13 +482,13 @@ def _num(e, key, where):
     if v is None:
         return None
     if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise InputError(f"{where}: {key} must be a number, got {v!r}")
+        raise InputError(f"{where}: '{key}' must be a number, got {v!r}")
     try:
         v = float(v)
     except OverflowError:  # an integer beyond the double range
         v = math.inf
     if not math.isfinite(v) or v < 0:
-        raise InputError(f"{where}: {key} must be finite and >= 0, got {v!r}")
+        raise InputError(f"{where}: '{key}' must be finite and >= 0, got {v!r}")
     return v
 
 
@@ -545,21 +545,21 @@ def read_flat_fields(path, *, monitor: MonitorTable | None = None, monitor_model
             elif meta.get("t_end_us") is not None:
                 t1_us = int(meta["t_end_us"])
             else:
-                raise InputError(f"{lw}: the recording's length is unknown; give duration_s or t_end_s")
+                raise InputError(f"{lw}: the recording's length is unknown; give 'duration_s' or 't_end_s'")
         if t1_us <= t0_us:
             raise InputError(f"{lw}: empty counting window [{t0_us}, {t1_us}) us")
         duration = (t1_us - t0_us) * 1e-6
         if dur is not None and abs(dur - duration) > 1e-6:
-            raise InputError(f"{lw}: duration_s = {dur} disagrees with t_end_s - t_start_s = {duration}")
+            raise InputError(f"{lw}: 'duration_s' = {dur} disagrees with 't_end_s' - 't_start_s' = {duration}")
         c = count_events(events, shape, t0_us, t1_us)
         height, width = shape
         roi = e.get("roi")
         if roi is not None:
             if not (isinstance(roi, list) and len(roi) == 4 and all(isinstance(v, int) for v in roi)):
-                raise InputError(f"{lw}: roi must be [y0, y1, x0, x1] (integers), got {roi!r}")
+                raise InputError(f"{lw}: 'roi' must be [y0, y1, x0, x1] (integers), got {roi!r}")
             y0, y1, x0, x1 = roi
             if not (0 <= y0 < y1 <= height and 0 <= x0 < x1 <= width):
-                raise InputError(f"{lw}: roi {roi} is outside the sensor (H, W) = {shape} or empty")
+                raise InputError(f"{lw}: 'roi' {roi} is outside the sensor (H, W) = {shape} or empty")
         else:
             y0, y1, x0, x1 = 0, height, 0, width
         yy, xx = np.mgrid[y0:y1, x0:x1]

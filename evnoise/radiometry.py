@@ -250,6 +250,11 @@ def load_luminance(path, encoding: str = "srgb", *, max_pixels=None):
         return _read_exr(path, limit), "linear"
     if head[:4] in _TIFF_MAGICS:
         raw = _read_tiff(path, limit)
+    elif head.startswith(_PNG_MAGIC) and len(head) >= 24 and head[12:16] == b"IHDR" and not (
+            int.from_bytes(head[16:20], "big") and int.from_bytes(head[20:24], "big")):
+        # a decoder asked to read it prints its own warnings before failing
+        raise InputError(f"cannot read image {_describe(path)}: its PNG header declares a "
+                         f"{int.from_bytes(head[16:20], 'big')}x{int.from_bytes(head[20:24], 'big')} image (no pixels)")
     elif head.startswith(_PNG_MAGIC) and len(head) >= 26 and head[24] == 16 and head[25] in (2, 4, 6):
         raw = _read_png16(path, head, limit)  # Pillow would truncate 16-bit colour / grey+alpha PNG to 8 bits
     else:

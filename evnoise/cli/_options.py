@@ -296,8 +296,9 @@ def flag_names(message: str, flags: dict) -> str:
     A name with an underscore is rewritten wherever it stands as a word (``max_lux must be ...`` ->
     ``--max-lux must be ...``); a plain word (``sensor``, ``overwrite``: as likely prose as a parameter) only
     in its keyword form: ``overwrite=True`` -> ``--overwrite``, ``sensor="WxH"`` -> ``--sensor WxH``,
-    ``windows_s=0.05`` -> ``--window 0.05``, and ``params=`` (the name itself) -> ``--preset``."""
-    before = r"(?<![\w./-])"
+    ``windows_s=0.05`` -> ``--window 0.05``, and ``params=`` (the name itself) -> ``--preset``. A name in quotes
+    (``'t_start_s'``: a key or column of the user's file) is left as it is."""
+    before = r"(?<![\w./'\"-])"
     for name, flag in sorted(flags.items(), key=lambda kv: -len(kv[0])):
         word = before + re.escape(name)
         message = re.sub(rf"{word}=True(?!\w)", flag, message)

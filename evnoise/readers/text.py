@@ -50,6 +50,8 @@ MAX_LINE_BYTES = 1 << 20
 MAX_ABS_T_US = 1 << 62
 #: Bytes looked at for the header.
 _HEAD_BYTES = 1 << 16
+_BOM = b"\xef\xbb\xbf"
+_DATA_LINE = re.compile(rb"^[ \t\r\f\v]*[^#\s]", re.MULTILINE)  # a line that is neither blank nor a comment
 
 
 def parse_columns(text) -> dict[str, int]:
@@ -80,6 +82,11 @@ def _is_number(token: str) -> bool:
     return True
 
 
+def _cut(text: str, limit: int = 80) -> str:
+    """``text``, or its first ``limit`` characters and an ellipsis (for quoting a file's line in an error)."""
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
 def _split(line: str, comma: bool) -> list[str]:
     return [tok.strip() for tok in line.split(",")] if comma else line.split()
 
@@ -92,12 +99,19 @@ class CsvSource(EventSource):
         cols = parse_columns(csv_columns) if csv_columns is not None else None
         with open(self.path, "rb") as fh:
             head = fh.read(_HEAD_BYTES)
+        if b"\n" not in head and b"\r" in head:
+            raise InputError(f"{self.path}: its line ends are carriage returns only (old Mac text); evnoise reads "
+                             f"text with \\n or \\r\\n line ends: convert it first (e.g. tr '\\r' '\\n')")
+        if len(head) == _HEAD_BYTES and b"\n" not in head:
+            raise InputError(f"{self.path}: no line end in its first {_HEAD_BYTES // 1024} kB: not a text event file "
+                             f"(one event per line)")
+        # a byte-order mark (spreadsheet programs write one before the header) is not part of the first line
+        offset = len(_BOM) if head.startswith(_BOM) else 0
         # split as bytes, so that the data's offset counts the file's own bytes (a comment that is not UTF-8
         # decodes to other lengths)
-        lines = head.split(b"\n")
+        lines = head[offset:].split(b"\n")
         if len(head) == _HEAD_BYTES:
             lines = lines[:-1]  # the last one may be cut by the read
-        offset = 0
         line_no = 0
         comment_names = None
         size_line = None
@@ -141,7 +155,7 @@ class CsvSource(EventSource):
             try:
                 cols = parse_columns([tok.split("@")[0] for tok in names_line])
             except ParameterError:
-                raise InputError(f"{self.path}: the header {' '.join(names_line)!r} does not name t, x, y and p; "
+                raise InputError(f"{self.path}: the header {_cut(' '.join(names_line))!r} does not name t, x, y and p; "
                                  f"give the column order with csv_columns (e.g. csv_columns='x,y,p,t')") from None
         if cols is None and comment_names is not None:
             cols = comment_names
@@ -205,7 +219,7 @@ class CsvSource(EventSource):
         return InputError(f"{self.path}: a line near line {line0} could not be read as numbers{self._hint()}")
 
     def _parse(self, block: bytes, line0: int) -> np.ndarray:
-        if not block.strip():
+        if _DATA_LINE.search(block) is None:  # blank or comments only (NumPy would warn that it read no data)
             return np.empty((0, self._n_cols or 4))
         text = block.decode("utf-8", "replace")
         delimiter = "," if self._comma else None

@@ -1,0 +1,105 @@
+"""Files from other people's tools that are odd rather than hostile: text event lists with a byte-order mark,
+old-Mac line ends or a block of nothing but comments, a calibration listing with a bad key, a PNG of zero width.
+Each was noticed by a hostile-file review and gave a wrong error, a 64 kB error line or a stray warning."""
+
+from __future__ import annotations
+
+import struct
+import warnings
+import zlib
+
+import numpy as np
+import pytest
+
+import evnoise as ev
+import evnoise.readers.text as text_reader
+from _cli_helpers import one_error_line, run_cli
+
+EVENTS_TXT = b"t x y p\n10 1 2 1\n20 3 0 0\n35 2 2 1\n"
+
+
+def _events(path, **kw):
+    events, _ = ev.read_events(path, sensor=(4, 4), **kw)
+    return [tuple(int(v) for v in row) for row in events.tolist()]
+
+
+def test_a_utf8_byte_order_mark_before_the_header_is_read_as_no_mark(tmp_path):
+    """Spreadsheet programs write CSV with a UTF-8 byte-order mark; the header was refused as '\\ufefft x y p'."""
+    plain, marked = tmp_path / "plain.csv", tmp_path / "marked.csv"
+    plain.write_bytes(EVENTS_TXT.replace(b" ", b","))
+    marked.write_bytes(b"\xef\xbb\xbf" + EVENTS_TXT.replace(b" ", b","))
+    assert _events(marked) == _events(plain) == [(10, 1, 2, 1), (20, 3, 0, 0), (35, 2, 2, 1)]
+
+
+def test_a_block_of_only_comments_reads_without_a_warning(tmp_path, monkeypatch):
+    """A data block holding only '#' lines made NumPy warn 'loadtxt: input contained no data'."""
+    monkeypatch.setattr(text_reader, "BLOCK_BYTES", 64)  # blocks of 64 bytes: the comments fill whole blocks
+    path = tmp_path / "events.txt"
+    path.write_bytes(b"t x y p\n10 1 2 1\n" + b"# a comment that fills the block, and the next one\n" * 8
+                     + b"20 3 0 0\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert _events(path) == [(10, 1, 2, 1), (20, 3, 0, 0)]
+
+
+@pytest.mark.parametrize("n_lines", [20, 20_000])
+def test_carriage_return_line_ends_are_named_in_a_short_error(tmp_path, capsys, n_lines):
+    """Old-Mac line ends (CR only): the error line repeated the first 64 kB of the file, or (a file longer than
+    64 kB) called it an empty event file."""
+    path = tmp_path / "mac.csv"
+    path.write_bytes(b"t,x,y,p\r" + b"".join(b"%d,1,2,1\r" % i for i in range(n_lines)))
+    with pytest.raises(ev.InputError, match="carriage return"):
+        ev.read_events(path)
+    code, _, err = run_cli(capsys, "info", path)
+    one_error_line(code, err, "line ends are carriage returns only")
+    assert len(err) < 400, err
+
+
+def test_a_long_header_is_cut_in_the_error_line(tmp_path, capsys):
+    """A header line that names no columns is quoted in the error, but not all of it."""
+    path = tmp_path / "long.csv"
+    path.write_bytes(b"a" * 50_000 + b",b\n1,2\n")
+    code, _, err = run_cli(capsys, "info", path)
+    one_error_line(code, err, "does not name t, x, y and p")
+    assert len(err) < 400, err
+
+
+def test_a_file_of_one_long_line_is_not_called_empty(tmp_path):
+    path = tmp_path / "one-line.txt"
+    path.write_bytes(b"1 2 3 4 " * 20_000)
+    with pytest.raises(ev.InputError, match="no line end in its first"):
+        ev.read_events(path)
+
+
+def test_a_bad_key_in_a_listing_is_named_as_the_files_key_not_as_a_flag(tmp_path, capsys):
+    """The CLI's rewrite of Python names into flags turned the listing's key t_start_s into '--t-start' (a flag
+    of calibrate, but not what the file holds)."""
+    rec = ev.simulate_events(np.full((8, 8), 2.0), "evk3-hd", 0.2, rng=0)
+    ev.write_events(tmp_path / "flat.h5", rec, (8, 8))
+    listing = tmp_path / "levels.toml"
+    listing.write_text("".join(f'[[level]]\nfile = "flat.h5"\nlux = {lux}\nt_start_s = nan\n\n' for lux in (1, 2, 3)))
+    code, _, err = run_cli(capsys, "calibrate", listing, "--out", tmp_path / "fit.toml", "-q")
+    one_error_line(code, err, "level 1: 't_start_s' must be finite and >= 0, got nan")
+    assert "--t-start" not in err
+
+
+def _png(path, width, height, bit_depth, colour_type):
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    ihdr = struct.pack(">IIBBBBB", width, height, bit_depth, colour_type, 0, 0, 0)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 4))
+                     + chunk(b"IEND", b""))
+    return path
+
+
+@pytest.mark.parametrize("colour_type", [0, 2, 4, 6])
+@pytest.mark.parametrize("size", [(0, 4), (4, 0)])
+def test_a_png_of_no_pixels_is_one_error_line_without_decoder_warnings(tmp_path, capsys, colour_type, size):
+    """A 16-bit colour PNG of zero width let libpng print 'PNG warning: Image width is zero in IHDR' before the
+    error line."""
+    path = _png(tmp_path / "empty.png", *size, 16, colour_type)
+    code, _, err = run_cli(capsys, "simulate", path, "--out", tmp_path / "out.h5", "--duration", "0.01")
+    one_error_line(code, err, "empty.png")
+    assert f"declares a {size[0]}x{size[1]} image (no pixels)" in err, err
+    assert not (tmp_path / "out.h5").exists()
