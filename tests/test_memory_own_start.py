@@ -191,8 +191,46 @@ def test_without_tables_refuses_what_it_does_not_cover(no_tables):
         ev.NoiseStream(lux.shape, DAVIS.replace(leak_regularity=0.5), rng=1).advance(lux, 100_000)
     from evnoise.plugins.tonic import PhotonNoise
 
-    with pytest.raises(ev.ParameterError, match=r"tonic transform needs them for every event; simulate_events"):
-        PhotonNoise((lux.shape[1], lux.shape[0], 2), DAVIS, lux, rng=1)
+    with pytest.raises(ev.ParameterError, match="regular background timer"):
+        PhotonNoise((lux.shape[1], lux.shape[0], 2), DAVIS.replace(leak_regularity=0.5), lux, rng=1)
+
+
+def _tonic_sample(t_us):
+    sample = np.zeros(len(t_us), dtype=[("x", "<i8"), ("y", "<i8"), ("t", "<i8"), ("p", "<i8")])
+    sample["t"] = t_us
+    return sample
+
+
+@pytest.mark.parametrize("params", [DAVIS, DAVIS.replace(refractory_s=5e-3, leak_sigma=0.8)],
+                         ids=["davis346", "dead-time-and-leak-spread"])
+def test_tonic_transform_without_tables_runs_as_the_still_scene_trial_tier(no_tables, params):
+    """The tonic transform with reset memory whose chains would pass the table budget (was refused): each sample's
+    noise is, event for event, what simulate_events' trial tier without tables gives for the sample's span and key
+    and the transform's maps (that tier is held to the table path above); the same for any thread count and in a
+    pickled copy (a DataLoader worker's, which rebuilds its chains)."""
+    import pickle
+
+    from evnoise import simulate
+    from evnoise.plugins.tonic import PhotonNoise
+
+    lux = _scene()
+    transform = PhotonNoise((lux.shape[1], lux.shape[0], 2), params, lux, rng=4, threads=1)
+    assert transform._memory.tables is None  # the path without tables
+    sample = _tonic_sample([250_000, 900_000, 2_250_000])
+    noise = transform.noise(sample)
+    assert noise.size > 500
+    setup = transform._setup
+    key = setup.keyed(transform._generator(sample)).key
+    reference = np.concatenate(list(simulate._still_trial_windows(
+        lux, transform.params, key, 250_000, 2_000_001, 1, False, None, setup.background, setup.thresholds)))
+    for field in "txy":
+        np.testing.assert_array_equal(noise[field], reference[field])
+    np.testing.assert_array_equal(noise["p"], reference["p"].astype(np.int64))
+    wide = PhotonNoise((lux.shape[1], lux.shape[0], 2), params, lux, rng=4, threads=4)
+    np.testing.assert_array_equal(wide.noise(sample), noise)
+    np.testing.assert_array_equal(pickle.loads(pickle.dumps(transform)).noise(sample), noise)
+    out = transform(sample)
+    assert out.size == noise.size + sample.size and np.all(np.diff(out["t"]) >= 0)
 
 
 def _advance_through(stream, lux, ends):

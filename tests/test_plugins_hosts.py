@@ -77,8 +77,17 @@ DATALOADER_SCRIPT = """
     # dvs128: threshold mismatch, hot pixels and the regular background timer (another kernel path)
     timer = PhotonNoise((34, 34, 2), "dvs128", 2.0, rng=7)
     parent_timer = [np.stack([timer(sample(i))[f] for f in "xytp"]).tobytes().hex() for i in range(N)]
+    # reset memory with mismatch beyond the table budget (lowered here; the workers inherit it): trial by trial
+    import evnoise as ev
+    from evnoise.terms import memory
+    memory.MAX_TABLE_STATES = 10
+    davis = ev.load_preset("davis346").replace(reset_memory=0.3, leak_regularity=0.0, hot_pixel_regularity=0.0)
+    trials = PhotonNoise((34, 34, 2), davis, 2.0, rng=7)
+    assert trials._memory.tables is None
+    parent_trials = [np.stack([trials(sample(i))[f] for f in "xytp"]).tobytes().hex() for i in range(N)]
     out = {"parent": parent, "seeded": [epoch(seeded, False), epoch(seeded, False)],
-           "parent_timer": parent_timer, "timer": epoch(timer, False)}
+           "parent_timer": parent_timer, "timer": epoch(timer, False),
+           "parent_trials": parent_trials, "trials": epoch(trials, False)}
     torch.manual_seed(11)
     out["drawn"] = [epoch(drawn, True), epoch(drawn, True)]
     torch.manual_seed(11)
@@ -99,13 +108,14 @@ def dataloader_run():
 
 
 def test_tonic_transform_runs_in_forked_dataloader_workers_after_a_call_in_the_parent(dataloader_run):
-    """Two forked workers, two epochs, after the transform ran in the main process (no OpenMP pool in a worker);
-    an int seed gives every sample the noise it gets in the main process, in any worker and epoch."""
+    """Two forked workers, two epochs, after the transform ran in the main process (no OpenMP pool in a worker;
+    also with the regular timer and with reset memory run trial by trial); an int seed gives every sample the noise it gets in the main process, in any worker and epoch."""
     parent = dataloader_run["parent"]
     assert len(set(parent)) == len(parent)
     for epoch in dataloader_run["seeded"]:
         assert epoch == parent
     assert dataloader_run["timer"] == dataloader_run["parent_timer"]
+    assert dataloader_run["trials"] == dataloader_run["parent_trials"]  # reset memory beyond the table budget
 
 
 def test_tonic_generator_never_repeats_across_workers_and_epochs(dataloader_run):

@@ -110,6 +110,13 @@ class PhotonNoise:
     probabilities and rates at ``lux``) is computed once, at construction; a call only draws the
     sample's events, with single-threaded kernels: it starts no OpenMP pool, so the transform
     runs in forked DataLoader workers whatever the main process computed before.
+
+    With reset memory (``params.reset_memory > 0``) each sample starts in the steady state of
+    its light. Where the chains' tables would pass the table budget
+    (``evnoise.terms.memory.MAX_TABLE_STATES``: threshold mismatch on a large sensor), every
+    pixel runs trial by trial and each sample computes every chain's start again (seconds per
+    sample on a megapixel sensor; the noise is then ``simulate_events``' trial tier for the
+    sample's span, event for event).
     """
 
     def __init__(self, sensor_size, params, lux, rng=None, *, threads: int | None = None):
@@ -144,17 +151,20 @@ class PhotonNoise:
     def _precompute(self):
         """The renewal kernel's per-pixel inputs at ``self.lux`` (what ``simulate_events`` computes per call)."""
         from .._engine import static_inputs
-        from ..terms.memory import TABLES_FOR_EVERY_EVENT, memory_on, still_chains
+        from .._memory_chains import memory_chains
+        from ..terms.memory import memory_on
 
         run = self._setup
         lam = self.params.photons_per_trial(self.lux).ravel()
         self._pix = np.arange(self.lux.size, dtype=np.int64)
         self._memory = None
-        if memory_on(self.params):  # reset memory: the state tables of the map's light levels (terms/memory.py)
-            _, group, tables, rates, timer = still_chains(lam, self.params, run.background, run.thresholds,
-                                                          refused_why=TABLES_FOR_EVERY_EVENT)
-            self._memory = (group, tables, timer)
-            self._nu = rates[group]
+        if memory_on(self.params):
+            # reset memory: the state tables of the map's light levels (terms/memory.py), or where those would pass
+            # the table budget (threshold mismatch on a large sensor) each chain's start, the pixels then running
+            # trial by trial (as simulate_events runs such a scene)
+            self._memory = memory_chains(lam, self.params, run.background, *run.thresholds, resolve_threads(
+                self.threads))
+            self._nu = self._memory.rates[self._memory.group]
             return
         self._log1m_p, self._q_on, self._timer, self._nu = static_inputs(lam, self.params, run.eps_on, run.eps_off,
                                                                          run.background)
@@ -235,17 +245,41 @@ class PhotonNoise:
         span_us = int(np.ceil(t.max())) - t_first + 1
         threads = resolve_threads(self.threads)
         state = PixelState(self._pix, key, threads)
-        if self._memory is not None:  # each sample starts in the steady state of its light (stored counts drawn)
-            group, tables, timer = self._memory
-            parts = memory_step(state, np.full(self._pix.size, math.nan), self.sensor_size[0], group, tables,
-                                self.params.trial_us, self.params.refractory_us, 0.0, float(span_us), math.inf,
-                                t_first, threads, self._nu * (span_us * 1e-6), timer)
+        chains = self._memory
+        if chains is not None and chains.tables is None:
+            parts = self._trials(state, chains, t_first, span_us, threads)
+        elif chains is not None:  # each sample starts in the steady state of its light (stored counts drawn)
+            parts = memory_step(state, np.full(self._pix.size, math.nan), self.sensor_size[0], chains.group,
+                                chains.tables, self.params.trial_us, self.params.refractory_us, 0.0, float(span_us),
+                                math.inf, t_first, threads, self._nu * (span_us * 1e-6), chains.timer)
         else:
             parts = renewal_step(state, self.sensor_size[0], self._log1m_p, self._q_on, self.params.trial_us,
                                  self.params.refractory_us, 0, span_us, math.inf, t_first, threads,
                                  expected=self._nu * (span_us * 1e-6), timer=self._timer)
         cols = [np.concatenate([p[i] for p in parts]) if len(parts) != 1 else parts[0][i].copy() for i in range(4)]
         return cols[0], cols[1], cols[2], cols[3] == 1
+
+    def _trials(self, state, chains, t_first: int, span_us: int, threads: int):
+        """The sample's noise trial by trial (reset memory whose chains are too many for tables): every pixel starts
+        in the steady state of its chain (:meth:`evnoise._memory_chains.OwnChainStarts.start_trials`), then runs the
+        trials that start in the span, as ``simulate_events`` runs a still scene with such chains (its trial tier,
+        in one window; the kernel's events unsorted, as the other paths return them)."""
+        from .. import terms
+        from .._engine import trial_step
+
+        p = self.params
+        run = self._setup
+        lam = p.photons_per_trial(self.lux).ravel()
+        state.lam_ref[:] = lam  # a still scene: no signal crossings, noise only
+        state.lam_prev[:] = lam
+        bg_rows = terms.kernel_coefficients(p, run.background, self._pix)
+        model = terms.kernel_model(p)
+        chains.start_trials(state, chains.group, p.trial_us, p.refractory_us, threads, bg_rows, lam, model)
+        eps_on, eps_off = run.thresholds
+        thr = np.stack([np.expm1(eps_on), np.expm1(eps_off), eps_on, eps_off])
+        n_trials = math.ceil(span_us / p.trial_us - 1e-12)
+        return trial_step(state, self.sensor_size[0], lam[None, :], np.zeros(1), 0, n_trials, thr, bg_rows, model,
+                          span_us, t_first, threads)
 
     def _as_events(self, events, t, x, y, on, dtype):
         out = np.zeros(t.size, dtype=dtype)

@@ -238,12 +238,6 @@ def too_many_states(n_chains: int, states: int, why: str = ""):
                           f"smaller sensor, or no threshold mismatch / leak spread")
 
 
-#: What a caller that needs tables for every event says when they would pass :data:`MAX_TABLE_STATES`.
-TABLES_FOR_EVERY_EVENT = (" (the tonic transform needs them for every event; simulate_events, simulate_video, "
-                          "sample_counts and NoiseStream, and so the v2e and frames plugins, run such scenes trial by "
-                          "trial)")
-
-
 def still_chains(lam, params, background=None, thresholds=None, plan=None, refused_why=""):
     """The chains of pixels at ``lam`` photons per trial (flat; ``background``, ``thresholds`` as in
     :func:`pixel_groups`), ready for the kernels: ``(levels, group, tables, rates, timer)``, ``tables`` the
