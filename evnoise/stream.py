@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 import math
 
 import numpy as np
@@ -265,15 +264,6 @@ class NoiseStream:
         return out
 
 
-@functools.lru_cache(maxsize=4096)
-def _state_range(lam: float):
-    """:func:`~evnoise.terms.memory.state_range`, remembered: a stream asks for the same light levels at every
-    interval (a Poisson tail sum per level, ~0.1 ms each, per interval before)."""
-    from .terms.memory import state_range
-
-    return state_range(lam)
-
-
 def _memory_spans(levels, group, stored, pending) -> np.ndarray:
     """Per light level, the states ``(lo, n_states)`` (rows of an ``(n, 2)`` int64 array) its tables need:
     :func:`~evnoise.terms.memory.state_range`'s, widened to hold the stored counts (and pending events' new counts)
@@ -288,7 +278,7 @@ def _memory_spans(levels, group, stored, pending) -> np.ndarray:
         known = np.isfinite(counts)
         np.minimum.at(low, group[known], counts[known])
         np.maximum.at(high, group[known], counts[known])
-    which, _, lo_level, n_level = level_spans(levels, _state_range)
+    which, _, lo_level, n_level = level_spans(levels)
     lo, n = lo_level[which], n_level[which]
     hi = lo + n - 1
     brought = np.isfinite(low)

@@ -109,7 +109,8 @@ def dataloader_run():
 
 def test_tonic_transform_runs_in_forked_dataloader_workers_after_a_call_in_the_parent(dataloader_run):
     """Two forked workers, two epochs, after the transform ran in the main process (no OpenMP pool in a worker;
-    also with the regular timer and with reset memory run trial by trial); an int seed gives every sample the noise it gets in the main process, in any worker and epoch."""
+    also with the regular timer and with reset memory run trial by trial); an int seed gives every sample the noise it
+    gets in the main process, in any worker and epoch."""
     parent = dataloader_run["parent"]
     assert len(set(parent)) == len(parent)
     for epoch in dataloader_run["seeded"]:

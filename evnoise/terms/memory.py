@@ -93,6 +93,7 @@ draw. With ``a = 0`` the tables, and the event streams, are those of the model w
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import numpy as np
@@ -415,11 +416,17 @@ def state_range(lam: float):
 
     The smallest range with at most :data:`TAIL_MASS` of ``Poisson(lam)`` below and above it, or, when that
     needs more than :data:`MAX_STATES` counts, the ``MAX_STATES`` counts centred on ``floor(lam)``;
-    ``tail_mass`` is the Poisson mass outside the range (module doc: the truncation's bound).
+    ``tail_mass`` is the Poisson mass outside the range (module doc: the truncation's bound). Remembered per
+    ``lam`` (a Poisson tail sum, ~0.1-0.2 ms: the chains of one light level, a pixel each with threshold mismatch,
+    and a stream's intervals ask for the same levels again and again).
     """
+    return _state_range(float(lam))
+
+
+@functools.lru_cache(maxsize=4096)
+def _state_range(lam: float):
     from .._kernels.memory import fill_counts
 
-    lam = float(lam)
     if lam <= 0.0:
         return 0, 1, 0.0
     half = int(min(math.ceil(12.0 * math.sqrt(lam) + 40.0), 4 * MAX_STATES))
