@@ -508,7 +508,7 @@ class EventFileWriter(_AtomicWriter):
     ``EventFileWriter(path, ...)`` returns the writer that :data:`evnoise.formats.FORMATS` names
     for the format: :class:`EventWriter` for ``.h5``; for ``.aedat4``, ``.raw`` (EVT 3.0),
     ``.dat`` (Prophesee DAT 2, CD events), ``.es`` (Event Stream, DVS) and ``.csv`` (header
-    ``t,x,y,on``) one of its subclasses below, through faery's encoders. Every format is written
+    ``t,x@W,y@H,on``) one of its subclasses below, through faery's encoders. Every format is written
     under a temporary name in the target folder and renamed on :meth:`close`; an error (or
     :meth:`abort`) removes it.
 
@@ -547,6 +547,11 @@ class EventFileWriter(_AtomicWriter):
     absolute_below_us = None
     #: The format's name in the warning about a shifted clock.
     _clock_name = ""
+    #: Largest width and height (pixels) the format's words hold (``None``: every size :func:`check_shape` takes),
+    #: checked before anything is written: a larger coordinate would be cut to its low bits without an error.
+    max_side = None
+    #: Why, for the error line.
+    _side_why = ""
 
     def __new__(cls, path, shape, attrs=None, *, overwrite: bool = False, compression: str | None = "gzip",
                 t_end_us: int | None = None, file_format: str | None = None, t_offset_us: int | None = None):
@@ -571,6 +576,10 @@ class EventFileWriter(_AtomicWriter):
                  t_end_us: int | None = None, file_format: str | None = None, t_offset_us: int | None = None):
         what = self.what
         self.shape = check_shape(shape)
+        if self.max_side is not None and max(self.shape) > self.max_side:
+            other = ".h5 or .aedat4" if max(self.shape) <= Aedat4FileWriter.max_side else ".h5"
+            raise OutputError(f"cannot write {what} {path}: the sensor is {self.shape[1]}x{self.shape[0]} and "
+                              f"{self._side_why}, at most {self.max_side}x{self.max_side}; write {other}")
         self.t_end_us = t_end_us
         self.overwrite = overwrite
         self.n_events = 0
@@ -692,6 +701,8 @@ class Aedat4FileWriter(EventFileWriter):
 
     format = "aedat4"
     what = "AEDAT4 file"
+    max_side = 32767
+    _side_why = "AEDAT 4 holds sizes and coordinates as 16-bit signed integers"
 
     def _open_encoder(self, extension, attrs):
         from ._aedat import aedat_description
@@ -710,6 +721,8 @@ class Evt3FileWriter(EventFileWriter):
     format = "evt3"
     what = "RAW file"
     _clock_name = "EVT 3.0"
+    max_side = 2048
+    _side_why = "EVT 3.0 holds x and y in 11 bits (Prophesee: sensors up to 2048x2048)"
     #: EVT 3.0 counts time modulo 2**24 µs (a 12-bit TIME_HIGH of 4096 µs) from the first TIME_HIGH word.
     absolute_below_us = 1 << 24
 
@@ -750,6 +763,8 @@ class DatFileWriter(EventFileWriter):
     format = "dat"
     what = "DAT file"
     _clock_name = "DAT"
+    max_side = 16383
+    _side_why = "DAT CD events hold x and y in 14 bits (faery's encoder takes sizes below 16384)"
     absolute_below_us = 1 << 32
 
     def _open_encoder(self, extension, attrs):
@@ -774,6 +789,8 @@ class EsFileWriter(EventFileWriter):
 
     format = "es"
     what = "Event Stream file"
+    max_side = 65535
+    _side_why = "Event Stream holds its size in 16-bit words"
 
     def _open_encoder(self, extension, attrs):
         height, width = self.shape
@@ -791,10 +808,12 @@ class EsFileWriter(EventFileWriter):
 
 
 class CsvFileWriter(EventFileWriter):
-    """CSV (``.csv``, header ``t,x,y,on``): any clock."""
+    """CSV (``.csv``, header ``t,x@W,y@H,on``: the sensor size in the names, as faery writes it): any clock."""
 
     format = "csv"
     what = "CSV file"
+    max_side = 65535
+    _side_why = "faery's CSV encoder holds x and y in 16 bits"
 
     def _open_encoder(self, extension, attrs):
         height, width = self.shape

@@ -634,3 +634,24 @@ def test_a_full_disk_is_one_error_line(small_disk, what, compression):
     assert proc.stderr == "" and proc.stdout.count("\n") == 1, proc.stdout + proc.stderr
     assert "No space left on device" in proc.stdout
     assert leftovers(small_disk) == ["other"]
+
+
+@pytest.mark.parametrize("suffix, side", [(".raw", 2048), (".dat", 16383), (".aedat4", 32767), (".es", 65535),
+                                          (".csv", 65535)])
+def test_each_format_holds_its_largest_sensor_and_refuses_a_larger_one(tmp_path, suffix, side):
+    """EVT 3.0 keeps 11 bits of x and y: a 4096x4096 sensor's (4095, 4095) was written as (2047, 2047) and its
+    polarity bits flipped, without an error (found by reading evnoise's files with the formats' owners' readers).
+    Each format now takes the largest sensor its words hold, events in its last column and row read back as
+    written, and refuses a larger sensor before writing anything."""
+    events = ev.events.make_events([10, 20, 30], [side - 1, 0, side - 1], [0, 1, 1], [1, 0, 0])
+    path = ev.write_events(tmp_path / f"edge{suffix}", events, (2, side))
+    back, meta = ev.read_events(path)
+    assert meta["shape"] == (2, side)
+    for field in "txyp":
+        np.testing.assert_array_equal(back[field], events[field])
+    wider = tmp_path / f"wider{suffix}"
+    with pytest.raises(ev.OutputError, match=f"at most {side}x{side}"):
+        ev.write_events(wider, events, (2, side + 1))
+    with pytest.raises(ev.OutputError, match=f"at most {side}x{side}"):
+        ev.write_events(wider, events[1:2], (side + 1, 2))
+    assert sorted(p.name for p in tmp_path.iterdir()) == [f"edge{suffix}"]

@@ -39,7 +39,7 @@ def register(subparsers) -> None:
             opt.output(required=True, metavar="FILE", event_formats=True,
                        help="output event file; the suffix decides the format: .h5 (events.h5, DSEC layout, with "
                        "parameters and seed), .aedat4 (parameters and seed in its description), .raw (Prophesee EVT "
-                       "3.0), .dat (Prophesee DAT), .es (Event Stream), .csv (t,x,y,on)"),
+                       "3.0), .dat (Prophesee DAT), .es (Event Stream), .csv (t,x@W,y@H,on)"),
             opt.image_input(
                 sensor_help="sensor size, e.g. 1280x720 (default: the image's size)",
                 fit_help="how to bring images to --sensor: cover (scale keeping the aspect ratio, crop the "
