@@ -350,11 +350,20 @@ def _iter_memory(lux, params, key, t_start_us, duration_us, threads, progress, s
     level, background and thresholds (``bg``: the run's flat maps or None; ``thresholds``: its flat per-pixel
     ``(eps_on, eps_off)`` or None), each advanced event by event over its group's state tables
     (:mod:`evnoise._kernels.memory`)."""
-    from .terms.memory import still_chains
+    from .terms.memory import EXACT_RATE_LEVELS, chain_plan, still_chains
 
     width = lux.shape[1]
     lam = params.photons_per_trial(lux).ravel()
-    _, group, tables, level_rates, timer = still_chains(lam, params, bg, thresholds, plan)
+    plan = chain_plan(lam, params, bg, thresholds) if plan is None else plan
+    n_chains = len(plan[0][0])
+    # many chains (threshold mismatch: about one per pixel) take about 0.5 ms each before the first event
+    bar = progress_bar(n_chains, progress and n_chains > EXACT_RATE_LEVELS, "memory tables", unit="chains")
+    try:
+        _, group, tables, level_rates, timer = still_chains(lam, params, bg, thresholds, plan,
+                                                            done=None if bar is None else bar.update)
+    finally:
+        if bar is not None:
+            bar.close()
     nu = level_rates[group]
     dt = params.trial_us
     refr = float(params.refractory_us)

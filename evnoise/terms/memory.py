@@ -239,16 +239,16 @@ def too_many_states(n_chains: int, states: int, why: str = ""):
                           f"smaller sensor, or no threshold mismatch / leak spread")
 
 
-def still_chains(lam, params, background=None, thresholds=None, plan=None, refused_why=""):
+def still_chains(lam, params, background=None, thresholds=None, plan=None, refused_why="", done=None):
     """The chains of pixels at ``lam`` photons per trial (flat; ``background``, ``thresholds`` as in
     :func:`pixel_groups`), ready for the kernels: ``(levels, group, tables, rates, timer)``, ``tables`` the
     ``(table, itable, offsets, sizes)`` of :func:`kernel_tables`, ``rates`` its per-chain rates, ``timer`` the
     chains' regular timer (:func:`chain_timer`, None: none). ``plan``: :func:`chain_plan`'s, when the caller has
-    it; ``refused_why``: as :func:`kernel_tables`'."""
+    it; ``refused_why``, ``done``: as :func:`kernel_tables`'."""
     (levels, a_on, a_off, reg, group, eps), timer, _ = (chain_plan(lam, params, background, thresholds)
                                                         if plan is None else plan)
     *tables, rates = kernel_tables(levels, params, background=(a_on, a_off), thresholds=eps, timer=timer,
-                                   refused_why=refused_why)
+                                   refused_why=refused_why, done=done)
     return levels, group, tuple(tables), rates, timer
 
 
@@ -547,7 +547,8 @@ class LevelTables:
         return np.minimum(self.p_on + self.p_off, 1.0)
 
 
-def kernel_tables(levels, params, spans=None, background=None, thresholds=None, timer=None, refused_why=""):
+def kernel_tables(levels, params, spans=None, background=None, thresholds=None, timer=None, refused_why="",
+                  done=None):
     """The kernel's tables of the light levels ``levels`` (photons per trial) of one run.
 
     ``spans``: optional ``(lo, n_states)`` per level replacing :func:`state_range`'s (a wider range, holding
@@ -564,7 +565,8 @@ def kernel_tables(levels, params, spans=None, background=None, thresholds=None, 
     levels, beyond the rate of the iterated law of the initial state (:data:`ITERATED_STEPS`), which sizes windows
     and buffers and is what a run says it expects.
     Raises :class:`~evnoise.ParameterError` when the tables would pass :data:`MAX_TABLE_STATES` (``refused_why``:
-    appended to its message, what the caller cannot do instead).
+    appended to its message, what the caller cannot do instead). ``done``: optional, called with the number of
+    levels whose tables are written, as they are (a progress bar: many chains take about 0.5 ms each).
     """
     from .._kernels import memory as km
 
@@ -663,6 +665,8 @@ def kernel_tables(levels, params, spans=None, background=None, thresholds=None, 
             t = with_background(g, alive[chain])
             _write_initial(table, slice(offsets[g], offsets[g] + sizes[g]), t, laws[i], dt_s, refr_s)
             rates[g] = _rate_of_law(t, laws[i], dt_s, refr_s)
+        if done is not None:
+            done(len(block))
         block.clear()
 
     for g in order:
