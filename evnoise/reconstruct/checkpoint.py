@@ -26,6 +26,8 @@ truncated checkpoint behind.
 from __future__ import annotations
 
 import math
+import re
+import warnings
 from pathlib import Path
 
 from .._atomic import atomic_output
@@ -49,6 +51,10 @@ FORMAT = "evnoise-reconstructor"
 FORMAT_VERSION = 2
 POLARITIES = {"both": (0, 1), "on": (0,), "off": (1,)}
 TRANSFORMS = ("rate", "anscombe")
+#: Shortest integration window a model can be trained on (the events' clock counts microseconds).
+MIN_WINDOW_S = 1e-6
+#: Widest smoothing of the ML-estimate input channel (pixels; its Gaussian kernel is ~8 sigma wide).
+MAX_ML_SIGMA = 1e4
 
 
 class InputSpec:
@@ -86,26 +92,30 @@ class InputSpec:
                  windows_s=None):
         if isinstance(binning, bool) or not isinstance(binning, int) or binning < 1:
             raise ParameterError(f"binning must be an integer >= 1, got {binning!r}")
-        if not (isinstance(rate_scale_hz, (int, float)) and math.isfinite(rate_scale_hz) and rate_scale_hz > 0):
-            raise ParameterError(f"rate_scale_hz must be finite and > 0, got {rate_scale_hz!r}")
+        if not (isinstance(rate_scale_hz, (int, float)) and 1e-9 <= rate_scale_hz <= 1e9):
+            raise ParameterError(f"rate_scale_hz must be between 1e-9 and 1e9 events/s, got {rate_scale_hz!r}")
         if polarities not in POLARITIES:
             raise ParameterError(f"polarities must be one of {tuple(POLARITIES)}, got {polarities!r}")
         for name, v in (("window_s", window_s), ("max_lux", max_lux)):
             if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ParameterError(f"{name} must be finite and > 0 (or None), got {v!r}")
+        if window_s is not None and window_s < MIN_WINDOW_S:
+            raise ParameterError(f"window_s must be at least {MIN_WINDOW_S:g} s (the events' 1 us clock), "
+                                 f"got {window_s!r}")
         if transform not in TRANSFORMS:
             raise ParameterError(f"transform must be one of {TRANSFORMS}, got {transform!r}")
         if ml_sigma is not None:
-            if not (isinstance(ml_sigma, (int, float)) and math.isfinite(ml_sigma) and ml_sigma >= 0):
-                raise ParameterError(f"ml_sigma must be finite and >= 0 (or None), got {ml_sigma!r}")
+            if not (isinstance(ml_sigma, (int, float)) and math.isfinite(ml_sigma) and 0 <= ml_sigma <= MAX_ML_SIGMA):
+                raise ParameterError(f"ml_sigma must be between 0 and {MAX_ML_SIGMA:g} pixels (or None), "
+                                     f"got {ml_sigma!r}")
             if params is None or max_lux is None:
                 raise ParameterError("the ML-estimate input channel (ml_sigma) needs params and max_lux")
         if params is not None and not isinstance(params, dict):
             raise ParameterError(f"params must be a dict (NoiseParams.to_dict()), got {type(params).__name__}")
         if windows_s is not None:
             windows_s = [float(w) for w in windows_s]
-            if not windows_s or not all(math.isfinite(w) and w > 0 for w in windows_s):
-                raise ParameterError(f"windows_s must be windows > 0 seconds, got {windows_s!r}")
+            if not windows_s or not all(math.isfinite(w) and w >= MIN_WINDOW_S for w in windows_s):
+                raise ParameterError(f"windows_s must be windows of at least {MIN_WINDOW_S:g} s, got {windows_s!r}")
         self.binning = int(binning)
         self.rate_scale_hz = float(rate_scale_hz)
         self.polarities = polarities
@@ -189,7 +199,9 @@ def read_checkpoint(path) -> dict:
     if not path.is_file():
         raise InputError(f"model path is not a file: {path}")
     try:
-        doc = torch.load(path, map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():  # torch warns about the pickle protocol of files that are not ours
+            warnings.simplefilter("ignore", UserWarning)
+            doc = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for foreign or corrupt files
         # torch's own text talks about weights_only and unpickling: say what it means here
         import pickle
@@ -213,7 +225,67 @@ def read_checkpoint(path) -> dict:
     for key in ("model", "input", "state_dict"):
         if key not in doc:
             raise InputError(f"{path} is an incomplete checkpoint (no {key!r})")
+    problem = _damaged_entry(doc, torch)
+    if problem:
+        raise InputError(f"{path} is a damaged checkpoint: {problem}")
     return doc
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _is_weights(v, torch) -> bool:
+    return isinstance(v, dict) and all(isinstance(k, str) and isinstance(t, torch.Tensor) for k, t in v.items())
+
+
+#: What the readers of a checkpoint take from its ``train`` and ``card`` entries: each entry's test and what it is.
+_TRAIN_KINDS = {
+    "config": (lambda v, t: isinstance(v, dict), "a table"),
+    "epoch": (lambda v, t: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "a whole number >= 0"),
+    "step": (lambda v, t: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "a whole number >= 0"),
+    "best_epoch": (lambda v, t: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "a whole number >= 0"),
+    "best_val": (lambda v, t: _is_number(v), "a number"),
+    "elapsed_s": (lambda v, t: _is_number(v), "a number"),
+    "finished": (lambda v, t: isinstance(v, bool), "true or false"),
+    "data": (lambda v, t: isinstance(v, str), "text"),
+    "history": (lambda v, t: isinstance(v, dict) and all(isinstance(x, list) and all(_is_number(y) for y in x)
+                                                         for x in v.values()), "a table of lists of numbers"),
+    "last_state_dict": (_is_weights, "a table of tensors"),
+    "optimizer": (lambda v, t: isinstance(v, dict), "a table"),
+}
+_CARD_KINDS = {
+    "preset": (lambda v: isinstance(v, str), "text"),
+    "sensor": (lambda v: isinstance(v, str), "text"),
+    "training_data": (lambda v: isinstance(v, str), "text"),
+    "recipe": (lambda v: isinstance(v, str), "text"),
+    "white_lux_range": (lambda v: isinstance(v, list) and len(v) == 2 and all(_is_number(x) and math.isfinite(x)
+                                                                                for x in v), "two numbers"),
+    "validation": (lambda v: isinstance(v, dict), "a table"),
+    "held_out_scores": (lambda v: isinstance(v, dict) and all(isinstance(x, dict) for x in v.values()),
+                        "a table of tables"),
+}
+
+
+def _damaged_entry(doc: dict, torch) -> str:
+    """What is not of the kind its readers take in a checkpoint (``""``: nothing), so that a damaged file is one
+    error line naming the entry instead of a TypeError or AttributeError where it is used."""
+    for key in ("model", "input"):
+        if not isinstance(doc[key], dict):
+            return f"{key!r} is not a table"
+    if not _is_weights(doc["state_dict"], torch):
+        return "'state_dict' is not a table of tensors"
+    for key, kinds in (("train", _TRAIN_KINDS), ("card", _CARD_KINDS)):
+        block = doc.get(key)
+        if block is None:
+            continue
+        if not isinstance(block, dict):
+            return f"{key!r} is not a table"
+        for name, (test, what) in kinds.items():
+            value = block.get(name)
+            if value is not None and not (test(value, torch) if key == "train" else test(value)):
+                return f"{key}[{name!r}] is not {what}"
+    return ""
 
 
 def load_model(path, *, which: str = "best"):
@@ -228,12 +300,15 @@ def load_model(path, *, which: str = "best"):
         config = UNetConfig.from_dict(dict(doc["model"]))
         spec = InputSpec.from_dict(dict(doc["input"]))
     except (ParameterError, TypeError, ValueError) as exc:  # a size beyond UNetConfig's limits included
-        raise InputError(f"{path} has an invalid model description: {exc}") from None
+        # the names are the file's entries (quoted: the command line would write them as its flags)
+        text = re.sub(r"(?<![\w'])(window_s|windows_s|ml_sigma|rate_scale_hz|max_lux|binning)(?![\w'])", r"'\1'",
+                      str(exc))
+        raise InputError(f"{path} has an invalid model description: {text}") from None
     model = UNet(config=config)
     if which == "best":
         state = doc["state_dict"]
     elif which == "last":
-        state = doc.get("train", {}).get("last_state_dict")
+        state = (doc.get("train") or {}).get("last_state_dict")
         if state is None:
             raise InputError(f"{path} holds no last-epoch weights")
     else:
@@ -242,6 +317,11 @@ def load_model(path, *, which: str = "best"):
         model.load_state_dict(state)
     except (RuntimeError, KeyError) as exc:
         raise InputError(f"{path}: weights do not match the model description ({str(exc)[:200]})") from None
+    torch = require_torch()
+    bad = [name for name, value in state.items() if value.is_floating_point() and not bool(torch.isfinite(value).all())]
+    if bad:
+        raise InputError(f"{path} is a damaged checkpoint: weights that are not finite numbers ({bad[0]}"
+                         f"{f' and {len(bad) - 1} more' if len(bad) > 1 else ''})")
     model.eval()
     return model, spec, doc
 

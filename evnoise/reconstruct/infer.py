@@ -276,7 +276,11 @@ class Reconstructor:
         x = x.contiguous(memory_format=self.torch.channels_last)
         with self.torch.inference_mode():
             y = self.model(x)[0, 0]
-        return np.clip(y.float().numpy(), 0.0, 1.0)
+        image = y.float().numpy()
+        if not np.all(np.isfinite(image)):  # weights too large for float32 (finite ones are checked at loading)
+            raise InputError(f"{self.path}: the model's output is not finite numbers on these counts (a damaged or "
+                             f"foreign checkpoint)")
+        return np.clip(image, 0.0, 1.0)
 
     def predict(self, counts, window_s: float, *, binning: int | None = None) -> np.ndarray:
         """Image from full-resolution counts ``(2, H, W)``: binned as in training, then the U-Net.

@@ -396,8 +396,12 @@ def _run(torch, UNet, model_config, spec, config, train_data, val_data, out, sta
     epoch, step, elapsed0 = 0, 0, 0.0
     best_val, best_epoch, best_state = math.inf, 0, None
     if state is not None:
-        net.load_state_dict(state["last_state_dict"])
-        opt.load_state_dict(state["optimizer"])
+        try:
+            net.load_state_dict(state["last_state_dict"])
+            opt.load_state_dict(state["optimizer"])
+        except (RuntimeError, KeyError, ValueError, TypeError, IndexError) as exc:
+            raise InputError(f"cannot resume {out}: its training state (last weights, optimiser) is damaged or "
+                             f"belongs to another model ({' '.join(str(exc).split())[:160]})") from None
         epoch, step = int(state["epoch"]), int(state["step"])
         elapsed0 = float(state.get("elapsed_s", 0.0))
         history.update({k: list(v) for k, v in state.get("history", history).items()})
