@@ -32,6 +32,14 @@ def os_error_text(exc: BaseException) -> str:
     return " ".join(str(exc).split()) or type(exc).__name__
 
 
+def refuse_folder_name(path, what: str = "file") -> None:
+    """Refuse an output name that ends in ``/`` (a folder): ``Path()`` drops the slash, and a file would be written
+    under the name without it."""
+    text = os.fspath(path)
+    if isinstance(text, str) and text.endswith(("/", os.sep)):
+        raise OutputError(f"cannot write {what} {text}: the name ends in '/', a folder; give a file name")
+
+
 def temporary_name(path: Path, *, suffix: str = ".tmp") -> Path:
     """A hidden, unique temporary name next to ``path`` (ending in ``suffix``)."""
     path = Path(path)
@@ -58,6 +66,7 @@ class AtomicFile:
     """
 
     def __init__(self, path, *, overwrite: bool = True, what: str = "file", suffix: str = ".tmp"):
+        refuse_folder_name(path, what)
         self.path = Path(path)
         self.overwrite = overwrite
         self.what = what
@@ -135,6 +144,7 @@ def atomic_output(path, *, overwrite: bool = True, what: str = "file"):
     Raises :class:`~evnoise.OutputError` (naming ``what`` and the path) when the folder does not
     exist, when ``path`` exists and ``overwrite`` is false, or when writing fails.
     """
+    refuse_folder_name(path, what)
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._atomic import AtomicFile, close_h5_discarding, os_error_text
+from ._atomic import AtomicFile, close_h5_discarding, os_error_text, refuse_folder_name
 from ._h5 import READ_BLOCK, event_datasets, h5_metadata, open_h5
 from ._version import __version__
 from .errors import EvnoiseError, InputError, OutputError, ParameterError
@@ -65,6 +65,7 @@ def open_output_path(path, *, overwrite: bool = False, what: str = "output") -> 
     Raises :class:`~evnoise.OutputError` naming the path. Used by the writers and by the
     command line to fail before any work is done.
     """
+    refuse_folder_name(path, what)
     path = Path(path)
     parent = path.parent if str(path.parent) else Path(".")
     if not parent.exists():

@@ -642,3 +642,32 @@ def test_a_plain_pickle_as_a_model_is_one_error_line_and_is_not_run(tmp_path, ca
     one_error_line(code, err, "is not an evnoise model checkpoint")
     assert not caught, [str(w.message) for w in caught]
     assert not marker.exists()
+
+
+@pytest.mark.parametrize("command", ["simulate --png", "presets --plot", "info --png", "reconstruct --out"])
+def test_an_output_name_ending_in_a_slash_is_refused_not_written_without_it(tmp_path, capsys, command):
+    """'--png maps.png/' names a folder; Path() dropped the slash and evnoise wrote the file maps.png with exit 0
+    (the event file's --out was already refused; found by a hostile-input review)."""
+    events = _events_h5(tmp_path / "ev.h5")
+    target = str(tmp_path / "out.png") + "/"
+    argv = {"simulate --png": ["simulate", "--example", "--sensor", "32x24", "--duration", "0.01", "--out",
+                               tmp_path / "sim.h5", "--png", target],
+            "presets --plot": ["presets", "evk3-hd", "--plot", target],
+            "info --png": ["info", events, "--stats", "--png", target],
+            "reconstruct --out": ["reconstruct", events, "--out", target]}[command]
+    if command == "reconstruct --out":
+        pytest.importorskip("torch")
+    code, _, err = run_cli(capsys, *argv)
+    one_error_line(code, err, "the name ends in '/', a folder")
+    assert not (tmp_path / "out.png").exists() and not (tmp_path / "sim.h5").exists()
+
+
+def test_atomic_outputs_refuse_a_name_ending_in_a_slash(tmp_path):
+    from evnoise._atomic import AtomicFile, atomic_output
+
+    with pytest.raises(ev.OutputError, match="ends in '/'"):
+        AtomicFile(str(tmp_path / "a.json") + "/")
+    with pytest.raises(ev.OutputError, match="ends in '/'"):
+        with atomic_output(str(tmp_path / "b.json") + "/"):
+            pass
+    assert list(tmp_path.iterdir()) == []

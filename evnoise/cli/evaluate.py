@@ -52,6 +52,7 @@ def register(subparsers):
 def _check_outputs(args):
     from pathlib import Path
 
+    from .._atomic import refuse_folder_name
     from ..errors import OutputError, ParameterError
 
     outputs = []
@@ -59,6 +60,7 @@ def _check_outputs(args):
                                 ("--figure", args.figure, ".png")):
         if value is None:
             continue
+        refuse_folder_name(value, f"{flag} file")
         path = Path(value)
         if path.suffix.lower() != suffix:
             raise ParameterError(f"{flag} must be a {suffix} file, got {path}")

@@ -60,6 +60,7 @@ def run(args) -> int:
 
     from .._clock import seconds_text
     from ..errors import InputError, OutputError, ParameterError
+    from ..io import open_output_path
     from ..reconstruct.imaging import write_png
     from ..reconstruct.infer import Reconstructor, counts_from_h5, default_model_path, h5_duration_s
     from ._paths import refuse_writing_inputs
@@ -93,8 +94,7 @@ def run(args) -> int:
     out = Path(args.out)
     if out.suffix.lower() != ".png":
         raise ParameterError(f"--out must be a .png file, got {out}")
-    if not (out.parent if str(out.parent) else Path(".")).is_dir():
-        raise OutputError(f"output folder {out.parent} does not exist")
+    open_output_path(args.out, overwrite=True, what="PNG file")  # a folder, a missing or unwritable one: one line
     from ..readers import recording_span_us, window_counts
 
     camera = (args.sensor is not None or args.csv_columns is not None

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._atomic import AtomicFile
+from .._atomic import AtomicFile, refuse_folder_name
 from ..errors import InputError, OutputError, ParameterError
 from .checkpoint import InputSpec, read_checkpoint, save_checkpoint
 from .data import Subset, dataset_sources, item_seed, random_crop, split_by_source
@@ -314,6 +314,7 @@ def train(train_data, out, *, val_data=None, config: TrainConfig | None = None, 
     config = TrainConfig() if config is None else config
     if not isinstance(config, TrainConfig):
         raise ParameterError(f"config must be a TrainConfig, got {type(config).__name__}")
+    refuse_folder_name(out, "checkpoint")
     out = Path(out)
     if not out.parent.is_dir():
         raise OutputError(f"output folder {out.parent} does not exist")
