@@ -29,10 +29,12 @@ and TIFF compressions other than deflate, LZMA and PackBits.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import os
 import re
+import sys
 import threading
 from pathlib import Path
 
@@ -391,30 +393,91 @@ def _read_tiff(path: Path, limit: int = DEFAULT_MAX_IMAGE_PIXELS) -> np.ndarray:
     return arr
 
 
+_C_OUTPUT_LOCK = threading.Lock()  # the standard streams are the process's: one capture at a time
+
+
+@contextlib.contextmanager
+def _c_library_output():
+    """Capture what a C library writes to the standard output and error (file descriptors 1 and 2) meanwhile;
+    yields a list that holds the text afterwards. OpenEXR's C core prints its errors on a damaged file there, and
+    its Python module a "Warning:" line, before raising an exception of its own."""
+    import ctypes
+    import io
+    import tempfile
+
+    python_text = io.StringIO()  # the Python module's own lines go through sys.stdout
+    with _C_OUTPUT_LOCK, tempfile.TemporaryFile() as tmp:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        saved = (os.dup(1), os.dup(2))
+        text = []
+        try:
+            os.dup2(tmp.fileno(), 1)
+            os.dup2(tmp.fileno(), 2)
+            with contextlib.redirect_stdout(python_text), contextlib.redirect_stderr(python_text):
+                yield text
+        finally:
+            try:
+                ctypes.CDLL(None).fflush(None)  # C's buffered streams (C++'s iostreams write through them)
+            except (OSError, AttributeError):  # pragma: no cover - no C library to call
+                pass
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            os.close(saved[0])
+            os.close(saved[1])
+            tmp.seek(0)
+            text.append(tmp.read().decode("utf-8", "replace") + python_text.getvalue())
+
+
+def _exr_failure(name: str, exc: Exception | None, printed: str) -> InputError:
+    """The error of an EXR that OpenEXR could not read: its own first printed complaint (the cause), else ``exc``."""
+    lines = [line.strip() for line in printed.splitlines() if line.strip()]
+    cause = next((line for line in lines if "EXR_ERR" in line or "corrupt" in line.lower()), None)
+    if cause is not None:
+        cause = re.sub(r"^.*?\(EXR_ERR_\w+\)\s*", "", cause)  # "FILE: (EXR_ERR_CODE) text" -> "text"
+        return InputError(f"cannot read OpenEXR image {name}: a damaged or truncated file (OpenEXR: {cause[:200]})")
+    return InputError(f"cannot read OpenEXR image {name}: {exc or (lines[0][:200] if lines else 'unreadable')}")
+
+
+def _echo(printed: str) -> None:
+    """Give back what was captured around a read that worked (it was not the reader's: a progress bar's, say)."""
+    if printed:
+        sys.stderr.write(printed)
+
+
 def _read_exr(path: Path, limit: int = DEFAULT_MAX_IMAGE_PIXELS) -> np.ndarray:
     import OpenEXR
 
     name = _describe(path)
-    try:
-        with OpenEXR.File(os.fspath(path), header_only=True) as exr:
-            sizes = []
-            for part in exr.parts:
-                header = part.header
-                (x0, y0), (x1, y1) = (np.asarray(c, dtype=np.int64) for c in header["dataWindow"])
-                sizes.append((int(x1) - int(x0) + 1, int(y1) - int(y0) + 1, len(header.get("channels", ()))))
-    except Exception as exc:
-        raise InputError(f"cannot read OpenEXR image {name}: {exc}") from None
+    error = None
+    with _c_library_output() as printed:
+        try:
+            with OpenEXR.File(os.fspath(path), header_only=True) as exr:
+                sizes = []
+                for part in exr.parts:
+                    header = part.header
+                    (x0, y0), (x1, y1) = (np.asarray(c, dtype=np.int64) for c in header["dataWindow"])
+                    sizes.append((int(x1) - int(x0) + 1, int(y1) - int(y0) + 1, len(header.get("channels", ()))))
+        except Exception as exc:
+            error = exc
+    if error is not None or not sizes:
+        raise _exr_failure(name, error, printed[0])
+    _echo(printed[0])
     if any(w < 1 or h < 1 for w, h, _ in sizes):
         raise InputError(f"{name}: EXR declares an empty data window {sizes}")
     # all parts are decoded: they count together
     size = " + ".join(f"{w}x{h}" + (f" with {c} channels" if c > _CHANNELS_PER_PIXEL else "") for w, h, c in sizes)
     _check_pixels(name, sum(_declared_pixels(w, h, c) for w, h, c in sizes), size, limit)
-    try:
-        with OpenEXR.File(os.fspath(path), separate_channels=True) as exr:
-            chroma = exr.header().get("chromaticities")  # the header is emptied on close
-            channels = {k: np.asarray(v.pixels) for k, v in exr.channels().items()}
-    except Exception as exc:
-        raise InputError(f"cannot read OpenEXR image {name}: {exc}") from None
+    with _c_library_output() as printed:
+        try:
+            with OpenEXR.File(os.fspath(path), separate_channels=True) as exr:
+                chroma = exr.header().get("chromaticities")  # the header is emptied on close
+                channels = {k: np.asarray(v.pixels) for k, v in exr.channels().items()}
+        except Exception as exc:
+            error = exc
+    if error is not None:
+        raise _exr_failure(name, error, printed[0])
+    _echo(printed[0])
     for key, arr in channels.items():
         if arr.dtype.kind != "f":
             raise InputError(f"{name}: EXR channel {key!r} has pixel type {arr.dtype}; expected half or float")

@@ -671,3 +671,23 @@ def test_atomic_outputs_refuse_a_name_ending_in_a_slash(tmp_path):
         with atomic_output(str(tmp_path / "b.json") + "/"):
             pass
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("keep", [400, 2000, 3000])
+def test_a_truncated_exr_is_one_error_line_without_the_librarys_own_lines(tmp_path, capfd, keep):
+    """OpenEXR's C core printed its complaints on the standard error and its Python module a 'Warning:' line on the
+    standard output before evnoise's error, which said 'file has 0 parts' (found by a hostile-input review). The
+    library's lines are captured: the error names the damage once; a whole file still reads."""
+    OpenEXR = pytest.importorskip("OpenEXR")
+    red = np.random.default_rng(0).random((24, 32)).astype(np.float32)
+    whole = tmp_path / "rgb.exr"
+    with OpenEXR.File({"type": OpenEXR.scanlineimage}, {"R": red, "G": red, "B": red}) as f:
+        f.write(str(whole))
+    cut = tmp_path / "cut.exr"
+    cut.write_bytes(whole.read_bytes()[:keep])
+    code, out, err = run_cli(capfd, "simulate", cut, "--duration", "0.01", "--out", tmp_path / "out.h5")
+    one_error_line(code, err, "cannot read OpenEXR image")
+    assert out == ""
+    assert not (tmp_path / "out.h5").exists()
+    code, out, err = run_cli(capfd, "-q", "simulate", whole, "--duration", "0.01", "--out", tmp_path / "ok.h5")
+    assert code == 0 and err == "", err
