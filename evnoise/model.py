@@ -114,7 +114,8 @@ def _log_p_poisson(lam, eps, bias, shape, skip_below=None):
     uniform = eps.size == 1 or np.all(eps == eps.flat[0])
     uniform = uniform and (bias.size == 1 or np.all(bias == bias.flat[0]))
     if uniform and lam_b.size >= TABLE_MIN_SIZE and (skip_below is None or skip_below <= _LOG_TINY):
-        c = float(np.expm1(eps.flat[0]))
+        with np.errstate(over="ignore"):
+            c = float(np.expm1(eps.flat[0]))
         table = _table_for(c, float(bias.flat[0]))
         # The table evaluates element by element, so a field with few distinct lam (a flat field: one; an
         # 8-bit image: at most 256) is evaluated once per value and scattered: the same bits, less work.
@@ -129,7 +130,8 @@ def _log_p_poisson(lam, eps, bias, shape, skip_below=None):
             log_p = table.evaluate(values, float(skip_below), _SKIP_CHECK_MIN_LAM)
         return (log_p if found is None else log_p[found[1]]).reshape(shape)
     todo = np.ones(lam_b.shape, dtype=bool)
-    c_b = np.ascontiguousarray(np.broadcast_to(np.expm1(eps), shape)).ravel()
+    with np.errstate(over="ignore"):  # eps past ~709: c = inf, a threshold no count reaches (p = 0)
+        c_b = np.ascontiguousarray(np.broadcast_to(np.expm1(eps), shape)).ravel()
     if bias.size == 1 or np.all(bias == bias.flat[0]):
         # per-pixel thresholds (mismatch) on shared lam levels: tabulate once per level
         todo &= ~_grouped(lam_b, c_b, float(bias.flat[0]), todo, out)

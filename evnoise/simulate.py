@@ -746,6 +746,19 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
 # counts only
 # --------------------------------------------------------------------------------------
 DISTRIBUTIONS = ("exact", "poisson", "negative-binomial")
+#: Most events the exact count sampler draws (about 5-10 ns each on 2 cores: hours beyond) ...
+MAX_EXACT_COUNT_EVENTS = 1e12
+#: ... in windows of about this many (each one call of the kernel, which Ctrl-C cannot stop midway).
+EXACT_COUNT_WINDOW_EVENTS = 2e8
+#: Largest mean count the Poisson and gamma-Poisson draws take (NumPy's Poisson sampler stops near 9.2e18).
+MAX_COUNT_MEAN = 1e18
+
+
+def _check_count_means(mean) -> None:
+    top = float(np.max(mean)) if np.size(mean) else 0.0
+    if top > MAX_COUNT_MEAN:
+        raise ParameterError(f"a pixel's expected count is {top:.3g}, beyond the {MAX_COUNT_MEAN:.0e} the count "
+                             f"samplers take; use a shorter duration_s")
 
 
 def sample_counts(
@@ -813,16 +826,29 @@ def sample_counts(
             found = bracketed_counts(lam, params, (eps_on, eps_off), key, duration_us, lux.shape[1], threads)
             if found is not None:
                 return np.stack(found[:2]).reshape(2, *lux.shape)
-        log1m_p, q_on, timer, _ = static_inputs(lam, params, eps_on, eps_off, bg)
+        log1m_p, q_on, timer, nu = static_inputs(lam, params, eps_on, eps_off, bg)
+        expected = float(nu.sum()) * duration_us * 1e-6
+        if expected > MAX_EXACT_COUNT_EVENTS:
+            raise ParameterError(f"distribution='exact' draws every event, and this scene expects {expected:.3g} "
+                                 f"(more than {MAX_EXACT_COUNT_EVENTS:.0e}: hours of work); use "
+                                 f"distribution='poisson' or a shorter duration_s")
         state = PixelState(np.arange(lux.size), key, threads)
-        parts = renewal_step(state, lux.shape[1], log1m_p, q_on, params.trial_us, params.refractory_us, 0,
-                              float(duration_us), math.inf, 0, threads, store=False, timer=timer)
-        on = np.concatenate([p[4] for p in parts])
-        off = np.concatenate([p[5] for p in parts])
+        on = np.zeros(lux.size, dtype=np.int64)
+        off = np.zeros(lux.size, dtype=np.int64)
+        # in windows of a bounded number of events: Ctrl-C stops the run between two (the kernel's stream goes on
+        # from one window to the next: the counts of one window, bit for bit)
+        n_windows = max(1, math.ceil(expected / EXACT_COUNT_WINDOW_EVENTS))
+        for w in range(1, n_windows + 1):
+            w_end = duration_us if w == n_windows else duration_us * w // n_windows
+            parts = renewal_step(state, lux.shape[1], log1m_p, q_on, params.trial_us, params.refractory_us, 0,
+                                  float(w_end), math.inf, 0, threads, store=False, timer=timer)
+            on += np.concatenate([p[4] for p in parts])
+            off += np.concatenate([p[5] for p in parts])
         return np.stack([on, off]).reshape(2, *lux.shape)
     from .rates import pixel_rates  # the one home of the rate formula (dead time, background)
 
     mean = np.stack(pixel_rates(lam, params, (eps_on, eps_off), bg)).reshape(2, *lux.shape) * (duration_us * 1e-6)
+    _check_count_means(mean)
     if distribution == "poisson":
         return gen.poisson(mean).astype(np.int64)
     rate = gen.gamma(r, mean / r)
@@ -850,6 +876,7 @@ def _memory_counts(lux, params, key, duration_us, threads, distribution, gen, nb
     from .terms.memory import memory_statistics
 
     mean = memory_statistics(lux, params).rate_hz * (duration_us * 1e-6)
+    _check_count_means(mean)
     if distribution == "poisson":
         return gen.poisson(mean).astype(np.int64)
     return gen.poisson(gen.gamma(nb_shape, mean / nb_shape)).astype(np.int64)

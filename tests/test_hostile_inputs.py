@@ -691,3 +691,55 @@ def test_a_truncated_exr_is_one_error_line_without_the_librarys_own_lines(tmp_pa
     assert not (tmp_path / "out.h5").exists()
     code, out, err = run_cli(capfd, "-q", "simulate", whole, "--duration", "0.01", "--out", tmp_path / "ok.h5")
     assert code == 0 and err == "", err
+
+
+def test_exact_counts_run_in_windows_with_the_same_counts_and_refuse_days_of_work(monkeypatch):
+    """A huge duration made the exact count sampler run for days in one kernel call that neither SIGTERM nor
+    Ctrl-C stopped, and the Poisson sampler raised NumPy's 'lam value too large' (found by a hostile-input
+    review). The exact sampler now runs in windows of a bounded number of events (the same counts, bit for bit),
+    and refuses a scene expecting more than MAX_EXACT_COUNT_EVENTS; means past NumPy's Poisson range are refused."""
+    from evnoise import simulate
+
+    lux = np.full((6, 7), 3.0)
+    params = ev.load_preset("evk3-hd")
+    whole = ev.sample_counts(lux, params, 20.0, rng=4)
+    assert whole.sum() > 500
+    monkeypatch.setattr(simulate, "EXACT_COUNT_WINDOW_EVENTS", 37.0)  # dozens of windows
+    np.testing.assert_array_equal(ev.sample_counts(lux, params, 20.0, rng=4), whole)
+    with pytest.raises(ev.ParameterError, match="distribution='exact' draws every event"):
+        ev.sample_counts(lux, params, 1e12, rng=1)
+    for distribution, extra in (("poisson", {}), ("negative-binomial", {"nb_shape": 2.0})):
+        with pytest.raises(ev.ParameterError, match="expected count is .* beyond"):
+            ev.sample_counts(lux, params, 1e20, rng=1, distribution=distribution, **extra)
+
+
+@pytest.mark.parametrize("case, expect", [
+    ("uint8 x on a wide sensor", "cannot hold x up to 299"),
+    ("NaN time", "times that are not finite numbers"),
+    ("infinite time", "times that are not finite numbers"),
+    ("2**62 us span", "is the sample's t in microseconds?"),
+    ("text polarity", "field 'p' holds <U1; expected numbers"),
+])
+def test_tonic_transform_refuses_samples_it_cannot_hold(case, expect):
+    """The tonic transform wrote noise at x >= 256 into a uint8 x field (wrapped: pixels 0..43 got twice their
+    noise), and NaN/inf times, a 2**62 us span (a 60 PiB allocation) and text polarities gave ValueError,
+    OverflowError, MemoryError and UFuncTypeError (found by a hostile-input review)."""
+    from evnoise.plugins.tonic import PhotonNoise
+
+    fields = {"x": "<i2", "y": "<i2", "t": "<i8", "p": "<i1"}
+    rows = [(1, 2, 0, 1), (3, 4, 1_000_000, 0)]
+    width = 34
+    if case == "uint8 x on a wide sensor":
+        fields["x"], width = "u1", 300
+    elif case in ("NaN time", "infinite time"):
+        fields["t"] = "<f8"
+        rows[1] = (3, 4, math.nan if case == "NaN time" else math.inf, 0)
+    elif case == "2**62 us span":
+        rows[1] = (3, 4, 2**62, 0)
+    else:
+        fields["p"], rows = "U1", [(1, 2, 0, "a"), (3, 4, 1000, "b")]
+    sample = np.array(rows, dtype=list(fields.items()))
+    transform = PhotonNoise((width, 10, 2), "evk3-hd", 2.0, rng=1)
+    for call in (transform, transform.noise):
+        with pytest.raises(ev.InputError, match=re.escape(expect)):
+            call(sample)

@@ -16,6 +16,7 @@ import sys
 
 import numpy as np
 
+from .._budget import check_allocation
 from .._checks import as_generator, check_lux, resolve_threads
 from ..errors import InputError, ParameterError
 
@@ -24,6 +25,7 @@ __all__ = ["PhotonNoise"]
 _SAMPLE_STREAM = 1  # SeedSequence words that separate the per-sample noise ...
 _THRESHOLD_STREAM = 0  # ... from the sensor's threshold mismatch
 _WORKER_STREAM = 2  # ... and a Generator's per-worker streams
+MAX_T_US = 1 << 62  #: largest |t| of a sample (µs), as evnoise's readers take: room for differences in int64
 
 
 def _worker_identity():
@@ -209,12 +211,26 @@ class PhotonNoise:
         if missing or events.ndim != 1:
             raise InputError(f"events must be a 1-D structured array with fields x, y, t, p (tonic's format), "
                              f"got dtype {events.dtype} and shape {events.shape}")
+        width, height, _ = self.sensor_size
+        for field, top in (("x", width - 1), ("y", height - 1), ("t", None), ("p", None)):
+            kind = events.dtype[field].kind
+            if kind not in "iuf" + ("b" if field == "p" else ""):
+                raise InputError(f"events field {field!r} holds {events.dtype[field]}; expected numbers")
+            if top is not None and kind in "iu" and top > np.iinfo(events.dtype[field]).max:
+                # the noise is written into the input's dtype: a larger coordinate would wrap around
+                raise InputError(f"events field {field!r} is {events.dtype[field]}, which cannot hold {field} up to "
+                                 f"{top} of sensor_size {self.sensor_size}; use a wider integer type")
         if events.size:
-            width, height, _ = self.sensor_size
             x, y = events["x"], events["y"]
+            if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
+                raise InputError("events have coordinates that are not finite numbers")
             if x.min() < 0 or y.min() < 0 or x.max() >= width or y.max() >= height:
                 raise InputError(f"events have coordinates outside sensor_size (W, H) = {(width, height)}: "
                                  f"x in {x.min()}..{x.max()}, y in {y.min()}..{y.max()}")
+            t = events["t"]
+            if not np.all(np.isfinite(t)) or t.min() < -MAX_T_US or t.max() > MAX_T_US:
+                raise InputError(f"events have times that are not finite numbers of microseconds within "
+                                 f"+-2**62 (t in {t.min()}..{t.max()})")
         return events
 
     def _generator(self, events):
@@ -243,6 +259,9 @@ class PhotonNoise:
         t = events["t"]
         t_first = int(np.floor(t.min()))
         span_us = int(np.ceil(t.max())) - t_first + 1
+        expected = float(self._nu.sum()) * span_us * 1e-6
+        check_allocation(expected * 32.0, f"the noise of a sample spanning {span_us * 1e-6:.6g} s "
+                         f"({expected:.3g} events expected)", hint="is the sample's t in microseconds?")
         threads = resolve_threads(self.threads)
         state = PixelState(self._pix, key, threads)
         chains = self._memory
