@@ -152,3 +152,15 @@ def path_text(path) -> str:
     """``path`` as text that can be stored (HDF5 attributes, JSON) and printed: bytes of a file name that are
     not UTF-8 (which Python keeps as surrogates) are written as ``\\xNN``."""
     return str(path).encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+
+
+def check_map_shape(shape, what: str) -> tuple:
+    """A sensor shape ``(H, W)`` for per-pixel maps ``(2, H, W)`` of float64 (:func:`evnoise.events.check_shape`),
+    whose memory (with the draws' working arrays) fits the budget: ``what`` names the maps in the error."""
+    from ._budget import check_allocation
+    from .events import check_shape
+
+    height, width = check_shape(shape)
+    check_allocation(4 * 2 * 8 * height * width, f"the {what} maps of a {width}x{height} sensor",
+                     error=ParameterError)
+    return height, width

@@ -54,7 +54,7 @@ import math
 import numpy as np
 
 from . import terms
-from ._checks import as_generator, check_lux, check_params
+from ._checks import as_generator, check_lux, check_map_shape, check_params
 from .errors import InputError
 from .terms.arrivals import arrival_shares, lux_of_photons  # noqa: F401  (their home; imported from here too)
 from .terms.bandwidth import alpha_per_photon as pr_alpha_per_photon
@@ -74,7 +74,7 @@ def draw_background(shape, params, rng=None) -> np.ndarray:
     """
     params = check_params(params)
     gen = as_generator(rng)
-    return terms.draw_map("background", tuple(int(s) for s in shape), params, gen)
+    return terms.draw_map("background", check_map_shape(shape, "background"), params, gen)
 
 
 def check_background(background, shape) -> np.ndarray:

@@ -87,8 +87,11 @@ def check_shape(shape) -> tuple:
     """``(height, width)`` as ints from a sensor shape ``(H, W)``; ``InputError`` unless 1 <= H, W <= 65536."""
     try:
         height, width = (int(v) for v in shape)
-    except (TypeError, ValueError):
+        whole = all(v == int(v) for v in shape)
+    except (TypeError, ValueError, OverflowError):
         raise InputError(f"shape must be (H, W), got {shape!r}") from None
+    if not whole:
+        raise InputError(f"shape must be (H, W) in whole pixels, got {shape!r}")
     if height <= 0 or width <= 0 or height > 65536 or width > 65536:
         raise InputError(f"shape must be (H, W) with 1 <= H, W <= 65536, got {shape!r}")
     return height, width

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import terms
-from ._checks import as_generator, check_lux, check_params, check_thresholds
+from ._checks import as_generator, check_lux, check_map_shape, check_params, check_thresholds
 from .errors import ParameterError
 from .model import event_probability
 
@@ -32,7 +32,7 @@ def draw_thresholds(shape, params, rng=None) -> np.ndarray:
     """
     params = check_params(params)
     gen = as_generator(rng)
-    return terms.draw_map("thresholds", tuple(int(s) for s in shape), params, gen)
+    return terms.draw_map("thresholds", check_map_shape(shape, "thresholds"), params, gen)
 
 
 def trial_probabilities(lam, params, thresholds=None, *, background=None, skip_below=None, photon_only=False):

@@ -743,3 +743,18 @@ def test_tonic_transform_refuses_samples_it_cannot_hold(case, expect):
     for call in (transform, transform.noise):
         with pytest.raises(ev.InputError, match=re.escape(expect)):
             call(sample)
+
+
+@pytest.mark.parametrize("shape, expect", [
+    ((10**6, 10**6), "1 <= H, W <= 65536"), ((-4, 5), "1 <= H, W <= 65536"), (5, "shape must be (H, W)"),
+    ((4.5, 5), "in whole pixels"), ((65536, 65536), "memory"),
+])
+def test_drawing_maps_checks_the_shape_and_the_memory_first(shape, expect, monkeypatch):
+    """draw_background / draw_thresholds took any shape: MemoryError for 14.6 TiB, ValueError, TypeError, or
+    (4.5, 5) silently as (4, 5) (found by a hostile-input review)."""
+    monkeypatch.setenv("EVNOISE_MAX_MEMORY", str(2**30))
+    params = ev.load_preset("davis346")
+    for draw in (ev.draw_background, ev.draw_thresholds):
+        with pytest.raises(ev.EvnoiseError, match=re.escape(expect)):
+            draw(shape, params, 1)
+    assert ev.draw_thresholds((3, 4), params, 1).shape == (2, 3, 4)
