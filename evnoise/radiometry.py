@@ -286,6 +286,12 @@ def to_luminance(raw: np.ndarray, encoding: str, name: str):
     raise InputError(f"{name}: unsupported pixel type {raw.dtype} (use 8/16-bit integers or floats)")
 
 
+#: The raster formats Pillow may decode for evnoise, whatever a file's name says: plain pixel formats only. Pillow
+#: knows others that run programs (EPS and PDF through Ghostscript) or are rarely images: a file in one of those is
+#: "cannot identify image file".
+PILLOW_FORMATS = ("PNG", "JPEG", "TIFF", "GIF", "BMP", "PPM", "WEBP")  # JPEG includes MPO (phones)
+
+
 def _open_pillow(path: Path, limit: int):
     """``Image.open`` with evnoise's pixel limit in place of Pillow's own bomb check (header only)."""
     import warnings
@@ -296,14 +302,14 @@ def _open_pillow(path: Path, limit: int):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # the limit below is the one that counts
         try:
-            return Image.open(path)
+            return Image.open(path, formats=PILLOW_FORMATS)
         except Image.DecompressionBombError:
             pass
         # beyond Pillow's refusal threshold: open the header without that check; the caller checks the size
         with _PIL_LIMIT_LOCK:
             Image.MAX_IMAGE_PIXELS = None
             try:
-                return Image.open(path)
+                return Image.open(path, formats=PILLOW_FORMATS)
             finally:
                 Image.MAX_IMAGE_PIXELS = pil_limit
 

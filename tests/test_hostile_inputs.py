@@ -758,3 +758,18 @@ def test_drawing_maps_checks_the_shape_and_the_memory_first(shape, expect, monke
         with pytest.raises(ev.EvnoiseError, match=re.escape(expect)):
             draw(shape, params, 1)
     assert ev.draw_thresholds((3, 4), params, 1).shape == (2, 3, 4)
+
+
+def test_an_eps_file_named_png_is_not_handed_to_ghostscript(tmp_path, capsys, monkeypatch):
+    """Pillow was asked to open any format it knows: an EPS file named .png reached its EPS plugin, which runs
+    Ghostscript on the file where one is installed (found by a hostile-input review). Only plain raster formats
+    are tried now."""
+    from PIL import EpsImagePlugin
+
+    tried = []
+    monkeypatch.setattr(EpsImagePlugin.EpsImageFile, "_open", lambda self: tried.append(1))
+    eps = tmp_path / "scene.png"
+    eps.write_text("%!PS-Adobe-3.0 EPSF-3.0\n%%BoundingBox: 0 0 10 10\nnewpath 0 0 moveto 10 10 lineto stroke\n")
+    code, _, err = run_cli(capsys, "simulate", eps, "--duration", "0.01", "--out", tmp_path / "out.h5")
+    one_error_line(code, err, "cannot identify image file")
+    assert not tried
