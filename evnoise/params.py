@@ -565,10 +565,11 @@ LIGHT_WARNING_SHARE = 0.01
 
 def light_outside_range(preset, lux, *, factor: float = 2.0) -> tuple:
     """``(outside, total)``: how many pixels of ``lux`` lie more than ``factor`` outside the light range
-    ``preset`` was fitted on, of how many (``(0, lux.size)`` for a preset with no recorded range)."""
+    ``preset`` was fitted on, of how many (``(0, lux.size)`` for a preset with no recorded range). ``preset`` may
+    be its :class:`LightRange` (:func:`preset_light_range`'s), for a caller that counts frame after frame."""
     import numpy as np
 
-    _, light = _find_preset(preset)
+    light = preset if isinstance(preset, LightRange) else _find_preset(preset)[1]
     lux = np.asarray(lux)
     if light is None:
         return 0, int(lux.size)

@@ -769,10 +769,17 @@ def list_frames(folder, extensions=IMAGE_EXTENSIONS) -> list[Path]:
         raise InputError(f"not a folder: {_describe(folder)}")
     exts = tuple(e.lower() for e in extensions)
     try:
-        files = [p for p in folder.iterdir()
-                 if not p.name.startswith(".") and p.suffix.lower() in exts and p.is_file()]
+        files = [p for p in folder.iterdir() if not p.name.startswith(".") and p.suffix.lower() in exts]
+        # a frame's name that is not a regular file (a folder, a pipe, a link to a device) would drop that frame
+        # and move every later one earlier in time: an error, not a skip
+        odd = [p for p in files if not p.is_file()]
     except OSError as exc:
         raise InputError(f"cannot list folder {_describe(folder)}: {exc.strerror or exc}") from None
+    if odd:
+        first = odd[0]
+        kind = "a folder" if first.is_dir() else "not a regular file (a pipe, socket, device or broken link)"
+        raise InputError(f"{_describe(first)} is named like a frame but is {kind}"
+                         + (f" ({len(odd) - 1} more like it)" if len(odd) > 1 else ""))
     if not files:
         raise InputError(f"folder {_describe(folder)} holds no image files ({', '.join(exts)})")
     return sorted(files, key=lambda p: natural_sort_key(p.name))

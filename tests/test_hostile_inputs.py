@@ -773,3 +773,35 @@ def test_an_eps_file_named_png_is_not_handed_to_ghostscript(tmp_path, capsys, mo
     code, _, err = run_cli(capsys, "simulate", eps, "--duration", "0.01", "--out", tmp_path / "out.h5")
     one_error_line(code, err, "cannot identify image file")
     assert not tried
+
+
+@pytest.mark.parametrize("odd", ["named pipe", "folder", "link to a device"])
+def test_a_frame_that_is_not_a_regular_file_is_an_error_not_a_dropped_frame(tmp_path, capsys, odd):
+    """A named pipe, a folder or a link to /dev/zero named like a frame (a2.png) was skipped: a 3-frame video
+    became 2 frames, a3 shown at a2's time (found by a hostile-input review)."""
+    from PIL import Image
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for name in ("a1.png", "a3.png"):
+        Image.fromarray(np.full((6, 8), 120, np.uint8)).save(frames / name)
+    middle = frames / "a2.png"
+    if odd == "named pipe":
+        os.mkfifo(middle)
+    elif odd == "folder":
+        middle.mkdir()
+    else:
+        middle.symlink_to("/dev/zero")
+    code, _, err = run_cli(capsys, "simulate", frames, "--fps", "30", "--out", tmp_path / "out.h5")
+    one_error_line(code, err, "a2.png is named like a frame but is")
+    assert not (tmp_path / "out.h5").exists()
+
+
+def test_light_outside_range_takes_the_range_itself():
+    """A video's light check counted every frame against the preset by name, re-reading its TOML each time
+    (75 % of a 5000-frame run); the range is now read once and passed."""
+    lux = np.geomspace(1e-4, 1e5, 50)
+    light = ev.params.preset_light_range("dvs128")
+    assert light is not None
+    assert ev.params.light_outside_range(light, lux) == ev.params.light_outside_range("dvs128", lux)
+    assert 0 < ev.params.light_outside_range(light, lux)[0] < lux.size

@@ -266,7 +266,8 @@ class _LightCheck:
         from ..params import preset_light_range
 
         self.preset = preset if preset is not None else params
-        self.active = preset_light_range(self.preset) is not None
+        self.range = preset_light_range(self.preset)  # once: a video's frames are counted against it
+        self.active = self.range is not None
         self.lo = self.hi = None
         self.outside = self.total = 0
 
@@ -278,7 +279,7 @@ class _LightCheck:
         lo, hi = float(lux.min()), float(lux.max())
         self.lo = lo if self.lo is None else min(self.lo, lo)
         self.hi = hi if self.hi is None else max(self.hi, hi)
-        outside, total = light_outside_range(self.preset, lux)
+        outside, total = light_outside_range(self.range, lux)
         self.outside += outside
         self.total += total
         share = self.outside / max(self.total, 1)
