@@ -366,8 +366,11 @@ def test_natural_sort():
 def test_list_frames(tmp_path):
     for name in ("f10.png", "f2.PNG", "f1.exr", ".hidden.png", "notes.txt"):
         (tmp_path / name).write_bytes(b"x")
-    (tmp_path / "sub.png").mkdir()
+    (tmp_path / "sub").mkdir()
     assert [p.name for p in list_frames(tmp_path)] == ["f1.exr", "f2.PNG", "f10.png"]
+    (tmp_path / "sub.png").mkdir()  # named like a frame: it would drop one (an error, not a skip)
+    with pytest.raises(InputError, match="sub.png is named like a frame but is a folder"):
+        list_frames(tmp_path)
 
 
 def test_list_frames_errors(tmp_path):
