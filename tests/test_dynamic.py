@@ -560,3 +560,34 @@ def test_bench_dynamic_runs_at_tiny_size(tmp_path):
     text = (tmp_path / "DYNAMIC.md").read_text()
     assert "Separator: precision and recall" in text and "mask from the density separator" in text
     assert (tmp_path / "dynamic_strip.png").is_file()
+
+
+def test_reconstruct_video_that_fails_midway_leaves_no_frames(tmp_path, square, tiny_model, monkeypatch):
+    """A full disk stopped a video after two frames and left frame_00000/1.png and their overlays without
+    frames.csv: a folder that looked like a short finished run (found by a hostile-input review). This run's
+    files are removed again, and the folder it created."""
+    from evnoise.reconstruct import video
+
+    events, _, _, _ = square
+    src = ev.write_events(tmp_path / "rec.h5", events, (H, W), t_end_us=2_000_000)
+    real = video._write_rgb_png
+    calls = []
+
+    def fill_the_disk(path, rgb):
+        calls.append(path)
+        if len(calls) == 3:
+            raise OutputError(f"cannot write PNG file {path}: No space left on device")
+        real(path, rgb)
+
+    monkeypatch.setattr(video, "_write_rgb_png", fill_the_disk)
+    out = tmp_path / "frames"
+    with pytest.raises(OutputError, match="No space left"):
+        video.reconstruct_video(src, tiny_model, out, fps=10, progress=False)
+    assert len(calls) == 3 and not out.exists()
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    (kept / "notes.txt").write_text("mine")
+    calls.clear()
+    with pytest.raises(OutputError, match="No space left"):
+        video.reconstruct_video(src, tiny_model, kept, fps=10, progress=False)
+    assert sorted(p.name for p in kept.iterdir()) == ["notes.txt"]

@@ -805,3 +805,22 @@ def test_light_outside_range_takes_the_range_itself():
     assert light is not None
     assert ev.params.light_outside_range(light, lux) == ev.params.light_outside_range("dvs128", lux)
     assert 0 < ev.params.light_outside_range(light, lux)[0] < lux.size
+
+
+def test_a_checkpoint_that_cannot_be_written_is_an_output_error_and_no_file(tmp_path, monkeypatch):
+    """torch's zip writer reports a full disk as RuntimeError ('unexpected pos'): train ended in a traceback
+    (found by a hostile-input review)."""
+    torch = pytest.importorskip("torch")
+    from evnoise.reconstruct.checkpoint import InputSpec, save_checkpoint
+    from evnoise.reconstruct.unet import UNet
+
+    def full_disk(obj, f, *a, **k):
+        raise RuntimeError("[enforce fail at inline_container.cc:778] . PytorchStreamWriter failed writing file "
+                           "data/0: file write failed")
+
+    net = UNet(base_channels=8, channel_mults=(1, 2), groups=4, stem=1)
+    monkeypatch.setattr(torch, "save", full_disk)
+    with pytest.raises(ev.OutputError, match="cannot write checkpoint .*file write failed"):
+        save_checkpoint(tmp_path / "m.pt", model_config=net.config, input_spec=InputSpec(window_s=0.5),
+                        state_dict=net.state_dict())
+    assert list(tmp_path.iterdir()) == []

@@ -168,7 +168,10 @@ class InputSpec:
 def _atomic_torch_save(obj, path: Path):
     torch = require_torch()
     with atomic_output(path, what="checkpoint") as tmp:
-        torch.save(obj, tmp)
+        try:
+            torch.save(obj, tmp)
+        except RuntimeError as exc:  # torch's zip writer reports a full disk or an I/O error as RuntimeError
+            raise OSError(" ".join(str(exc).split())[:200]) from None
 
 
 def save_checkpoint(path, *, model_config, input_spec: InputSpec, state_dict, train_state=None,

@@ -8,6 +8,7 @@ does: the core may not import the layer above it).
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import logging
 from pathlib import Path
@@ -149,6 +150,7 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
                          f"window of {window_steps * step_us * 1e-6:.3g} s")
     if max_frames is not None:
         n_out = min(n_out, max_frames)
+    created = not out_dir.exists()
     out_dir.mkdir(exist_ok=True)
     if overwrite:  # no stale frames of an earlier, longer run
         for old in [*out_dir.glob("frame_*.png"), *out_dir.glob("overlay_*.png"), out_dir / "frames.csv"]:
@@ -164,6 +166,7 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
     rows = []
     written = 0
     masked = []
+    paths = []  # this run's files: removed again if it does not finish (frames.csv marks a finished folder)
     try:
         frames = iter_motion(events_h5, shape, fps=fps, window_s=window_s, separator=separator, mask=mask, count=count,
                              on_motion=on_motion, t_start_s=t_start_us * 1e-6, t_end_s=t_end_us * 1e-6, stats=stats,
@@ -174,11 +177,13 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
                 continue
             image = rec.predict_binned(bin_rates(rates, rec.binning) * frame.window_s, frame.window_s)
             name = f"{written:05d}.png"
-            write_png(out_dir / f"frame_{name}", image)
+            paths.append(out_dir / f"frame_{name}")
+            write_png(paths[-1], image)
             if overlay:
                 rgb = overlay_rgb(image, bin_mask(frame.mask, rec.binning)[:image.shape[0], :image.shape[1]],
                                   bin_rates(frame.signal, rec.binning)[:, :image.shape[0], :image.shape[1]])
-                _write_rgb_png(out_dir / f"overlay_{name}", rgb)
+                paths.append(out_dir / f"overlay_{name}")
+                _write_rgb_png(paths[-1], rgb)
             masked.append(float(frame.mask.mean()))
             rows.append((written, frame.index, f"{frame.t_end_us * 1e-6:.6f}", f"{masked[-1]:.4f}",
                          f"{float(frame.full.mean()):.4f}", frame.n_noise, frame.n_signal))
@@ -187,17 +192,24 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
                 bar.update(1)
             if written >= n_out:
                 break
+        if written == 0:
+            raise InputError("no frame could be made: the recording is shorter than one window")
+        with atomic_output(out_dir / "frames.csv", what="frames table") as tmp:
+            with open(tmp, "w", newline="", encoding="utf-8") as fh:
+                w = csv.writer(fh)
+                w.writerow(["frame", "step", "t_end_s", "masked_fraction", "full_window_fraction",
+                            "noise_events_in_step", "signal_events_in_step"])
+                w.writerows(rows)
+    except BaseException:  # an error, a full disk, Ctrl-C: no folder of frames that looks finished
+        for path in paths:
+            path.unlink(missing_ok=True)
+        if created:
+            with contextlib.suppress(OSError):
+                out_dir.rmdir()  # only if empty
+        raise
     finally:
         if bar is not None:
             bar.close()
-    if written == 0:
-        raise InputError("no frame could be made: the recording is shorter than one window")
-    with atomic_output(out_dir / "frames.csv", what="frames table") as tmp:
-        with open(tmp, "w", newline="", encoding="utf-8") as fh:
-            w = csv.writer(fh)
-            w.writerow(["frame", "step", "t_end_s", "masked_fraction", "full_window_fraction",
-                        "noise_events_in_step", "signal_events_in_step"])
-            w.writerows(rows)
     step_s = step_us * 1e-6
     return {
         "n_frames": written,
