@@ -6,6 +6,7 @@ Units are part of every field's name. Presets are TOML files shipped in
 
 from __future__ import annotations
 
+import collections.abc
 import dataclasses
 import functools
 import json
@@ -307,6 +308,8 @@ class NoiseParams:
 
     @classmethod
     def from_dict(cls, data: dict) -> "NoiseParams":
+        if not isinstance(data, collections.abc.Mapping) or not all(isinstance(k, str) for k in data):
+            raise ParameterError(f"noise parameters must be a table of names and values, got {_short_repr(data)}")
         fields = {f.name for f in dataclasses.fields(cls)}
         unknown = set(data) - fields
         if unknown:

@@ -824,3 +824,19 @@ def test_a_checkpoint_that_cannot_be_written_is_an_output_error_and_no_file(tmp_
         save_checkpoint(tmp_path / "m.pt", model_config=net.config, input_spec=InputSpec(window_s=0.5),
                         state_dict=net.state_dict())
     assert list(tmp_path.iterdir()) == []
+
+
+def test_fps_below_a_frame_per_days_and_parameters_that_are_no_table_are_one_error(tmp_path, capsys):
+    """--fps 1e-300 gave an OverflowError traceback (or a 440-character error quoting a 300-digit time), and
+    NoiseParams.from_dict([1]) a TypeError (found by a hostile-input review)."""
+    from PIL import Image
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k in range(3):
+        Image.fromarray(np.full((4, 6), 100 + k, np.uint8)).save(frames / f"f{k}.png")
+    code, _, err = run_cli(capsys, "simulate", frames, "--fps", "1e-300", "--out", tmp_path / "out.h5")
+    one_error_line(code, err, "--fps must be at least 1e-06 frames per second, got 1e-300")
+    for data in ([1], "abc", {1: 2}):
+        with pytest.raises(ev.ParameterError, match="must be a table of names and values"):
+            ev.NoiseParams.from_dict(data)

@@ -37,6 +37,7 @@ from ..errors import ParameterError
 #: times are int64 microseconds: the largest number of seconds any time option may hold (~292,000 years)
 MAX_SECONDS = (2**63 - 1) // 1_000_000
 #: frequencies (--fps) give steps of at least one microsecond, the clock's resolution
+MIN_HZ = 1e-6  #: slowest --fps: a frame per 11.6 days (times are microseconds in 64 bits)
 MAX_HZ = 1e6
 #: seeds are stored as int64 attributes of the event file
 MAX_SEED = 2**63 - 1
@@ -76,13 +77,16 @@ def seconds(flag: str, *, positive: bool = False, minimum: float | None = None):
 
 
 def frequency(flag: str, unit: str = "frames per second"):
-    """argparse type of a rate (``--fps``): finite, > 0 and at most :data:`MAX_HZ` (one step per µs)."""
-    return positive_number(flag, unit, maximum=MAX_HZ, why="one per microsecond, the clock's resolution")
+    """argparse type of a rate (``--fps``): finite, from :data:`MIN_HZ` (a frame per 11.6 days) to :data:`MAX_HZ`
+    (one step per µs)."""
+    return positive_number(flag, unit, maximum=MAX_HZ, why="one per microsecond, the clock's resolution",
+                           minimum=MIN_HZ)
 
 
-def positive_number(flag: str, unit: str = "", *, maximum: float | None = None, why: str = ""):
+def positive_number(flag: str, unit: str = "", *, maximum: float | None = None, why: str = "",
+                    minimum: float | None = None):
     """argparse type of a finite number > 0 (e.g. ``--max-lux``), at most ``maximum`` if given (``why``: the
-    reason for that limit, shown in the error)."""
+    reason for that limit, shown in the error) and at least ``minimum`` if given."""
 
     def parse(text):
         value = _number(text, flag)
@@ -90,6 +94,9 @@ def positive_number(flag: str, unit: str = "", *, maximum: float | None = None, 
             value = positive(value, flag, unit)
         except ParameterError as exc:
             raise argparse.ArgumentTypeError(str(exc)) from None
+        if minimum is not None and value < minimum:
+            raise argparse.ArgumentTypeError(f"{flag} must be at least {minimum:g}{' ' + unit if unit else ''}, "
+                                             f"got {text}")
         if maximum is not None and value > maximum:
             raise argparse.ArgumentTypeError(f"{flag} must be at most {maximum:g}{' ' + unit if unit else ''}"
                                              f"{f' ({why})' if why else ''}, got {text}")
