@@ -155,12 +155,18 @@ def path_text(path) -> str:
 
 
 def check_map_shape(shape, what: str) -> tuple:
-    """A sensor shape ``(H, W)`` for per-pixel maps ``(2, H, W)`` of float64 (:func:`evnoise.events.check_shape`),
-    whose memory (with the draws' working arrays) fits the budget: ``what`` names the maps in the error."""
+    """A shape ``(H, W)`` of whole numbers >= 1 for per-pixel maps ``(2, H, W)`` of float64 whose memory (with the
+    draws' working arrays) fits the budget; any side (a ``(1, N)`` population of pixels too): ``what`` names the
+    maps in the error."""
     from ._budget import check_allocation
-    from .events import check_shape
 
-    height, width = check_shape(shape)
+    try:
+        height, width = (int(v) for v in shape)
+        whole = all(v == int(v) for v in shape)
+    except (TypeError, ValueError, OverflowError):
+        raise ParameterError(f"shape must be (H, W), got {shape!r}") from None
+    if not whole or height < 1 or width < 1:
+        raise ParameterError(f"shape must be (H, W) of whole numbers >= 1, got {shape!r}")
     check_allocation(4 * 2 * 8 * height * width, f"the {what} maps of a {width}x{height} sensor",
                      error=ParameterError)
     return height, width
