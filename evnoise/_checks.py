@@ -162,7 +162,7 @@ def check_map_shape(shape, what: str) -> tuple:
 
     try:
         height, width = (int(v) for v in shape)
-        whole = all(v == int(v) for v in shape)
+        whole = all(float(v) == int(v) for v in shape)
     except (TypeError, ValueError, OverflowError):
         raise ParameterError(f"shape must be (H, W), got {shape!r}") from None
     if not whole or height < 1 or width < 1:

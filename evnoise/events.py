@@ -87,7 +87,7 @@ def check_shape(shape) -> tuple:
     """``(height, width)`` as ints from a sensor shape ``(H, W)``; ``InputError`` unless 1 <= H, W <= 65536."""
     try:
         height, width = (int(v) for v in shape)
-        whole = all(v == int(v) for v in shape)
+        whole = all(float(v) == int(v) for v in shape)
     except (TypeError, ValueError, OverflowError):
         raise InputError(f"shape must be (H, W), got {shape!r}") from None
     if not whole:
