@@ -516,6 +516,14 @@ def make_dataset(sources, out_dir, config: PairConfig | None = None, *, workers:
             else:
                 n_workers = min(workers or (os.cpu_count() or 1), len(todo))
                 _run_pool(root, plan, todo, n_workers, threads or _default_threads(n_workers), finished)
+        except Exception:
+            if not valid:  # nothing made: no empty dataset left (the folder goes too if this run created it)
+                if bar is not None:
+                    bar.close()
+                    bar = None
+                remove_stale_temporaries(root)
+                discard_empty(root, created)
+            raise
         finally:
             if bar is not None:
                 bar.close()

@@ -188,3 +188,40 @@ def test_a_damaged_manifest_is_one_error_line_naming_it(tmp_path, capsys, damage
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1, err
     assert "manifest.json is damaged" in err, err
+
+
+def test_a_failure_before_any_shard_is_made_leaves_no_folder_it_created(tmp_path, capsys, monkeypatch):
+    """A new output folder whose first shard fails (here the disk fills while the first image is stored) is
+    removed with its empty ``shards/`` and progress files: nothing was made, nothing looks like a dataset."""
+    from evnoise.errors import OutputError
+    from evnoise.generators import shards
+
+    def disk_full(self, image):
+        self.abort()
+        raise OutputError(f"writing shard {self.path} failed: No space left on device")
+
+    monkeypatch.setattr(shards.ShardWriter, "add_image", disk_full)
+    out = tmp_path / "ds"
+    code = main(["make-dataset", "--procedural", "dead-leaves", "--count", "2", "--crop", "64", "--out", str(out),
+                 "--seed", "1", "-q", "--workers", "1"])
+    assert code != 0
+    assert "No space left on device" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_a_failure_before_any_shard_keeps_a_folder_the_user_made(tmp_path, capsys, monkeypatch):
+    from evnoise.errors import OutputError
+    from evnoise.generators import shards
+
+    def disk_full(self, image):
+        self.abort()
+        raise OutputError(f"writing shard {self.path} failed: No space left on device")
+
+    monkeypatch.setattr(shards.ShardWriter, "add_image", disk_full)
+    out = tmp_path / "ds"
+    out.mkdir()
+    code = main(["make-dataset", "--procedural", "dead-leaves", "--count", "2", "--crop", "64", "--out", str(out),
+                 "--seed", "1", "-q", "--workers", "1"])
+    assert code != 0
+    capsys.readouterr()
+    assert out.is_dir() and list(out.iterdir()) == [] or sorted(p.name for p in out.iterdir()) == [".evnoise-progress"]
