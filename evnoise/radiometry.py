@@ -53,6 +53,7 @@ __all__ = [
     "IMAGE_EXTENSIONS",
     "read_image",
     "image_to_lux",
+    "lux_and_kind",
     "fit_to_sensor",
     "srgb_to_linear",
     "srgb_encode",
@@ -613,6 +614,16 @@ def image_to_lux(
     numpy.ndarray
         float64 ``(H, W)`` illuminance in lux, finite and ``>= 0``.
     """
+    return lux_and_kind(path_or_array, max_lux=max_lux, lux_scale=lux_scale, encoding=encoding,
+                        clip_invalid=clip_invalid, sensor_shape=sensor_shape, fit=fit, name=name,
+                        max_pixels=max_pixels)[0]
+
+
+def lux_and_kind(path_or_array, *, max_lux=None, lux_scale=None, encoding="srgb", clip_invalid=False,
+                 sensor_shape=None, fit="cover", name=None, max_pixels=None) -> tuple[np.ndarray, str]:
+    """:func:`image_to_lux` (same arguments) and the kind of image it read: ``"display"`` (8/16-bit,
+    scaled by ``max_lux``) or ``"linear"`` (EXR / floating point, scaled by ``lux_scale``). A video's
+    frames must all be of one kind: their illuminance scales differ."""
     encoding = _check_encoding(encoding)
     if isinstance(path_or_array, (str, os.PathLike)):
         label = name or _describe(path_or_array)
@@ -637,7 +648,7 @@ def image_to_lux(
         lux = values * scale
     if not np.isfinite(lux).all():
         raise InputError(f"{label}: illuminance overflows float64 after scaling by {scale:g}")
-    return lux
+    return lux, kind
 
 
 def _positive(value, name: str, unit: str) -> float:

@@ -223,6 +223,17 @@ def test_frames_of_different_sizes(tmp_path, frames, capsys):
     assert code == 0
 
 
+def test_frames_of_display_and_linear_kinds_are_not_mixed(tmp_path, frames, capsys):
+    """An 8-bit PNG is scaled by --max-lux (display white = 18 lux), an EXR by --lux-scale (values are lux): a
+    video mixing them jumped between two illuminance scales without a word."""
+    OpenEXR = pytest.importorskip("OpenEXR")
+    y = np.full((24, 32), 5.0, dtype=np.float32)
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, {"Y": y}) as f:
+        f.write(str(frames / "f3.exr"))
+    code, _, err = run_cli(capsys, "simulate", frames, "--out", tmp_path / "ev.h5", "--fps", "30")
+    assert_clean_failure(code, err, tmp_path, expect="f3.exr is a linear (EXR / floating-point) image, but the first")
+
+
 def test_exr_with_nan(tmp_path, capsys):
     OpenEXR = pytest.importorskip("OpenEXR")
     y = np.ones((4, 4), dtype=np.float32)

@@ -80,12 +80,13 @@ def parse_sensor(text):
 class LuxFrames:
     """Frames of a folder as illuminance, read lazily (``len`` and indexing, as ``iter_video`` wants).
 
-    Every frame must have the size of the first one (after fitting to the sensor); the last
+    Every frame must have the size (after fitting to the sensor) and kind of the first one; the last
     few frames read are kept, since the simulator reads neighbouring frames repeatedly.
     """
 
     def __init__(self, paths, convert, keep: int = 4, on_frame=None):
         self.paths = list(paths)
+        self.kind = None  # "display" or "linear" (radiometry.lux_and_kind): the first frame's, for all
         self._convert = convert
         self._on_frame = on_frame  # called with each frame's illuminance when it is first read
         self._keep = keep
@@ -100,7 +101,14 @@ class LuxFrames:
         i = int(i)
         if i in self._cache:
             return self._cache[i]
-        lux = self._convert(self.paths[i])
+        lux, kind = self._convert(self.paths[i])
+        if self.kind is None:
+            self.kind = kind
+        elif kind != self.kind:
+            names = {"display": "an 8/16-bit display-referred image", "linear": "a linear (EXR / floating-point) image"}
+            raise InputError(f"frame {self.paths[i]} is {names[kind]}, but the first frame {self.paths[0]} is "
+                             f"{names[self.kind]}: their illuminance scales differ (--max-lux vs --lux-scale); "
+                             f"give all frames one kind")
         if self._on_frame is not None:
             self._on_frame(lux)
         if self.shape is not None and lux.shape != self.shape:
@@ -229,7 +237,7 @@ def _scene(args, source, is_video, duration, fps, sensor, params, seed, *, progr
     from ..simulate import iter_events, iter_video
 
     convert = functools.partial(
-        radiometry.image_to_lux, max_lux=args.max_lux, lux_scale=args.lux_scale, encoding=args.encoding,
+        radiometry.lux_and_kind, max_lux=args.max_lux, lux_scale=args.lux_scale, encoding=args.encoding,
         clip_invalid=args.clip_invalid, sensor_shape=sensor, fit=args.fit,
     )
     light = _LightCheck(params, args.preset)
@@ -246,7 +254,7 @@ def _scene(args, source, is_video, duration, fps, sensor, params, seed, *, progr
         attrs = {"scene": "video", "fps": fps, "n_frames": len(frames), "duration_s": t_end_us * 1e-6}
         return _Scene(stream, frames.shape, t_end_us, attrs, f"a {len(frames)}-frame video at {fps:g} fps",
                       frames[0])
-    lux = convert(source)
+    lux = convert(source)[0]
     light(lux)
     stream = iter_events(lux, params, duration, seed, args.method, threads=args.threads, progress=progress)
     attrs = {"scene": "static", "duration_s": duration, "lux_min": float(lux.min()),
