@@ -234,6 +234,20 @@ def test_frames_of_display_and_linear_kinds_are_not_mixed(tmp_path, frames, caps
     assert_clean_failure(code, err, tmp_path, expect="f3.exr is a linear (EXR / floating-point) image, but the first")
 
 
+def test_linear_image_beyond_the_lux_cap_is_refused(tmp_path, capsys):
+    """--max-lux and --lux-scale stop at 1e9 lux; a float pixel storing 3e38 lux gave a file of no events, exit 0."""
+    OpenEXR = pytest.importorskip("OpenEXR")
+    y = np.full((4, 4), 1.0, dtype=np.float32)
+    y[1, 2] = 3e38
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, {"Y": y}) as f:
+        f.write(str(tmp_path / "sun.exr"))
+    code, _, err = run_cli(capsys, "simulate", tmp_path / "sun.exr", "--out", tmp_path / "ev.h5")
+    assert_clean_failure(code, err, tmp_path, expect="sun.exr reaches 3e+38 lux, above the 1e+09 lux")
+    code, _, _ = run_cli(capsys, "simulate", tmp_path / "sun.exr", "--out", tmp_path / "ev.h5", "--lux-scale", "1e-30",
+                         "--duration", "0.01")
+    assert code == 0
+
+
 def test_exr_with_nan(tmp_path, capsys):
     OpenEXR = pytest.importorskip("OpenEXR")
     y = np.ones((4, 4), dtype=np.float32)

@@ -237,7 +237,7 @@ def _scene(args, source, is_video, duration, fps, sensor, params, seed, *, progr
     from ..simulate import iter_events, iter_video
 
     convert = functools.partial(
-        radiometry.lux_and_kind, max_lux=args.max_lux, lux_scale=args.lux_scale, encoding=args.encoding,
+        _scene_lux, max_lux=args.max_lux, lux_scale=args.lux_scale, encoding=args.encoding,
         clip_invalid=args.clip_invalid, sensor_shape=sensor, fit=args.fit,
     )
     light = _LightCheck(params, args.preset)
@@ -262,6 +262,20 @@ def _scene(args, source, is_video, duration, fps, sensor, params, seed, *, progr
     text = (f"a static scene ({lux.min():.3g} to {lux.max():.3g} lux, mean {lux.mean():.3g} lux) "
             f"for {duration:g} s")
     return _Scene(stream, lux.shape, int(round(duration * 1e6)), attrs, text, lux)
+
+
+def _scene_lux(path, **options):
+    """:func:`evnoise.radiometry.lux_and_kind` of an input file, refusing illuminance above the
+    :data:`~evnoise.cli._options.MAX_LUX` that ``--max-lux`` and ``--lux-scale`` are held to (a linear image
+    stores its lux itself: a float pixel of 3e38 lux gave a file of no events and exit 0)."""
+    from ..radiometry import lux_and_kind
+
+    lux, kind = lux_and_kind(path, **options)
+    top = float(lux.max()) if lux.size else 0.0
+    if top > opt.MAX_LUX:
+        raise InputError(f"{path_text(path)} reaches {top:.3g} lux, above the {opt.MAX_LUX:.0e} lux this command "
+                         f"takes (full sunlight is about 1e5 lux); scale a linear image with --lux-scale")
+    return lux, kind
 
 
 class _LightCheck:
