@@ -393,6 +393,8 @@ def _read_tiff(path: Path, limit: int = DEFAULT_MAX_IMAGE_PIXELS) -> np.ndarray:
         raise InputError(f"cannot read image {name}: {exc}") from None
     if axes.startswith("S") and arr.ndim == 3:
         arr = np.moveaxis(arr, 0, -1)  # planar configuration: samples first
+    if arr.dtype == np.bool_:  # a 1-bit (bilevel) TIFF: black and full-scale white, as Pillow gives a 1-bit PNG
+        arr = np.where(arr, np.uint8(255), np.uint8(0))
     if photometric == ph.MINISWHITE and arr.dtype.kind == "u":
         arr = np.iinfo(arr.dtype).max - arr
     if arr.dtype.kind == "f" and arr.dtype.itemsize < 4:
@@ -540,7 +542,7 @@ def read_image(path, *, encoding: str = "srgb", clip_invalid: bool = False, max_
     Parameters
     ----------
     path : str or os.PathLike
-        PNG, JPEG, TIFF (8/16-bit integer or floating point; grey or RGB; alpha is ignored)
+        PNG, JPEG, TIFF (1/8/16-bit integer or floating point; grey or RGB; alpha is ignored)
         or OpenEXR (half/float; a ``Y`` channel, or ``R``, ``G``, ``B``). The format is
         detected from the file's content, not its name.
     encoding : {"srgb", "gamma2.2", "linear"}

@@ -414,3 +414,18 @@ def test_a_volumetric_tiff_is_refused_not_read_as_a_sideways_image(tmp_path):
     tifffile.imwrite(tmp_path / "planar.tif", np.ones((3, 16, 20), np.uint8), photometric="rgb",
                      planarconfig="separate")
     assert read_image(tmp_path / "planar.tif").shape == (16, 20)
+
+
+@pytest.mark.parametrize("photometric", ["minisblack", "miniswhite"])
+def test_one_bit_tiff_reads_as_pillow_decodes_it(tmp_path, photometric):
+    """A bilevel TIFF was refused ("unsupported pixel type bool") while a 1-bit PNG was read: both are black
+    and full-scale white, as Pillow decodes them (MINISWHITE inverted)."""
+    tifffile = pytest.importorskip("tifffile")
+    from PIL import Image
+
+    bits = np.zeros((6, 9), dtype=bool)
+    bits[1:4, 2:7] = True
+    tifffile.imwrite(tmp_path / "bilevel.tif", bits, photometric=photometric)
+    expected = np.asarray(Image.open(tmp_path / "bilevel.tif").convert("L"), dtype=np.float64) / 255
+    np.testing.assert_array_equal(ev.read_image(tmp_path / "bilevel.tif"), expected)
+    assert set(np.unique(expected)) == {0.0, 1.0}
