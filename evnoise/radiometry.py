@@ -480,13 +480,23 @@ def _read_exr(path: Path, limit: int = DEFAULT_MAX_IMAGE_PIXELS) -> np.ndarray:
     with _c_library_output() as printed:
         try:
             with OpenEXR.File(os.fspath(path), separate_channels=True) as exr:
-                chroma = exr.header().get("chromaticities")  # the header is emptied on close
-                channels = {k: np.asarray(v.pixels) for k, v in exr.channels().items()}
+                # the header is emptied on close: copy what is needed of every part
+                parts = [(part.header.get("chromaticities"),
+                          {k: np.asarray(v.pixels) for k, v in part.channels.items()}) for part in exr.parts]
         except Exception as exc:
             error = exc
     if error is not None:
         raise _exr_failure(name, error, printed[0])
     _echo(printed[0])
+    # a multipart file (a depth or a mask part beside the image): the first part holding an image
+    usable = [k for k, (_, ch) in enumerate(parts) if "Y" in ch or all(c in ch for c in "RGB")]
+    if len(parts) > 1 and not usable:
+        raise InputError(f"{name}: no part of this {len(parts)}-part EXR has channels 'Y' or 'R', 'G', 'B' "
+                         f"(parts: {'; '.join(', '.join(sorted(ch)) for _, ch in parts)})")
+    k = usable[0] if usable else 0
+    if k > 0:
+        log.info("%s: read part %d of %d, the first with a 'Y' or 'R', 'G', 'B' image", name, k, len(parts))
+    chroma, channels = parts[k]
     for key, arr in channels.items():
         if arr.dtype.kind != "f":
             raise InputError(f"{name}: EXR channel {key!r} has pixel type {arr.dtype}; expected half or float")
@@ -543,7 +553,8 @@ def read_image(path, *, encoding: str = "srgb", clip_invalid: bool = False, max_
     ----------
     path : str or os.PathLike
         PNG, JPEG, TIFF (1/8/16-bit integer or floating point; grey or RGB; alpha is ignored)
-        or OpenEXR (half/float; a ``Y`` channel, or ``R``, ``G``, ``B``). The format is
+        or OpenEXR (half/float; a ``Y`` channel, or ``R``, ``G``, ``B``; of a multipart file, the
+        first part holding them). The format is
         detected from the file's content, not its name.
     encoding : {"srgb", "gamma2.2", "linear"}
         Transfer function of integer (display-referred) images; floating-point images

@@ -429,3 +429,32 @@ def test_one_bit_tiff_reads_as_pillow_decodes_it(tmp_path, photometric):
     expected = np.asarray(Image.open(tmp_path / "bilevel.tif").convert("L"), dtype=np.float64) / 255
     np.testing.assert_array_equal(ev.read_image(tmp_path / "bilevel.tif"), expected)
     assert set(np.unique(expected)) == {0.0, 1.0}
+
+
+def _exr_part(channels, name):
+    OpenEXR = pytest.importorskip("OpenEXR")
+    return OpenEXR.Part({"type": OpenEXR.scanlineimage, "compression": OpenEXR.ZIP_COMPRESSION},
+                        {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in channels.items()}, name=name)
+
+
+def test_multipart_exr_reads_the_first_part_holding_an_image(tmp_path):
+    """A depth part before the RGB one: part 0 alone was read ("EXR has channels ['Z']")."""
+    OpenEXR = pytest.importorskip("OpenEXR")
+    rng = np.random.default_rng(3)
+    r, g, b = (rng.uniform(0, 5, (4, 6)) for _ in range(3))
+    parts = [_exr_part({"Z": np.ones((4, 6))}, "depth"), _exr_part({"R": r, "G": g, "B": b}, "beauty"),
+             _exr_part({"Y": np.full((4, 6), 9.0)}, "other")]
+    with OpenEXR.File(parts) as f:
+        f.write(str(tmp_path / "multi.exr"))
+    rgb = np.stack([c.astype(np.float32).astype(np.float64) for c in (r, g, b)], axis=-1)
+    np.testing.assert_allclose(ev.read_image(tmp_path / "multi.exr"), rgb @ np.array([0.2126, 0.7152, 0.0722]),
+                               rtol=1e-12)
+
+
+def test_multipart_exr_without_an_image_part_names_every_part(tmp_path):
+    OpenEXR = pytest.importorskip("OpenEXR")
+    parts = [_exr_part({"Z": np.ones((4, 6))}, "depth"), _exr_part({"A": np.ones((4, 6))}, "mask")]
+    with OpenEXR.File(parts) as f:
+        f.write(str(tmp_path / "multi.exr"))
+    with pytest.raises(InputError, match=r"no part of this 2-part EXR has channels .* \(parts: Z; A\)"):
+        ev.read_image(tmp_path / "multi.exr")
