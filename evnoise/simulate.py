@@ -92,12 +92,15 @@ class EventWindows:
     ``expected_events``
         expected number of events (float): exact in expectation for a static scene; for a video
         the noise events of its first frame over the whole run (signal events come on top).
+    ``noise_only``
+        True for a video: ``expected_events`` then counts the noise at the first frame's light, not the total.
     ``t_start_us``, ``duration_us``
         the span of the recording in microseconds.
     """
 
-    def __init__(self, windows, *, expected_events, t_start_us: int, duration_us: int):
+    def __init__(self, windows, *, expected_events, t_start_us: int, duration_us: int, noise_only: bool = False):
         self._windows = windows
+        self.noise_only = bool(noise_only)
         self._expected = expected_events  # a number, or a function computing it when first asked
         self.t_start_us = int(t_start_us)
         self.duration_us = int(duration_us)
@@ -177,7 +180,11 @@ def check_disk_space(windows, path, fmt: str = "h5", *, compression="gzip") -> s
     size = estimate_file_size(expected, windows.duration_us, fmt, compression=compression,
                               t_end_us=windows.t_start_us + windows.duration_us)
     folder = Path(path).parent if str(Path(path).parent) else Path(".")
-    line = f"expecting about {expected:,.0f} events, a file of about {human_bytes(size)}"
+    if getattr(windows, "noise_only", False):  # a video: its signal events come on top of the noise
+        line = (f"expecting about {expected:,.0f} noise events at the first frame's light (the scene's changes add "
+                f"more), a file of about {human_bytes(size)} for those")
+    else:
+        line = f"expecting about {expected:,.0f} events, a file of about {human_bytes(size)}"
     try:
         free = shutil.disk_usage(folder).free
     except OSError:
@@ -739,7 +746,8 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
         if bar is not None:
             bar.close()
 
-    return EventWindows(gen(), expected_events=expected_events, t_start_us=t0_us, duration_us=duration_us)
+    return EventWindows(gen(), expected_events=expected_events, t_start_us=t0_us, duration_us=duration_us,
+                        noise_only=True)
 
 
 # --------------------------------------------------------------------------------------

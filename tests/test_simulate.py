@@ -498,6 +498,20 @@ def test_disk_check_refuses_a_run_that_cannot_fit(tmp_path, monkeypatch):
     assert estimate_file_size(0, 10**15) > 1e12  # 1e12 s of nothing still needs its ms_to_idx
 
 
+def test_disk_line_of_a_video_says_it_counts_noise_only(tmp_path):
+    """A video's expected_events counts its first frame's noise only: a 3000-frame ramp said "expecting about 27
+    events" and made 61,000. The line says what the number counts."""
+    from evnoise.simulate import check_disk_space
+
+    frames = np.stack([np.full((8, 8), 2.0), np.full((8, 8), 200.0), np.full((8, 8), 2.0)])
+    video = ev.iter_video(frames, [0.0, 1.0, 2.0], PARAMS, rng=1)
+    assert video.noise_only and not ev.iter_events(frames[0], PARAMS, 2.0, rng=1).noise_only
+    line = check_disk_space(video, tmp_path / "x.h5")
+    assert line.startswith(f"expecting about {video.expected_events:,.0f} noise events at the first frame's light "
+                           f"(the scene's changes add more), a file of about ")
+    assert sum(w.size for w in video) > video.expected_events  # the signal events of two large steps on 64 pixels
+
+
 def test_timestamps_beyond_int64_are_refused():
     with pytest.raises(ev.ParameterError, match="64-bit timestamp"):
         ev.iter_events(np.ones((2, 2)), PARAMS, 1e13, rng=1, t_start_us=2**62)
