@@ -495,6 +495,10 @@ def _check_timestamps(timestamps_s, n_frames: int) -> np.ndarray:
     return ts
 
 
+#: a video of more frames shows a progress bar while they are first read (``progress=True``)
+FRAMES_WITHOUT_BAR = 100
+
+
 def iter_video(
     frames_lux,
     timestamps_s,
@@ -522,8 +526,16 @@ def iter_video(
     shape = frames.shape
     static = np.ones(shape, dtype=bool)
     first = frames.get(0)
-    for i in range(1, frames.n):
-        static &= frames.get(i) == first
+    # every frame is read once here (which pixels never change): 100,000 frames of a folder take minutes
+    reading = progress_bar(frames.n - 1, progress and frames.n > FRAMES_WITHOUT_BAR, "reading frames", unit="frames")
+    try:
+        for i in range(1, frames.n):
+            static &= frames.get(i) == first
+            if reading is not None:
+                reading.update(1)
+    finally:
+        if reading is not None:
+            reading.close()
     if method == "trials":
         static[:] = False
     elif method == "renewal" and not static.all():
