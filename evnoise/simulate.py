@@ -14,7 +14,9 @@ Fidelity tiers ("model only what a scene needs"):
 the trial tier for the others (with reset memory whose chains are too many for tables: the trial tier for every
 pixel, each chain's start computed on its own). Randomness: each pixel has its own stream (xoshiro256++ keyed
 by the caller's generator and the pixel index), so the output does not depend on the number
-of threads, the chunking of pixels, or the windows in which time is generated.
+of threads, the chunking of pixels, or (a still scene) the windows in which time is generated. A video's changing
+pixels depend on the windows in their bits, not their law: their trial tier jumps over the windows in which their
+light is constant, and the windows' length depends on the number of changing pixels.
 """
 
 from __future__ import annotations
@@ -616,7 +618,7 @@ def _fill_static_cache(state: PixelState, frames_lam: np.ndarray, params: NoiseP
     and whose cache does not already hold that ``lam``. Vectorised here (the grouped closed
     form) so that the kernel does not evaluate the exact sum pixel by pixel.
     """
-    from ._kernels.simulate import static_in_window
+    from ._kernels.simulate import PEND_TAU, static_in_window
 
     need = np.empty(state.pix.size, dtype=np.bool_)
     static_in_window(frames_lam, state.pix, state.fstate, need)
@@ -631,6 +633,7 @@ def _fill_static_cache(state: PixelState, frames_lam: np.ndarray, params: NoiseP
         state.cache_log1m_p[sel] = np.where(p_all < 1.0, np.log1p(-np.minimum(p_all, 1.0)), -np.inf)
         state.cache_q_on[sel] = np.where(p_all > 0.0, p_on / np.where(p_all > 0.0, p_all, 1.0), 0.0)
     state.cache_lam[sel] = lam0
+    state.fstate[sel, PEND_TAU] = np.nan  # a pending jump's event was drawn with the old probabilities
 
 
 def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us, duration_us, threads,

@@ -424,11 +424,14 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
     crossing can happen (``lam = lam_ref``), a noise event resets ``lam_ref`` to the same
     ``lam``, so every eligible trial fires independently with the same probabilities
     ``p_on``, ``p_off`` of the static model, and the gap to the next event is geometric in
-    eligible trials (as in :func:`renewal_window`): O(events) instead of O(trials). A gap
-    that ends beyond the window is dropped and redrawn in the next window (exact: the
-    geometric gap is memoryless). ``p_on``, ``p_off`` come from the exact closed form and are
-    cached per pixel (``CACHE_LAM`` is the ``lam`` they belong to, NaN for none;
-    ``CACHE_LOG1M_P = log1p(-(p_on + p_off))``, ``CACHE_Q_ON = p_on / (p_on + p_off)``). The
+    eligible trials (as in :func:`renewal_window`): O(events) instead of O(trials). Each gap is
+    drawn with its event's time and polarity; an event beyond the window stays pending (``PEND_TRIAL``,
+    ``PEND_TAU``, ``PEND_ON``) for the next window while the pixel's cached probabilities stay, so a
+    still scene's events do not depend on how time is cut into windows. A pending event is dropped
+    (exact: the geometric gap is memoryless) when the pixel takes the per-trial path or its cache is
+    refilled (:func:`static_in_window` callers clear it with the cache). ``p_on``, ``p_off`` come from
+    the exact closed form and are cached per pixel (``CACHE_LAM`` is the ``lam`` they belong to, NaN for
+    none; ``CACHE_LOG1M_P = log1p(-(p_on + p_off))``, ``CACHE_Q_ON = p_on / (p_on + p_off)``). The
     random stream is consumed differently from the per-trial path, so the output differs in
     its bits, not in its law; ``fast_static=False`` keeps the per-trial path (the reference).
 
@@ -510,23 +513,33 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
                     fstate[k, CACHE_LAM] = lam0
                     fstate[k, CACHE_LOG1M_P] = math.log1p(-p_all) if p_all < 1.0 else -math.inf
                     fstate[k, CACHE_Q_ON] = p_on / p_all if p_all > 0.0 else 0.0
+                    fstate[k, PEND_TAU] = NO_EVENT  # drawn with other probabilities
                 log1m_p = fstate[k, CACHE_LOG1M_P]
                 q_on = fstate[k, CACHE_Q_ON]
                 while True:
-                    if fstate[k, LAST_TAU] == -math.inf:
-                        j_e = fstate[k, LAST_TRIAL] + 1.0
+                    if not math.isnan(fstate[k, PEND_TAU]):  # drawn in an earlier window (may be inf: never)
+                        jp = fstate[k, PEND_TRIAL]
+                        tau = fstate[k, PEND_TAU]
+                        on = fstate[k, PEND_ON] == 1.0
+                        fstate[k, PEND_TAU] = NO_EVENT
                     else:
-                        j_e = first_eligible_trial(fstate[k, LAST_TRIAL], fstate[k, LAST_TAU], refr_us, dt)
-                    j_e = max(j_e, float(j_start))
-                    if j_e >= j_end:
+                        if fstate[k, LAST_TAU] == -math.inf:
+                            j_e = fstate[k, LAST_TRIAL] + 1.0
+                        else:
+                            j_e = first_eligible_trial(fstate[k, LAST_TRIAL], fstate[k, LAST_TAU], refr_us, dt)
+                        j_e = max(j_e, float(j_start))
+                        if j_e >= j_end:
+                            break
+                        g = geometric(s, log1m_p)
+                        jp = j_e + g - 1.0
+                        u_t = uniform(s)
+                        on = uniform(s) < q_on
+                        tau = (jp + u_t) * dt
+                    if jp >= j_end:  # pending for the next window
+                        fstate[k, PEND_TRIAL] = jp
+                        fstate[k, PEND_TAU] = tau
+                        fstate[k, PEND_ON] = 1.0 if on else 0.0
                         break
-                    g = geometric(s, log1m_p)
-                    jp = j_e + g - 1.0
-                    if jp >= j_end:
-                        break  # dropped; redrawn from the next window on (memoryless)
-                    u_t = uniform(s)
-                    on = uniform(s) < q_on
-                    tau = (jp + u_t) * dt
                     if tau >= tau_limit:
                         break
                     if n == cap:
@@ -540,6 +553,7 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
                     _restore(states, fstate, k, snap_s, snap_f)
                     return n_before, k
                 continue
+        fstate[k, PEND_TAU] = NO_EVENT  # trial by trial: a pending jump's event is dropped (memoryless)
         # cached exp(-lam) of the last Poisson means (most trials repeat them)
         lam_c = -1.0
         em_c = 1.0
