@@ -149,14 +149,21 @@ def events_from_array(arr, *, time_unit: str = "us") -> np.ndarray:
     arr = np.asarray(arr)
     if arr.ndim != 2 or arr.shape[1] != 4:
         raise InputError(f"expected an N x 4 array [t, x, y, p], got shape {arr.shape}")
+    if arr.dtype.kind not in "biuf":
+        raise InputError(f"expected a numeric N x 4 array [t, x, y, p], got dtype {arr.dtype}")
     if arr.size and not np.isfinite(arr).all():
         raise InputError("event array contains NaN or Inf")
-    if time_unit == "us":
-        t = np.round(arr[:, 0]).astype(np.int64)
-    elif time_unit == "s":
-        t = np.round(arr[:, 0] * 1e6).astype(np.int64)
-    else:
+    if time_unit not in ("us", "s"):
         raise InputError(f"time_unit must be 'us' or 's', got {time_unit!r}")
+    t = arr[:, 0]
+    if time_unit == "s" or t.dtype.kind == "f":
+        t = np.round(t * 1e6 if time_unit == "s" else t)
+        outside = ~((t >= -(2.0**63)) & (t < 2.0**63))
+        if outside.any():
+            i = int(np.flatnonzero(outside)[0])
+            raise InputError(f"event {i}: time {float(arr[i, 0]):g} {time_unit} is outside the 64-bit microsecond "
+                             f"clock (about +-292,000 years)")
+    t = t.astype(np.int64)
     pol = arr[:, 3]
     if np.any((pol != 0) & (pol != 1) & (pol != -1)):
         raise InputError("polarity must be 0/1 or -1/+1")

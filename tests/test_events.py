@@ -53,3 +53,18 @@ def test_array_round_trip_and_conventions():
         ev.events_from_array(np.zeros((2, 3)))
     with pytest.raises(ev.InputError):
         ev.events_from_array(np.array([[0, -1, 2, 1]]))
+
+
+@pytest.mark.parametrize("t, unit", [(1e30, "us"), (1e30, "s"), (-1e19, "us"), (2**62, "s")])
+def test_events_from_array_refuses_times_beyond_the_int64_clock(t, unit):
+    """A time outside int64 microseconds was cast to -2**63 and sorted first, with only NumPy's RuntimeWarning."""
+    arr = np.array([[5, 1, 1, 0], [t, 0, 0, 1]], dtype=np.float64 if isinstance(t, float) else np.int64)
+    with pytest.raises(ev.InputError, match=r"event 1: time .* is outside the 64-bit microsecond clock"):
+        ev.events_from_array(arr, time_unit=unit)
+
+
+def test_events_from_array_keeps_large_integer_times_exactly_and_refuses_complex():
+    big = np.array([[2**62 + 1, 1, 1, 0], [3, 0, 0, 1]], dtype=np.int64)
+    assert ev.events_from_array(big)["t"].tolist() == [3, 2**62 + 1]
+    with pytest.raises(ev.InputError, match="numeric"):
+        ev.events_from_array(np.array([[1 + 2j, 1, 1, 0]]))
