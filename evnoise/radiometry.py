@@ -485,7 +485,7 @@ def _read_exr(path: Path, limit: int = DEFAULT_MAX_IMAGE_PIXELS) -> np.ndarray:
                           {k: np.asarray(v.pixels) for k, v in part.channels.items()}) for part in exr.parts]
         except Exception as exc:
             error = exc
-    if error is not None:
+    if error is not None or not parts:  # a truncated file can decode to no part without an exception
         raise _exr_failure(name, error, printed[0])
     _echo(printed[0])
     # a multipart file (a depth or a mask part beside the image): the first part holding an image
