@@ -38,8 +38,13 @@ def default_threads() -> int:
 
 
 def resolve_threads(threads) -> int:
-    """``threads`` as given (at least 1), or :func:`default_threads` for None."""
-    return default_threads() if threads is None else max(1, int(threads))
+    """``threads`` as given (a whole number >= 1; :class:`ParameterError` otherwise), or :func:`default_threads` for
+    None."""
+    if threads is None:
+        return default_threads()
+    if isinstance(threads, (bool, np.bool_)) or not isinstance(threads, numbers.Integral) or threads < 1:
+        raise ParameterError(f"threads must be a whole number >= 1 (or None: every CPU), got {threads!r}")
+    return int(threads)
 
 
 def check_input_file(path, *, missing: str, kind: str, folders: bool = False):
@@ -92,6 +97,8 @@ def check_lux(lux, *, name: str = "lux", ndim: int | None = 2) -> np.ndarray:
 
 def check_positive(value, name: str, unit: str = "") -> float:
     try:
+        if isinstance(value, (bool, np.bool_)):  # float(True) is 1: a flag passed for a number
+            raise TypeError
         v = float(value)
     except (TypeError, ValueError):
         raise ParameterError(f"{name} must be a number, got {value!r}") from None
@@ -106,6 +113,8 @@ def check_float(value, name: str, unit: str, *, minimum: float = 0.0, strict: bo
     Raises ``ParameterError`` otherwise.
     """
     try:
+        if isinstance(value, (bool, np.bool_)):  # float(True) is 1: a flag passed for a number
+            raise TypeError
         v = float(value)
     except (TypeError, ValueError):
         raise ParameterError(f"{name} must be a number ({unit}), got {value!r}") from None

@@ -377,6 +377,7 @@ def test_noise_stream_reuses_the_closed_form_only_while_the_light_is_the_same():
         (np.full((4, 4), 1.0), 0.0, ev.ParameterError),
         (np.full((4, 4), 1.0), -2.0, ev.ParameterError),
         (np.full((4, 4), 1.0), float("nan"), ev.ParameterError),
+        (np.full((4, 4), 1.0), True, ev.ParameterError),  # float(True) is 1: ran for a second
     ],
 )
 def test_static_bad_input(lux, duration, exc):
@@ -551,3 +552,18 @@ def test_simulate_video_refuses_what_cannot_fit_in_memory(monkeypatch):
     monkeypatch.undo()
     with pytest.raises(ev.ParameterError, match="simulate_video would return about"):  # 1e12 s: not run
         ev.simulate_video(frames, [0.0, 1e12], PARAMS, rng=1)
+
+
+@pytest.mark.parametrize("threads", [0, -3, 1.5, True, "a"])
+def test_threads_must_be_a_whole_number_of_at_least_one(threads):
+    """The CLI refused --threads 0 / 1.5 / a; the API made 0, -3, 1.5 and True valid counts (max(1, int(x))) and
+    raised a bare ValueError for "a"."""
+    lux = np.full((4, 4), 2.0)
+    calls = [lambda: ev.simulate_events(lux, PARAMS, 0.1, rng=0, threads=threads),
+             lambda: ev.sample_counts(lux, PARAMS, 0.1, rng=0, threads=threads),
+             lambda: ev.NoiseStream(lux.shape, PARAMS, rng=0, threads=threads),
+             lambda: ev.simulate_video(np.stack([lux, lux]), [0.0, 0.1], PARAMS, rng=0, threads=threads)]
+    for call in calls:
+        with pytest.raises(ev.ParameterError, match="threads must be a whole number >= 1"):
+            call()
+    assert ev.simulate_events(lux, PARAMS, 0.1, rng=0, threads=np.int64(2)).size >= 0
