@@ -528,8 +528,8 @@ class EventFileWriter(_AtomicWriter):
     attrs : dict, optional
         evnoise's attributes (``params``, ``seed``, ``source``, ...): kept in ``.h5`` (root
         attributes) and ``.aedat4`` (description); the other formats have no place for them.
-    overwrite, compression, t_end_us
-        As in :class:`EventWriter` (``compression`` applies to ``.h5`` only).
+    overwrite, compression, t_end_us, t_offset_us
+        As in :class:`EventWriter` (``compression`` and ``t_offset_us`` apply to ``.h5`` only).
     file_format : str, optional
         Force a format (one of :data:`OUTPUT_FORMATS`' values) instead of the suffix.
 

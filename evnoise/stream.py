@@ -42,6 +42,8 @@ class NoiseStream:
     background : array_like, optional
         Per-pixel background maps ``(2, H, W)``; drawn when ``params.leak_sigma > 0`` or hot
         pixels are on (see :func:`simulate_events`).
+    threads : int, optional
+        Worker threads (default ``NUMBA_NUM_THREADS`` or the CPU count); the events are the same for any number.
 
     Notes
     -----
