@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError, ParameterError
-from .params import NoiseParams
+from .params import PARAM_LIMITS, NoiseParams
 
 
 def as_generator(rng) -> np.random.Generator:
@@ -78,10 +78,7 @@ def check_params(params) -> NoiseParams:
 
 def check_lux(lux, *, name: str = "lux", ndim: int | None = 2) -> np.ndarray:
     """A float64 illuminance array: finite and >= 0 everywhere."""
-    try:
-        arr = np.asarray(lux, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise InputError(f"{name} must be a numeric array") from None
+    arr = real_array(lux, name)
     if ndim is not None and arr.ndim != ndim:
         raise InputError(f"{name} must be a {ndim}-D array (H, W), got shape {arr.shape}")
     if arr.size == 0:
@@ -149,12 +146,28 @@ def duration_to_us(duration_s) -> int:
 
 
 def check_thresholds(thresholds, shape) -> np.ndarray:
-    arr = np.asarray(thresholds, dtype=np.float64)
+    """Per-pixel thresholds ``(2, H, W)``: finite, > 0 and at most a parameter's own limit (20: a factor e^20 of
+    light, beyond any sensor)."""
+    arr = real_array(thresholds, "thresholds")
     if arr.shape != (2, *shape):
         raise InputError(f"thresholds must have shape (2, H, W) = {(2, *shape)}, got {arr.shape}")
     if not (np.isfinite(arr).all() and (arr > 0).all()):
         raise InputError("thresholds must be finite and > 0")
+    top = PARAM_LIMITS["eps_pos"]
+    if (arr > top).any():
+        raise InputError(f"thresholds must be at most {top:g} (as eps_pos, eps_neg), got {arr.max():g}")
     return arr
+
+
+def real_array(values, name: str) -> np.ndarray:
+    """``values`` as float64; a complex array (whose imaginary part NumPy's cast would drop with a warning) or one
+    that is not numeric is an :class:`InputError` naming ``name``."""
+    if np.iscomplexobj(values):
+        raise InputError(f"{name} must be real numbers, got a complex array")
+    try:
+        return np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a numeric array") from None
 
 
 def path_text(path) -> str:

@@ -54,7 +54,7 @@ import math
 import numpy as np
 
 from . import terms
-from ._checks import as_generator, check_lux, check_map_shape, check_params
+from ._checks import as_generator, check_lux, check_map_shape, check_params, real_array
 from .errors import InputError
 from .terms.arrivals import arrival_shares, lux_of_photons  # noqa: F401  (their home; imported from here too)
 from .terms.bandwidth import alpha_per_photon as pr_alpha_per_photon
@@ -78,11 +78,19 @@ def draw_background(shape, params, rng=None) -> np.ndarray:
 
 
 def check_background(background, shape) -> np.ndarray:
-    arr = np.asarray(background, dtype=np.float64)
+    """Background maps ``(2, H, W)`` ``[spread factor, hot rate]``: finite, >= 0, hot rates at most
+    ``hot_pixel_rate_hz``'s limit (1e9 events/s)."""
+    from .params import PARAM_LIMITS
+
+    arr = real_array(background, "background")
     if arr.shape != (2, *shape):
         raise InputError(f"background must have shape (2, H, W) = {(2, *shape)}, got {arr.shape}")
     if not (np.isfinite(arr).all() and (arr >= 0).all()):
         raise InputError("background must be finite and >= 0")
+    top = PARAM_LIMITS["hot_pixel_rate_hz"]
+    if (arr[1] > top).any():
+        raise InputError(f"background hot rates (row 1) must be at most {top:g} events/s (as hot_pixel_rate_hz), "
+                         f"got {arr[1].max():g}")
     return arr
 
 

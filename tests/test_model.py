@@ -231,3 +231,11 @@ def test_panel_bound_bounds_log_p_over_the_panel():
                 bound = panel_log_bound(lo, hi, c, b)
                 exact = max(log_event_probability_exact(x, c, b) for x in np.geomspace(lo, hi, 60))
                 assert bound >= exact, (c, b, lo, bound, exact)
+
+
+@pytest.mark.parametrize("lam, eps", [(1e12, 20.0), (3.6e299, 20.0), (1.1e306, 5.0), (5e307, 0.5)])
+def test_log_p_is_finite_and_above_the_no_photon_term_as_documented(lam, eps):
+    """With b = 0 the trial with no reference photon alone gives p >= exp(-lam) (1 - exp(-lam)): log p >= -lam, finite
+    up to the documented lam (the docstring said "every 0 < lam < inf"; -inf comes beyond ~1e299 at eps = 20)."""
+    value = ev.log_event_probability(lam, eps, 0.0)
+    assert np.isfinite(value) and -lam * (1 + 1e-12) <= value < 0.0
