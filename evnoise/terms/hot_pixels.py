@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..params import PARAM_LIMITS
 from .base import NoiseTerm, lognormal_mean_one
 
 
@@ -34,7 +35,8 @@ class HotPixels(NoiseTerm):
             rates = np.full(n_hot, params.hot_pixel_rate_hz)
             if params.hot_pixel_sigma > 0:
                 rates *= lognormal_mean_one(gen, params.hot_pixel_sigma, n_hot)
-            out[1, idx] = rates
+            # at most a rate's own limit (a thousand per microsecond): drawn maps pass the check of given ones
+            out[1, idx] = np.minimum(rates, PARAM_LIMITS["hot_pixel_rate_hz"])
 
     def intensities(self, lux, params, scale=None, hot=None):
         if hot is None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from ..params import PARAM_LIMITS
 from .base import NoiseTerm
 
 
@@ -30,12 +31,13 @@ class ShotNoise(NoiseTerm):
         if params.eps_sigma <= 0:
             return
         n = out.shape[1]
+        top = PARAM_LIMITS["eps_pos"]  # a threshold's own limit: drawn maps pass the check of given ones
         for i, mean in enumerate((params.eps_pos, params.eps_neg)):
             draw = gen.normal(mean, params.eps_sigma, size=n)
-            bad = draw <= 0
+            bad = (draw <= 0) | (draw > top)
             while bad.any():
                 draw[bad] = gen.normal(mean, params.eps_sigma, size=int(bad.sum()))
-                bad = draw <= 0
+                bad = (draw <= 0) | (draw > top)
             out[i] = draw
 
     def kernel_model(self, params) -> dict:
