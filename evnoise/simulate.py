@@ -14,8 +14,9 @@ Fidelity tiers ("model only what a scene needs"):
 the trial tier for the others (with reset memory whose chains are too many for tables: the trial tier for every
 pixel, each chain's start computed on its own). Randomness: each pixel has its own stream (xoshiro256++ keyed
 by the caller's generator and the pixel index), so the output does not depend on the number
-of threads, the chunking of pixels, or the windows in which time is generated (whose length depends on the
-number of pixels: a crop gives its pixels the same events).
+of threads, the chunking of pixels, or (a still scene) the windows in which time is generated. A video's changing
+pixels depend on the windows in their bits, not their law: their trial tier jumps over the windows in which their
+light is constant, and the windows' length depends on the number of changing pixels.
 """
 
 from __future__ import annotations
@@ -747,8 +748,7 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
                         cache[int(i)] = lam_of(int(i))
                 stack = np.stack([cache[int(i)] for i in idx])
                 f_us = np.ascontiguousarray(frame_us[idx]) if frames.n > 1 else np.zeros(1)
-                if fast_static and frames.n == 1:  # a still scene: each pixel's one light, vectorised (a video's
-                    # pixels are filled by the kernel as their runs come: the same bits however windows cut them)
+                if fast_static:
                     _fill_static_cache(dyn_state, stack, params, dyn_e_on, dyn_e_off,
                                        None if bg is None else select_background(bg, dyn_pix))
 

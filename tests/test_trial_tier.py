@@ -163,27 +163,3 @@ def test_still_scene_trial_tier_does_not_depend_on_the_windows(monkeypatch):
     top = ev.simulate_events(lux[:8], PARAMS, 3.0, rng=3, method="trials")  # fewer pixels: other windows
     whole = ev.simulate_events(lux, PARAMS, 3.0, rng=3, method="trials")
     np.testing.assert_array_equal(top, whole[whole["y"] < 8])
-
-
-def test_video_trial_tier_does_not_depend_on_the_windows(monkeypatch):
-    """A changing pixel jumps over its runs of trials at one light; the runs were the windows' (a window whose frames
-    all had one light), so the events depended on the windows and on the number of changing pixels. Runs are now
-    the trials' own (between frames of one light), whatever the windows: random piecewise-constant videos, frames
-    faster and slower than the trials, cut into windows of 1, 3, 7 trials and one window."""
-    for seed in range(3):
-        g = np.random.default_rng(seed)
-        n_frames = 9
-        looks = g.uniform(0.3, 30, (3, 12, 16))
-        frames = np.stack([looks[g.integers(0, 3)] if g.uniform() < 0.7 else g.uniform(0.3, 30, (12, 16))
-                           for _ in range(n_frames)])
-        keep = g.uniform(size=(12, 16)) < 0.5
-        frames[:, keep] = frames[0, keep]  # these pixels never change: one long run
-        frames[1:, 0, 0] = 2 * frames[0, 0, 0]  # at least one pixel changes (a video, not a still scene)
-        times = np.cumsum(np.r_[0.0, g.uniform(0.005, 4.0, n_frames - 1)])  # 0.1 to 80 trials apart
-        runs = []
-        for per_window in (40_000_000, 7 * 192, 3 * 192, 192):
-            monkeypatch.setattr(es, "TARGET_PIXEL_TRIALS_PER_WINDOW", per_window)
-            runs.append(ev.simulate_video(frames, times, PARAMS, rng=seed, method="trials"))
-        assert runs[0].size > 200
-        for r in runs[1:]:
-            np.testing.assert_array_equal(r, runs[0])
