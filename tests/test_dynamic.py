@@ -597,32 +597,13 @@ def test_reading_many_frames_shows_a_progress_bar_and_changes_nothing(monkeypatc
     """iter_video reads every frame once (which pixels never change) before its simulation bar: a folder of
     100,000 frames showed nothing for minutes. With ``progress`` a bar counts the frames read (a stand-in bar:
     tqdm draws at most every 0.1 s); the events are those of a run without it; a short video has no such bar."""
+    from _bars import stand_in_bars
     from evnoise import simulate
 
     frames = np.stack([np.full((4, 5), 2.0 + (i % 7)) for i in range(simulate.FRAMES_WITHOUT_BAR + 20)])
     times = np.arange(len(frames)) * 1e-3
     quiet = ev.simulate_video(frames, times, PARAMS, rng=2)
-    bars = {}
-
-    class Bar:
-        def __init__(self, total):
-            self.total, self.counted, self.closed = total, 0, False
-
-        def update(self, n):
-            self.counted += n
-
-        def close(self):
-            self.closed = True
-
-    real = simulate.progress_bar
-
-    def stand_in(total, enabled, desc, **kw):
-        if desc != "reading frames":
-            return real(total, False, desc, **kw)
-        bars[desc] = Bar(total) if enabled else None
-        return bars[desc]
-
-    monkeypatch.setattr(simulate, "progress_bar", stand_in)
+    bars = stand_in_bars(monkeypatch, simulate, "reading frames", others_shown=False)
     np.testing.assert_array_equal(ev.simulate_video(frames, times, PARAMS, rng=2, progress=True), quiet)
     bar = bars["reading frames"]
     assert bar.total == bar.counted == len(frames) - 1 and bar.closed

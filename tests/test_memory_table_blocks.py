@@ -53,6 +53,7 @@ def test_many_chains_show_a_progress_bar_and_the_same_events(capsys, monkeypatch
     (a DAVIS346 sensor: ~40 s with nothing on the screen before): with ``progress`` a bar counts the chains to
     their number (counted through a stand-in bar: tqdm draws at most every 0.1 s), and the events are those of a
     run without it."""
+    from _bars import stand_in_bars
     from evnoise import simulate
 
     params = ev.load_preset("davis346").replace(reset_memory=0.3, leak_regularity=0.0, hot_pixel_regularity=0.0)
@@ -62,27 +63,7 @@ def test_many_chains_show_a_progress_bar_and_the_same_events(capsys, monkeypatch
     shown = ev.simulate_events(lux, params, 0.5, rng=3, progress=True)
     np.testing.assert_array_equal(shown, quiet)
     assert "memory tables:" in capsys.readouterr().err  # the real bar is drawn
-    bars = {}
-
-    class Bar:
-        def __init__(self, total):
-            self.total, self.counted, self.closed = total, 0, False
-
-        def update(self, n):
-            self.counted += n
-
-        def close(self):
-            self.closed = True
-
-    real = simulate.progress_bar
-
-    def stand_in(total, enabled, desc, **kw):
-        if desc != "memory tables":
-            return real(total, enabled, desc, **kw)
-        bars[desc] = Bar(total) if enabled else None
-        return bars[desc]
-
-    monkeypatch.setattr(simulate, "progress_bar", stand_in)
+    bars = stand_in_bars(monkeypatch, simulate, "memory tables")
     np.testing.assert_array_equal(ev.simulate_events(lux, params, 0.5, rng=3, progress=True), quiet)
     n_chains = len(tm.chain_plan(params.photons_per_trial(lux).ravel(), *_maps(params, lux))[0][0])
     assert n_chains > tm.EXACT_RATE_LEVELS
