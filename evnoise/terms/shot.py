@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from ..params import PARAM_LIMITS
 from .base import NoiseTerm
 
 
@@ -31,13 +30,12 @@ class ShotNoise(NoiseTerm):
         if params.eps_sigma <= 0:
             return
         n = out.shape[1]
-        top = PARAM_LIMITS["eps_pos"]  # a threshold's own limit: drawn maps pass the check of given ones
         for i, mean in enumerate((params.eps_pos, params.eps_neg)):
             draw = gen.normal(mean, params.eps_sigma, size=n)
-            bad = (draw <= 0) | (draw > top)
+            bad = draw <= 0
             while bad.any():
                 draw[bad] = gen.normal(mean, params.eps_sigma, size=int(bad.sum()))
-                bad = (draw <= 0) | (draw > top)
+                bad = draw <= 0
             out[i] = draw
 
     def kernel_model(self, params) -> dict:
