@@ -68,7 +68,8 @@ def draw_background(shape, params, rng=None) -> np.ndarray:
     """Per-pixel background maps ``(2, H, W)``: ``[spread factor s, hot-pixel rate h in events/s]``.
 
     ``s`` is 1 everywhere when ``leak_sigma`` is 0; ``h`` is 0 except for the hot pixels (a
-    uniformly random ``round(hot_pixel_fraction * H * W)`` of them, chosen without replacement).
+    uniformly random ``round(hot_pixel_fraction * H * W)`` of them, chosen without replacement; a rate
+    spread by ``hot_pixel_sigma`` past 1e9 events/s, ``hot_pixel_rate_hz``'s own limit, is capped there).
     Draws from ``rng`` only for the terms that are on (spread first, then hot pixels), so turning
     them off leaves every other draw of a run unchanged.
     """
