@@ -638,6 +638,7 @@ class EventFileWriter(_AtomicWriter):
         if self.t_end_us is not None and t[-1] >= self.t_end_us:
             raise InputError(f"event at t = {t[-1]} us is not before t_end_us = {self.t_end_us}")
         self._check_time_base(t)
+        last = int(t[-1])  # on the stream's own clock, as the next chunk's times are compared (not shifted)
         if self.time_shift_us:
             t = t - self.time_shift_us
         out = np.empty(events.size, dtype=self._faery_dtype)
@@ -647,7 +648,7 @@ class EventFileWriter(_AtomicWriter):
         out["on"] = events["p"] == ON
         self._encode(out, events, t)
         self.n_events += int(events.size)
-        self._last_t = int(t[-1])
+        self._last_t = last
 
     def _check_time_base(self, t):
         """Choose the time shift at the first event, and refuse what the format cannot hold (before
