@@ -278,3 +278,26 @@ def test_a_failed_stationarity_check_names_the_longest_stretch_that_passes():
     from evnoise.calibration.preset import toml_value
 
     assert all(toml_value(v) for c in (check, steep) for v in c.values())
+
+
+def test_profile_distance_goes_up_from_the_lower_bound():
+    """A regularity at its lower bound (0) was labelled "close to 1" and measured downwards. On a likelihood whose
+    profile in r is a parabola of width 0.05 around r0 the one-sided distance is 0.05 either way, and from r = 1e-6
+    upwards it is where the parabola rises by 1/2."""
+    import math
+
+    from evnoise.calibration.quiet.fit import _logit, _profile_distance
+
+    def nll_around(r0):
+        def nll(theta):
+            r = 1.0 / (1.0 + math.exp(-theta[0]))
+            return 0.5 * ((r - r0) / 0.05) ** 2 + 0.5 * (theta[1] - 1.0) ** 2
+        return nll
+
+    theta = np.array([_logit(0.3), 1.0])
+    assert abs(_profile_distance(nll_around(0.3), theta, 0, 0.3) - 0.05) < 2e-3
+    assert abs(_profile_distance(nll_around(0.3), theta, 0, 0.3, upward=True) - 0.05) < 2e-3
+    low = np.array([_logit(1e-6), 1.0])
+    up = _profile_distance(nll_around(-0.02), low, 0, 1e-6, upward=True)
+    # the profile at the bound is 0.5 (0.02 / 0.05)**2; it has risen by 1/2 where ((r + 0.02) / 0.05)**2 = 1 + 0.16
+    assert abs(up - (0.05 * math.sqrt(1.16) - 0.02)) < 2e-3

@@ -278,9 +278,9 @@ def _hot_guess(windows, rates):
     return n_hot / n_pix, hot_events / hot_time
 
 
-def _profile_distance(nll, theta_hat, index: int, value: float) -> float:
-    """How far a proportion (coordinate ``index`` of ``theta_hat``, the logit of ``value``) can move down
-    before the profile of ``nll`` (the others re-fitted) rises by 1/2: a one-sided standard error."""
+def _profile_distance(nll, theta_hat, index: int, value: float, upward: bool = False) -> float:
+    """How far a proportion (coordinate ``index`` of ``theta_hat``, the logit of ``value``) can move down (``upward``:
+    up) before the profile of ``nll`` (the others re-fitted) rises by 1/2: a one-sided standard error."""
     from scipy.optimize import brentq, minimize
 
     base = nll(theta_hat)
@@ -299,6 +299,20 @@ def _profile_distance(nll, theta_hat, index: int, value: float) -> float:
         start[others] = best.x  # the next point starts from this one
         return best.fun - base - 0.5
 
+    if upward:  # at the lower bound (0): how far up the data let it go
+        ceiling = 1.0 - 1e-6
+        lo, step = value, max(1e-3, value)
+        while True:
+            hi = min(value + step, ceiling)
+            if rise(hi) >= 0.0:
+                break
+            if hi >= ceiling:
+                return 1.0 - value  # flat up to 1: not constrained from above
+            lo, step = hi, 2.0 * step
+        try:
+            return brentq(rise, lo, hi, xtol=1e-4) - value
+        except ValueError:
+            return hi - value
     floor = 1e-6
     hi = value
     step = max(1e-3, 1.0 - value)
@@ -682,7 +696,14 @@ def _standard_errors(model: Model, groups, res):
             i += 2
         if model.regular:
             se["regularity"] = v["regularity"] * (1 - v["regularity"]) * d[i]
-            if v["regularity"] + 2.0 * se["regularity"] > 1.0 or "regularity" in bound:
+            low = "regularity" in bound and v["regularity"] <= 0.5
+            if low:
+                # at r = 0 (a Poisson background) the delta method through the logit shrinks the error to
+                # nothing as well: the profile likelihood says how far r can move up
+                se["regularity"] = _profile_distance(nll, res.x, i, v["regularity"], upward=True)
+                notes.append("regularity at its lower bound (0: a Poisson background): its standard error is the "
+                             "profile-likelihood distance to the 1-sigma point above it (one-sided)")
+            elif v["regularity"] + 2.0 * se["regularity"] > 1.0 or "regularity" in bound:
                 # near r = 1 the delta method through the logit shrinks the error to nothing while the
                 # likelihood may be flat: the profile likelihood says how far r can move inwards
                 se["regularity"] = _profile_distance(nll, res.x, i, v["regularity"])
