@@ -3,8 +3,8 @@ Calibrating a preset from a quiet recording
 ===========================================
 
 With your own camera, record a still scene for a few seconds and let evnoise fit the background
-it sees (``evnoise calibrate rec.aedat4 --t-start 0 --t-end 4.5 --out mycam.toml``). Here the
-"camera" is evnoise itself: we simulate a quiet recording of a sensor whose true parameters we
+it sees (``evnoise calibrate rec.aedat --t-start 48.87 --t-end 53.37 --out mycam.toml``, a window on the
+file's clock). Here the "camera" is evnoise itself: we simulate a quiet recording of a sensor whose true parameters we
 know (a leaky sensor with near-periodic, log-normally spread leak events, in the dark), write it as an AEDAT 4 file, fit it with :func:`evnoise.calibration.quiet_window` and
 :func:`evnoise.calibration.fit_quiet`, and compare fitted and true values.
 """

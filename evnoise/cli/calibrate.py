@@ -36,7 +36,7 @@ def register(subparsers) -> None:
         "evnoise calibrate rates.csv --out cam.toml --plot cam.png ; "
         "evnoise calibrate flats.toml --out cam.toml --fix refractory_s=0 ; "
         "evnoise calibrate grey_rates.csv --monitor monitor.csv --out cam.toml ; "
-        "evnoise calibrate rec.aedat --t-start 0 --t-end 4.5 --out cam.toml --plot fit.png",
+        "evnoise calibrate rec.aedat --t-start 48.87 --t-end 53.37 --out cam.toml --plot fit.png",
     )
     p.add_argument("measurements", metavar="MEASUREMENTS", nargs="*",
                    help="rate table (CSV) or flat-field listing (TOML, or CSV with a 'file' column); with "
