@@ -352,3 +352,14 @@ def test_info_stats_png_never_replaces_the_recording(tmp_path, capsys):
     code, _, err = run_cli(capsys, "info", events, "--stats", "--png", events, "--overwrite")
     one_error_line(code, err, f"--png {events} is the input file")
     assert events.read_bytes() == before
+
+
+def test_info_of_an_empty_window_says_where_the_clock_is(tmp_path, capsys):
+    """A window on a clock the file does not cover (the guide's "0 .. 4.5 s" on a DVS128 file starting at 48.9 s)
+    reported 0 events over 4.5 s as a valid measurement, without a word."""
+    path = small_events_file(tmp_path / "rec.h5")
+    code, out, err = run_cli(capsys, "info", path, "--t-start", "100", "--t-end", "104.5")
+    assert code == 0 and "events:" in out
+    assert "no events in the window" in err and "t_first_us, t_last_us" in err
+    code, _, err = run_cli(capsys, "info", path, "--t-start", "0", "--t-end", "0.5")
+    assert code == 0 and "no events in the window" not in err

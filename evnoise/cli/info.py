@@ -11,6 +11,7 @@ e.g. ``register_kind("dataset", _is_dataset, _summarise_dataset)``.
 from __future__ import annotations
 
 import json
+import logging
 import os
 from pathlib import Path
 from typing import Callable
@@ -194,6 +195,11 @@ def summarise_events(path, *, sensor=None, t_start=None, t_end=None, csv_columns
         out["sensor"] = None
         out["sensor_note"] = (f"the header has no sensor size; the events span {extent} (x, y from 0); "
                               f"give --sensor WxH")
+    if n == 0 and (a_us is not None or b_us is not None):
+        logging.getLogger(__name__).warning(
+            "%s: no events in the window; camera clocks do not start at 0 (a DVS128 file at tens of seconds, an "
+            "AEDAT 4 file at the Unix time): `evnoise info %s` without --t-start/--t-end gives the file's first and "
+            "last event's time (t_first_us, t_last_us)", path, path)
     out["events"] = n
     out["ON"] = n_on
     out["OFF"] = n - n_on
