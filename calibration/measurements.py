@@ -585,9 +585,21 @@ def read_measurements(path, *, monitor=None, monitor_model: str = "interp", prog
         monitor = read_monitor_table(monitor)
     if path.suffix.lower() == ".toml":
         return read_flat_fields(path, monitor=monitor, monitor_model=monitor_model, progress=progress)
-    if path.suffix.lower() in (".h5", ".hdf5"):
+    suffix = path.suffix.lower()
+    if suffix in (".h5", ".hdf5"):
         raise InputError(f"{path}: give a listing (TOML or CSV with file and lux columns) of the flat-field "
                          f"recordings, not a single events.h5 file")
+    if suffix not in (".csv", ".txt", ".tsv", ""):
+        from evnoise.formats import formats_for_suffix
+        from evnoise.radiometry import IMAGE_EXTENSIONS
+
+        if formats_for_suffix(suffix):  # a camera recording given without its still window
+            raise InputError(f"{path} is an event recording, not a rate table: a quiet-scene calibration needs its "
+                             f"still window, --t-start S --t-end S (seconds on the file's own clock; `evnoise info "
+                             f"{path}` shows its span) or --window A:B")
+        if suffix in IMAGE_EXTENSIONS:
+            raise InputError(f"{path} is an image; calibrate takes a rate table (CSV), a flat-field listing (TOML or "
+                             f"CSV) or a recording with --t-start/--t-end")
     header, _ = _read_csv_rows(path)
     if "file" in header:
         return read_flat_fields(path, monitor=monitor, monitor_model=monitor_model, progress=progress)

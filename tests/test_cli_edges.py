@@ -363,3 +363,17 @@ def test_info_of_an_empty_window_says_where_the_clock_is(tmp_path, capsys):
     assert "no events in the window" in err and "t_first_us, t_last_us" in err
     code, _, err = run_cli(capsys, "info", path, "--t-start", "0", "--t-end", "0.5")
     assert code == 0 and "no events in the window" not in err
+
+
+def test_calibrate_a_recording_without_its_window_says_so(tmp_path, capsys):
+    """The most natural slip of the quiet-recording workflow, forgetting the window, gave "cannot read rec.aedat:
+    'utf-8' codec can't decode bytes ..." (the file read as a rate table); an image gave the same."""
+    pytest.importorskip("faery")
+    rec = small_events_file(tmp_path / "rec.aedat4")
+    code, _, err = run_cli(capsys, "calibrate", rec, "--out", tmp_path / "cam.toml")
+    one_error_line(code, err, "is an event recording, not a rate table")
+    assert "--t-start S --t-end S" in err
+    grey_image(tmp_path / "photo.png")
+    code, _, err = run_cli(capsys, "calibrate", tmp_path / "photo.png", "--out", tmp_path / "cam.toml")
+    one_error_line(code, err, "is an image")
+    assert not (tmp_path / "cam.toml").exists()
