@@ -18,10 +18,11 @@ its spread across pixels and the hot pixels:
 The likelihood integrates each pixel's counts over ``s`` (and ``h``) on a fixed grid of the
 standard normal (``GRID`` points over +-7 sd) and is maximised over ``(log r_on, log r_off, log sigma, logit f,
 log r_hot, log sigma_hot, logit q)``. The spread and the hot pixels are kept only when a
-likelihood-ratio test says the data carry them (:data:`LR_P`); otherwise they are reported as
-*not identified* and set to 0. Standard errors come from the observed information (numerical
-Hessian in the fitted coordinates, delta method to natural units). A parameter whose maximum lies on
-a bound of its range (the hot fraction at :data:`HOT_MAX_FRACTION`, a hot rate at
+likelihood-ratio test says the data carry them (:data:`LR_P`; each term against the full model, then the
+terms dropped together, ``dropped_together``: while that rejects, the dropped term with the smallest p is
+kept); otherwise they are reported as *not identified* and set to 0. Standard errors come from the observed
+information (numerical Hessian in the fitted coordinates, delta method to natural units). A parameter whose
+maximum lies on a bound of its range (the hot fraction at :data:`HOT_MAX_FRACTION`, a hot rate at
 :data:`HOT_MIN_RATIO` times the ordinary one, a share or a regularity at 0 or 1, a spread below
 :data:`SIGMA_FLOOR`) is labelled *at upper / lower bound* and has no standard error (a regularity at
 1 keeps its one-sided profile-likelihood error); where such a coordinate makes the information
@@ -586,16 +587,38 @@ def fit_quiet(windows, *, base=None, spread: str = "auto", hot: str = "auto", re
             tests[names[term]] = {"lr": stat, "p_value": float(chi2.sf(stat, dofs[term])), "dof": dofs[term]}
             if options[term] == "auto" and tests[names[term]]["p_value"] >= LR_P:
                 keep[term] = False
+        restored = []
         with phases.phase("refit of the terms kept"):
-            if keep != full:
+            full_res = res
+            while keep != full:
                 model = model_of(keep)
                 kept_values = dict(values, **({} if keep["hot"] else {"hot_fraction": 0.0}))
                 starts = _starts(model, values0, hot_guess)
                 starts = starts[:1] if use_timing else starts  # (a timing model takes the best of its starts)
                 res = maximise(model, groups, [theta_of(kept_values, model)] + starts,
                                _screen(model, values0, hot_guess), given(model))
+                # each term was tested against the full model alone: two that are each dispensable may not be both
+                # (a spread and hot pixels can stand in for each other); the terms dropped are tested together
+                dropped = [t for t in reduced_nll if full[t] and not keep[t]]
+                if len(dropped) < 2:
+                    break
+                stat = max(0.0, 2.0 * (res.fun - full_res.fun))
+                dof = sum(dofs[t] for t in dropped)
+                joint = {"lr": stat, "p_value": float(chi2.sf(stat, dof)), "dof": dof}
+                tests["dropped_together"] = joint
+                if joint["p_value"] >= LR_P:
+                    break
+                back = min(dropped, key=lambda t: tests[names[t]]["p_value"])  # the one the data carry most
+                keep[back] = True
+                restored.append(names[back])
+            if keep == full:
+                res = full_res
+                model = model_of(full)
         with phases.phase("standard errors"):
             se, notes = _standard_errors(model, groups, res)
+        if restored:
+            notes.append(f"kept {', '.join(restored)} although its own likelihood-ratio test would drop it: the terms "
+                         f"dropped together are not dispensable (test dropped_together)")
         with phases.phase("goodness of fit"):
             goodness = goodness_of_fit(unpack(res.x, model), model, groups, len(res.x))
             timing = timing_tests(unpack(res.x, model), model, groups)
