@@ -201,6 +201,30 @@ def test_errors_name_flags(tmp_path, capsys):
     assert "clip_invalid" not in err
 
 
+def test_unknown_options_point_to_the_commands_help(tmp_path, capsys):
+    events = small_events_file(tmp_path / "e.h5")
+    code, _, err = run_cli(capsys, "info", events, "--bogus")
+    one_error_line(code, err, "unrecognized arguments: --bogus (see evnoise info --help)")
+    code, _, err = run_cli(capsys, "--bogus")
+    one_error_line(code, err, "(see evnoise --help)")
+
+
+def test_separate_threshold_error_names_the_flag(tmp_path, capsys):
+    events = small_events_file(tmp_path / "e.h5")
+    code, _, err = run_cli(capsys, "separate", events, "--threshold", "0", "--out", tmp_path / "s.h5")
+    one_error_line(code, err, "--threshold must be >= 1, got 0")
+    assert not (tmp_path / "s.h5").exists()
+
+
+@pytest.mark.parametrize("flag,name,expect", [("--out", "preset.png", "--out must name a .toml file"),
+                                              ("--plot", "fit.pdf", "--plot must name a .png file")])
+def test_calibrate_outputs_are_named_by_their_format(tmp_path, capsys, flag, name, expect):
+    outputs = {"--out": tmp_path / "cam.toml", "--plot": tmp_path / "fit.png", flag: tmp_path / name}
+    code, _, err = run_cli(capsys, "calibrate", "--example", *(x for kv in outputs.items() for x in kv))
+    one_error_line(code, err, expect)
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_flag_names_rewrite_only_parameter_names():
     from evnoise.cli import _flag_names, build_parser
 

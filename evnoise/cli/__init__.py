@@ -55,6 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
         seen.add(id(subparser))
         add_verbosity(subparser, dest_prefix="sub_")
         subparser.set_defaults(cli_flags=subparser.flags)  # the command's names -> flags, for error lines
+        subparser.set_defaults(cli_prog=subparser.prog)  # "evnoise info": whose --help an error line points to
     parser.set_defaults(subparsers_action=sub)
     return parser
 
@@ -69,7 +70,9 @@ def main(argv=None) -> int:
     parser = build_parser()
     _tolerant_streams()
     try:
-        args = parser.parse_args(argv)
+        args, extra = parser.parse_known_args(argv)
+        if extra:  # argparse's own check would point to "evnoise --help", not to the command's
+            raise ArgumentsError(getattr(args, "cli_prog", parser.prog), "unrecognized arguments: " + " ".join(extra))
     except ArgumentsError as exc:
         print(exc.line(), file=sys.stderr)
         return 2

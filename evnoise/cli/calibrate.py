@@ -109,9 +109,22 @@ def _measurements_path(args):
     return str(path)
 
 
+def _check_suffixes(args) -> None:
+    """The preset is TOML and the plot PNG whatever the names say: a name saying otherwise is a slip."""
+    from pathlib import Path
+
+    from ..errors import OutputError
+
+    if args.out is not None and Path(args.out).suffix.lower() != ".toml":
+        raise OutputError(f"--out must name a .toml file (the preset is TOML), got {args.out}")
+    if args.plot is not None and Path(args.plot).suffix.lower() != ".png":
+        raise OutputError(f"--plot must name a .png file, got {args.plot}")
+
+
 def run(args) -> int:
     from . import _calibrate_quiet
 
+    _check_suffixes(args)
     if _calibrate_quiet.wanted(args):
         if args.example:
             raise ParameterError("--example is a rate table; it does not go with --t-start/--t-end/--window")

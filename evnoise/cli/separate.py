@@ -30,7 +30,7 @@ def register(subparsers):
                    help="time window back from each event in microseconds (default 5000)")
     p.add_argument("--lookahead-us", type=int, default=None, metavar="US",
                    help="density: time window forward in microseconds (default 5000; 0 = causal)")
-    p.add_argument("--threshold", type=int, default=None, metavar="N",
+    p.add_argument("--threshold", type=opt.count("--threshold", maximum=2**62), default=None, metavar="N",
                    help="density: minimum number of other events in the window (default 3)")
     p.add_argument("--polarity", choices=("any", "same"), default=None,
                    help="density: count events of any polarity or only the event's own (default same)")
