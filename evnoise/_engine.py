@@ -483,19 +483,25 @@ def memory_step(state: PixelState, mem, width, group, tables, dt, refr_us, j_min
 
 
 def trial_step(state: PixelState, width, frames_lam, frame_us, j_start: int, j_end: int, thr, bg_rows, model,
-               tau_limit_us, t0_us, threads, fast_static=False):
+               tau_limit_us, t0_us, threads, fast_static=False, runs=None):
     """Run the trial kernel (:func:`evnoise._kernels.simulate.trial_window`) over all pixels of ``state`` for trials
     ``j_start .. j_end - 1``; returns chunk parts ``(t, x, y, p)`` (views of ``state``'s buffers: use them before the
     next window). ``thr`` ``(4, n)`` and ``bg_rows`` (the background rows, ``(4 or 5, n)`` or ``(4, 0)``) are per
     pixel of ``state``; ``frames_lam``, ``frame_us``, ``model``, ``fast_static`` as the kernel's; events at or after
-    ``tau_limit_us`` (µs from ``t0_us``) are not emitted."""
+    ``tau_limit_us`` (µs from ``t0_us``) are not emitted. ``runs``: the kernel's ``(run_ptr, run_seg, run_val,
+    run_carry)`` (the probabilities of runs at one light of a video's pixels; default none)."""
     from ._kernels.simulate import trial_window
+
+    if runs is None:
+        runs = (np.zeros(state.pix.size + 1, dtype=np.int64), np.empty(0, dtype=np.int64), np.empty((0, 2)),
+                np.empty((0, 2)))
+    run_ptr, run_seg, run_val, run_carry = runs
 
     def run(lo, hi):
         out, n = run_to_end(lambda buf, n, k: trial_window(
             width, state.pix[lo:hi], frames_lam, frame_us, j_start, j_end, thr[:, lo:hi], bg_rows[:, lo:hi],
             state.states[lo:hi], state.fstate[lo:hi], model, float(tau_limit_us), np.int64(t0_us), buf, n, k,
-            fast_static), state.buffers(lo, 256), hi - lo)
+            fast_static, run_ptr[lo:hi + 1], run_seg, run_val, run_carry[lo:hi]), state.buffers(lo, 256), hi - lo)
         state.keep(lo, out)
         return tuple(a[:n] for a in out)
 

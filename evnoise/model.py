@@ -205,7 +205,7 @@ def same_path_values(levels, n_values: int) -> np.ndarray:
 
 def _grouped(lam, c, b, todo, out) -> np.ndarray:
     """Fill ``out`` (log p) where lam repeats enough for the grouped path; returns the mask of done."""
-    from ._kernels.poisson import GROUPED_MAX_LAM, event_probability_grouped
+    from ._kernels.poisson import GROUPED_MAX_LAM
 
     done = np.zeros(lam.shape, dtype=bool)
     cand = np.flatnonzero(todo & (lam > 0) & (lam <= GROUPED_MAX_LAM))
@@ -214,16 +214,87 @@ def _grouped(lam, c, b, todo, out) -> np.ndarray:
     levels, inverse = np.unique(lam[cand], return_inverse=True)
     if levels.size * 8 > cand.size:
         return done  # mostly distinct lam values: nothing to share
-    order = np.argsort(inverse, kind="stable")
-    starts = np.searchsorted(inverse[order], np.arange(levels.size + 1))
-    p = np.empty(cand.size)
-    event_probability_grouped(levels, starts.astype(np.int64), order.astype(np.int64),
-                              np.ascontiguousarray(c[cand]), b, p)
+    p = _grouped_values(levels, inverse, c[cand], b, np.full(2, np.nan))
     good = p > 1e-280  # NaN (terms ran past the level's table) is not good either
     with np.errstate(divide="ignore"):
         out[cand[good]] = np.log(p[good])
     done[cand[good]] = True
     return done
+
+
+def _grouped_values(levels, inverse, c, b: float, c_range) -> np.ndarray:
+    """:func:`evnoise._kernels.poisson.event_probability_grouped` of ``levels[inverse]`` with thresholds ``c``."""
+    from ._kernels.poisson import event_probability_grouped
+
+    order = np.argsort(inverse, kind="stable")
+    starts = np.searchsorted(inverse[order], np.arange(levels.size + 1))
+    p = np.empty(inverse.size)
+    event_probability_grouped(levels, starts.astype(np.int64), order.astype(np.int64), np.ascontiguousarray(c),
+                              b, p, np.ascontiguousarray(c_range, dtype=np.float64))
+    return p
+
+
+#: :func:`log_event_probability_alone` sums with tables spanning thresholds ``[k, k + 1) * ALONE_EPS_BIN``
+ALONE_EPS_BIN = 0.05
+
+
+def log_event_probability_alone(lam, eps, bias: float) -> np.ndarray:
+    """Exact log p of each element from its own ``lam`` and ``eps`` alone: the same bits whatever else the call holds.
+
+    :func:`log_event_probability` takes the faster of several paths, equal to ~1e-11 but not bit for bit, by the
+    array's size and by how many values share a ``lam``; a caller whose output must not depend on how its values
+    are batched (the trial tier's runs in a video, whatever the windows or the crop) uses this instead: the sum of
+    :func:`evnoise._kernels.poisson.event_probability_grouped` (its relative tolerance 1e-17) with tables that
+    span a fixed bin of thresholds (:data:`ALONE_EPS_BIN` wide) at each ``lam``, the windowed exact sum where that
+    cannot serve.
+
+    Parameters
+    ----------
+    lam : numpy.ndarray
+        1-D photons per trial (``>= 0``).
+    eps : numpy.ndarray or float
+        Thresholds (``> 0``), one per ``lam`` or one for all.
+    bias : float
+        Photoreceptor bias in photons per trial.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 log p, as ``lam``.
+    """
+    from ._kernels.poisson import GROUPED_MAX_LAM, log_event_probability_exact_array
+
+    lam = np.ascontiguousarray(lam, dtype=np.float64).ravel()
+    eps = np.ascontiguousarray(np.broadcast_to(np.asarray(eps, dtype=np.float64), lam.shape)).ravel()
+    if lam.size == 0:
+        return np.empty(0)
+    # each distinct (lam, eps) once (a uniform threshold: each lam once), its result scattered
+    if np.all(eps == eps[0]):
+        found = _levels(lam)  # (a hash: no sort where the values are few)
+        lam, back = found if found is not None else np.unique(lam, return_inverse=True)
+        eps = np.full(lam.size, eps[0])
+    else:
+        pairs, back = np.unique(np.stack([lam, eps], axis=1), axis=0, return_inverse=True)
+        lam, eps = np.ascontiguousarray(pairs[:, 0]), np.ascontiguousarray(pairs[:, 1])
+    with np.errstate(over="ignore"):  # eps past ~709: c = inf (p = 0, the exact sum's)
+        c = np.expm1(eps)
+        low = np.floor(eps / ALONE_EPS_BIN)
+        c_lo, c_hi = np.expm1(low * ALONE_EPS_BIN), np.expm1((low + 1.0) * ALONE_EPS_BIN)
+    out = np.full(lam.size, np.nan)
+    ok = (lam > 0) & (lam <= GROUPED_MAX_LAM) & (c >= c_lo) & (c <= c_hi) & (c_hi <= GROUPED_MAX_LAM)
+    for k in np.unique(low[ok]):
+        cand = np.flatnonzero(ok & (low == k))
+        levels, inverse = np.unique(lam[cand], return_inverse=True)
+        p = _grouped_values(levels, inverse.ravel(), c[cand], float(bias), np.array([c_lo[cand[0]], c_hi[cand[0]]]))
+        good = p > 1e-280  # NaN (terms ran past the level's table) is not good either
+        out[cand[good]] = np.log(p[good])
+    todo = np.flatnonzero(np.isnan(out))
+    if todo.size:
+        sub = np.empty(todo.size)
+        log_event_probability_exact_array(np.ascontiguousarray(lam[todo]), np.ascontiguousarray(c[todo]),
+                                          np.full(todo.size, float(bias)), sub)
+        out[todo] = sub
+    return out[back.ravel()]
 
 
 def log_event_probability(lam, eps, bias=0.0, *, method: str = "poisson") -> np.ndarray:

@@ -18,7 +18,7 @@ import numpy as np
 from . import terms
 from ._checks import as_generator, check_lux, check_map_shape, check_params, check_thresholds
 from .errors import ParameterError
-from .model import event_probability
+from .model import event_probability, log_event_probability_alone
 
 __all__ = ["expected_rate", "draw_thresholds", "trial_probabilities"]
 
@@ -35,19 +35,25 @@ def draw_thresholds(shape, params, rng=None) -> np.ndarray:
     return terms.draw_map("thresholds", check_map_shape(shape, "thresholds"), params, gen)
 
 
-def trial_probabilities(lam, params, thresholds=None, *, background=None, skip_below=None, photon_only=False):
+def trial_probabilities(lam, params, thresholds=None, *, background=None, skip_below=None, photon_only=False,
+                        alone=False):
     """Per-trial ``(P_on, P_off)`` at mean photon counts ``lam`` (nominal or per-pixel thresholds).
 
     The photon-noise probabilities, with the background activity of :mod:`evnoise.background`
     added when ``params`` has any (each pixel at the nominal spread factor and no hot pixel unless
     ``background = (scale, hot)``, arrays matching ``lam``, is given). ``photon_only``: without it.
     With a regular background (``leak_regularity > 0``) trials are no longer i.i.d.: use
-    :func:`pixel_rates` for rates.
+    :func:`pixel_rates` for rates. ``alone``: each value from its own inputs alone, the same bits whatever else the
+    call holds (:func:`evnoise.model.log_event_probability_alone`; 1-D ``lam``).
     """
     eps_on = params.eps_pos if thresholds is None else thresholds[0]
     eps_off = params.eps_neg if thresholds is None else thresholds[1]
-    p_on = event_probability(lam, eps_on, params.bias_pr)
-    p_off = event_probability(lam, eps_off, params.bias_pr)
+    if alone:
+        p_on = np.exp(log_event_probability_alone(lam, eps_on, params.bias_pr))
+        p_off = np.exp(log_event_probability_alone(lam, eps_off, params.bias_pr))
+    else:
+        p_on = event_probability(lam, eps_on, params.bias_pr)
+        p_off = event_probability(lam, eps_off, params.bias_pr)
     if terms.background_on(params) and not photon_only:
         from .background import lux_of_photons, with_background
 

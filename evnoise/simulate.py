@@ -14,9 +14,9 @@ Fidelity tiers ("model only what a scene needs"):
 the trial tier for the others (with reset memory whose chains are too many for tables: the trial tier for every
 pixel, each chain's start computed on its own). Randomness: each pixel has its own stream (xoshiro256++ keyed
 by the caller's generator and the pixel index), so the output does not depend on the number
-of threads, the chunking of pixels, or (a still scene) the windows in which time is generated. A video's changing
-pixels depend on the windows in their bits, not their law: their trial tier jumps over the windows in which their
-light is constant, and the windows' length depends on the number of changing pixels.
+of threads, the chunking of pixels, or the windows in which time is generated (whose length depends on the
+number of pixels: a crop gives its pixels the same events, given the same thresholds), for a still scene and a
+video alike (the trial tier's runs at one light are the trials', their probabilities evaluated value by value).
 """
 
 from __future__ import annotations
@@ -626,14 +626,73 @@ def _fill_static_cache(state: PixelState, frames_lam: np.ndarray, params: NoiseP
     if sel.size == 0:
         return
     lam0 = frames_lam[0, state.pix[sel]]
-    p_on, p_off = trial_probabilities(lam0, params, (eps_on[sel], eps_off[sel]),
-                                      background=select_background(bg, sel))
-    p_all = p_on + p_off
-    with np.errstate(divide="ignore", invalid="ignore"):
-        state.cache_log1m_p[sel] = np.where(p_all < 1.0, np.log1p(-np.minimum(p_all, 1.0)), -np.inf)
-        state.cache_q_on[sel] = np.where(p_all > 0.0, p_on / np.where(p_all > 0.0, p_all, 1.0), 0.0)
+    state.cache_log1m_p[sel], state.cache_q_on[sel] = _jump_inputs(lam0, params, eps_on[sel], eps_off[sel],
+                                                                   select_background(bg, sel))
     state.cache_lam[sel] = lam0
     state.fstate[sel, PEND_TAU] = np.nan  # a pending jump's event was drawn with the old probabilities
+
+
+def _jump_inputs(lam, params: NoiseParams, eps_on, eps_off, bg, alone=False):
+    """``(log1p(-(p_on + p_off)), p_on / (p_on + p_off))`` of the trial tier's jumps at ``lam`` (the kernel's cache);
+    ``alone`` as :func:`evnoise.rates.trial_probabilities`'."""
+    p_on, p_off = trial_probabilities(lam, params, (eps_on, eps_off), background=bg, alone=alone)
+    p_all = p_on + p_off
+    with np.errstate(divide="ignore", invalid="ignore"):
+        log1m_p = np.where(p_all < 1.0, np.log1p(-np.minimum(p_all, 1.0)), -np.inf)
+        q_on = np.where(p_all > 0.0, p_on / np.where(p_all > 0.0, p_all, 1.0), 0.0)
+    return log1m_p, q_on
+
+
+class _RunProbabilities:
+    """A video's changing pixels' jump probabilities (the trial kernel's ``run_*`` arguments), the same bits however
+    time is cut into windows.
+
+    A pixel whose light is the same in frames ``i`` and ``i + 1`` may jump through the trials between them at that
+    light. Only pairs with a trial's centre between their frames count (so the set does not depend on the windows),
+    in increasing order, each once. A pixel's probabilities are evaluated once per *stretch* (pairs in a row at one
+    light: :func:`evnoise._kernels.simulate.run_stretches`), each value alone
+    (:func:`evnoise.model.log_event_probability_alone`: the closed form's faster paths depend on the batch).
+    """
+
+    def __init__(self, params: NoiseParams, eps_on, eps_off, bg):
+        self.params, self.eps_on, self.eps_off, self.bg = params, eps_on, eps_off, bg
+        n = eps_on.size
+        self.last = -1  # the last pair evaluated
+        self.valid = np.zeros(n, dtype=np.bool_)  # pixels in a stretch through pair `last`
+        self.carry = np.full((n, 2), np.nan)  # its values
+
+    def window(self, idx, segments, frames_lam, pix):
+        """The kernel's ``(run_ptr, run_seg, run_val, run_carry)`` for a window whose frames are ``idx`` (increasing)
+        and whose trials' centres lie between frames ``segments`` and ``segments + 1``, with photons per trial
+        ``frames_lam`` ``(F, all pixels)`` of which the changing pixels are ``pix``."""
+        from ._kernels.simulate import run_stretches
+
+        idx = np.asarray(idx, dtype=np.int64)
+        pairs = np.ascontiguousarray(np.sort(np.asarray(segments, dtype=np.int64)))
+        segs = np.searchsorted(idx, pairs).astype(np.int64)
+        n = pix.size
+        count = np.empty(n, dtype=np.int64)
+        none_i, none_f = np.empty(0, dtype=np.int64), np.empty(0)
+        run_stretches(frames_lam, pix, segs, pairs, self.last, self.valid, count, none_i, none_i, none_f)
+        ptr = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(count, out=ptr[1:])
+        m = int(ptr[n])
+        # (one slot more: a fill call also updates `valid`)
+        seg_out, lam_out = np.empty(m + 1, dtype=np.int64), np.empty(m + 1)
+        before = self.carry.copy()
+        run_stretches(frames_lam, pix, segs, pairs, self.last, self.valid, count, ptr, seg_out, lam_out)
+        seg_out, lam_out = seg_out[:m], lam_out[:m]
+        values = np.empty((m, 2))
+        if m:
+            k = np.repeat(np.arange(n), np.diff(ptr))
+            values[:, 0], values[:, 1] = _jump_inputs(lam_out, self.params, self.eps_on[k], self.eps_off[k],
+                                                      select_background(self.bg, k), alone=True)
+            # the stretch each pixel is in at the window's last pair: its last start here, or the one carried
+            ends = ptr[1:][np.diff(ptr) > 0] - 1
+            self.carry[k[ends]] = values[ends]
+        self.carry[~self.valid] = np.nan
+        self.last = max(self.last, int(pairs[-1]))
+        return ptr, seg_out, values, before
 
 
 def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us, duration_us, threads,
@@ -669,12 +728,17 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
         a = min(max((0.5 * dt - frame_us[idx[0]]) / (frame_us[idx[1]] - frame_us[idx[0]]), 0.0), 1.0)
         return lams[0] + a * (lams[1] - lams[0])
 
+    def segments(j_a, j_b):
+        """Indices ``i`` of the pairs of frames ``(i, i + 1)`` whose times bracket the centres of trials j_a .. j_b - 1
+        (clamped at the ends)."""
+        centres = np.arange(j_a, j_b) * dt + 0.5 * dt  # as the kernel computes them, to the bit
+        return np.unique(np.clip(np.searchsorted(frame_us, centres, side="right") - 1, 0, frames.n - 2))
+
     def frame_indices(j_a, j_b):
         """Indices of the frames bracketing the centres of trials j_a .. j_b - 1."""
         if frames.n == 1:
             return np.array([0])
-        centres = (np.arange(j_a, j_b) + 0.5) * dt
-        seg = np.clip(np.searchsorted(frame_us, centres, side="right") - 1, 0, frames.n - 2)
+        seg = segments(j_a, j_b)
         return np.unique(np.concatenate([seg, seg + 1]))
 
     # static pixels: closed-form probabilities once (with reset memory: their chains' tables)
@@ -723,6 +787,7 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
         stat_mem = np.full(stat_pix.size, math.nan) if mem is not None else None  # stored states, drawn at first
         dyn_e_on, dyn_e_off = eps_on[dyn_pix], eps_off[dyn_pix]
         dyn_thr = np.stack([c_on[dyn_pix], c_off[dyn_pix], dyn_e_on, dyn_e_off])
+        runs = _RunProbabilities(params, dyn_e_on, dyn_e_off, None if bg is None else select_background(bg, dyn_pix))
         bar = _time_bar(duration_us, progress)
         for w in range(n_windows):
             j_a, j_b = w * per_window, min((w + 1) * per_window, n_trials)
@@ -748,12 +813,14 @@ def _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static, t0_us,
                         cache[int(i)] = lam_of(int(i))
                 stack = np.stack([cache[int(i)] for i in idx])
                 f_us = np.ascontiguousarray(frame_us[idx]) if frames.n > 1 else np.zeros(1)
-                if fast_static:
+                run_p = None  # the trial kernel's probabilities of a video's runs
+                if fast_static and frames.n == 1:  # a still scene: each pixel's one light, vectorised, filled once
                     _fill_static_cache(dyn_state, stack, params, dyn_e_on, dyn_e_off,
                                        None if bg is None else select_background(bg, dyn_pix))
-
+                elif fast_static:  # a video: per pair of frames, the same bits however windows cut them
+                    run_p = runs.window(idx, segments(j_a, j_b), stack, dyn_pix)
                 parts += trial_step(dyn_state, width, stack, f_us, j_a, j_b, dyn_thr, dyn_bg, model, duration_us,
-                                    t0_us, threads, fast_static)
+                                    t0_us, threads, fast_static, run_p)
             yield sorted_window([p[:4] for p in parts], t0_us + w_lo, t0_us + w_hi, labels=labels,
                                 state=stat_state if stat_state is not None else dyn_state)
             if bar is not None:

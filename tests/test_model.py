@@ -208,6 +208,29 @@ def test_per_pixel_thresholds_on_shared_levels_match_the_windowed_sum():
         assert np.all(np.abs(got[finite] - ref[finite]) <= 1e-12 + 1e-14 * np.abs(ref[finite]))
 
 
+def test_probability_alone_is_the_same_bits_in_any_batch_and_matches_the_windowed_sum():
+    """``log_event_probability_alone`` (the trial tier's runs in a video): each value's bits do not depend on what
+    else the call holds (uniform, narrowly and widely spread thresholds, 1 to 20,000 values, other values at the same
+    lam), and equal the independent windowed sum to 1e-12."""
+    from evnoise._kernels.poisson import log_event_probability_exact_array
+    from evnoise.model import log_event_probability_alone
+
+    rng = np.random.default_rng(11)
+    n = 20000
+    lam = rng.choice(np.concatenate([np.geomspace(1e-6, 3e4, 40), [0.0, 2e6]]), n)
+    for eps in (np.full(n, 0.2), rng.normal(0.3, 0.05, n).clip(0.05), rng.uniform(0.01, 3.0, n)):
+        for b in (0.0, 1.7):
+            whole = log_event_probability_alone(lam, eps, b)
+            ref = np.empty(n)
+            log_event_probability_exact_array(lam, np.expm1(eps), np.full(n, b), ref)
+            finite = np.isfinite(ref)
+            assert np.array_equal(finite, np.isfinite(whole))
+            assert np.all(np.abs(whole[finite] - ref[finite]) <= 1e-12 + 1e-12 * np.abs(ref[finite]))
+            for size in (1, 7, 4096, 5000):
+                pick = rng.choice(n, size, replace=False)
+                np.testing.assert_array_equal(log_event_probability_alone(lam[pick], eps[pick], b), whole[pick])
+
+
 def test_underflowing_panels_skip_exactly_what_underflows():
     """Panels too rippled to tabulate skip, with one bound per panel, only values whose p is 0 in double."""
     from evnoise._kernels.poisson import log_event_probability_exact

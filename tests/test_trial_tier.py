@@ -163,3 +163,54 @@ def test_still_scene_trial_tier_does_not_depend_on_the_windows(monkeypatch):
     top = ev.simulate_events(lux[:8], PARAMS, 3.0, rng=3, method="trials")  # fewer pixels: other windows
     whole = ev.simulate_events(lux, PARAMS, 3.0, rng=3, method="trials")
     np.testing.assert_array_equal(top, whole[whole["y"] < 8])
+
+
+def test_video_trial_tier_does_not_depend_on_the_windows(monkeypatch):
+    """A changing pixel jumps over its runs of trials at one light; the runs were the windows' (a window whose frames
+    all had one light), so the events depended on the windows and on the number of changing pixels. Runs are now
+    the trials' own (between frames of one light), whatever the windows: random piecewise-constant videos, frames
+    faster and slower than the trials, cut into windows of 1, 3, 7 trials and one window."""
+    for seed in range(3):
+        g = np.random.default_rng(seed)
+        n_frames = 9
+        looks = g.uniform(0.3, 30, (3, 12, 16))
+        frames = np.stack([looks[g.integers(0, 3)] if g.uniform() < 0.7 else g.uniform(0.3, 30, (12, 16))
+                           for _ in range(n_frames)])
+        keep = g.uniform(size=(12, 16)) < 0.5
+        frames[:, keep] = frames[0, keep]  # these pixels never change: one long run
+        frames[1:, 0, 0] = 2 * frames[0, 0, 0]  # at least one pixel changes (a video, not a still scene)
+        times = np.cumsum(np.r_[0.0, g.uniform(0.005, 4.0, n_frames - 1)])  # 0.1 to 80 trials apart
+        runs = []
+        for per_window in (40_000_000, 7 * 192, 3 * 192, 192):
+            monkeypatch.setattr(es, "TARGET_PIXEL_TRIALS_PER_WINDOW", per_window)
+            runs.append(ev.simulate_video(frames, times, PARAMS, rng=seed, method="trials"))
+        assert runs[0].size > 200
+        for r in runs[1:]:
+            np.testing.assert_array_equal(r, runs[0])
+
+
+@pytest.mark.parametrize("eps_sigma", [0.0, 0.05])
+def test_video_jump_probabilities_do_not_depend_on_the_windows_at_any_batch_size(monkeypatch, eps_sigma):
+    """The closed form takes another path (equal to ~1e-11, not bit for bit) for batches from
+    ``evnoise.model.TABLE_MIN_SIZE`` values on: a video whose jumps' probabilities were evaluated per window would
+    get other bits when windows hold other numbers of pixels at one light. 4,800 changing pixels on a few lights,
+    uniform thresholds (the table) and spread ones (the grouped sum), cut into windows of 1 and 5 trials and one, and
+    a crop of the sensor."""
+    g = np.random.default_rng(7)
+    shape = (60, 80)
+    looks = g.choice([0.5, 2.0, 9.0, 40.0], size=(4, *shape))
+    frames = looks[[0, 0, 1, 1, 2, 3, 3, 0]]  # pairs of one light for all pixels (4,800 values) and for some
+    frames[:, 0, 0] = [1, 2, 3, 4, 5, 6, 7, 8]  # a pixel that changes in every frame
+    times = np.array([0.0, 0.3, 0.35, 0.9, 1.0, 1.6, 1.7, 2.5])
+    params = PARAMS.replace(eps_sigma=eps_sigma)
+    thresholds = ev.draw_thresholds(shape, params, rng=9)  # (given: drawn ones are drawn for the whole sensor)
+    runs = []
+    for per_window in (10**9, 5 * 4800, 4800):
+        monkeypatch.setattr(es, "TARGET_PIXEL_TRIALS_PER_WINDOW", per_window)
+        runs.append(ev.simulate_video(frames, times, params, rng=5, method="trials", thresholds=thresholds))
+    assert runs[0].size > 1000
+    for r in runs[1:]:
+        np.testing.assert_array_equal(r, runs[0])
+    top = ev.simulate_video(frames[:, :20], times, params, rng=5, method="trials",  # a crop: other batches
+                            thresholds=thresholds[:, :20])
+    np.testing.assert_array_equal(top, runs[-1][runs[-1]["y"] < 20])

@@ -513,7 +513,7 @@ def pmf_run(lam, j0, pmf):
 
 
 @kernel(parallel=True)
-def event_probability_grouped(lam_levels, starts, order, c, b, out):
+def event_probability_grouped(lam_levels, starts, order, c, b, out, c_range):
     """``p`` for pixels that share a few ``lam`` levels but each have their own threshold.
 
     Pixels ``order[starts[g]:starts[g + 1]]`` all have ``lam = lam_levels[g]`` (``0 < lam <=``
@@ -524,6 +524,11 @@ def event_probability_grouped(lam_levels, starts, order, c, b, out):
     :func:`_grouped_pixel`) is below :data:`GROUPED_TOL` of the sum. Linear arithmetic: results
     below about 1e-280 lose relative accuracy, and NaN marks a pixel whose terms ran past the
     table; both should be recomputed with the windowed sum.
+
+    A level's tables span the thresholds of its pixels, so a pixel's bits depend on the others at its level;
+    ``c_range = (c_lo, c_hi)`` (containing every ``c``; ``(NaN, NaN)``: each level's own) fixes the span
+    instead: each pixel's result is then a function of its own ``lam``, ``c`` and ``b`` alone, whatever else
+    the call holds.
     """
     for g in prange(lam_levels.shape[0]):
         lam = lam_levels[g]
@@ -531,9 +536,13 @@ def event_probability_grouped(lam_levels, starts, order, c, b, out):
         hi = starts[g + 1]
         c_min = math.inf
         c_max = 0.0
-        for q in range(lo, hi):
-            c_min = min(c_min, c[order[q]])
-            c_max = max(c_max, c[order[q]])
+        if math.isnan(c_range[0]):
+            for q in range(lo, hi):
+                c_min = min(c_min, c[order[q]])
+                c_max = max(c_max, c[order[q]])
+        else:
+            c_min = c_range[0]
+            c_max = c_range[1]
         if not c_max <= GROUPED_MAX_LAM:  # huge thresholds: the tables would be far too wide
             for q in range(lo, hi):
                 out[order[q]] = math.nan

@@ -48,6 +48,18 @@ def first_eligible_trial(last_trial, tau, refr_us, dt):
 
 
 @kernel(inline=True)
+def _first_centre_at(edge_us, dt, j):
+    """The first trial after ``j`` whose centre ``i dt + dt / 2`` (as the trial kernel computes it) is at or
+    after ``edge_us``."""
+    i = max(float(j) + 1.0, np.floor(edge_us / dt - 0.5))
+    while i * dt + 0.5 * dt < edge_us:
+        i += 1.0
+    while i - 1.0 > float(j) and (i - 1.0) * dt + 0.5 * dt >= edge_us:
+        i -= 1.0
+    return int(i)
+
+
+@kernel(inline=True)
 def put_event(out, n, t, x, y, pol):
     """Write one event into slot ``n`` of the event columns ``out = (t, x, y, p)`` (room checked by the caller)."""
     out[0][n] = t
@@ -393,9 +405,68 @@ def _level(lam, b):
     return math.log(max(lam + b, _LEVEL_FLOOR))
 
 
+@kernel(inline=True)
+def run_entry(run_ptr, run_seg, k, seg):
+    """Index of pixel ``k``'s last stretch starting at a frame ``<= seg`` of this window (see
+    :func:`run_stretches`), -1 for none (its stretch began before the window: the carried values)."""
+    e = -1
+    for q in range(run_ptr[k], run_ptr[k + 1]):
+        if run_seg[q] <= seg:
+            e = q
+    return e
+
+
+_STRETCH_BLOCK = 4096  # run_stretches: pixels per block (the threads share the blocks)
+
+
+@kernel(parallel=True)
+def run_stretches(frames_lam, pix, segs, pairs, last, valid, count, ptr, seg_out, lam_out):
+    """Where a video's changing pixels start *stretches* of one light in a window (the trial tier's runs).
+
+    ``frames_lam`` ``(F, all pixels)``: photons per trial at the window's frames, of which pixels ``pix`` (``n``)
+    count; ``segs``: the frames ``f`` (indices into ``frames_lam``, increasing) whose pair ``(f, f + 1)``
+    brackets some trial's centre, ``pairs`` their indices in the video. A pixel at the same light in both frames
+    of pair ``i`` continues the stretch it had at pair ``i - 1`` (``valid``: it had one through pair ``last``,
+    the last pair of the windows before) when that pair was evaluated too, or else starts one. With ``seg_out``
+    empty: counts each pixel's starts into ``count``. Else, with ``ptr`` ``(n + 1)`` the offsets of those
+    counts: fills per pixel, in order, ``seg_out`` (the frame ``f``) and ``lam_out`` of each start, and updates
+    ``valid`` to the window's last pair. The starts depend on the frames and the trials alone.
+    """
+    n = pix.shape[0]
+    fill = seg_out.shape[0] > 0
+    for blk in prange((n + _STRETCH_BLOCK - 1) // _STRETCH_BLOCK):
+        lo = blk * _STRETCH_BLOCK
+        hi = min(lo + _STRETCH_BLOCK, n)
+        ok = valid[lo:hi].copy()
+        m = np.zeros(hi - lo, dtype=np.int64)
+        prev = last
+        for q in range(segs.shape[0]):
+            i = pairs[q]
+            if i <= last:
+                continue  # evaluated with the windows before
+            f = segs[q]
+            cont = prev == i - 1
+            for k in range(lo, hi):
+                lam = frames_lam[f, pix[k]]
+                same = lam == frames_lam[f + 1, pix[k]]
+                if same and not (ok[k - lo] and cont):
+                    if fill:
+                        e = ptr[k] + m[k - lo]
+                        seg_out[e] = f
+                        lam_out[e] = lam
+                    m[k - lo] += 1
+                ok[k - lo] = same
+            prev = i
+        for k in range(lo, hi):
+            if fill:
+                valid[k] = ok[k - lo] and prev == pairs[segs.shape[0] - 1]
+            else:
+                count[k] = m[k - lo]
+
+
 @kernel
 def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, states, fstate, model, tau_limit, t0_us,
-                 out, n, k_start, fast_static):
+                 out, n, k_start, fast_static, run_ptr, run_seg, run_val, run_carry):
     """Trial-by-trial simulation of pixels ``pix`` for trials ``j_start .. j_end - 1``.
 
     ``frames_lam`` (F, P) holds the mean photon counts per trial of the frames at times
@@ -419,21 +490,27 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
     regularity, memory)``: the bias in photons per trial, the trial length and refractory period (µs) and the
     terms below. Events at or after ``tau_limit`` (µs) are not emitted (the end of the recording).
 
-    With ``fast_static`` a pixel whose ``lam`` is the same in every frame of the window and
-    equals both ``lam_ref`` and ``lam_prev`` skips the trial-by-trial loop: no signal
-    crossing can happen (``lam = lam_ref``), a noise event resets ``lam_ref`` to the same
-    ``lam``, so every eligible trial fires independently with the same probabilities
-    ``p_on``, ``p_off`` of the static model, and the gap to the next event is geometric in
-    eligible trials (as in :func:`renewal_window`): O(events) instead of O(trials). Each gap is
-    drawn with its event's time and polarity; an event beyond the window stays pending (``PEND_TRIAL``,
-    ``PEND_TAU``, ``PEND_ON``) for the next window while the pixel's cached probabilities stay, so a
-    still scene's events do not depend on how time is cut into windows. A pending event is dropped
-    (exact: the geometric gap is memoryless) when the pixel takes the per-trial path or its cache is
-    refilled (:func:`static_in_window` callers clear it with the cache). ``p_on``, ``p_off`` come from
-    the exact closed form and are cached per pixel (``CACHE_LAM`` is the ``lam`` they belong to, NaN for
-    none; ``CACHE_LOG1M_P = log1p(-(p_on + p_off))``, ``CACHE_Q_ON = p_on / (p_on + p_off)``). The
-    random stream is consumed differently from the per-trial path, so the output differs in
-    its bits, not in its law; ``fast_static=False`` keeps the per-trial path (the reference).
+    With ``fast_static`` a *run* of trials jumps: from a trial whose centre lies between two frames of the
+    same ``lam``, equal to the pixel's ``lam_ref`` and ``lam_prev``, to the first trial whose centre does not
+    (between frames of another light, or of two lights). No signal crossing can happen there
+    (``lam = lam_ref``), a noise event resets ``lam_ref`` to the same ``lam``, so every eligible trial fires
+    independently with the same probabilities ``p_on``, ``p_off`` of the static model, and the gap to the next
+    event is geometric in eligible trials (as in :func:`renewal_window`): O(events) instead of O(trials).
+    Each gap is drawn with its event's time and polarity. An event beyond a run that ends inside the window
+    is dropped (exact: the geometric gap is memoryless) and the next trials go one by one; beyond a run that
+    reaches the window's end it stays pending (``PEND_TRIAL``, ``PEND_TAU``, ``PEND_ON``) and is taken if
+    the next window's first trial goes on with the run. Runs are defined by the trials and frames alone, so
+    the events do not depend on how time is cut into windows. ``p_on``, ``p_off`` come from the exact
+    closed form and are cached per pixel (``CACHE_LAM`` is the ``lam`` they belong to, NaN for none;
+    ``CACHE_LOG1M_P = log1p(-(p_on + p_off))``, ``CACHE_Q_ON = p_on / (p_on + p_off)``), set when a run
+    begins at a ``lam`` other than the cached one: from the caller's values of :func:`run_stretches` where given
+    (``run_ptr``, ``run_seg``, ``run_val``, ``run_carry``; ``run_carry`` with no rows: none), or else from the
+    exact sum here. Bits that do not depend on the windows need the caller's values to be the
+    same bits whichever window asks (:func:`evnoise.simulate` evaluates each pair of frames once, over the same
+    pixels); a caller may also fill the cache beforehand (:func:`static_in_window`) where it computes the same
+    bits for every window (a still scene: every pixel's one ``lam``, filled before the first window). The random stream
+    is consumed differently from the per-trial path, so the output differs in its bits, not in its law;
+    ``fast_static=False`` keeps the per-trial path (the reference).
 
     Background activity (:mod:`evnoise.background`): ``bg`` is ``(4, n)`` per pixel
     ``[l0_on, l1_on, l0_off, l1_off]`` with intensities ``l = l0 + l1 * lux`` (events/s) at the
@@ -494,52 +571,99 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
         e_on = math.exp(thr[2, k])
         e_off = math.exp(thr[3, k])
         ref = fstate[k, LAM_REF]
-        if fast_static and memory == 0.0:
-            lam0 = frames_lam[0, flat]
-            const = lam0 == ref and fstate[k, LAM_PREV] == ref
-            for f in range(1, n_frames):
-                if frames_lam[f, flat] != lam0:
-                    const = False
-                    break
-            if const:
-                if fstate[k, CACHE_LAM] != lam0:
-                    p_on = math.exp(log_event_probability_exact(lam0, thr[0, k], b))
-                    p_off = math.exp(log_event_probability_exact(lam0, thr[1, k], b))
-                    if has_bg:
-                        lux0 = max(lam0 * lux_per_photon - dark_lux, 0.0)
-                        p_on, p_off = _add_background(p_on, p_off, bg[0, k] + bg[1, k] * lux0,
-                                                      bg[2, k] + bg[3, k] * lux0, dt_s)
-                    p_all = p_on + p_off
-                    fstate[k, CACHE_LAM] = lam0
-                    fstate[k, CACHE_LOG1M_P] = math.log1p(-p_all) if p_all < 1.0 else -math.inf
-                    fstate[k, CACHE_Q_ON] = p_on / p_all if p_all > 0.0 else 0.0
-                    fstate[k, PEND_TAU] = NO_EVENT  # drawn with other probabilities
+        fast = fast_static and memory == 0.0
+        # an event a jump drew in the last window: kept if this window's first trial goes on with its run (below)
+        pend_ok = fast and not math.isnan(fstate[k, PEND_TAU])
+        fstate[k, PEND_TAU] = NO_EVENT  # (put back by a jump that leaves one pending)
+        p_trial = snap_f[PEND_TRIAL]
+        p_tau = snap_f[PEND_TAU]
+        p_on = snap_f[PEND_ON] == 1.0
+        # cached exp(-lam) of the last Poisson means (most trials repeat them)
+        lam_c = -1.0
+        em_c = 1.0
+        ref_c = -1.0
+        emr_c = 1.0
+        j = j_start
+        while j < j_end:
+            s_j = j * dt
+            const = True  # the trial's centre lies between two frames of the same light
+            if n_frames == 1:
+                lam = frames_lam[0, flat]
+            else:
+                centre = s_j + 0.5 * dt
+                while seg < n_frames - 2 and frame_us[seg + 1] <= centre:
+                    seg += 1
+                f0 = frames_lam[seg, flat]
+                f1 = frames_lam[seg + 1, flat]
+                const = f0 == f1
+                a = (centre - frame_us[seg]) / (frame_us[seg + 1] - frame_us[seg])
+                a = min(max(a, 0.0), 1.0)
+                lam = f0 + a * (f1 - f0)
+            if fast and const and lam == ref and fstate[k, LAM_PREV] == lam:
+                # a run of trials at this light, settled: to the first trial whose centre lies between frames that
+                # are not both at it (the same run however the windows cut it); within it every eligible trial
+                # fires independently, so the gap to the next event is geometric (the module's static model)
+                r = j_end
+                sr = seg
+                while n_frames > 1 and sr < n_frames - 2:
+                    jr = _first_centre_at(frame_us[sr + 1], dt, j)
+                    if jr >= j_end:
+                        break
+                    c_r = jr * dt + 0.5 * dt
+                    sn = sr + 1
+                    while sn < n_frames - 2 and frame_us[sn + 1] <= c_r:
+                        sn += 1
+                    if frames_lam[sn, flat] == lam and frames_lam[sn + 1, flat] == lam:
+                        sr = sn
+                    else:
+                        r = jr
+                        break
+                if fstate[k, CACHE_LAM] != lam:
+                    e = run_entry(run_ptr, run_seg, k, seg)
+                    if run_carry.shape[0] > 0 and (e >= 0 or not math.isnan(run_carry[k, 0])):  # the caller's
+                        fstate[k, CACHE_LOG1M_P] = run_val[e, 0] if e >= 0 else run_carry[k, 0]
+                        fstate[k, CACHE_Q_ON] = run_val[e, 1] if e >= 0 else run_carry[k, 1]
+                    else:
+                        p1 = math.exp(log_event_probability_exact(lam, thr[0, k], b))
+                        p0 = math.exp(log_event_probability_exact(lam, thr[1, k], b))
+                        if has_bg:
+                            lux0 = max(lam * lux_per_photon - dark_lux, 0.0)
+                            p1, p0 = _add_background(p1, p0, bg[0, k] + bg[1, k] * lux0,
+                                                     bg[2, k] + bg[3, k] * lux0, dt_s)
+                        p_all = p1 + p0
+                        fstate[k, CACHE_LOG1M_P] = math.log1p(-p_all) if p_all < 1.0 else -math.inf
+                        fstate[k, CACHE_Q_ON] = p1 / p_all if p_all > 0.0 else 0.0
+                    fstate[k, CACHE_LAM] = lam
+                    pend_ok = False  # drawn with other probabilities
+                if j != j_start:
+                    pend_ok = False
                 log1m_p = fstate[k, CACHE_LOG1M_P]
                 q_on = fstate[k, CACHE_Q_ON]
                 while True:
-                    if not math.isnan(fstate[k, PEND_TAU]):  # drawn in an earlier window (may be inf: never)
-                        jp = fstate[k, PEND_TRIAL]
-                        tau = fstate[k, PEND_TAU]
-                        on = fstate[k, PEND_ON] == 1.0
-                        fstate[k, PEND_TAU] = NO_EVENT
+                    if pend_ok:  # (its time may be inf: never)
+                        jp = p_trial
+                        tau = p_tau
+                        on = p_on
+                        pend_ok = False
                     else:
                         if fstate[k, LAST_TAU] == -math.inf:
                             j_e = fstate[k, LAST_TRIAL] + 1.0
                         else:
                             j_e = first_eligible_trial(fstate[k, LAST_TRIAL], fstate[k, LAST_TAU], refr_us, dt)
-                        j_e = max(j_e, float(j_start))
-                        if j_e >= j_end:
+                        j_e = max(j_e, float(j))
+                        if j_e >= r:
                             break
                         g = geometric(s, log1m_p)
                         jp = j_e + g - 1.0
                         u_t = uniform(s)
                         on = uniform(s) < q_on
                         tau = (jp + u_t) * dt
-                    if jp >= j_end:  # pending for the next window
-                        fstate[k, PEND_TRIAL] = jp
-                        fstate[k, PEND_TAU] = tau
-                        fstate[k, PEND_ON] = 1.0 if on else 0.0
-                        break
+                    if jp >= r:
+                        if r == j_end:  # the run may go on in the next window
+                            fstate[k, PEND_TRIAL] = jp
+                            fstate[k, PEND_TAU] = tau
+                            fstate[k, PEND_ON] = 1.0 if on else 0.0
+                        break  # else the run ends here: dropped (memoryless), the next trials go one by one
                     if tau >= tau_limit:
                         break
                     if n == cap:
@@ -550,28 +674,10 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
                     fstate[k, LAST_TAU] = tau
                     fstate[k, LAST_TRIAL] = jp
                 if full:
-                    _restore(states, fstate, k, snap_s, snap_f)
-                    return n_before, k
+                    break
+                j = r
                 continue
-        fstate[k, PEND_TAU] = NO_EVENT  # trial by trial: a pending jump's event is dropped (memoryless)
-        # cached exp(-lam) of the last Poisson means (most trials repeat them)
-        lam_c = -1.0
-        em_c = 1.0
-        ref_c = -1.0
-        emr_c = 1.0
-        for j in range(j_start, j_end):
-            s_j = j * dt
-            if n_frames == 1:
-                lam = frames_lam[0, flat]
-            else:
-                centre = s_j + 0.5 * dt
-                while seg < n_frames - 2 and frame_us[seg + 1] <= centre:
-                    seg += 1
-                f0 = frames_lam[seg, flat]
-                f1 = frames_lam[seg + 1, flat]
-                a = (centre - frame_us[seg]) / (frame_us[seg + 1] - frame_us[seg])
-                a = min(max(a, 0.0), 1.0)
-                lam = f0 + a * (f1 - f0)
+            pend_ok = False  # trial by trial: a pending jump's event is dropped (memoryless)
             lam_in = lam
             if pr_alpha > 0.0 and lam != fstate[k, LAM_PREV]:
                 lev_in = _level(lam, b)
@@ -683,6 +789,7 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
                     if regularity > 0.0:
                         fstate[k, BG_NEXT] = math.nan
             fstate[k, LAM_PREV] = lam
+            j += 1
         if full:
             _restore(states, fstate, k, snap_s, snap_f)
             return n_before, k
