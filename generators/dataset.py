@@ -767,7 +767,14 @@ def load_manifest(path) -> tuple:
         if (root / PROGRESS_DIR).exists():
             raise InputError(f"dataset {root} is incomplete (an interrupted make-dataset run); run the same "
                              "command again to resume it")
-        raise InputError(f"{root} is not an evnoise dataset (no {MANIFEST})")
+        from itertools import islice
+
+        from evnoise.radiometry import IMAGE_EXTENSIONS
+
+        hint = ""
+        if any(p.suffix.lower() in IMAGE_EXTENSIONS for p in islice(root.iterdir(), 1000)):
+            hint = "; a folder of images? make a dataset of it first (make-dataset)"
+        raise InputError(f"{root} is not an evnoise dataset (no {MANIFEST}){hint}")
     data = read_json(manifest_path)
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise InputError(f"{manifest_path} is not an evnoise pairs manifest")

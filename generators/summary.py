@@ -44,7 +44,8 @@ def summarise_dataset(path, *, sanity: bool = True) -> dict:
     c, h, w = pair["counts"]["shape"]
     b = pair["counts"]["binning"]
     out = {
-        "layout": f"evnoise pairs dataset ({totals['shards']} HDF5 shards + manifest.json)",
+        "layout": f"evnoise pairs dataset ({totals['shards']} HDF5 shard{'' if totals['shards'] == 1 else 's'} "
+                  "+ manifest.json)",
         "size_bytes": int(totals["bytes"]),
         "pairs": int(totals["samples"]),
         "pair": f"counts {c}x{h}x{w} uint16 [ON, OFF] ({b}x{b} binned); image {h}x{w} float32, sRGB in [0, 1]",

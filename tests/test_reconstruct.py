@@ -19,6 +19,7 @@ import evnoise as ev
 from evnoise.errors import InputError, OutputError, ParameterError
 from evnoise.reconstruct.baselines import MLInversion, count_image
 from evnoise.reconstruct.data import (
+    NpzPairs,
     PairList,
     ResampledPairs,
     Subset,
@@ -190,6 +191,24 @@ def test_split_by_source_is_disjoint_and_reproducible():
         split_by_source(PairList([np.zeros((2, 4, 4))], [np.zeros((4, 4))], window_s=1.0), val_fraction=0.5)
 
 
+def test_pairs_refuse_a_window_per_other_count_and_images_outside_0_1(tmp_path):
+    """A ``window_s`` of 2 values for 4 pairs was a NumPy broadcasting traceback; 8-bit images (0..255) were scored
+    with PSNR near -43 dB, the metrics taking a data range of 1."""
+    counts, images = [np.zeros((2, 4, 4))] * 4, [np.full((4, 4), 0.5)] * 4
+    with pytest.raises(InputError, match="2 values of window_s for 4 pairs"):
+        PairList(counts, images, window_s=[1.0, 2.0])
+    assert len(PairList(counts, images, window_s=[1.0, 2.0, 1.0, 2.0])) == 4
+    with pytest.raises(InputError, match=r"\[0, 1\], found 200 \(8-bit values\? divide by 255\)"):
+        PairList(counts, [np.full((4, 4), 200.0)] * 4, window_s=1.0)
+    for bad in (np.nan, -0.1):
+        with pytest.raises(InputError, match=r"in \[0, 1\]"):
+            PairList(counts, [np.full((4, 4), bad)] * 4, window_s=1.0)
+    np.savez(tmp_path / "p.npz", counts=np.zeros((4, 2, 4, 4), np.uint16), images=np.full((4, 4, 4), 255.0),
+             window_s=np.ones(2))
+    with pytest.raises(InputError, match="p.npz: 2 values of window_s"):
+        NpzPairs(tmp_path / "p.npz")
+
+
 def test_resampled_pairs_are_reproducible_and_fresh_per_seed():
     ds = resampled(n=2, size=32)
     a, b = ds[1], ds[1]
@@ -332,6 +351,10 @@ def test_tiny_training_reduces_validation_loss_and_is_reproducible(tmp_path):
                  on_epoch_end=lambda epoch, history: epoch == 2)
     assert part["stopped"] == "callback" and part["epochs"] == 2
     assert not read_checkpoint(tmp_path / "b.pt")["train"]["finished"]
+    for other_tr, other_va in ((resampled(n=3, size=64, seed=3), va), (tr, resampled(n=1, size=64, seed=4))):
+        with pytest.raises(ParameterError, match="other data"):  # was taken: the card named the first data
+            train(other_tr, tmp_path / "b.pt", val_data=other_va, config=cfg, model=TINY, resume=True,
+                  progress=False, plot=False)
     r2 = train(tr, tmp_path / "b.pt", val_data=va, config=cfg, model=TINY, resume=True, progress=False, plot=False)
     assert r2["history"]["val_loss"] == hist
     a, _, _ = load_model(tmp_path / "a.pt", which="last")
@@ -344,7 +367,7 @@ def test_tiny_training_reduces_validation_loss_and_is_reproducible(tmp_path):
 
 def test_a_run_saved_before_a_setting_existed_resumes_with_its_default(tmp_path):
     """A checkpoint whose training config lacks a later setting (``pixel_loss``) resumes under the default and
-    is refused under another value."""
+    is refused under another value; one without the digest of its data resumes."""
     tr, va = resampled(n=3, size=64, seed=1), resampled(n=1, size=64, seed=2)
     cfg = TrainConfig(**TINY_CFG)
     path = tmp_path / "old.pt"
@@ -352,6 +375,7 @@ def test_a_run_saved_before_a_setting_existed_resumes_with_its_default(tmp_path)
           on_epoch_end=lambda epoch, history: epoch == 1)
     doc = torch.load(path, map_location="cpu", weights_only=True)
     del doc["train"]["config"]["pixel_loss"]
+    del doc["train"]["data_fingerprint"]  # (nor the digest of its data)
     torch.save(doc, path)
     with pytest.raises(ParameterError, match="pixel_loss"):
         train(tr, path, val_data=va, config=TrainConfig(**TINY_CFG, pixel_loss="mse"), model=TINY, resume=True,

@@ -318,6 +318,11 @@ def flag_names(message: str, flags: dict) -> str:
     return re.sub(r"(--[\w-]+)(?:, \1(?![\w-])| \(\1\))", r"\1", message)
 
 
+def counted(n: int, noun: str, plural: str | None = None) -> str:
+    """``"1 epoch"``, ``"2 epochs"``: a count with its noun in the right number."""
+    return f"{n} {noun if n == 1 else (plural or noun + 's')}"
+
+
 def parent() -> Parser:
     """An empty parent parser (no ``-h``), for ``parents=``."""
     return Parser(add_help=False)

@@ -109,8 +109,9 @@ def _measurements_path(args):
     return str(path)
 
 
-def _check_suffixes(args) -> None:
-    """The preset is TOML and the plot PNG whatever the names say: a name saying otherwise is a slip."""
+def check_output_suffixes(args) -> None:
+    """The preset is TOML and the plot PNG whatever the names say: a name saying otherwise is a slip (checked after
+    the outputs are known not to name an input, the graver slip)."""
     from pathlib import Path
 
     from ..errors import OutputError
@@ -124,7 +125,6 @@ def _check_suffixes(args) -> None:
 def run(args) -> int:
     from . import _calibrate_quiet
 
-    _check_suffixes(args)
     if _calibrate_quiet.wanted(args):
         if args.example:
             raise ParameterError("--example is a rate table; it does not go with --t-start/--t-end/--window")
@@ -142,6 +142,7 @@ def run(args) -> int:
     refuse_writing_inputs([("--out", args.out), ("--plot", args.plot)],
                           [("the measurements", args.measurements), ("the --monitor table", args.monitor),
                            ("the --initial preset", args.initial)])
+    check_output_suffixes(args)
     out = open_output_path(args.out, overwrite=args.overwrite, what="preset")
     plot = open_output_path(args.plot, overwrite=args.overwrite, what="plot") if args.plot else None
     initial = opt.load_preset_arg(args.initial, "--initial") if args.initial else None

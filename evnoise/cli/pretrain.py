@@ -102,6 +102,7 @@ def run(args) -> int:
 
     from ..errors import ParameterError
     from ..reconstruct import pretrain as recipe
+    from ._options import counted
 
     if args.make_test_sets:
         made = recipe.make_test_sets(args.make_test_sets, progress=not args.quiet)
@@ -135,7 +136,8 @@ def run(args) -> int:
     result = train(data, args.out, val_data=val, config=config, model=model, resume=args.resume,
                    overwrite=args.overwrite, progress=not args.quiet, threads=args.threads,
                    data_description=description, card=card)
-    print(f"trained {result['epochs']} epochs ({result['steps']} steps, {result['elapsed_s'] / 60:.1f} min, "
+    print(f"trained {counted(result['epochs'], 'epoch')} ({counted(result['steps'], 'step')}, "
+        f"{result['elapsed_s'] / 60:.1f} min, "
           f"stopped by {result['stopped']}); validation PSNR {result['val_psnr']:.2f} dB, SSIM "
           f"{result['val_ssim']:.3f} (epoch {result['best_epoch']}); wrote {result['out']}")
     return 0

@@ -63,6 +63,7 @@ def run(args) -> int:
     from ..io import open_output_path
     from ..reconstruct.imaging import write_png
     from ..reconstruct.infer import Reconstructor, counts_from_h5, default_model_path, h5_duration_s
+    from ._options import counted
     from ._paths import refuse_writing_inputs
 
     refuse_writing_inputs([("--out", args.out)], [("the events file", args.events), ("the --model", args.model)],
@@ -88,7 +89,7 @@ def run(args) -> int:
             gif = animated_gif(res["out_dir"], fps=res["fps"])
             extra = f"; {sheet.name} and {gif.name}"
         if not args.quiet:
-            print(f"wrote {res['n_frames']} frames{extra} to {res['out_dir']} ({res['fps']:g} fps, window "
+            print(f"wrote {counted(res['n_frames'], 'frame')}{extra} to {res['out_dir']} ({res['fps']:g} fps, window "
                   f"{res['window_s']:g} s, {res['mean_masked']:.1%} of the pixels masked on average)")
         return 0
     out = Path(args.out)

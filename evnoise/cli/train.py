@@ -57,6 +57,7 @@ def run(args) -> int:
     from ..errors import ParameterError
     from ..reconstruct.data import open_pairs
     from ..reconstruct.train import TrainConfig, train
+    from ._options import counted
 
     if args.patience is not None and args.patience < 0:
         raise ParameterError(f"--patience must be >= 0, got {args.patience}")
@@ -86,7 +87,8 @@ def run(args) -> int:
         scores = f"validation PSNR {result['val_psnr']:.2f} dB, SSIM {result['val_ssim']:.3f} (best epoch " \
                  f"{result['best_epoch']}); "
     print(
-        f"trained {result['epochs']} epochs ({result['steps']} steps, {result['elapsed_s'] / 60:.1f} min, "
+        f"trained {counted(result['epochs'], 'epoch')} ({counted(result['steps'], 'step')}, "
+        f"{result['elapsed_s'] / 60:.1f} min, "
         f"stopped by {result['stopped']}); {scores}wrote {result['out']}"
         + (f" and {result['plot']}" if result["plot"] else "")
     )

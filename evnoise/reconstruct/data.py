@@ -93,7 +93,10 @@ class PairList:
         if len(counts) != len(images):
             raise InputError(f"{len(counts)} count arrays but {len(images)} images")
         n = len(counts)
-        windows = np.broadcast_to(np.asarray(window_s, dtype=np.float64), (n,))
+        windows = np.asarray(window_s, dtype=np.float64)
+        if windows.ndim > 1 or (windows.ndim == 1 and windows.size != n):
+            raise InputError(f"{windows.size} values of window_s for {n} pairs (give one, or one per pair)")
+        windows = np.broadcast_to(windows, (n,))
         self.sources = [str(s) for s in (sources if sources is not None else range(n))]
         if len(self.sources) != n:
             raise InputError(f"{len(self.sources)} sources for {n} pairs")
@@ -104,6 +107,11 @@ class PairList:
             c, im, w = _check_item(item, f"pair {i}")
             if (c < 0).any() or c.max(initial=0) > np.iinfo(np.uint16).max:
                 raise InputError(f"pair {i}: counts must be in [0, 65535]")
+            if not np.all((im >= 0) & (im <= 1)):  # NaN too; the metrics take a data range of 1
+                bad = im[~((im >= 0) & (im <= 1))]
+                hint = " (8-bit values? divide by 255)" if np.nanmax(im, initial=0) > 1.5 else ""
+                raise InputError(f"pair {i}: images must be display values in [0, 1], found "
+                                 f"{float(bad.flat[0]):g}{hint}")
             self._items.append({"counts": c.astype(np.uint16), "image": im.astype(np.float32),
                                 "window_s": w, "source": self.sources[i]})
         self.max_lux = max_lux
@@ -162,8 +170,11 @@ class NpzPairs(PairList):
             raise InputError(f"{path}: params_json, max_lux or window_s is not what a pairs file holds "
                              f"({str(exc)[:200]})") from None
         sources = data["sources"].astype(str).tolist() if "sources" in data else None
-        super().__init__(list(counts), list(data["images"]), window_s=window_s,
-                         sources=sources, max_lux=max_lux, params=params)
+        try:
+            super().__init__(list(counts), list(data["images"]), window_s=window_s,
+                             sources=sources, max_lux=max_lux, params=params)
+        except InputError as exc:
+            raise InputError(f"{path}: {exc}") from None
         self.path = path
 
 

@@ -175,6 +175,20 @@ def dataset_windows(dataset, n=64) -> list:
     return sorted({float(dataset[int(i)]["window_s"]) for i in set(idx.tolist())})
 
 
+def _data_fingerprint(train_data, val_data) -> str:
+    """A digest of what a run trains and validates on (each set's size, sources, windows and the target images of
+    up to four of its items): a resumed run must continue on the same."""
+    import hashlib
+    import json
+
+    digest = hashlib.sha256()
+    for d in (train_data, val_data):
+        digest.update(json.dumps([len(d), sorted(dataset_sources(d)), dataset_windows(d)]).encode())
+        for i in sorted({int(i) for i in np.linspace(0, len(d) - 1, min(4, len(d))).round()}):
+            digest.update(np.ascontiguousarray(d[i]["image"], dtype=np.float32).tobytes())
+    return digest.hexdigest()
+
+
 def _estimate_rate_scale(dataset, n=16) -> float:
     """Mean event rate (both polarities, per binned pixel) over up to ``n`` items, in Hz."""
     idx = np.linspace(0, len(dataset) - 1, min(n, len(dataset))).round().astype(int)
@@ -319,7 +333,7 @@ def train(train_data, out, *, val_data=None, config: TrainConfig | None = None, 
     if not out.parent.is_dir():
         raise OutputError(f"output folder {out.parent} does not exist")
     if os.path.lexists(out) and not resume and not overwrite:  # a link counts, even a broken one
-        raise OutputError(f"{out} exists: use resume to continue it or overwrite to replace it")
+        raise OutputError(f"{out} exists: use resume=True to continue it or overwrite=True to replace it")
     if len(train_data) == 0:
         raise InputError("the training set is empty")
 
@@ -333,6 +347,7 @@ def train(train_data, out, *, val_data=None, config: TrainConfig | None = None, 
     if overlap:
         raise InputError(f"source image(s) in both training and validation sets: {sorted(overlap)[:5]}")
 
+    fingerprint = _data_fingerprint(train_data, val_data)
     state = None
     settings = dict(DEFAULT_MODEL)
     settings.update(model or {})
@@ -354,6 +369,9 @@ def train(train_data, out, *, val_data=None, config: TrainConfig | None = None, 
             raise ParameterError(f"cannot resume {out} with different settings: {', '.join(changed)}")
         if dict(doc["model"]) != model_config.to_dict():
             raise ParameterError(f"cannot resume {out}: the model settings differ")
+        if state.get("data_fingerprint", fingerprint) != fingerprint:  # (checkpoints before it have none)
+            raise ParameterError(f"cannot resume {out}: its run trained on other data (other pairs, sources or windows "
+                                 f"in the training or validation set); train anew with overwrite=True")
         spec = InputSpec.from_dict(dict(doc["input"]))
     else:
         windows = dataset_windows(train_data)
@@ -376,13 +394,13 @@ def train(train_data, out, *, val_data=None, config: TrainConfig | None = None, 
         torch.set_num_threads(max(1, int(threads)))
     try:
         return _run(torch, UNet, model_config, spec, config, train_data, val_data, out, state, progress, plot,
-                    data_description, on_epoch_end, card)
+                    data_description, on_epoch_end, card, fingerprint)
     finally:
         torch.set_num_threads(old_threads)
 
 
 def _run(torch, UNet, model_config, spec, config, train_data, val_data, out, state, progress, plot, data_description,
-         on_epoch_end, card):
+         on_epoch_end, card, fingerprint):
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(config.seed)
         net = UNet(config=model_config)
@@ -496,7 +514,7 @@ def _run(torch, UNet, model_config, spec, config, train_data, val_data, out, sta
             if over_budget:
                 stopped = "time-budget"
             _save(out, model_config, spec, best_state, net, opt, config, epoch, step, history, best_epoch, best_val,
-                  elapsed0 + time.perf_counter() - start, finished, data_description, card)
+                  elapsed0 + time.perf_counter() - start, finished, data_description, card, fingerprint)
             if plot_path is not None:
                 plot_history(history, plot_path, loss_label=describe_loss(config))
             if over_budget:
@@ -508,7 +526,7 @@ def _run(torch, UNet, model_config, spec, config, train_data, val_data, out, sta
             stopped = "epochs"
         if stopped == "early-stopping":
             _save(out, model_config, spec, best_state, net, opt, config, epoch, step, history, best_epoch, best_val,
-                  elapsed0 + time.perf_counter() - start, True, data_description, card)
+                  elapsed0 + time.perf_counter() - start, True, data_description, card, fingerprint)
     finally:
         if bar is not None:
             bar.close()
@@ -521,8 +539,9 @@ def _run(torch, UNet, model_config, spec, config, train_data, val_data, out, sta
 
 
 def _save(out, model_config, spec, best_state, net, opt, config, epoch, step, history, best_epoch, best_val,
-          elapsed, finished, data_description, card=None):
+          elapsed, finished, data_description, card=None, fingerprint=None):
     train_state = {
+        "data_fingerprint": fingerprint,
         "config": config.to_dict(),
         "epoch": epoch,
         "step": step,
