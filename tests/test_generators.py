@@ -370,6 +370,26 @@ def test_pair_dataset_errors(reference, tmp_path):
     assert PairDataset(out, "train", verify=True)[0]["seed"] == ds[0]["seed"]
 
 
+def test_training_and_evaluation_open_datasets_checked_against_their_checksums(reference, tmp_path):
+    """A shard whose bytes changed after make-dataset (counts of 32512 where 344 is possible) was trained on and
+    scored without a word: ``open_pairs`` (train, evaluate) checks the split's shards against the manifest."""
+    import shutil
+
+    from evnoise.reconstruct.data import open_pairs
+
+    out, _, _ = reference
+    copy = tmp_path / "ds"
+    shutil.copytree(out, copy)
+    shard = sorted((copy / "shards").glob("train-*.h5"))[0]
+    data = bytearray(shard.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    shard.write_bytes(bytes(data))
+    with pytest.raises(InputError, match="does not match its checksum"):
+        open_pairs(copy, "train")
+    assert len(open_pairs(copy, "val")) == len(PairDataset(out, "val"))  # other splits' shards are not read
+    assert len(open_pairs(copy, "train", verify=False)) == len(PairDataset(out, "train"))
+
+
 # --------------------------------------------------------------------------------------
 # bad inputs
 # --------------------------------------------------------------------------------------

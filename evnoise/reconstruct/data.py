@@ -454,8 +454,9 @@ def random_crop(item: dict, crop: int, rng) -> dict:
     return out
 
 
-def open_pairs(path, split: str = "train"):
-    """Open a pair dataset: a ``.npz`` pairs file, or a folder written by ``evnoise make-dataset``."""
+def open_pairs(path, split: str = "train", *, verify: bool = True):
+    """Open a pair dataset: a ``.npz`` pairs file, or a folder written by ``evnoise make-dataset`` (``verify``: each
+    shard of the split checked against its SHA-256 in the manifest first, as training and evaluation read them all)."""
     path = Path(path)
     if not path.exists():
         raise InputError(f"dataset not found: {path}")
@@ -470,7 +471,7 @@ def open_pairs(path, split: str = "train"):
             f"cannot read dataset folder {path}: this evnoise has no dataset reader "
             "(evnoise.generators.PairDataset)"
         ) from None
-    return PairDataset(path, split=split)
+    return PairDataset(path, split=split, verify=verify)
 
 
 # photos bundled with scikit-image (no download), used for synthetic experiments and tests
