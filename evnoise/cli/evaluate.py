@@ -25,7 +25,9 @@ def register(subparsers):
         help="score the reconstructor against the baselines on a test set (PSNR, SSIM, LPIPS)",
         description="Score the U-Net reconstructor and the baselines (closed-form ML inversion, count "
         "image) on the pairs of a dataset from `evnoise make-dataset` (or a .npz pairs file): PSNR, SSIM "
-        "and LPIPS (AlexNet, offline weights), mean and standard error over the pairs.",
+        "and LPIPS (AlexNet, offline weights), mean and standard error over the pairs. Images are display "
+        "values in [0, 1]: PSNR with a peak of 1; SSIM as scikit-image's with a Gaussian window (sigma 1.5), the "
+        "population covariance and data range 1 (its defaults give 0.005-0.02 other values).",
         epilog="example: evnoise evaluate heldout/photos --ml-sigma 0.7 --ml-sigma 2 --ml-sigma 4 "
         "--out table.md --json results.json --figure examples.png",
         parents=[opt.output(metavar="TABLE.md", help="write the markdown table here"),

@@ -318,14 +318,22 @@ def load_model(path, *, which: str = "best"):
         raise ParameterError(f"which must be 'best' or 'last', got {which!r}")
     try:
         model.load_state_dict(state)
-    except (RuntimeError, KeyError) as exc:
-        raise InputError(f"{path}: weights do not match the model description ({str(exc)[:200]})") from None
+    except (RuntimeError, KeyError) as exc:  # (torch's message is several indented lines)
+        raise InputError(f"{path}: weights do not match the model description ({' '.join(str(exc).split())[:200]})"
+                         ) from None
     torch = require_torch()
     bad = [name for name, value in state.items() if value.is_floating_point() and not bool(torch.isfinite(value).all())]
     if bad:
         raise InputError(f"{path} is a damaged checkpoint: weights that are not finite numbers ({bad[0]}"
                          f"{f' and {len(bad) - 1} more' if len(bad) > 1 else ''})")
     model.eval()
+    run = doc.get("train") or {}
+    if run.get("finished") is False:  # an interrupted or running training: usable, but say so
+        import logging
+
+        logging.getLogger("evnoise").warning(
+            "%s is the checkpoint of an unfinished training run (epoch %s of %s); its %s epoch's weights are used",
+            path, run.get("epoch", "?"), (run.get("config") or {}).get("epochs", "?"), which)
     return model, spec, doc
 
 

@@ -366,7 +366,8 @@ def train(train_data, out, *, val_data=None, config: TrainConfig | None = None, 
         defaults = TrainConfig().to_dict()  # a setting added later: the old run used its default
         changed = sorted(k for k in new if k not in _RESUMABLE_CHANGES and old.get(k, defaults[k]) != new[k])
         if changed:
-            raise ParameterError(f"cannot resume {out} with different settings: {', '.join(changed)}")
+            listed = ", ".join(f"{k}={new[k]!r} (the run's: {old.get(k, defaults[k])!r})" for k in changed)
+            raise ParameterError(f"cannot resume {out} with different settings: {listed}")
         if dict(doc["model"]) != model_config.to_dict():
             raise ParameterError(f"cannot resume {out}: the model settings differ")
         if state.get("data_fingerprint", fingerprint) != fingerprint:  # (checkpoints before it have none)
