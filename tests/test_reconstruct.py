@@ -339,7 +339,7 @@ def test_ml_inversion_recovers_flat_field_within_statistical_error():
 TINY_CFG = dict(epochs=3, steps_per_epoch=6, batch_size=4, crop=16, lr=3e-3, val_crop=32, patience=None, seed=5)
 
 
-def test_tiny_training_reduces_validation_loss_and_is_reproducible(tmp_path):
+def test_tiny_training_reduces_validation_loss_and_is_reproducible(tmp_path, caplog):
     tr, va = resampled(n=3, size=64, seed=1), resampled(n=1, size=64, seed=2)
     cfg = TrainConfig(**TINY_CFG)
     r1 = train(tr, tmp_path / "a.pt", val_data=va, config=cfg, model=TINY, progress=False, plot=False)
@@ -351,6 +351,12 @@ def test_tiny_training_reduces_validation_loss_and_is_reproducible(tmp_path):
                  on_epoch_end=lambda epoch, history: epoch == 2)
     assert part["stopped"] == "callback" and part["epochs"] == 2
     assert not read_checkpoint(tmp_path / "b.pt")["train"]["finished"]
+    with caplog.at_level("WARNING", logger="evnoise"):
+        load_model(tmp_path / "b.pt")  # usable, but an unfinished run's: said
+    assert "unfinished training run (epoch 2 of 3)" in caplog.text
+    caplog.clear()
+    load_model(tmp_path / "a.pt")
+    assert "unfinished" not in caplog.text
     for other_tr, other_va in ((resampled(n=3, size=64, seed=3), va), (tr, resampled(n=1, size=64, seed=4))):
         with pytest.raises(ParameterError, match="other data"):  # was taken: the card named the first data
             train(other_tr, tmp_path / "b.pt", val_data=other_va, config=cfg, model=TINY, resume=True,
