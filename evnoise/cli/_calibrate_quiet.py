@@ -115,7 +115,7 @@ def run(args, recordings) -> int:
     spans = _windows(args)
     refuse_writing_inputs([("--out", args.out), ("--plot", args.plot)],
                           [(f"the recording {r}", r) for r in recordings])
-    from .calibrate import check_output_suffixes
+    from ._paths import check_output_suffixes
 
     check_output_suffixes(args)
     out = open_output_path(args.out, overwrite=args.overwrite, what="preset")

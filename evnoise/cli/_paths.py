@@ -81,4 +81,17 @@ def refuse_writing_inputs(outputs, inputs, *, frames_folder: bool = False, outpu
                                   f"input: choose another folder")
 
 
-__all__ = ["refuse_writing_inputs"]
+__all__ = ["refuse_writing_inputs", "check_output_suffixes"]
+
+
+def check_output_suffixes(args) -> None:
+    """``calibrate``'s preset is TOML and its plot PNG whatever the names say: a name saying otherwise is a slip
+    (checked after the outputs are known not to name an input, the graver slip)."""
+    from pathlib import Path
+
+    from ..errors import OutputError
+
+    if args.out is not None and Path(args.out).suffix.lower() != ".toml":
+        raise OutputError(f"--out must name a .toml file (the preset is TOML), got {args.out}")
+    if args.plot is not None and Path(args.plot).suffix.lower() != ".png":
+        raise OutputError(f"--plot must name a .png file, got {args.plot}")

@@ -109,19 +109,6 @@ def _measurements_path(args):
     return str(path)
 
 
-def check_output_suffixes(args) -> None:
-    """The preset is TOML and the plot PNG whatever the names say: a name saying otherwise is a slip (checked after
-    the outputs are known not to name an input, the graver slip)."""
-    from pathlib import Path
-
-    from ..errors import OutputError
-
-    if args.out is not None and Path(args.out).suffix.lower() != ".toml":
-        raise OutputError(f"--out must name a .toml file (the preset is TOML), got {args.out}")
-    if args.plot is not None and Path(args.plot).suffix.lower() != ".png":
-        raise OutputError(f"--plot must name a .png file, got {args.plot}")
-
-
 def run(args) -> int:
     from . import _calibrate_quiet
 
@@ -137,7 +124,7 @@ def run(args) -> int:
 
     source = _measurements_path(args)
     fixed = _parse_fix(args.fix)
-    from ._paths import refuse_writing_inputs
+    from ._paths import check_output_suffixes, refuse_writing_inputs
 
     refuse_writing_inputs([("--out", args.out), ("--plot", args.plot)],
                           [("the measurements", args.measurements), ("the --monitor table", args.monitor),
