@@ -239,21 +239,23 @@ ALONE_EPS_BIN = 0.05
 
 
 def log_event_probability_alone(lam, eps, bias: float) -> np.ndarray:
-    """Exact log p of each element from its own ``lam`` and ``eps`` alone: the same bits whatever else the call holds.
+    """Log p of each element from its own ``lam`` and ``eps`` alone: the same bits whatever else the call holds.
 
     :func:`log_event_probability` takes the faster of several paths, equal to ~1e-11 but not bit for bit, by the
     array's size and by how many values share a ``lam``; a caller whose output must not depend on how its values
-    are batched (the trial tier's runs in a video, whatever the windows or the crop) uses this instead: the sum of
-    :func:`evnoise._kernels.poisson.event_probability_grouped` (its relative tolerance 1e-17) with tables that
-    span a fixed bin of thresholds (:data:`ALONE_EPS_BIN` wide) at each ``lam``, the windowed exact sum where that
-    cannot serve.
+    are batched (the trial tier's runs in a video, whatever the windows) uses this instead. One ``eps`` for all
+    (a scalar): the Chebyshev table without certified panels (the exact sum where it does not tabulate); one per
+    value: the sum of :func:`evnoise._kernels.poisson.event_probability_grouped` (its relative tolerance 1e-17)
+    with tables that span a fixed bin of thresholds (:data:`ALONE_EPS_BIN` wide) at each ``lam``, the windowed
+    exact sum where that cannot serve. So a value's bits depend on the path its caller chose (scalar or array
+    ``eps``) and on the value alone.
 
     Parameters
     ----------
     lam : numpy.ndarray
         1-D photons per trial (``>= 0``).
     eps : numpy.ndarray or float
-        Thresholds (``> 0``), one per ``lam`` or one for all.
+        Thresholds (``> 0``): one for all (a scalar) or one per ``lam``.
     bias : float
         Photoreceptor bias in photons per trial.
 
@@ -265,13 +267,19 @@ def log_event_probability_alone(lam, eps, bias: float) -> np.ndarray:
     from ._kernels.poisson import GROUPED_MAX_LAM, log_event_probability_exact_array
 
     lam = np.ascontiguousarray(lam, dtype=np.float64).ravel()
-    eps = np.ascontiguousarray(np.broadcast_to(np.asarray(eps, dtype=np.float64), lam.shape)).ravel()
     if lam.size == 0:
         return np.empty(0)
-    # each distinct (lam, eps) once (a uniform threshold: each lam once), its result scattered
+    if np.ndim(eps) == 0 and float(eps) < 700.0:  # (past it c overflows: the sum's p = 0 below)
+        found = _levels(lam)  # each distinct lam once (a hash: no sort where the values are few)
+        values, back = found if found is not None else (lam, None)
+        with np.errstate(over="ignore"):  # eps past ~709: c = inf
+            c = float(np.expm1(float(eps)))
+        log_p = _table_for(c, float(bias)).evaluate(values, certified_panels=False)
+        return log_p if back is None else log_p[back]
+    eps = np.ascontiguousarray(np.broadcast_to(np.asarray(eps, dtype=np.float64), lam.shape)).ravel()
+    # each distinct (lam, eps) once, its result scattered
     if np.all(eps == eps[0]):
-        found = _levels(lam)  # (a hash: no sort where the values are few)
-        lam, back = found if found is not None else np.unique(lam, return_inverse=True)
+        lam, back = np.unique(lam, return_inverse=True)
         eps = np.full(lam.size, eps[0])
     else:
         pairs, back = np.unique(np.stack([lam, eps], axis=1), axis=0, return_inverse=True)

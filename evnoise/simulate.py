@@ -15,8 +15,8 @@ the trial tier for the others (with reset memory whose chains are too many for t
 pixel, each chain's start computed on its own). Randomness: each pixel has its own stream (xoshiro256++ keyed
 by the caller's generator and the pixel index), so the output does not depend on the number
 of threads, the chunking of pixels, or the windows in which time is generated (whose length depends on the
-number of pixels: a crop gives its pixels the same events, given the same thresholds), for a still scene and a
-video alike (the trial tier's runs at one light are the trials', their probabilities evaluated value by value).
+number of pixels), for a still scene and a video alike (the trial tier's runs at one light are the trials', their
+probabilities evaluated value by value).
 """
 
 from __future__ import annotations
@@ -655,8 +655,10 @@ class _RunProbabilities:
     """
 
     def __init__(self, params: NoiseParams, eps_on, eps_off, bg):
-        self.params, self.eps_on, self.eps_off, self.bg = params, eps_on, eps_off, bg
         n = eps_on.size
+        # one threshold for every changing pixel: passed as a scalar (the table, fast for any lam), else per pixel
+        eps_on, eps_off = (float(e[0]) if e.size and np.all(e == e[0]) else e for e in (eps_on, eps_off))
+        self.params, self.eps_on, self.eps_off, self.bg = params, eps_on, eps_off, bg
         self.last = -1  # the last pair evaluated
         self.valid = np.zeros(n, dtype=np.bool_)  # pixels in a stretch through pair `last`
         self.carry = np.full((n, 2), np.nan)  # its values
@@ -685,8 +687,9 @@ class _RunProbabilities:
         values = np.empty((m, 2))
         if m:
             k = np.repeat(np.arange(n), np.diff(ptr))
-            values[:, 0], values[:, 1] = _jump_inputs(lam_out, self.params, self.eps_on[k], self.eps_off[k],
-                                                      select_background(self.bg, k), alone=True)
+            eps = [e if np.ndim(e) == 0 else e[k] for e in (self.eps_on, self.eps_off)]
+            values[:, 0], values[:, 1] = _jump_inputs(lam_out, self.params, *eps, select_background(self.bg, k),
+                                                      alone=True)
             # the stretch each pixel is in at the window's last pair: its last start here, or the one carried
             ends = ptr[1:][np.diff(ptr) > 0] - 1
             self.carry[k[ends]] = values[ends]

@@ -323,16 +323,22 @@ class LogPTable:
         cert_coef = np.array(cert_coefs, dtype=np.float64).reshape(-1, certified.DEGREE + 1)
         return unit_start, bounds, coef_arr, direct, panel_bound, cert_start, cert_par, cert_coef
 
-    def evaluate(self, lam: np.ndarray, skip_below: float = -math.inf, skip_min_lam: float = math.inf) -> np.ndarray:
+    def evaluate(self, lam: np.ndarray, skip_below: float = -math.inf, skip_min_lam: float = math.inf, *,
+                 certified_panels: bool = True) -> np.ndarray:
         """``log p`` at the 1-D float64 array ``lam`` (units outside the table use the exact kernel).
 
         Where the exact kernel would be used (outside the table, or in a panel too rippled to
         tabulate) and ``lam > skip_min_lam``, a Chernoff bound is computed first and ``-inf``
         returned where it shows ``log p < skip_below``. Tabulated values cost no more than the
         bound, so they are returned as they are (``exp`` of them underflows to 0 all the same).
+        ``certified_panels=False``: none, whatever the call holds, so that each value's bits depend on it alone
+        (certified panels serve a unit with :data:`CERT_MIN_VALUES` values in the call).
         """
         valid = lam[(lam > 0) & np.isfinite(lam)]
         units = np.floor(np.log(valid))
+        if not certified_panels:
+            self.ensure(int(u) for u in np.unique(units))  # (units outside the table are left out there)
+            units = units[:0]
         if units.size:
             lo = int(max(units.min(), self.first_unit))
             hi = int(min(units.max(), self.last_unit))
