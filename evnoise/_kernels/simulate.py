@@ -505,11 +505,12 @@ def trial_window(width, pix, frames_lam, frame_us, j_start, j_end, thr, bg, stat
     ``CACHE_LOG1M_P = log1p(-(p_on + p_off))``, ``CACHE_Q_ON = p_on / (p_on + p_off)``), set when a run
     begins at a ``lam`` other than the cached one: from the caller's values of :func:`run_stretches` where given
     (``run_ptr``, ``run_seg``, ``run_val``, ``run_carry``; ``run_carry`` with no rows: none), or else from the
-    exact sum here. Bits that do not depend on the windows need the caller's values to be the
-    same bits whichever window asks (:func:`evnoise.simulate` evaluates each pair of frames once, over the same
-    pixels); a caller may also fill the cache beforehand (:func:`static_in_window`) where it computes the same
-    bits for every window (a still scene: every pixel's one ``lam``, filled before the first window). The random stream
-    is consumed differently from the per-trial path, so the output differs in its bits, not in its law;
+    exact sum here. Bits that do not depend on the windows need the caller's values to be the same bits whichever
+    window asks (:mod:`evnoise.simulate` evaluates each value on its own,
+    :func:`evnoise.model.log_event_probability_alone`); a caller may also fill the cache beforehand
+    (:func:`static_in_window`) where it computes the same bits for every window (a still scene: every pixel's one
+    ``lam``, filled before the first window). The random stream is consumed differently from the per-trial path,
+    so the output differs in its bits, not in its law;
     ``fast_static=False`` keeps the per-trial path (the reference).
 
     Background activity (:mod:`evnoise.background`): ``bg`` is ``(4, n)`` per pixel
