@@ -44,11 +44,11 @@ from __future__ import annotations
 
 import math
 import threading
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from . import terms
+from ._pool import map_in_threads
 
 #: lattice points per standard deviation of the thresholds (finer: fewer pixels take their own sums, more sums
 #: at lattice points)
@@ -70,14 +70,6 @@ SHARE_STRIDE = 64
 LEVELS_PER_TASK = 8
 #: relative margin on the extreme thresholds a level's table is built for (beyond the sums' own C_MARGIN)
 _TABLE_C_MARGIN = 4e-13
-
-
-def _run_parts(fn, tasks, threads):
-    """``fn(*task)`` for every task, in task order (threads only change speed)."""
-    if threads <= 1 or len(tasks) <= 1:
-        return [fn(*t) for t in tasks]
-    with ThreadPoolExecutor(max_workers=threads) as pool:
-        return list(pool.map(lambda t: fn(*t), tasks))
 
 
 def _background_shares(levels, params):
@@ -202,7 +194,7 @@ def bracketed_counts(lam, params, thresholds, key, duration_us: int, width: int,
     s_dn = np.zeros((2, n_levels, n_pts))
     kind = np.ascontiguousarray(geo[:, 0])
     tasks = [(g, min(g + LEVELS_PER_TASK, n_levels)) for g in range(0, n_levels, LEVELS_PER_TASK)]
-    _run_parts(lambda lo, hi: K.level_sums(lo, hi, levels, b, kind, geo, tab_off, pmf, sf, h, j_first, n_cells,
+    map_in_threads(lambda lo, hi: K.level_sums(lo, hi, levels, b, kind, geo, tab_off, pmf, sf, h, j_first, n_cells,
                                            K.WINDOW_ATOL, s_up, s_dn), tasks, threads)
     # each cell's bracket (upper, lower) in one place, for the pixels' lookups
     cells = np.zeros((2, n_levels, n_pts - 1, 2))

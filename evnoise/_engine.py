@@ -13,11 +13,11 @@ from __future__ import annotations
 import contextlib
 import math
 import weakref
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from . import model, terms
+from ._pool import map_in_threads
 from .errors import ParameterError
 from .events import EVENT_DTYPE, empty_events
 from .model import same_path_values
@@ -36,11 +36,7 @@ def pixel_chunks(n: int):
 
 def map_chunks(fn, n: int, threads: int):
     """``fn(lo, hi)`` for every fixed-size chunk, in chunk order (threads only change speed)."""
-    chunks = pixel_chunks(n)
-    if threads <= 1 or len(chunks) <= 1:
-        return [fn(lo, hi) for lo, hi in chunks]
-    with ThreadPoolExecutor(max_workers=threads) as pool:
-        return list(pool.map(lambda c: fn(*c), chunks))
+    return map_in_threads(fn, pixel_chunks(n), threads)
 
 
 def select_background(bg, sel):

@@ -20,6 +20,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from ._pool import hand_over, take
+
 
 def shuffle_deflate(values: np.ndarray, level: int) -> bytes:
     """One chunk's bytes as HDF5's shuffle + deflate filters store them."""
@@ -101,14 +103,14 @@ class ParallelGzipChunks:
         self._pool.shutdown(wait=True, cancel_futures=True)
 
     def _submit(self, name: str, offset: int, values: np.ndarray) -> None:
-        self._in_flight.append((name, offset, self._pool.submit(shuffle_deflate, values, self.level)))
+        self._in_flight.append((name, offset, hand_over(self._pool.submit(shuffle_deflate, values, self.level))))
         self._drain(4 * self.threads)
 
     def _drain(self, keep: int) -> None:
         """Write finished chunks in order until at most ``keep`` are in flight."""
         while len(self._in_flight) > keep:
-            name, offset, future = self._in_flight.popleft()
-            data = future.result()
+            name, offset, outcome = self._in_flight.popleft()
+            data = take(outcome)  # not Future.result: see evnoise._pool
             ds = self.datasets[name]
             if ds.shape[0] < offset + 1:
                 ds.resize((offset + self.chunk,))

@@ -41,6 +41,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from evnoise._pool import collect_results
 from evnoise._version import __version__
 from evnoise.errors import InputError, OutputError, ParameterError
 
@@ -601,18 +602,14 @@ def _die_with_parent(parent_pid: int) -> None:
 
 def _run_pool(root, plan, todo, n_workers, threads, finished) -> None:
     import multiprocessing
-    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    from concurrent.futures import ProcessPoolExecutor
 
     ctx = multiprocessing.get_context(_start_method())
     jobs = [_Job(os.fspath(root), plan.config, plan.sources, t, threads) for t in todo]
     pool = ProcessPoolExecutor(max_workers=n_workers, mp_context=ctx, initializer=_die_with_parent,
                                initargs=(os.getpid(),))
     try:
-        pending = {pool.submit(_run_job, job) for job in jobs}
-        while pending:  # each shard is taken in as soon as it is done (its record is on disk already)
-            done, pending = wait(pending, return_when=FIRST_COMPLETED)
-            for fut in sorted(done, key=lambda f: f.exception() is not None):
-                finished(fut.result())  # re-raises a worker's exception
+        collect_results(pool, _run_job, jobs, finished)  # each shard as it is done (its record is on disk already)
     except KeyboardInterrupt:  # Ctrl-C, or the CLI's SIGTERM (evnoise.cli.Terminated)
         _stop_workers(pool, root)
         raise
