@@ -168,6 +168,16 @@ def test_read_checkpoint_rejects_foreign_files(tmp_path):
     junk.write_bytes(b"not a checkpoint at all")
     with pytest.raises(InputError, match=r"not an evnoise model checkpoint \(not a PyTorch file\)"):
         read_checkpoint(junk)
+    empty = tmp_path / "empty.pt"
+    empty.write_bytes(b"")
+    with pytest.raises(InputError, match=r"\(an empty file\)"):
+        read_checkpoint(empty)
+    whole = tmp_path / "whole.pt"
+    torch.save({"weights": torch.zeros(300)}, whole)
+    cut = tmp_path / "cut.pt"  # an interrupted download: was called "not a PyTorch file"
+    cut.write_bytes(whole.read_bytes()[: whole.stat().st_size // 2])
+    with pytest.raises(InputError, match=r"\(a PyTorch file cut short: its end is missing"):
+        read_checkpoint(cut)
     other = tmp_path / "other.pt"
     torch.save({"weights": torch.zeros(3)}, other)
     with pytest.raises(InputError, match="not an evnoise reconstructor"):

@@ -215,7 +215,7 @@ def read_checkpoint(path) -> dict:
         elif zipfile.is_zipfile(path):
             why = "a damaged or foreign PyTorch file"
         else:
-            why = "not a PyTorch file"
+            why = _not_a_zip_why(path)
         raise InputError(f"{path} is not an evnoise model checkpoint ({why})") from None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise InputError(f"{path} is not an evnoise reconstructor checkpoint")
@@ -232,6 +232,21 @@ def read_checkpoint(path) -> dict:
     if problem:
         raise InputError(f"{path} is a damaged checkpoint: {problem}")
     return doc
+
+
+def _not_a_zip_why(path: Path) -> str:
+    """Why a file that :mod:`zipfile` does not take (PyTorch saves zip archives) is no checkpoint: empty, the start
+    of an archive whose end is missing (a copy or download cut short), or something else."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4)
+    except OSError as exc:
+        return f"cannot be read: {exc.strerror or exc}"
+    if not head:
+        return "an empty file"
+    if head == b"PK\x03\x04":
+        return "a PyTorch file cut short: its end is missing (an interrupted copy or download?)"
+    return "not a PyTorch file"
 
 
 def _is_number(v) -> bool:
