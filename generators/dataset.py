@@ -304,9 +304,7 @@ def generate_shard(job: _Job, on_sample=None) -> dict:
                 y = fit_to_sensor(y, config.sensor_shape, config.fit)
             except InputError as exc:
                 skipped.append({"source": item_id, "split": task.split, "shard": task.name, "reason": str(exc)})
-                if on_sample is not None:
-                    on_sample(config.samples_per_source)
-                continue
+                continue  # its pairs are taken off the progress bar's total when the shard is done
             timings["scene"] += clock() - t0
             written.append(item_id)
             for c in range(config.crops_per_image):
@@ -482,14 +480,16 @@ def make_dataset(sources, out_dir, config: PairConfig | None = None, *, workers:
                 write_json(progress_dir / f"{name}.done.json", rec)
         if reused:
             log.info("resuming: %d shard(s) verified and kept, %d to make", len(reused), len(todo))
+        planned = {t.name: len(t.items) * config.samples_per_source for t in plan.shards}
         bar = None
         if progress:
             from tqdm.auto import tqdm
 
-            done = sum(len(t.items) for t in plan.shards if t.name in valid) * config.samples_per_source
-            bar = tqdm(total=plan.n_samples, initial=done, unit="pair", desc="make-dataset", smoothing=0.1)
+            # the pairs a skipped source would have made are neither done nor to do: the total drops by them
+            done = sum(valid[t.name]["samples"] for t in plan.shards if t.name in valid)
+            dropped = sum(planned[t.name] - valid[t.name]["samples"] for t in plan.shards if t.name in valid)
+            bar = tqdm(total=plan.n_samples - dropped, initial=done, unit="pair", desc="make-dataset", smoothing=0.1)
         timings: dict = {}
-        plan_items = {t.name: t.items for t in plan.shards}
         in_process = scheduler is None and (workers == 1 or (workers is None and len(todo) <= 1))
 
         def finished(rec: dict) -> None:
@@ -498,8 +498,12 @@ def make_dataset(sources, out_dir, config: PairConfig | None = None, *, workers:
             for key, value in rec.pop("timings", {}).items():
                 timings[key] = timings.get(key, 0.0) + value
             valid[rec["name"]] = rec  # its record is on disk already (make_and_record_shard)
-            if bar is not None and not in_process:
-                bar.update(len(plan_items[rec["name"]]) * config.samples_per_source)
+            if bar is not None:
+                if not in_process:  # in process, the bar moved pair by pair
+                    bar.update(rec["samples"])
+                if rec["samples"] < planned[rec["name"]]:  # a source skipped: its pairs are not to come
+                    bar.total -= planned[rec["name"]] - rec["samples"]
+                    bar.refresh()
 
         try:
             if not todo:  # every shard recorded by an interrupted run: only the manifest is missing

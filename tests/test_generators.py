@@ -393,6 +393,30 @@ def test_training_and_evaluation_open_datasets_checked_against_their_checksums(r
 # --------------------------------------------------------------------------------------
 # bad inputs
 # --------------------------------------------------------------------------------------
+@pytest.mark.parametrize("workers", [1, 2])
+def test_progress_bar_ends_at_the_pairs_made_when_a_source_is_skipped(tmp_path, monkeypatch, workers):
+    """A skipped image's planned pairs were counted as made: the bar ended at 9/9 with 8 pairs written."""
+    import tqdm.auto
+
+    seen = []
+
+    class Recording(tqdm.auto.tqdm):
+        def close(self):
+            seen.append((self.n, self.total))
+            super().close()
+
+    monkeypatch.setattr(tqdm.auto, "tqdm", Recording)
+    folder = tmp_path / "imgs"
+    folder.mkdir()
+    for name in ("img1.png", "img2.png", "img4.png"):
+        _write_png(folder / name, _stripes(16))
+    (folder / "img3.png").write_bytes(b"\x89PNG\r\n\x1a\n this is not a png")
+    config = PairConfig(sensor_shape=(16, 56), windows_s=(0.5, 1.0), params=PARAMS, seed=2, shard_size=1)
+    result = make_dataset(folder, tmp_path / "ds", config, workers=workers, progress=True)
+    made = result.manifest["totals"]["samples"]
+    assert made == 6 and seen[-1] == (made, made)
+
+
 def test_empty_folder_is_an_input_error(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(InputError, match="holds no image files"):
