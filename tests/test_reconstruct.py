@@ -7,6 +7,7 @@ test_reconstruct_slow.py.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import pickle
 import subprocess
@@ -566,6 +567,30 @@ def test_evaluate_table_has_every_method(trained, tmp_path):
     assert comparison_figure(result["examples"], tmp_path / "fig.png").is_file()
     with pytest.raises(ParameterError, match="max_lux"):
         evaluate(PairList([items[0]["counts"]], [items[0]["image"]], window_s=1.0), model, lpips=False)
+
+
+def test_evaluate_warns_of_pairs_shorter_than_the_models_windows_and_records_each_window(trained, caplog):
+    """evaluate said nothing when pairs' windows were shorter than every window the model was trained on
+    (reconstruct warns), and its per-pair rows had no window."""
+    from evnoise.reconstruct.evaluate import evaluate
+    from evnoise.reconstruct.infer import Reconstructor, trained_windows
+
+    _, model = trained
+    shortest = trained_windows(Reconstructor(model).spec)[0]
+    src = resampled(n=3, size=64, seed=8)
+    items = [src[i] for i in range(3)]
+    windows = [shortest / 10, shortest, shortest / 10]
+    test = PairList([it["counts"] for it in items], [it["image"] for it in items], window_s=windows)
+    with caplog.at_level(logging.WARNING, logger="evnoise"):
+        result = evaluate(test, model, methods=("unet",), lpips=False)
+    assert [row["window_s"] for row in result["per_item"]] == windows
+    warned = [r.getMessage() for r in caplog.records if "shorter than every window" in r.getMessage()]
+    assert len(warned) == 1 and warned[0].startswith(f"2 of the 3 pairs have windows ({shortest / 10:g} s)")
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="evnoise"):
+        evaluate(PairList([items[1]["counts"]], [items[1]["image"]], window_s=shortest), model, methods=("unet",),
+                 lpips=False)
+    assert not [r for r in caplog.records if "shorter than every window" in r.getMessage()]
 
 
 @pytest.mark.parametrize("distribution", ["exact", "poisson"])

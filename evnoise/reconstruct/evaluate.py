@@ -18,6 +18,7 @@ Reported: mean and standard error over the pairs.
 
 from __future__ import annotations
 
+import logging
 import math
 import sys
 import time
@@ -29,6 +30,8 @@ from .._atomic import atomic_output
 from ..errors import InputError, ParameterError
 from .baselines import MLInversion, count_image
 from .metrics import psnr, ssim
+
+log = logging.getLogger(__name__)
 
 __all__ = ["evaluate", "format_table", "comparison_figure", "METHODS"]
 
@@ -78,7 +81,7 @@ def evaluate(dataset, model=None, *, params=None, max_lux=None, lpips: bool = Tr
         ``{"n": int, "metrics": {method: {"psnr": (mean, sem), "ssim": ..., "lpips": ...}},
         "per_item": [...], "seconds": {method: s}, "examples": [...]}``.
     """
-    from .infer import Reconstructor
+    from .infer import Reconstructor, model_window, trained_windows
 
     methods = tuple(methods)
     unknown = set(methods) - set(METHODS)
@@ -116,6 +119,7 @@ def evaluate(dataset, model=None, *, params=None, max_lux=None, lpips: bool = Tr
     if n == 0:
         raise InputError("the test set is empty")
     per_item, examples = [], []
+    short = {}  # pair windows shorter than every window the U-Net was trained on: how many pairs each
     seconds = {m: 0.0 for m in methods}
     iterator = range(n)
     if progress:
@@ -132,6 +136,8 @@ def evaluate(dataset, model=None, *, params=None, max_lux=None, lpips: bool = Tr
             t0 = time.perf_counter()
             if m == "unet":
                 preds[m] = net.predict_binned(counts, window)
+                if model_window(net.spec, window) != window:
+                    short[window] = short.get(window, 0) + 1
             elif m.startswith("ml-inversion"):
                 # a pair's own white level (make-dataset's "lux_scale") when it has one
                 preds[m] = inverter[m].display(counts, window, max_lux=item.get("lux_scale"))
@@ -140,7 +146,7 @@ def evaluate(dataset, model=None, *, params=None, max_lux=None, lpips: bool = Tr
             else:
                 preds[m] = count_image(counts, mode="minmax")
             seconds[m] += time.perf_counter() - t0
-        row = {"index": i, "source": str(item.get("source", i))}
+        row = {"index": i, "source": str(item.get("source", i)), "window_s": window}
         for m, pred in preds.items():
             row[m] = {"psnr": psnr(pred, target), "ssim": ssim(pred, target),
                       "lpips": lp.distance(pred, target) if lp is not None else None}
@@ -148,6 +154,12 @@ def evaluate(dataset, model=None, *, params=None, max_lux=None, lpips: bool = Tr
         if len(examples) < keep_predictions:
             examples.append({"counts": counts, "target": target, "window_s": window, "predictions": preds,
                              "source": row["source"]})
+    if short:
+        trained = ", ".join(f"{w:g}" for w in trained_windows(net.spec))
+        log.warning("%d of the %d pairs have windows (%s s) shorter than every window the model was trained on "
+                    "(%s s): the U-Net sees their counts scaled up to its shortest window (a noisier image; a model "
+                    "trained on such windows does better)", sum(short.values()), n,
+                    ", ".join(f"{w:g}" for w in sorted(short)), trained)
     metrics = {}
     for m in methods:
         metrics[m] = {k: _summary([r[m][k] for r in per_item]) for k in ("psnr", "ssim", "lpips")}
