@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import logging
 import subprocess
 import sys
 
@@ -510,6 +511,25 @@ def test_reconstruct_video_writes_frames_overlays_and_a_table(tmp_path, square, 
                              overlay=False, progress=False)
     assert res2["n_frames"] == 2
     assert len(list(out.glob("frame_*.png"))) == 2 and not list(out.glob("overlay_*.png"))  # no stale frames
+
+
+def test_reconstruct_video_says_when_fewer_frames_fit_than_asked(tmp_path, square, tiny_model, caplog):
+    """max_frames=3 on a 2 s recording with a 1.5 s window wrote 1 frame and said nothing."""
+    from evnoise.reconstruct.video import reconstruct_video
+
+    events, _, _, _ = square
+    src = ev.write_events(tmp_path / "rec.h5", events, (H, W), t_end_us=2_000_000)
+    with caplog.at_level(logging.WARNING, logger="evnoise"):
+        res = reconstruct_video(src, tiny_model, tmp_path / "a", fps=2, window_s=1.5, max_frames=3, progress=False)
+    assert res["n_frames"] == 2  # windows ending at 1.5 s and 2 s
+    warned = [r.getMessage() for r in caplog.records if "frames asked fit" in r.getMessage()]
+    assert warned == ["only 2 of the 3 frames asked fit: each frame counts a whole window of 1.5 s and the recording "
+                      "holds 2 s from its start (a shorter window_s= gives more frames)"]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="evnoise"):
+        assert reconstruct_video(src, tiny_model, tmp_path / "b", fps=2, window_s=1.5, max_frames=2,
+                                 progress=False)["n_frames"] == 2
+    assert not [r for r in caplog.records if "frames asked fit" in r.getMessage()]
 
 
 def test_reconstruct_video_errors(tmp_path, square, tiny_model):

@@ -149,6 +149,11 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
         raise InputError(f"the recording ({(t_end_us - t_start_us) * 1e-6:.3g} s from t_start) is shorter than one "
                          f"window of {window_steps * step_us * 1e-6:.3g} s")
     if max_frames is not None:
+        if n_out < max_frames:  # e.g. a 2 s recording and the model's 2 s window: 1 frame, not the 3 asked
+            logging.getLogger("evnoise").warning(
+                "only %d of the %d frames asked fit: each frame counts a whole window of %.6g s and the recording "
+                "holds %.6g s from its start (a shorter window_s= gives more frames)", n_out, max_frames,
+                window_steps * step_us * 1e-6, (t_end_us - t_start_us) * 1e-6)
         n_out = min(n_out, max_frames)
     created = not out_dir.exists()
     out_dir.mkdir(exist_ok=True)
