@@ -95,6 +95,9 @@ class PairDataset:
         self.max_lux = float(config["white_lux"])
         self.binning = int(config["binning"])
         self.windows_s = tuple(float(w) for w in config["windows_s"])
+        preset = config.get("preset")
+        #: the preset name (or TOML path) the pairs were made with; ``None`` for parameters given without one
+        self.preset = preset if isinstance(preset, str) and preset and preset != "custom" else None
         self._handles: dict = {}
         self._meta: dict = {}
         self._pid = os.getpid()

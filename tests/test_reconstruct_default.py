@@ -259,9 +259,15 @@ def test_make_dataset_crop_then_default_train_fits(tmp_path, capsys):
     out = tmp_path / "m.pt"
     assert main(["train", str(data), "--out", str(out), "--epochs", "1", "--steps-per-epoch", "1",
                  "--batch-size", "2", "--no-plot", "-q"]) == 0
-    assert read_checkpoint(out)["train"]["config"]["crop"] == 32
+    doc = read_checkpoint(out)
+    assert doc["train"]["config"]["crop"] == 32
     last = capsys.readouterr().out.strip().splitlines()[-1]
     assert "validation PSNR" in last and "SSIM" in last  # the final line reports the scores
+    # the dataset's preset (the default, evk3-hd) and its camera go into the card, as the shipped model's do: a
+    # recording of another camera is warned about (a user-trained model had no sensor to compare with)
+    assert doc["card"]["preset"] == "evk3-hd" and "EVK3-HD" in doc["card"]["sensor"]
+    warn = recording_mismatch({"camera": "DAVIS346"}, doc)
+    assert len(warn) == 1 and "DAVIS346" in warn[0] and "EVK3-HD" in warn[0]
 
 
 def test_train_result_reports_validation_psnr_and_ssim(tmp_path):

@@ -388,7 +388,7 @@ def train(train_data, out, *, val_data=None, config: TrainConfig | None = None, 
                          ml_sigma=config.ml_sigma, params=None if params is None else params.to_dict())
     if config.crop % model_config.multiple:
         raise ParameterError(f"crop must be a multiple of {model_config.multiple} for this model, got {config.crop}")
-    card = dict(card or {})
+    card = _with_preset(dict(card or {}), getattr(train_data, "preset", None))
 
     old_threads = torch.get_num_threads()
     if threads is not None:
@@ -537,6 +537,24 @@ def _run(torch, UNet, model_config, spec, config, train_data, val_data, out, sta
             "out": out, "plot": plot_path, "n_parameters": net.n_parameters(), "input": spec.to_dict(),
             "val_psnr": history["val_psnr"][best] if 0 <= best < len(history["val_psnr"]) else None,
             "val_ssim": history["val_ssim"][best] if 0 <= best < len(history["val_ssim"]) else None}
+
+
+def _with_preset(card: dict, preset) -> dict:
+    """``card`` with the training data's preset and its camera (``preset``: a dataset's preset name or TOML path)
+    where it names none: a recording of another camera is then warned about, as for the shipped model."""
+    if not isinstance(preset, str) or not preset or "preset" in card:
+        return card
+    from ..errors import EvnoiseError
+    from ..params import preset_info
+
+    try:
+        info = preset_info(preset)
+    except (EvnoiseError, OSError):  # a TOML path that is gone, or no longer a preset: only its name
+        return {**card, "preset": Path(preset).stem}
+    card["preset"] = info["name"]
+    if info["sensor"] and "sensor" not in card:
+        card["sensor"] = f"{info['sensor']} (the preset's camera)"
+    return card
 
 
 def _save(out, model_config, spec, best_state, net, opt, config, epoch, step, history, best_epoch, best_val,
