@@ -217,6 +217,80 @@ def test_tonic_bad_input():
     assert transform(empty) is empty or transform(empty).size == 0
 
 
+
+def test_tonic_bad_arguments_are_refused_at_construction():
+    """Bad arguments are one clear error when the transform is made, not at its first call (in a DataLoader worker,
+    under torch's traceback): threads, a sensor_size that is not whole numbers (it was truncated: 34.5 -> 34) and
+    lux=None (it was "lux contains NaN or Inf values")."""
+    with pytest.raises(ParameterError, match="threads must be a whole number >= 1"):
+        tonic_plugin.PhotonNoise((34, 34, 2), PARAMS, 2.0, threads=0)
+    with pytest.raises(ParameterError, match="whole numbers"):
+        tonic_plugin.PhotonNoise((34.5, 34, 2), PARAMS, 2.0)
+    with pytest.raises(InputError, match="lux must be a scalar or an .H, W. map .*got None"):
+        tonic_plugin.PhotonNoise((34, 34, 2), PARAMS, None)
+    assert tonic_plugin.PhotonNoise((34.0, 34.0, 2.0), PARAMS, 2.0).sensor_size == (34, 34, 2)
+
+
+def test_tonic_sensor_beyond_the_memory_budget_is_one_clear_error(monkeypatch):
+    """A sensor whose per-pixel state cannot fit is refused at construction, naming it (it was NumPy's MemoryError
+    from the lux map, or a machine swapping while the maps were computed)."""
+    monkeypatch.setenv("EVNOISE_MAX_MEMORY", "64M")
+    with pytest.raises(ParameterError, match=r"1280x720 sensor would need .* more than the 67.1 MB EVNOISE_MAX_MEMORY"):
+        tonic_plugin.PhotonNoise((1280, 720, 2), PARAMS, 2.0)
+    assert tonic_plugin.PhotonNoise((34, 34, 2), PARAMS, 2.0, rng=0)(np.zeros(2, tonic.datasets.NMNIST.dtype)).size
+
+
+def test_tonic_memory_check_of_a_sample_covers_the_calls_peak(monkeypatch):
+    """The check of a sample's noise counts what a call holds at its peak (the kernel's columns, their sort, the
+    noise and the merged output: about three items per event), not 32 bytes per event: with a budget below the
+    call's real peak the sample is refused before the draw instead of passing the check and then taking more."""
+    import tracemalloc
+
+    transform = tonic_plugin.PhotonNoise((4, 4, 2), PARAMS, 100.0, rng=0)
+    sample = np.zeros(3, dtype=tonic.datasets.NMNIST.dtype)
+    sample["t"] = [0, 1, 20_000_000_000]  # 20,000 s: about 45,000 noise events on 16 pixels
+    transform(sample[:2])  # the kernels compiled before the measurement
+    tracemalloc.start()
+    try:
+        out = transform(sample)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert out.size > 20_000
+    monkeypatch.setenv("EVNOISE_MAX_MEMORY", str(int(0.95 * peak)))
+    with pytest.raises(InputError, match="is the sample's t in microseconds"):
+        transform(sample)
+
+
+def test_tonic_seed_noise_depends_on_the_values_not_on_padding_bytes():
+    """An int seed keys a sample's noise on its values: the padding of an aligned dtype (whatever np.empty left
+    there) and the bytes of fields a view leaves out changed it, so the same sample got other noise."""
+    aligned = np.dtype([("x", np.int16), ("y", np.int16), ("t", np.int64), ("p", bool)], align=True)
+    assert aligned.itemsize > 13  # padded
+    gen = np.random.default_rng(1)
+    cols = {"x": gen.integers(0, 34, 300), "y": gen.integers(0, 34, 300), "t": np.sort(gen.integers(0, 300_000, 300)),
+            "p": gen.integers(0, 2, 300)}
+
+    def sample(dtype, fill=0):
+        events = np.full(300 * dtype.itemsize, fill, dtype=np.uint8).view(dtype)
+        for name in dtype.names:
+            events[name] = cols.get(name, fill)
+        return events
+
+    transform = tonic_plugin.PhotonNoise((34, 34, 2), PARAMS, 2.0, rng=0)
+    noise = transform.noise(sample(aligned, 0))
+    assert noise.size > 100 and np.array_equal(transform.noise(sample(aligned, 0xAB)), noise)
+    # the packed dtype of the same fields (tonic's events_struct: what the noise has always been keyed on) gets it too
+    assert tonic.io.events_struct.names == aligned.names and tonic.io.events_struct.itemsize == 13
+    assert np.array_equal(transform.noise(sample(tonic.io.events_struct)), noise)
+    # a view of four of a sample's five fields: the fifth (outside the view) does not change the noise
+    wide = np.dtype([("x", "<i8"), ("y", "<i8"), ("t", "<i8"), ("p", "<i8"), ("label", "<i8")])
+    views = [sample(wide, fill)[["x", "y", "t", "p"]] for fill in (0, 7)]
+    assert views[0].dtype.itemsize == 40
+    assert np.array_equal(transform.noise(views[0]), transform.noise(views[1]))
+    assert np.array_equal(transform(views[1])[["x", "y", "t", "p"]], transform(views[0])[["x", "y", "t", "p"]])
+
+
 # --------------------------------------------------------------------------------------
 # v2e (a stand-in following v2e's documented EventEmulator interface)
 # --------------------------------------------------------------------------------------
@@ -433,6 +507,29 @@ def test_v2e_warns_about_its_own_noise_and_rejects_bad_input():
     with pytest.raises(InputError, match="shape"):
         wrapper.generate_events(np.zeros((5, 4)), 2.0)
     assert emulator.frame_counter == calls  # rejected before the emulator saw the frame
+
+
+
+def test_v2e_frame_times_out_of_range_are_one_clear_error(monkeypatch):
+    """A frame interval whose noise cannot fit in memory (frame times in another unit than seconds) is refused before
+    the emulator sees the frame (it was drawn: NumPy's MemoryError, or memory past the budget), a frame time beyond
+    2**62 microseconds is refused (it hung in the kernel at the next frame), and so are bad threads at construction
+    (they were found at the second frame)."""
+    emulator = StandInEmulator()
+    wrapper = v2e_plugin.PhotonNoise(emulator, PARAMS, 20.0, rng=0)
+    frame = np.full((16, 32), 100.0)
+    assert wrapper.generate_events(frame, 0.0) is None
+    monkeypatch.setenv("EVNOISE_MAX_MEMORY", "16M")
+    calls = emulator.frame_counter
+    with pytest.raises(ParameterError, match=r"the photon noise of the 2000 s since the previous frame .*"
+                                             r"EVNOISE_MAX_MEMORY; is t_frame in seconds\?"):
+        wrapper.generate_events(frame, 2000.0)  # about 330,000 events: 85 MB at the peak with v2e's writers
+    assert emulator.frame_counter == calls  # rejected before the emulator saw the frame
+    assert wrapper.generate_events(frame, 0.5) is not None  # and the wrapper goes on
+    with pytest.raises(ParameterError, match=r"2\*\*62 microseconds"):
+        v2e_plugin.PhotonNoise(StandInEmulator(), PARAMS, 20.0, rng=0).generate_events(frame, 1e30)
+    with pytest.raises(ParameterError, match="threads must be a whole number >= 1"):
+        v2e_plugin.PhotonNoise(StandInEmulator(), PARAMS, 20.0, threads=0)
 
 
 # --------------------------------------------------------------------------------------

@@ -17,11 +17,17 @@ import math
 
 import numpy as np
 
-from .._checks import as_generator, check_lux, check_params
+from .._budget import check_allocation, memory_budget
+from .._checks import as_generator, check_lux, check_params, resolve_threads
 from ..errors import InputError, ParameterError
 from ..events import EVENT_DTYPE
 
 __all__ = ["EmulatorNoise", "noise_rows", "merge_rows", "merge_with_positions", "interleave"]
+
+MAX_T_S = float(1 << 62) * 1e-6  #: largest |t_frame| in seconds (2**62 microseconds): room for differences in int64
+#: peak memory per noise event of a frame interval: the kernel's columns, the sorted events, the float64 rows and their
+#: merge (measured ~55 bytes), and the copies v2e's writers make (~190 bytes with dvs_h5 and AEDAT 2)
+BYTES_PER_NOISE_EVENT = 256
 
 
 def _seconds_to_us(t_s, name: str = "t_frame") -> int:
@@ -31,6 +37,9 @@ def _seconds_to_us(t_s, name: str = "t_frame") -> int:
         raise ParameterError(f"{name} must be a time in seconds, got {t_s!r}") from None
     if not math.isfinite(t):
         raise ParameterError(f"{name} must be a finite time in seconds, got {t_s!r}")
+    if abs(t) > MAX_T_S:
+        raise ParameterError(f"{name} must be a time in seconds within +-{MAX_T_S:.4g} s (2**62 microseconds), "
+                             f"got {t_s!r}")
     return int(round(t * 1e6))
 
 
@@ -109,7 +118,9 @@ class EmulatorNoise:
     -----
     The noise of the interval between two frames is simulated under the illuminance of the
     *earlier* frame (sample-and-hold, exact for piecewise-constant light); timestamps are
-    integer microseconds, returned in seconds. Attribute access the wrapper does not define
+    integer microseconds, returned in seconds. An interval whose noise would not fit in memory
+    (frame times in another unit than seconds) is a :class:`~evnoise.errors.ParameterError`
+    before the emulator sees the frame. Attribute access the wrapper does not define
     (``reset`` excepted) goes to the wrapped emulator, and so does setting an attribute the
     emulator has (other than the wrapper's :attr:`OWN_ATTRIBUTES` and private names).
     """
@@ -122,6 +133,7 @@ class EmulatorNoise:
         self.params = check_params(params)
         self._frame_to_lux = frame_to_lux
         self._gen = as_generator(rng)
+        resolve_threads(threads)  # checked here, not at the second frame
         self._threads = threads
         self._stream = None
         self._lux = None
@@ -190,6 +202,7 @@ class EmulatorNoise:
             if t_us < stream.t_us:
                 raise ParameterError(f"t_frame={t_frame!r} s is before the previous frame's time "
                                      f"{stream.t_us * 1e-6!r} s")
+            self._check_interval(t_us - stream.t_us)
         signal = self._emulate(new_frame, t_frame)
         if stream is None:
             self._stream = NoiseStream(lux.shape, self.params, rng=self._gen, t_start_us=t_us, threads=self._threads)
@@ -201,6 +214,22 @@ class EmulatorNoise:
             self.signal_count += int(np.shape(signal)[0])
         self.noise_count += int(noise.size)
         return self._merge(signal, noise)
+
+    def _check_interval(self, span_us: int) -> None:
+        """Refuse an interval whose noise cannot fit in memory (a frame time in another unit than seconds), before the
+        emulator sees the frame: against the bound of one event per pixel and trial first (no computation), and where
+        that bound passes the budget against the expected count at the earlier frame's light (a closed form over the
+        frame, seconds on a large one: only for such long intervals)."""
+        budget = memory_budget()
+        bound = self._lux.size * (span_us / self.params.trial_us + 1.0)
+        if budget is None or bound * BYTES_PER_NOISE_EVENT <= budget:
+            return
+        from ..rates import expected_rate
+
+        expected = float(expected_rate(self._lux, self.params).sum()) * span_us * 1e-6
+        check_allocation((expected + 8.0 * math.sqrt(expected)) * BYTES_PER_NOISE_EVENT,
+                         f"the photon noise of the {span_us * 1e-6:.6g} s since the previous frame "
+                         f"({expected:.3g} events expected)", hint="is t_frame in seconds?", error=ParameterError)
 
     #: what :meth:`generate_events` calls for the emulator's events: None for ``emulator.generate_events``, or a
     #: function ``(frame, t_s) -> rows`` (an emulator subclass that adds the noise itself calls its base method)

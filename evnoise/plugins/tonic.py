@@ -26,6 +26,9 @@ _SAMPLE_STREAM = 1  # SeedSequence words that separate the per-sample noise ...
 _THRESHOLD_STREAM = 0  # ... from the sensor's threshold mismatch
 _WORKER_STREAM = 2  # ... and a Generator's per-worker streams
 MAX_T_US = 1 << 62  #: largest |t| of a sample (µs), as evnoise's readers take: room for differences in int64
+#: peak memory per pixel of the transform (its per-pixel maps and inputs, and a call's pixel state: 60-390 bytes
+#: measured over the presets, with and without reset memory), checked against the budget at construction
+BYTES_PER_PIXEL = 400
 
 
 def _worker_identity():
@@ -55,12 +58,29 @@ def _signed_p(dtype: np.dtype) -> np.dtype:
 def _check_sensor_size(sensor_size):
     try:
         width, height, n_pol = (int(v) for v in sensor_size)
-    except (TypeError, ValueError):
+        whole = all(float(v) == int(v) for v in sensor_size)
+    except (TypeError, ValueError, OverflowError):
         raise ParameterError(f"sensor_size must be tonic's (W, H, P), got {sensor_size!r}") from None
-    if not (1 <= width <= 65536 and 1 <= height <= 65536) or n_pol not in (1, 2):
-        raise ParameterError(f"sensor_size must be (W, H, P) with 1 <= W, H <= 65536 and P = 1 or 2, "
+    if not whole or not (1 <= width <= 65536 and 1 <= height <= 65536) or n_pol not in (1, 2):
+        raise ParameterError(f"sensor_size must be (W, H, P) of whole numbers with 1 <= W, H <= 65536 and P = 1 or 2, "
                              f"got {sensor_size!r}")
+    # the transform keeps per-pixel maps and a call works on every pixel: refuse a sensor whose state cannot fit
+    check_allocation(BYTES_PER_PIXEL * width * height, f"PhotonNoise's per-pixel state of a {width}x{height} sensor",
+                     hint="check sensor_size (W, H, P)", error=ParameterError)
     return width, height, n_pol
+
+
+def _packed(events: np.ndarray) -> np.ndarray:
+    """``events`` with its fields only, packed (no padding or bytes of fields left out of a view): what a seed's
+    noise is keyed on, so that bytes that are not the sample's values cannot change it."""
+    fields = [(name, events.dtype.fields[name][0]) for name in events.dtype.names]
+    packed = np.dtype(fields)
+    if packed == events.dtype:
+        return events
+    out = np.empty(events.shape, dtype=packed)
+    for name in events.dtype.names:
+        out[name] = events[name]
+    return out
 
 
 class PhotonNoise:
@@ -82,8 +102,9 @@ class PhotonNoise:
 
         * ``None``: fresh randomness on every call (augmentation; not reproducible);
         * an int seed: the noise of a sample is a function of the seed *and the sample's
-          content*: calling the transform again on the same sample gives the same output (in
-          any epoch, order or DataLoader worker), and different samples get independent noise;
+          content* (its dtype and field values; not padding bytes): calling the transform again
+          on the same sample gives the same output (in any epoch, order or DataLoader worker),
+          and different samples get independent noise;
         * a Generator: drawn from it on every call, so the same sample gets new noise each
           time (reproducible for a fixed order of calls in one process). A copy of the
           transform in another process (a DataLoader worker, forked or spawned) draws from its
@@ -102,7 +123,10 @@ class PhotonNoise:
     -----
     The span of a sample is ``t_first <= t <= t_last`` of its events (integer microseconds),
     so the expected number of added events is ``sum(expected_rate(lux)) * (t_last - t_first +
-    1e-6 s)``. An empty sample is returned unchanged (it has no span). The output has the input's
+    1e-6 s)``: ``t`` in another unit changes the noise by that factor. A sample whose noise would
+    not fit in memory is an :class:`~evnoise.errors.InputError` before the draw, and a sensor whose
+    per-pixel state would not (:data:`BYTES_PER_PIXEL`) a :class:`~evnoise.errors.ParameterError`
+    at construction. An empty sample is returned unchanged (it has no span). The output has the input's
     dtype and field names (an unsigned ``p`` becomes signed of the same width, so that tonic's
     ``ToVoxelGrid`` can write -1 into it) and is sorted by ``t`` (stably: input events before
     noise events at equal times). Noise events take the input's polarity convention: 1 ON and 0
@@ -127,6 +151,7 @@ class PhotonNoise:
         self.sensor_size = tuple(_check_sensor_size(sensor_size))
         width, height, _ = self.sensor_size
         self.lux = self._lux_map(lux, height, width)
+        resolve_threads(threads)  # checked here, not at the first call (in a DataLoader worker)
         self.threads = threads
         if rng is None or isinstance(rng, np.random.Generator):
             self._seed = None
@@ -187,6 +212,8 @@ class PhotonNoise:
 
     @staticmethod
     def _lux_map(lux, height, width):
+        if lux is None:
+            raise InputError("lux must be a scalar or an (H, W) map of illuminance in lux, got None")
         if np.ndim(lux) == 0:
             return np.full((height, width), check_lux([[lux]])[0, 0])
         arr = check_lux(lux)
@@ -235,8 +262,9 @@ class PhotonNoise:
 
     def _generator(self, events):
         if self._seed is not None:
-            digest = hashlib.blake2b(str(events.dtype.descr).encode(), digest_size=16)
-            digest.update(np.ascontiguousarray(events).tobytes())
+            values = _packed(events)  # the sample's values: not the padding of an aligned dtype
+            digest = hashlib.blake2b(str(values.dtype.descr).encode(), digest_size=16)
+            digest.update(np.ascontiguousarray(values).tobytes())
             words = np.frombuffer(digest.digest(), dtype=np.uint32).tolist()
             return np.random.default_rng(np.random.SeedSequence([self._seed, _SAMPLE_STREAM, *words]))
         if self._gen is None:
@@ -260,8 +288,12 @@ class PhotonNoise:
         t_first = int(np.floor(t.min()))
         span_us = int(np.ceil(t.max())) - t_first + 1
         expected = float(self._nu.sum()) * span_us * 1e-6
-        check_allocation(expected * 32.0, f"the noise of a sample spanning {span_us * 1e-6:.6g} s "
-                         f"({expected:.3g} events expected)", hint="is the sample's t in microseconds?")
+        # a call's peak: the kernel's columns, their sort, the noise events and the merged output (measured: 41-106
+        # bytes per event for items of 7-32 bytes)
+        per_event = 3 * events.dtype.itemsize + 48
+        check_allocation((expected + 8.0 * math.sqrt(expected)) * per_event, f"the noise of a sample spanning "
+                         f"{span_us * 1e-6:.6g} s ({expected:.3g} events expected)",
+                         hint="is the sample's t in microseconds?")
         threads = resolve_threads(self.threads)
         state = PixelState(self._pix, key, threads)
         chains = self._memory
