@@ -217,7 +217,6 @@ def test_tonic_bad_input():
     assert transform(empty) is empty or transform(empty).size == 0
 
 
-
 def test_tonic_bad_arguments_are_refused_at_construction():
     """Bad arguments are one clear error when the transform is made, not at its first call (in a DataLoader worker,
     under torch's traceback): threads, a sensor_size that is not whole numbers (it was truncated: 34.5 -> 34) and
@@ -507,7 +506,6 @@ def test_v2e_warns_about_its_own_noise_and_rejects_bad_input():
     with pytest.raises(InputError, match="shape"):
         wrapper.generate_events(np.zeros((5, 4)), 2.0)
     assert emulator.frame_counter == calls  # rejected before the emulator saw the frame
-
 
 
 def test_v2e_frame_times_out_of_range_are_one_clear_error(monkeypatch):
