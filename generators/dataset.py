@@ -459,10 +459,13 @@ def make_dataset(sources, out_dir, config: PairConfig | None = None, *, workers:
             log.info("removed %s, left by an interrupted run", path)
         records = existing_records(root, plan)
         (root / SHARDS_DIR).mkdir(exist_ok=True)
+        planned = {t.name: len(t.items) * config.samples_per_source for t in plan.shards}
         valid, reused = {}, []
         for task in plan.shards:
             rec = records.get(task.name)
-            if rec is not None and shard_verified(root, rec):
+            # a record's pair count is read below (progress, manifest totals): a whole number the shard can hold
+            counted = rec is not None and type(rec.get("samples")) is int and 0 <= rec["samples"] <= planned[task.name]
+            if counted and shard_verified(root, rec):
                 valid[task.name] = rec
                 reused.append(task.name)
             elif rec is not None:
@@ -480,7 +483,6 @@ def make_dataset(sources, out_dir, config: PairConfig | None = None, *, workers:
                 write_json(progress_dir / f"{name}.done.json", rec)
         if reused:
             log.info("resuming: %d shard(s) verified and kept, %d to make", len(reused), len(todo))
-        planned = {t.name: len(t.items) * config.samples_per_source for t in plan.shards}
         bar = None
         if progress:
             from tqdm.auto import tqdm

@@ -158,6 +158,26 @@ def test_interrupted_with_every_shard_recorded_finishes_with_workers(tmp_path, m
     assert not (out / PROGRESS_DIR).exists()
 
 
+@pytest.mark.parametrize("samples", ["4", -1, 10**6, None, True])
+def test_a_record_with_a_bad_pair_count_is_made_again(tmp_path, samples):
+    """A record whose file checks out but whose pair count is not a whole number the shard can hold (a hand-edited
+    or hostile manifest) was kept, and its count summed into the totals: a TypeError traceback, or a manifest with
+    wrong totals. Now the shard is made again."""
+    import json
+
+    reference = tmp_path / "ref"
+    make_dataset(DeadLeaves(5), reference, SMALL, workers=1)
+    out = tmp_path / "ds"
+    make_dataset(DeadLeaves(5), out, SMALL, workers=1)
+    manifest = json.loads((out / MANIFEST).read_text())
+    manifest["shards"][0]["samples"] = samples
+    (out / MANIFEST).write_text(json.dumps(manifest))
+    (out / manifest["shards"][1]["file"]).unlink()  # something to make: the manifest is written again
+    result = make_dataset(DeadLeaves(5), out, SMALL, workers=1, progress=True)
+    assert manifest["shards"][0]["name"] in result.generated
+    assert _hashes(out) == _hashes(reference)
+
+
 #: a caller whose workers never finish their shard: the interruption must not wait for them
 STUCK_SCRIPT = """
 import os, signal, sys, threading, time
