@@ -270,6 +270,18 @@ def test_make_dataset_crop_then_default_train_fits(tmp_path, capsys):
     assert len(warn) == 1 and "DAVIS346" in warn[0] and "EVK3-HD" in warn[0]
 
 
+def test_a_datasets_preset_path_is_never_opened_for_the_card(tmp_path):
+    """A dataset names its preset; a TOML path there is the dataset maker's file, not one the user named: only its
+    name goes into the card (its [sensor] name was read and copied into the model card)."""
+    from evnoise.reconstruct.train import _with_preset
+
+    other = tmp_path / "theirs.toml"
+    other.write_text('[sensor]\nname = "SOMEONE ELSE\'S CAMERA"\n[params]\n')
+    assert _with_preset({}, str(other)) == {"preset": "theirs"}
+    assert _with_preset({}, "evk3-hd")["sensor"].startswith("Prophesee EVK3-HD")
+    assert _with_preset({"preset": "mine"}, "evk3-hd") == {"preset": "mine"}
+
+
 def test_train_result_reports_validation_psnr_and_ssim(tmp_path):
     params = ev.NoiseParams(eps_pos=0.904, eps_neg=1.0235, bias_pr=1.7023, trial_rate_hz=21.9882,
                             photons_per_lux=1.005, dark_lux=0.193)

@@ -541,19 +541,18 @@ def _run(torch, UNet, model_config, spec, config, train_data, val_data, out, sta
 
 def _with_preset(card: dict, preset) -> dict:
     """``card`` with the training data's preset and its camera (``preset``: a dataset's preset name or TOML path)
-    where it names none: a recording of another camera is then warned about, as for the shipped model."""
+    where it names none: a recording of another camera is then warned about, as for the shipped model. Only a
+    shipped preset is read; of a path only the file's name is kept."""
     if not isinstance(preset, str) or not preset or "preset" in card:
         return card
-    from ..errors import EvnoiseError
-    from ..params import preset_info
+    from ..params import list_presets, preset_info
 
-    try:
-        info = preset_info(preset)
-    except (EvnoiseError, OSError):  # a TOML path that is gone, or no longer a preset: only its name
+    if preset not in list_presets():  # a TOML path the dataset names: never opened (the dataset is a stranger's)
         return {**card, "preset": Path(preset).stem}
-    card["preset"] = info["name"]
-    if info["sensor"] and "sensor" not in card:
-        card["sensor"] = f"{info['sensor']} (the preset's camera)"
+    card["preset"] = preset
+    sensor = preset_info(preset)["sensor"]
+    if sensor and "sensor" not in card:
+        card["sensor"] = f"{sensor} (the preset's camera)"
     return card
 
 
