@@ -519,11 +519,44 @@ def progress_bar(total, enabled, desc, unit="s", scale=None):
                 bar_format="{desc}: {percentage:3.0f}%|{bar}| " + counts + unit + " [{elapsed}<{remaining}]")
 
 
-def check_t_start(t_start_us) -> int:
+INT64_MIN, INT64_MAX = -(1 << 63), (1 << 63) - 1
+#: the kernels count trials in float64 from a run's (or a stream's) start: whole numbers are exact up to 2**53, so a
+#: run may span at most 2**52 trials (142 years at the highest trial rate, 1 MHz; past any 64-bit time at the presets')
+MAX_TRIALS = 1 << 52
+#: working memory per event of a window being made (the kernel's columns, their sort keys), besides the events
+WINDOW_BYTES_PER_EVENT = 40
+
+
+def check_t_start(t_start_us, name: str = "t_start_us") -> int:
+    """``t_start_us`` as an int: a whole number of microseconds that a 64-bit timestamp holds."""
     try:
+        if isinstance(t_start_us, (bool, np.bool_)):  # int(True) is 1: a flag passed for a time
+            raise TypeError
         t = int(t_start_us)
-    except (TypeError, ValueError):
-        raise ParameterError(f"t_start_us must be an integer number of microseconds, got {t_start_us!r}") from None
+    except (TypeError, ValueError, OverflowError):
+        raise ParameterError(f"{name} must be an integer number of microseconds, got {t_start_us!r}") from None
     if t != t_start_us:
-        raise ParameterError(f"t_start_us must be an integer number of microseconds, got {t_start_us!r}")
+        raise ParameterError(f"{name} must be an integer number of microseconds, got {t_start_us!r}")
+    if not INT64_MIN <= t <= INT64_MAX:
+        raise ParameterError(f"{name} must be a 64-bit timestamp, within +-{INT64_MAX} us (about 292,000 years), "
+                             f"got {t_start_us!r}")
     return t
+
+
+def check_trial_span(span_us: int, trial_us: float, what: str = "duration") -> None:
+    """Refuse a run (or a stream's time since its start) longer than :data:`MAX_TRIALS` trials of ``trial_us``."""
+    if span_us / trial_us >= MAX_TRIALS:
+        years = MAX_TRIALS * trial_us * 1e-6 / 3.15576e7
+        raise ParameterError(f"the {what} ({span_us} us) spans {span_us / trial_us:.3g} trials of {trial_us:.6g} us, "
+                             f"more than the 2**52 the simulator counts exactly ({years:.3g} years at this trial rate)")
+
+
+def check_event_memory(expected_events: float, what: str, *, window_events: float = 0.0, hint: str = "") -> None:
+    """Refuse to hold ``expected_events`` events (with 8 sigma to spare) before allocating them; ``window_events``:
+    the events of a window made while they are held (its working memory, :data:`WINDOW_BYTES_PER_EVENT` each,
+    counts too). ``what`` names who would return them (``"simulate_events would return about N events; they"``)."""
+    from ._budget import check_allocation
+
+    need = (expected_events + 8.0 * math.sqrt(max(expected_events, 0.0))) * EVENT_DTYPE.itemsize
+    need += min(window_events, expected_events) * WINDOW_BYTES_PER_EVENT
+    check_allocation(need, what, hint=hint, error=ParameterError)

@@ -28,12 +28,15 @@ from typing import Iterator
 import numpy as np
 
 from . import terms
-from ._budget import check_allocation, human_bytes
+from ._budget import human_bytes
 from ._checks import check_lux, duration_to_us, resolve_threads
 from ._engine import (
+    INT64_MAX,
     Collector,
     PixelState,
+    check_event_memory,
     check_t_start,
+    check_trial_span,
     memory_step,
     progress_bar,
     renewal_step,
@@ -45,7 +48,7 @@ from ._engine import (
 from ._memory_chains import RENEWAL_NEEDS_TABLES, memory_chains
 from ._run import run_setup
 from .errors import InputError, ParameterError
-from .events import EVENT_DTYPE, empty_events
+from .events import empty_events
 from .params import NoiseParams
 from .rates import trial_probabilities
 from .terms.memory import memory_on
@@ -67,10 +70,10 @@ TARGET_EVENTS_PER_WINDOW = 1_000_000
 #: their events): a static scene's windows hold at least this many events per pixel, so that pass stays a small part
 #: of a window's cost (a 1280x720 scene at 2 lux, 1.2-20 M events, 2 threads: 5-30 % less time per event in one
 #: process than in windows of 1 M events, the same events bit for bit; benchmarks/bench_windows.py), up to
-#: :data:`MAX_EVENTS_PER_WINDOW` (a window's working memory is about :data:`WINDOW_BYTES_PER_EVENT` per event).
+#: :data:`MAX_EVENTS_PER_WINDOW` (a window's working memory is about
+#: :data:`evnoise._engine.WINDOW_BYTES_PER_EVENT` per event).
 EVENTS_PER_PIXEL_PER_WINDOW = 8
 MAX_EVENTS_PER_WINDOW = 8_000_000
-WINDOW_BYTES_PER_EVENT = 40
 TARGET_PIXEL_TRIALS_PER_WINDOW = 40_000_000
 #: the trial tier's windows at most this long (a changing pixel's events are not bounded by events_per_window)
 MAX_WINDOW_US = 1 << 22
@@ -82,7 +85,6 @@ MAX_STATIC_WINDOW_US = 1 << 26
 # gaps (O(events)); False keeps the per-trial reference algorithm (tests compare the two).
 TRIAL_FAST_STATIC = True
 METHODS = ("auto", "renewal", "trials")
-INT64_MAX = (1 << 63) - 1
 
 
 class EventWindows:
@@ -124,20 +126,21 @@ class EventWindows:
         self._windows.close()
 
 
-def _check_span(t_start_us: int, duration_us: int) -> None:
+def _check_span(t_start_us: int, duration_us: int, trial_us: float) -> None:
+    """The run's end a 64-bit timestamp, its trials fewer than the kernels count exactly (:func:`check_trial_span`)."""
     if t_start_us + duration_us > INT64_MAX:
         raise ParameterError(f"t_start_us + duration ({t_start_us} + {duration_us} us) goes beyond the largest "
                              f"64-bit timestamp ({INT64_MAX} us, about 292,000 years)")
+    check_trial_span(duration_us, trial_us)
 
 
 def _check_memory(expected_events: float, what: str = "simulate_events", window_events: float = 0.0) -> None:
     """Refuse to hold an event array that cannot fit in memory (before allocating it); ``window_events``: the
     events of a window made while the array fills (its working memory counts too)."""
-    need = (expected_events + 8.0 * math.sqrt(max(expected_events, 0.0))) * EVENT_DTYPE.itemsize
-    need += min(window_events, expected_events) * WINDOW_BYTES_PER_EVENT
-    check_allocation(need, f"{what} would return about {expected_events:,.0f} events; they",
-                     hint="shorten the duration, or stream the windows (iter_events, iter_video) into a file "
-                          "(EventWriter)", error=ParameterError)
+    check_event_memory(expected_events, f"{what} would return about {expected_events:,.0f} events; they",
+                       window_events=window_events,
+                       hint="shorten the duration, or stream the windows (iter_events, iter_video) into a file "
+                            "(EventWriter)")
 
 
 # Bytes per event of each output format (measured on `simulate --example`, 1 M events in 2 s), and
@@ -233,10 +236,10 @@ def _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, t
     if method not in METHODS:
         raise ParameterError(f"method must be one of {METHODS}, got {method!r}")
     t_start_us = check_t_start(t_start_us)
-    _check_span(t_start_us, duration_us)
     threads = resolve_threads(threads)
     run = run_setup(lux.shape, params, rng, thresholds=thresholds, background=background)
     params, key, (eps_on, eps_off), bg = run.params, run.key, run.thresholds, run.background
+    _check_span(t_start_us, duration_us, params.trial_us)
     if memory_on(params) and method != "trials":
         return _still_memory_windows(lux, params, key, t_start_us, duration_us, threads, progress, sink, bg,
                                      (eps_on, eps_off), method)
@@ -544,12 +547,12 @@ def iter_video(
         raise ParameterError("method='renewal' needs a static scene, but some pixels change between frames")
     run = run_setup(shape, params, rng, thresholds=thresholds, background=background)
     params, key, (eps_on, eps_off), bg = run.params, run.key, run.thresholds, run.background
-    t0_us = int(round(ts[0] * 1e6))
+    t0_us = check_t_start(round(ts[0] * 1e6), "the first frame's time (us)")
     frame_us = (ts - ts[0]) * 1e6
     duration_us = int(round(frame_us[-1]))
     if duration_us < 1:
         raise InputError("the video is shorter than one microsecond")
-    _check_span(t0_us, duration_us)
+    _check_span(t0_us, duration_us, params.trial_us)
     return _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static.ravel(), t0_us,
                          duration_us, threads, progress, labels=return_labels, bg=bg, renewal=method == "renewal")
 

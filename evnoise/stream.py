@@ -8,10 +8,20 @@ import numpy as np
 
 from . import terms
 from ._checks import check_lux, resolve_threads
-from ._engine import PixelState, check_t_start, memory_step, renewal_step, sorted_window, static_inputs
+from ._engine import (
+    WINDOW_BYTES_PER_EVENT,
+    PixelState,
+    check_event_memory,
+    check_t_start,
+    check_trial_span,
+    memory_step,
+    renewal_step,
+    sorted_window,
+    static_inputs,
+)
 from ._run import run_setup
 from .errors import InputError, ParameterError
-from .events import empty_events
+from .events import EVENT_DTYPE, empty_events
 from .params import NoiseParams
 from .terms.memory import memory_on
 
@@ -97,13 +107,14 @@ class NoiseStream:
         lux = check_lux(lux)
         if lux.shape != self.shape:
             raise InputError(f"lux has shape {lux.shape}, but the stream was made for {self.shape}")
-        t_end = check_t_start(t_end_us) - self._t0
+        t_end = check_t_start(t_end_us, "t_end_us") - self._t0
         if t_end < self._t_rel:
             raise ParameterError(f"t_end_us={t_end_us} is before the stream's current time {self.t_us}")
         if t_end == self._t_rel:
             return empty_events(0)
         p = self.params
         dt = p.trial_us
+        check_trial_span(t_end, dt, "time since the stream's start")
         lam = p.photons_per_trial(lux).ravel()
         if memory_on(p):
             return self._advance_memory(lam, t_end)
@@ -112,6 +123,7 @@ class NoiseStream:
         else:
             log1m_p, q_on, timer, nu = static_inputs(lam, p, self._eps_on, self._eps_off, self._bg)
             self._inputs = (lam, (log1m_p, q_on, timer, nu))
+        self._check_memory(float(nu.sum()), t_end)
         j_min = _first_trial_at_or_after(self._t_rel, dt)
         discard = _first_trial_at_or_after(t_end, dt)
         if timer is not None:
@@ -123,6 +135,14 @@ class NoiseStream:
         self._t_rel = t_end
         return out
 
+
+    def _check_memory(self, rate_hz: float, t_end: int) -> None:
+        """Refuse an interval whose events (``rate_hz`` over the sensor, events/s) cannot fit in memory, before the
+        kernel allocates their columns (the interval is one window: its working memory counts too)."""
+        expected = rate_hz * (t_end - self._t_rel) * 1e-6
+        check_event_memory(expected, f"advance() to t_end_us={self._t0 + t_end} would return about {expected:,.0f} "
+                                     f"events ({(t_end - self._t_rel) * 1e-6:.6g} s of noise); they",
+                           window_events=expected, hint="advance in shorter intervals")
 
     def _timer_intensity(self, lam) -> np.ndarray:
         """Each pixel's background intensity (events/s) at ``lam`` photons per trial: what its timer runs at."""
@@ -171,6 +191,7 @@ class NoiseStream:
             lowest = spans[:, 0].astype(np.float64)
             self._memory = (key, (table, itable, offsets, sizes), lowest, rates, spans, timer)
         _, tables, lowest, rates, _, timer = self._memory
+        self._check_memory(float(rates[group].sum()), t_end)
         sizes = tables[3]
         lo, top = lowest[group], (sizes[group] - 1).astype(np.float64)
         mem = np.clip(self._stored - lo, 0.0, top)  # NaN stays NaN: drawn from the steady state
@@ -251,6 +272,7 @@ class NoiseStream:
         state.lam_prev[:] = lam
         j_a = int(_first_trial_at_or_after(self._t_rel, dt))
         j_b = int(_first_trial_at_or_after(t_end, dt))
+        self._check_memory(self._trial_rate_hz(lam, (j_b - j_a) * dt), t_end)
         parts = [self._carry] if self._carry is not None else []
         if j_b > j_a:
             parts += trial_step(state, self.shape[1], lam[None, :], np.zeros(1), j_a, j_b, thr, bg_rows, model,
@@ -264,6 +286,25 @@ class NoiseStream:
         out = sorted_window([tuple(c[~late] for c in cols)], self._t0 + self._t_rel, self._t0 + t_end)
         self._t_rel = t_end
         return out
+
+
+    def _trial_rate_hz(self, lam, span_us: float) -> float:
+        """The sensor's event rate (events/s) to size an interval run trial by trial: a bound (a pixel's trial gives
+        at most one event, and the background its own), or where ``span_us`` of that bound would not fit in memory,
+        twice the mean rate of a population of pixels without memory at each one's light (no tables give each
+        pixel's rate here; memory raised the nominal pixel's rate by up to 1.7x over the presets at 0.01-300 lux)."""
+        from ._budget import memory_budget
+        from .background import lux_of_photons
+        from .rates import expected_rate
+
+        bound = lam.size / (self.params.trial_us * 1e-6) + float(self._timer_intensity(lam).sum())
+        budget = memory_budget()
+        if budget is None or bound * span_us * 1e-6 * (EVENT_DTYPE.itemsize + WINDOW_BYTES_PER_EVENT) <= budget:
+            return bound
+        levels, count = np.unique(lam, return_counts=True)
+        memoryless = self.params.replace(reset_memory=0.0)
+        mean_hz = expected_rate(lux_of_photons(levels, self.params), memoryless, mismatch="mean").sum(axis=0)
+        return 2.0 * float(mean_hz @ count)
 
 
 def _memory_spans(levels, group, stored, pending) -> np.ndarray:
