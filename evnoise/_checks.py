@@ -76,8 +76,13 @@ def check_params(params) -> NoiseParams:
     raise ParameterError(f"params must be a NoiseParams (or a preset name), got {type(params).__name__}")
 
 
+#: the largest illuminance evnoise takes (lux): 10,000 times full sunlight; far beyond, photon counts overflow
+#: (1e308 lux gave overflow warnings, then NaN) — the API's limit and the CLI options' (``--max-lux``, ``--lux-scale``)
+MAX_LUX = 1e9
+
+
 def check_lux(lux, *, name: str = "lux", ndim: int | None = 2) -> np.ndarray:
-    """A float64 illuminance array: finite and >= 0 everywhere."""
+    """A float64 illuminance array: finite, >= 0 and at most :data:`MAX_LUX` everywhere."""
     arr = real_array(lux, name)
     if ndim is not None and arr.ndim != ndim:
         raise InputError(f"{name} must be a {ndim}-D array (H, W), got shape {arr.shape}")
@@ -87,6 +92,9 @@ def check_lux(lux, *, name: str = "lux", ndim: int | None = 2) -> np.ndarray:
         raise InputError(f"{name} contains NaN or Inf values")
     if (arr < 0).any():
         raise InputError(f"{name} contains negative illuminance (min {arr.min():g} lux)")
+    if (arr > MAX_LUX).any():
+        raise InputError(f"{name} contains illuminance above {MAX_LUX:g} lux, 10,000 times full sunlight "
+                         f"(max {arr.max():g} lux): is it in lux?")
     if ndim == 2 and (arr.shape[0] > 65536 or arr.shape[1] > 65536):
         raise InputError(f"{name} is larger than 65536 pixels on a side: {arr.shape}")
     return arr
@@ -159,10 +167,20 @@ def check_thresholds(thresholds, shape) -> np.ndarray:
 def real_array(values, name: str) -> np.ndarray:
     """``values`` as float64; a complex array (whose imaginary part NumPy's cast would drop with a warning) or one
     that is not numeric is an :class:`InputError` naming ``name``."""
-    if np.iscomplexobj(values):
-        raise InputError(f"{name} must be real numbers, got a complex array")
     try:
-        return np.asarray(values, dtype=np.float64)
+        arr = np.asarray(values)
+    except (TypeError, ValueError):  # a ragged nesting, or an object whose array conversion fails
+        raise InputError(f"{name} must be a numeric array") from None
+    if np.iscomplexobj(arr):
+        raise InputError(f"{name} must be real numbers, got a complex array")
+    if arr.dtype.kind in "USV":
+        raise InputError(f"{name} must be numbers, got text")  # NumPy's cast reads "3" as 3.0
+    if arr.dtype.kind == "O":  # NumPy's cast reads "3" as 3.0 and None as NaN
+        odd = [v for v in arr.flat if not isinstance(v, numbers.Real)][:1]
+        if odd:
+            raise InputError(f"{name} must be numbers, got {type(odd[0]).__name__} {str(odd[0])[:40]!r}")
+    try:
+        return arr.astype(np.float64, copy=False)
     except (TypeError, ValueError):
         raise InputError(f"{name} must be a numeric array") from None
 

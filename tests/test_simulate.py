@@ -591,3 +591,26 @@ def test_given_hot_rates_are_held_to_their_limit_and_complex_maps_are_refused():
     background = ev.draw_background(lux.shape, wild, rng=1)
     assert 0 < thresholds.min() and background[1].max() == 1e9
     ev.simulate_events(lux, wild, 1e-4, rng=0, thresholds=thresholds, background=background)
+
+
+@pytest.mark.parametrize("bad, message", [
+    (1e308, "illuminance above 1e.09 lux.*max 1e.308"),  # overflow warnings, then NaN rates
+    (1e12, "illuminance above 1e.09 lux"),
+    ("3", "must be numbers, got text"),  # NumPy's cast read it as 3.0
+    (["1", "2"], "must be numbers, got text"),
+    (np.array([2.0, None], dtype=object), "must be numbers, got NoneType"),  # read as NaN
+    ([[1.0, 2.0], [3.0]], "must be a numeric array"),  # a ragged nesting: NumPy's ValueError
+])
+def test_illuminance_that_is_no_physical_number_of_lux_is_refused(bad, message):
+    """The API takes the illuminance the CLI's options take (at most 1e9 lux, 10,000 times full sunlight): 1e308 lux
+    gave overflow warnings and NaN rates; text was read as numbers."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ev.InputError, match=message):
+            ev.expected_rate(bad, PARAMS)
+        if isinstance(bad, (float, str)):  # the same in a map
+            with pytest.raises(ev.InputError, match=message.replace("text", "(text|str)")):
+                ev.simulate_events(np.full((2, 2), bad, dtype=object), PARAMS, 0.01, rng=0)
+    assert ev.expected_rate(1e9, PARAMS).shape == (2,)  # the limit itself is taken

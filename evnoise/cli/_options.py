@@ -32,6 +32,7 @@ import argparse
 import math
 import re
 
+from .._checks import MAX_LUX
 from ..errors import ParameterError
 
 #: times are int64 microseconds: the largest number of seconds any time option may hold (~292,000 years)
@@ -41,8 +42,6 @@ MIN_HZ = 1e-6  #: slowest --fps: a frame per 11.6 days (times are microseconds i
 MAX_HZ = 1e6
 #: seeds are stored as int64 attributes of the event file
 MAX_SEED = 2**63 - 1
-#: the largest illuminance (and lux per unit) an option may give: 10,000 times full sunlight; 1e308 overflowed
-MAX_LUX = 1e9
 
 
 # --------------------------------------------------------------------------------------
