@@ -601,3 +601,41 @@ def test_v2e_with_memory_beyond_the_table_budget_runs_trial_by_trial(monkeypatch
                                   background=maps[1][:, :, cols]).expected_events
         in_band = (rows[:, 1] >= k * band) & (rows[:, 1] < (k + 1) * band)
         _check_within(np.count_nonzero(in_band), expected, f"noise at grey {g}")
+
+
+def test_tonic_off_polarity_of_a_sample_with_only_on_events():
+    """A +-1 dataset's sample holding only ON events cannot show its OFF value: its OFF noise got 0, which tonic's
+    ToFrame and ToVoxelGrid then read as another polarity than the dataset's -1. ``off_polarity`` says it."""
+    dtype = np.dtype([("x", int), ("y", int), ("t", int), ("p", int)])
+    events = np.zeros(4, dtype=dtype)
+    events["t"] = [0, 100_000, 200_000, 300_000]
+    events["p"] = 1
+    guessed = tonic_plugin.PhotonNoise((30, 20, 2), PARAMS, 2.0, rng=0).noise(events)
+    told = tonic_plugin.PhotonNoise((30, 20, 2), PARAMS, 2.0, rng=0, off_polarity=-1).noise(events)
+    assert set(np.unique(guessed["p"]).tolist()) == {0, 1}  # the sample's own (ambiguous) convention
+    assert set(np.unique(told["p"]).tolist()) == {-1, 1}
+    assert np.array_equal(told["t"], guessed["t"]) and np.array_equal(told["p"] == 1, guessed["p"] == 1)
+    assert "off_polarity=-1" in repr(tonic_plugin.PhotonNoise((30, 20, 2), PARAMS, 2.0, off_polarity=-1))
+    for bad in (1, True, "-1", -1.5):
+        with pytest.raises(ParameterError, match="off_polarity must be 0, -1 or None"):
+            tonic_plugin.PhotonNoise((30, 20, 2), PARAMS, 2.0, off_polarity=bad)
+    flags = np.zeros(2, dtype=[("x", int), ("y", int), ("t", int), ("p", bool)])
+    with pytest.raises(InputError, match="p field is bool"):
+        tonic_plugin.PhotonNoise((30, 20, 2), PARAMS, 2.0, off_polarity=-1)(flags)
+
+
+def test_tonic_noise_of_float_times_stays_inside_the_samples_span():
+    """Float times: noise times are whole microseconds, and those of [floor(min t), ceil(max t)] fell up to 1 us
+    outside the sample (before its first event or after its last); a sample within one microsecond got noise. A
+    trial per microsecond makes a 1 us span's noise countable (about 17 events)."""
+    hot = PARAMS.replace(trial_rate_hz=1e6)
+    dtype = np.dtype([("x", np.int16), ("y", np.int16), ("t", np.float64), ("p", np.int8)])
+    events = np.zeros(2, dtype=dtype)
+    events["t"] = [0.5, 1.75]  # holds one whole microsecond: t = 1
+    transform = tonic_plugin.PhotonNoise((30, 20, 2), hot, 2.0, rng=0)
+    noise = transform.noise(events)
+    assert noise.size > 0 and np.all(noise["t"] == 1.0)
+    rate = float(ev.expected_rate(np.full((20, 30), 2.0), hot).sum())
+    _check_within(noise.size, rate * 1e-6, "noise of the one whole microsecond")
+    events["t"] = [7.25, 7.75]  # no whole microsecond inside
+    assert transform.noise(events).size == 0 and transform(events).size == 2

@@ -118,19 +118,24 @@ class PhotonNoise:
     threads : int, optional
         Python threads over blocks of 16384 pixels in one call (default ``NUMBA_NUM_THREADS``
         or the CPU count; a sensor of at most 16384 pixels, such as N-MNIST's, uses one).
+    off_polarity : {None, 0, -1}
+        ``p`` of OFF noise events. None (default): the sample's own convention, -1 where it holds a
+        negative ``p``, else 0 -- a sample of +-1 data holding only ON events cannot show it: give -1
+        for such a dataset. A ``bool`` ``p`` takes False.
 
     Notes
     -----
-    The span of a sample is ``t_first <= t <= t_last`` of its events (integer microseconds),
-    so the expected number of added events is ``sum(expected_rate(lux)) * (t_last - t_first +
-    1e-6 s)``: ``t`` in another unit changes the noise by that factor. A sample whose noise would
+    The span of a sample is the whole microseconds ``t`` with ``t_first <= t <= t_last`` of its
+    events (noise times are whole microseconds; float times are not rounded out of the span), so
+    the expected number of added events is ``sum(expected_rate(lux)) * (t_last - t_first +
+    1e-6 s)`` for integer times: ``t`` in another unit changes the noise by that factor. A sample whose noise would
     not fit in memory is an :class:`~evnoise.errors.InputError` before the draw, and a sensor whose
     per-pixel state would not (:data:`BYTES_PER_PIXEL`) a :class:`~evnoise.errors.ParameterError`
     at construction. An empty sample is returned unchanged (it has no span). The output has the input's
     dtype and field names (an unsigned ``p`` becomes signed of the same width, so that tonic's
     ``ToVoxelGrid`` can write -1 into it) and is sorted by ``t`` (stably: input events before
     noise events at equal times). Noise events take the input's polarity convention: 1 ON and 0
-    OFF, or -1 OFF when the input uses -1.
+    OFF, or -1 OFF when the input uses -1 (or as ``off_polarity`` says).
 
     Everything that depends only on the constructor's arguments (the per-pixel event
     probabilities and rates at ``lux``) is computed once, at construction; a call only draws the
@@ -145,8 +150,13 @@ class PhotonNoise:
     sample's span, event for event).
     """
 
-    def __init__(self, sensor_size, params, lux, rng=None, *, threads: int | None = None):
+    def __init__(self, sensor_size, params, lux, rng=None, *, threads: int | None = None,
+                 off_polarity: int | None = None):
         from .._run import run_setup
+
+        if off_polarity is not None and (isinstance(off_polarity, bool) or off_polarity not in (0, -1)):
+            raise ParameterError(f"off_polarity must be 0, -1 or None, got {off_polarity!r}")
+        self.off_polarity = None if off_polarity is None else int(off_polarity)
 
         self.sensor_size = tuple(_check_sensor_size(sensor_size))
         width, height, _ = self.sensor_size
@@ -229,7 +239,8 @@ class PhotonNoise:
         lux_text = f"{lux.flat[0]:g}" if np.all(lux == lux.flat[0]) else f"map {lux.shape} {lux.min():g}..{lux.max():g}"
         rng = ("None" if self._seed is None and self._gen is None
                else (self._seed if self._seed is not None else "Generator"))
-        return f"PhotonNoise(sensor_size={self.sensor_size}, params={self.params!r}, lux={lux_text}, rng={rng})"
+        off = "" if self.off_polarity is None else f", off_polarity={self.off_polarity}"
+        return f"PhotonNoise(sensor_size={self.sensor_size}, params={self.params!r}, lux={lux_text}, rng={rng}{off})"
 
     def _check_events(self, events):
         events = np.asarray(events)
@@ -254,6 +265,8 @@ class PhotonNoise:
             if x.min() < 0 or y.min() < 0 or x.max() >= width or y.max() >= height:
                 raise InputError(f"events have coordinates outside sensor_size (W, H) = {(width, height)}: "
                                  f"x in {x.min()}..{x.max()}, y in {y.min()}..{y.max()}")
+            if self.off_polarity == -1 and events.dtype["p"].kind == "b":
+                raise InputError("off_polarity=-1, but the events' p field is bool: it cannot hold -1")
             t = events["t"]
             if not np.all(np.isfinite(t)) or t.min() < -MAX_T_US or t.max() > MAX_T_US:
                 raise InputError(f"events have times that are not finite numbers of microseconds within "
@@ -285,8 +298,11 @@ class PhotonNoise:
 
         key = self._setup.keyed(self._generator(events)).key
         t = events["t"]
-        t_first = int(np.floor(t.min()))
-        span_us = int(np.ceil(t.max())) - t_first + 1
+        # the whole microseconds within [min t, max t]: noise times are whole, and float times may not be
+        t_first = int(np.ceil(t.min()))
+        span_us = int(np.floor(t.max())) - t_first + 1
+        if span_us < 1:  # float times within one microsecond: no whole microsecond inside
+            return tuple(np.empty(0, dtype=d) for d in (np.int64, np.uint16, np.uint16)) + (np.empty(0, dtype=bool),)
         expected = float(self._nu.sum()) * span_us * 1e-6
         # a call's peak: the kernel's columns, their sort, the noise events and the merged output (measured: 41-106
         # bytes per event for items of 7-32 bytes)
@@ -342,7 +358,7 @@ class PhotonNoise:
         elif events["p"].dtype.kind == "b":
             out["p"] = on
         else:
-            off = -1 if events["p"].min() < 0 else 0
+            off = self.off_polarity if self.off_polarity is not None else (-1 if events["p"].min() < 0 else 0)
             out["p"] = np.where(on, 1, off)
         return out
 
