@@ -103,7 +103,11 @@ class NoiseStream:
         return self._t0 + self._t_rel
 
     def advance(self, lux, t_end_us: int) -> np.ndarray:
-        """Noise events with ``t_us <= t < t_end_us`` under illuminance ``lux`` (H, W), sorted by time."""
+        """Noise events with ``t_us <= t < t_end_us`` under illuminance ``lux`` (H, W), sorted by time.
+
+        An interval whose events would not fit in memory (``t_end_us`` in another unit than microseconds,
+        say) is a :class:`~evnoise.ParameterError` before anything is drawn, and so is a time more than 2**52
+        trials after ``t_start_us`` (143 years at the highest trial rate); the stream is then unchanged."""
         lux = check_lux(lux)
         if lux.shape != self.shape:
             raise InputError(f"lux has shape {lux.shape}, but the stream was made for {self.shape}")
