@@ -173,10 +173,12 @@ def real_array(values, name: str) -> np.ndarray:
         raise InputError(f"{name} must be a numeric array") from None
     if np.iscomplexobj(arr):
         raise InputError(f"{name} must be real numbers, got a complex array")
-    if arr.dtype.kind in "USV":
+    if arr.dtype.kind in "US":
         raise InputError(f"{name} must be numbers, got text")  # NumPy's cast reads "3" as 3.0
+    if arr.dtype.kind == "V":
+        raise InputError(f"{name} must be numbers, got a structured array ({arr.dtype})")
     if arr.dtype.kind == "O":  # NumPy's cast reads "3" as 3.0 and None as NaN
-        odd = [v for v in arr.flat if not isinstance(v, numbers.Real)][:1]
+        odd = [v for v in arr.flat if v is None or isinstance(v, (str, bytes))][:1]
         if odd:
             raise InputError(f"{name} must be numbers, got {type(odd[0]).__name__} {str(odd[0])[:40]!r}")
     try:

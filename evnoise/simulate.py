@@ -128,7 +128,7 @@ class EventWindows:
 
 def _check_span(t_start_us: int, duration_us: int, trial_us: float) -> None:
     """The run's end a 64-bit timestamp, its trials fewer than the kernels count exactly (:func:`check_trial_span`)."""
-    if t_start_us + duration_us > INT64_MAX:
+    if duration_us > INT64_MAX or t_start_us + duration_us > INT64_MAX:
         raise ParameterError(f"t_start_us + duration ({t_start_us} + {duration_us} us) goes beyond the largest "
                              f"64-bit timestamp ({INT64_MAX} us, about 292,000 years)")
     check_trial_span(duration_us, trial_us)

@@ -9,6 +9,7 @@ import numpy as np
 from . import terms
 from ._checks import check_lux, resolve_threads
 from ._engine import (
+    INT64_MAX,
     WINDOW_BYTES_PER_EVENT,
     PixelState,
     check_event_memory,
@@ -26,6 +27,9 @@ from .params import NoiseParams
 from .terms.memory import memory_on
 
 __all__ = ["NoiseStream"]
+
+#: light levels at which an interval run trial by trial evaluates its rate estimate (NoiseStream._trial_rate_hz)
+RATE_GRID_LEVELS = 32
 
 
 class NoiseStream:
@@ -98,6 +102,11 @@ class NoiseStream:
         self._carry = None  # ... and the events of the last interval's last trial at or after its end
 
     @property
+    def t_start_us(self) -> int:
+        """Time of the start of the stream, microseconds."""
+        return self._t0
+
+    @property
     def t_us(self) -> int:
         """Current time of the stream (end of the last interval), microseconds."""
         return self._t0 + self._t_rel
@@ -114,6 +123,9 @@ class NoiseStream:
         t_end = check_t_start(t_end_us, "t_end_us") - self._t0
         if t_end < self._t_rel:
             raise ParameterError(f"t_end_us={t_end_us} is before the stream's current time {self.t_us}")
+        if t_end > INT64_MAX:  # times since the start are 64-bit in the kernels
+            raise ParameterError(f"t_end_us={t_end_us} is more than 2**63 us after the stream's start "
+                                 f"t_start_us={self._t0}")
         if t_end == self._t_rel:
             return empty_events(0)
         p = self.params
@@ -188,6 +200,8 @@ class NoiseStream:
                 or not np.array_equal(spans, self._memory[4])):
             timer = chain_timer(a_on, a_off, reg, p)
             if int(spans[:, 1].sum()) > MAX_TABLE_STATES:  # what kernel_tables would refuse: trial by trial from now
+                # the interval's memory checked first: a refused call leaves the stream as it was
+                self._check_memory(self._trial_rate_hz(lam, t_end - self._t_rel), t_end)
                 self._to_trials(lam, len(levels), int(spans[:, 1].sum()), timer is not None)
                 return self._advance_trials(lam, t_end)
             table, itable, offsets, sizes, rates = kernel_tables(levels, p, spans.tolist(), background=(a_on, a_off),
@@ -276,7 +290,7 @@ class NoiseStream:
         state.lam_prev[:] = lam
         j_a = int(_first_trial_at_or_after(self._t_rel, dt))
         j_b = int(_first_trial_at_or_after(t_end, dt))
-        self._check_memory(self._trial_rate_hz(lam, (j_b - j_a) * dt), t_end)
+        self._check_memory(self._trial_rate_hz(lam, t_end - self._t_rel), t_end)
         parts = [self._carry] if self._carry is not None else []
         if j_b > j_a:
             parts += trial_step(state, self.shape[1], lam[None, :], np.zeros(1), j_a, j_b, thr, bg_rows, model,
@@ -293,11 +307,14 @@ class NoiseStream:
 
 
     def _trial_rate_hz(self, lam, span_us: float) -> float:
-        """The sensor's event rate (events/s) to size an interval run trial by trial: a bound (a pixel's trial gives
-        at most one event, and the background its own), or where ``span_us`` of that bound would not fit in memory,
-        twice the mean rate of a population of pixels without memory at each one's light (no tables give each
-        pixel's rate here; memory raised the nominal pixel's rate by up to 1.7x over the presets at 0.01-300 lux)."""
+        """The sensor's event rate (events/s) to size an interval of ``span_us`` run trial by trial: a bound (a
+        pixel's trial gives at most one event, and the background its own), or where that bound would not fit in
+        memory, twice the mean rate of a population of pixels without memory at each one's light (no tables give each
+        pixel's rate here; memory raised the nominal pixel's rate by up to 1.7x over the presets at 0.01-300 lux),
+        interpolated in log lux from :data:`RATE_GRID_LEVELS` light levels where the scene has more (a smooth
+        function of the light; each level's population mean takes 25-270 ms)."""
         from ._budget import memory_budget
+        from ._checks import MAX_LUX
         from .background import lux_of_photons
         from .rates import expected_rate
 
@@ -306,8 +323,14 @@ class NoiseStream:
         if budget is None or bound * span_us * 1e-6 * (EVENT_DTYPE.itemsize + WINDOW_BYTES_PER_EVENT) <= budget:
             return bound
         levels, count = np.unique(lam, return_counts=True)
+        lux = np.minimum(lux_of_photons(levels, self.params), MAX_LUX)  # the round trip may land a hair above
+        grid = lux  # sorted, distinct: lux[1] > 0
+        if lux.size > RATE_GRID_LEVELS:
+            grid = np.unique(np.concatenate([lux[:1], np.geomspace(lux[1], lux[-1], RATE_GRID_LEVELS - 1)]))
         memoryless = self.params.replace(reset_memory=0.0)
-        mean_hz = expected_rate(lux_of_photons(levels, self.params), memoryless, mismatch="mean").sum(axis=0)
+        mean_hz = expected_rate(grid, memoryless, mismatch="mean").sum(axis=0)
+        if grid is not lux:
+            mean_hz = np.interp(np.log(lux + 1e-6), np.log(grid + 1e-6), mean_hz)
         return 2.0 * float(mean_hz @ count)
 
 

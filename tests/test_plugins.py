@@ -530,6 +530,20 @@ def test_v2e_frame_times_out_of_range_are_one_clear_error(monkeypatch):
         v2e_plugin.PhotonNoise(StandInEmulator(), PARAMS, 20.0, threads=0)
 
 
+def test_v2e_frame_more_trials_after_the_first_than_the_stream_counts_is_refused_before_the_emulator():
+    """At a 1 MHz trial rate, 5e9 s after the first frame is past the 2**52 trials the noise stream counts: the stream
+    refused it, but only after the emulator had taken the frame (the two out of step)."""
+    emulator = StandInEmulator()
+    quiet = PARAMS.replace(trial_rate_hz=1e6, eps_pos=20.0, eps_neg=20.0, leak_on_hz=0.0, leak_off_hz=0.0)
+    wrapper = v2e_plugin.PhotonNoise(emulator, quiet, 20.0, rng=0)  # no noise to speak of: the memory check passes
+    frame = np.full((4, 4), 100.0)
+    assert wrapper.generate_events(frame, 0.0) is None
+    calls = emulator.frame_counter
+    with pytest.raises(ParameterError, match=r"the time since the first frame .* more than the 2\*\*52"):
+        wrapper.generate_events(frame, 5e9)
+    assert emulator.frame_counter == calls
+
+
 # --------------------------------------------------------------------------------------
 # the plugin guide's snippets (docs/guides/plugins.md) run as written
 # --------------------------------------------------------------------------------------
@@ -616,7 +630,7 @@ def test_tonic_off_polarity_of_a_sample_with_only_on_events():
     assert set(np.unique(told["p"]).tolist()) == {-1, 1}
     assert np.array_equal(told["t"], guessed["t"]) and np.array_equal(told["p"] == 1, guessed["p"] == 1)
     assert "off_polarity=-1" in repr(tonic_plugin.PhotonNoise((30, 20, 2), PARAMS, 2.0, off_polarity=-1))
-    for bad in (1, True, "-1", -1.5):
+    for bad in (1, True, "-1", -1.5, np.False_, np.array([0, -1])):
         with pytest.raises(ParameterError, match="off_polarity must be 0, -1 or None"):
             tonic_plugin.PhotonNoise((30, 20, 2), PARAMS, 2.0, off_polarity=bad)
     flags = np.zeros(2, dtype=[("x", int), ("y", int), ("t", int), ("p", bool)])

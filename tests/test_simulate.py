@@ -599,6 +599,7 @@ def test_given_hot_rates_are_held_to_their_limit_and_complex_maps_are_refused():
     ("3", "must be numbers, got text"),  # NumPy's cast read it as 3.0
     (["1", "2"], "must be numbers, got text"),
     (np.array([2.0, None], dtype=object), "must be numbers, got NoneType"),  # read as NaN
+    (np.zeros(2, dtype=[("lux", float)]), "must be numbers, got a structured array"),
     ([[1.0, 2.0], [3.0]], "must be a numeric array"),  # a ragged nesting: NumPy's ValueError
 ])
 def test_illuminance_that_is_no_physical_number_of_lux_is_refused(bad, message):
@@ -614,3 +615,7 @@ def test_illuminance_that_is_no_physical_number_of_lux_is_refused(bad, message):
             with pytest.raises(ev.InputError, match=message.replace("text", "(text|str)")):
                 ev.simulate_events(np.full((2, 2), bad, dtype=object), PARAMS, 0.01, rng=0)
     assert ev.expected_rate(1e9, PARAMS).shape == (2,)  # the limit itself is taken
+    from decimal import Decimal  # numbers that are not floats: as float() reads them
+
+    assert np.array_equal(ev.expected_rate(np.array([Decimal("1.5"), np.True_, np.array(2.0)], dtype=object), PARAMS),
+                          ev.expected_rate([1.5, 1.0, 2.0], PARAMS))

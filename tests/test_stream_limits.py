@@ -24,11 +24,13 @@ LUX = np.full((16, 16), 300.0)
 LONG_US = 10**15
 
 
-def _still_usable(stream, lux):
-    """The refused call changed nothing: the stream's time is where it was and the next interval runs."""
+def _still_usable(stream, params, lux=LUX / 150.0, seed=1):
+    """The refused call changed nothing: the stream's time is where it was and its next interval, at another light,
+    is a fresh stream's of the same seed, event for event (a refusal that left state behind differs)."""
     assert stream.t_us == 0
     events = stream.advance(lux, 10_000_000)
     assert events.size > 0 and events["t"].max() < 10_000_000
+    assert np.array_equal(events, ev.NoiseStream(lux.shape, params, rng=seed).advance(lux, 10_000_000))
 
 
 @pytest.mark.parametrize("params", [EVK4, MEM], ids=["renewal", "memory"])
@@ -37,7 +39,7 @@ def test_an_interval_whose_events_cannot_fit_is_refused_before_drawing(params):
     with pytest.raises(ev.ParameterError, match=r"advance\(\) to t_end_us=1000000000000000 would return about "
                                                 r"[\d,]+ events .*more than the .*; advance in shorter intervals"):
         stream.advance(LUX, LONG_US)
-    _still_usable(stream, LUX)
+    _still_usable(stream, params)
 
 
 def test_an_interval_run_trial_by_trial_is_refused_before_drawing(monkeypatch):
@@ -49,8 +51,17 @@ def test_an_interval_run_trial_by_trial_is_refused_before_drawing(monkeypatch):
     stream = ev.NoiseStream(LUX.shape, params, rng=1)
     with pytest.raises(ev.ParameterError, match="advance in shorter intervals"):
         stream.advance(LUX, 10**10)
+    # the round trip lux -> photons -> lux of the estimate lands a hair above the 1e9 lux that are taken: not refused
+    # as "illuminance above 1e9 lux"; more light levels than the estimate's grid are interpolated
+    top = ev.NoiseStream(LUX.shape, params.replace(photons_per_lux=0.7), rng=1)
+    many = np.geomspace(1e-3, 1e9, LUX.size).reshape(LUX.shape)
+    many[0, 0] = 0.0
+    for lux in (np.full(LUX.shape, 1e9), many):
+        with pytest.raises(ev.ParameterError, match="advance in shorter intervals"):
+            top.advance(lux, 10**10)
     monkeypatch.delenv("EVNOISE_MAX_MEMORY")
-    _still_usable(stream, LUX)
+    assert stream._trials is None  # the refusal did not switch it to trials (a later light's steady state was drawn)
+    _still_usable(stream, params)
     assert stream._trials is not None  # it did run trial by trial
 
 
@@ -70,7 +81,7 @@ def test_a_time_that_is_no_64_bit_timestamp_is_refused(t_end):
     stream = ev.NoiseStream(LUX.shape, EVK4, rng=1)
     with pytest.raises(ev.ParameterError, match="t_end_us must be"):
         stream.advance(LUX, t_end)
-    _still_usable(stream, LUX)
+    _still_usable(stream, EVK4)
 
 
 @pytest.mark.parametrize("t_start", [10**21, -(10**21), 2**63, False])
@@ -79,6 +90,17 @@ def test_a_start_that_is_no_64_bit_timestamp_is_refused(t_start):
         ev.NoiseStream(LUX.shape, EVK4, rng=1, t_start_us=t_start)
     with pytest.raises(ev.ParameterError, match="t_start_us must be"):
         ev.simulate_events(LUX, EVK4, 0.01, rng=1, t_start_us=t_start)
+
+
+def test_a_span_longer_than_64_bits_between_two_64_bit_times_is_refused():
+    """Both ends are 64-bit times, the span between them is not: the events came out at t = 0 (92,233 of 184,467)."""
+    slow = ev.load_preset("davis346").replace(trial_rate_hz=1e-8, eps_pos=3.0, eps_neg=3.0)
+    stream = ev.NoiseStream((1, 1), slow, rng=1, t_start_us=-(2**63))
+    with pytest.raises(ev.ParameterError, match=r"more than 2\*\*63 us after the stream's start"):
+        stream.advance(np.ones((1, 1)), 2**63 - 1)
+    assert stream.t_us == -(2**63)
+    with pytest.raises(ev.ParameterError, match="64-bit timestamp"):
+        ev.iter_events(np.ones((1, 1)), slow, 1.8e13, rng=1, t_start_us=-(2**63))
 
 
 def test_a_video_starting_before_any_64_bit_timestamp_is_refused():

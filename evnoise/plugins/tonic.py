@@ -154,7 +154,8 @@ class PhotonNoise:
                  off_polarity: int | None = None):
         from .._run import run_setup
 
-        if off_polarity is not None and (isinstance(off_polarity, bool) or off_polarity not in (0, -1)):
+        if off_polarity is not None and (not isinstance(off_polarity, numbers.Integral)
+                                         or isinstance(off_polarity, (bool, np.bool_)) or off_polarity not in (0, -1)):
             raise ParameterError(f"off_polarity must be 0, -1 or None, got {off_polarity!r}")
         self.off_polarity = None if off_polarity is None else int(off_polarity)
 
