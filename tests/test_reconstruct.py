@@ -12,6 +12,7 @@ import math
 import pickle
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -630,3 +631,17 @@ def test_resampled_poisson_pairs_with_memory_and_per_pixel_maps_are_refused_up_f
     params = dataclasses.replace(PARAMS, reset_memory=0.5, eps_sigma=0.03)
     with pytest.raises(ParameterError, match="distribution='exact'"):
         ResampledPairs([np.full((8, 8), 2.0)], params, window_s=0.5, max_lux=MAX_LUX, distribution="poisson")
+
+
+def test_ml_inversion_white_level_and_cramer_rao_at_the_light_limit():
+    """The model takes at most 1e9 lux: a white level above it was refused by the rates as "lux contains
+    illuminance above ..." (not naming max_lux), and the Cramér-Rao bound at 1e9 lux evaluated at 1e9 + h."""
+    with pytest.raises(ParameterError, match="max_lux must be finite, > 0 and at most 1e.09 lux"):
+        MLInversion(PARAMS, max_lux=2e9)
+    inv = MLInversion(PARAMS, max_lux=MAX_LUX, grid_size=16)
+    with pytest.raises(ParameterError, match="max_lux must be finite, > 0 and at most 1e.09 lux"):
+        inv.lux(np.zeros((2, 4, 4)), 1.0, max_lux=2e9)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        sigma = inv.cramer_rao_std([1.0, 1e9], 1.0)  # a one-sided difference at the limit
+    assert sigma.shape == (2,) and np.isfinite(sigma[0]) and sigma[0] > 0 and sigma[1] > 0  # inf: no information

@@ -19,6 +19,7 @@ import math
 
 import numpy as np
 
+from .._checks import MAX_LUX, check_lux
 from ..errors import InputError, ParameterError
 from ..params import NoiseParams
 from .imaging import lux_to_display, srgb_decode
@@ -79,8 +80,8 @@ class MLInversion:
                  smoothing_sigma: float = 0.7, count_step: float = 0.125):
         if not isinstance(params, NoiseParams):
             raise ParameterError(f"params must be a NoiseParams, got {type(params).__name__}")
-        if not (isinstance(max_lux, (int, float)) and math.isfinite(max_lux) and max_lux > 0):
-            raise ParameterError(f"max_lux must be finite and > 0 lux, got {max_lux!r}")
+        if not (isinstance(max_lux, (int, float)) and math.isfinite(max_lux) and 0 < max_lux <= MAX_LUX):
+            raise ParameterError(f"max_lux must be finite, > 0 and at most {MAX_LUX:g} lux, got {max_lux!r}")
         if isinstance(binning, bool) or not isinstance(binning, int) or binning < 1:
             raise ParameterError(f"binning must be an integer >= 1, got {binning!r}")
         if not isinstance(grid_size, int) or grid_size < 2:
@@ -102,8 +103,8 @@ class MLInversion:
         """Illuminance grid and its rates for white level ``max_lux`` (a few are cached)."""
         key = float(max_lux)
         if key not in self._grids:
-            if not (math.isfinite(key) and key > 0):
-                raise ParameterError(f"max_lux must be finite and > 0 lux, got {max_lux!r}")
+            if not (math.isfinite(key) and 0 < key <= MAX_LUX):
+                raise ParameterError(f"max_lux must be finite, > 0 and at most {MAX_LUX:g} lux, got {max_lux!r}")
             from ..rates import expected_rate
 
             if len(self._grids) >= 64:
@@ -153,14 +154,17 @@ class MLInversion:
     __call__ = display
 
     def cramer_rao_std(self, lux, window_s: float) -> np.ndarray:
-        """Cramér-Rao standard deviation (lux) of the per-bin estimate at ``lux`` (no smoothing)."""
+        """Cramér-Rao standard deviation (lux) of the per-bin estimate at ``lux`` (no smoothing; inf where the counts
+        carry no information about the light)."""
         from ..rates import expected_rate
 
-        lux = np.atleast_1d(np.asarray(lux, dtype=np.float64))
+        lux = np.atleast_1d(check_lux(lux, ndim=None))
         h = 1e-4 * np.maximum(lux, 1e-2)
         scale = self.binning**2 * float(window_s)
         mu = expected_rate(lux, self.params) * scale
-        dmu = (expected_rate(lux + h, self.params) - expected_rate(np.maximum(lux - h, 0), self.params)) * scale
-        dmu /= lux + h - np.maximum(lux - h, 0)
+        upper, lower = np.minimum(lux + h, MAX_LUX), np.maximum(lux - h, 0)  # within the light evnoise takes
+        dmu = (expected_rate(upper, self.params) - expected_rate(lower, self.params)) * scale
+        dmu /= upper - lower
         info = (dmu**2 / np.maximum(mu, 1e-300)).sum(axis=0)
-        return 1.0 / np.sqrt(info)
+        with np.errstate(divide="ignore"):  # no information (no events, or none that change with the light): inf
+            return 1.0 / np.sqrt(info)
