@@ -551,6 +551,19 @@ def check_trial_span(span_us: int, trial_us: float, what: str = "duration") -> N
                              f"more than the 2**52 the simulator counts exactly ({years:.3g} years at this trial rate)")
 
 
+def check_span(t_start_us: int, span_us: int, trial_us: float, what: str) -> None:
+    """Refuse ``span_us`` microseconds from ``t_start_us`` that no 64-bit time holds (the kernels count times from a
+    run's or a stream's start in int64: the span and its end must both fit) or that is more than :data:`MAX_TRIALS`
+    trials of ``trial_us``; ``what`` names the span (``"duration"``)."""
+    if span_us > INT64_MAX:
+        raise ParameterError(f"the {what} ({span_us} us) is more than 2**63 us, longer than a 64-bit time holds "
+                             f"(about 292,000 years)")
+    if t_start_us + span_us > INT64_MAX:
+        raise ParameterError(f"the {what} ({span_us} us from t = {t_start_us} us) ends beyond the largest 64-bit "
+                             f"timestamp ({INT64_MAX} us, about 292,000 years)")
+    check_trial_span(span_us, trial_us, what)
+
+
 def check_event_memory(expected_events: float, what: str, *, window_events: float = 0.0, hint: str = "") -> None:
     """Refuse to hold ``expected_events`` events (with 8 sigma to spare) before allocating them; ``window_events``:
     the events of a window made while they are held (its working memory, :data:`WINDOW_BYTES_PER_EVENT` each,

@@ -29,14 +29,13 @@ import numpy as np
 
 from . import terms
 from ._budget import human_bytes
-from ._checks import check_lux, duration_to_us, resolve_threads
+from ._checks import check_lux, check_params, duration_to_us, resolve_threads
 from ._engine import (
-    INT64_MAX,
     Collector,
     PixelState,
     check_event_memory,
+    check_span,
     check_t_start,
-    check_trial_span,
     memory_step,
     progress_bar,
     renewal_step,
@@ -124,14 +123,6 @@ class EventWindows:
     def close(self) -> None:
         """Stop early (closes the progress bar; nothing more is simulated)."""
         self._windows.close()
-
-
-def _check_span(t_start_us: int, duration_us: int, trial_us: float) -> None:
-    """The run's end a 64-bit timestamp, its trials fewer than the kernels count exactly (:func:`check_trial_span`)."""
-    if duration_us > INT64_MAX or t_start_us + duration_us > INT64_MAX:
-        raise ParameterError(f"t_start_us + duration ({t_start_us} + {duration_us} us) goes beyond the largest "
-                             f"64-bit timestamp ({INT64_MAX} us, about 292,000 years)")
-    check_trial_span(duration_us, trial_us)
 
 
 def _check_memory(expected_events: float, what: str = "simulate_events", window_events: float = 0.0) -> None:
@@ -237,9 +228,9 @@ def _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, t
         raise ParameterError(f"method must be one of {METHODS}, got {method!r}")
     t_start_us = check_t_start(t_start_us)
     threads = resolve_threads(threads)
+    check_span(t_start_us, duration_us, check_params(params).trial_us, "duration")  # before any map is drawn
     run = run_setup(lux.shape, params, rng, thresholds=thresholds, background=background)
     params, key, (eps_on, eps_off), bg = run.params, run.key, run.thresholds, run.background
-    _check_span(t_start_us, duration_us, params.trial_us)
     if memory_on(params) and method != "trials":
         return _still_memory_windows(lux, params, key, t_start_us, duration_us, threads, progress, sink, bg,
                                      (eps_on, eps_off), method)
@@ -528,6 +519,12 @@ def iter_video(
     if method not in METHODS:
         raise ParameterError(f"method must be one of {METHODS}, got {method!r}")
     threads = resolve_threads(threads)
+    t0_us = check_t_start(round(ts[0] * 1e6), "the first frame's time (us)")
+    frame_us = (ts - ts[0]) * 1e6
+    duration_us = int(round(frame_us[-1]))
+    if duration_us < 1:
+        raise InputError("the video is shorter than one microsecond")
+    check_span(t0_us, duration_us, check_params(params).trial_us, "video")  # before the frames are read
     shape = frames.shape
     static = np.ones(shape, dtype=bool)
     first = frames.get(0)
@@ -547,12 +544,6 @@ def iter_video(
         raise ParameterError("method='renewal' needs a static scene, but some pixels change between frames")
     run = run_setup(shape, params, rng, thresholds=thresholds, background=background)
     params, key, (eps_on, eps_off), bg = run.params, run.key, run.thresholds, run.background
-    t0_us = check_t_start(round(ts[0] * 1e6), "the first frame's time (us)")
-    frame_us = (ts - ts[0]) * 1e6
-    duration_us = int(round(frame_us[-1]))
-    if duration_us < 1:
-        raise InputError("the video is shorter than one microsecond")
-    _check_span(t0_us, duration_us, params.trial_us)
     return _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static.ravel(), t0_us,
                          duration_us, threads, progress, labels=return_labels, bg=bg, renewal=method == "renewal")
 

@@ -9,12 +9,11 @@ import numpy as np
 from . import terms
 from ._checks import check_lux, resolve_threads
 from ._engine import (
-    INT64_MAX,
     WINDOW_BYTES_PER_EVENT,
     PixelState,
     check_event_memory,
+    check_span,
     check_t_start,
-    check_trial_span,
     memory_step,
     renewal_step,
     sorted_window,
@@ -123,14 +122,11 @@ class NoiseStream:
         t_end = check_t_start(t_end_us, "t_end_us") - self._t0
         if t_end < self._t_rel:
             raise ParameterError(f"t_end_us={t_end_us} is before the stream's current time {self.t_us}")
-        if t_end > INT64_MAX:  # times since the start are 64-bit in the kernels
-            raise ParameterError(f"t_end_us={t_end_us} is more than 2**63 us after the stream's start "
-                                 f"t_start_us={self._t0}")
         if t_end == self._t_rel:
             return empty_events(0)
         p = self.params
         dt = p.trial_us
-        check_trial_span(t_end, dt, "time since the stream's start")
+        check_span(self._t0, t_end, dt, "time since the stream's start")
         lam = p.photons_per_trial(lux).ravel()
         if memory_on(p):
             return self._advance_memory(lam, t_end)

@@ -518,8 +518,10 @@ def test_disk_line_of_a_video_says_it_counts_noise_only(tmp_path):
 
 
 def test_timestamps_beyond_int64_are_refused():
-    with pytest.raises(ev.ParameterError, match="64-bit timestamp"):
+    with pytest.raises(ev.ParameterError, match="longer than a 64-bit time"):
         ev.iter_events(np.ones((2, 2)), PARAMS, 1e13, rng=1, t_start_us=2**62)
+    with pytest.raises(ev.ParameterError, match=r"ends beyond the largest 64-bit timestamp"):
+        ev.iter_events(np.ones((2, 2)), PARAMS, 4e12, rng=1, t_start_us=2**62 + 2**61)
 
 
 @pytest.mark.parametrize("method", ["auto", "trials"])

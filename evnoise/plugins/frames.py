@@ -19,7 +19,7 @@ import numpy as np
 
 from .._budget import check_allocation, memory_budget
 from .._checks import as_generator, check_lux, check_params, resolve_threads
-from .._engine import check_trial_span
+from .._engine import check_span
 from ..errors import InputError, ParameterError
 from ..events import EVENT_DTYPE
 
@@ -203,7 +203,7 @@ class EmulatorNoise:
             if t_us < stream.t_us:
                 raise ParameterError(f"t_frame={t_frame!r} s is before the previous frame's time "
                                      f"{stream.t_us * 1e-6!r} s")
-            check_trial_span(t_us - stream.t_start_us, self.params.trial_us, "time since the first frame")
+            check_span(stream.t_start_us, t_us - stream.t_start_us, self.params.trial_us, "time since the first frame")
             self._check_interval(t_us - stream.t_us)
         signal = self._emulate(new_frame, t_frame)
         if stream is None:
