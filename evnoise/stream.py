@@ -306,7 +306,8 @@ class NoiseStream:
         """The sensor's event rate (events/s) to size an interval of ``span_us`` run trial by trial: a bound (a
         pixel's trial gives at most one event, and the background its own), or where that bound would not fit in
         memory, twice the mean rate of a population of pixels without memory at each one's light (no tables give each
-        pixel's rate here; memory raised the nominal pixel's rate by up to 1.7x over the presets at 0.01-300 lux),
+        pixel's rate here; run trial by trial over the presets, reset_memory 0.5-1, mismatch 0-0.08 and 0.01-3000
+        lux, memory changed that mean by 0.07-1.65x: tests/test_stream_limits.py holds the worst cases),
         interpolated in log lux from :data:`RATE_GRID_LEVELS` light levels where the scene has more (a smooth
         function of the light; each level's population mean takes 25-270 ms)."""
         from ._budget import memory_budget
