@@ -31,6 +31,7 @@ from evnoise.reconstruct.infer import (  # noqa: E402
     default_model_path,
     h5_duration_s,
     recording_mismatch,
+    short_window_note,
 )
 from evnoise.reconstruct.train import TrainConfig, train  # noqa: E402
 from evnoise.reconstruct.unet import UNet  # noqa: E402
@@ -375,3 +376,14 @@ def test_ship_strips_resume_state_and_records_scores(tmp_path):
     assert doc["card"]["preset"] == "evk3-hd"
     assert doc["card"]["held_out_scores"]["photos"] == {"pairs": 3, "unet": {"psnr": 20.0, "ssim": 0.6, "lpips": None}}
     assert out.stat().st_size < src.stat().st_size
+
+
+def test_a_window_a_hair_short_of_the_trained_one_is_not_warned_about():
+    """A 1 s recording written without its end time reads as 0.99994 s (first to last event): reconstruct warned that
+    it was "shorter than every window the model was trained on (1 s)" and told the user to train on 1 s windows,
+    which they had done. Within 5 % the scaling (by <= 1.053) is silent; beyond, the warning stays."""
+    spec = InputSpec(window_s=1.0, windows_s=[1.0])
+    assert choose_window(spec, 0.999943) == (pytest.approx(0.999943), None)
+    assert short_window_note(spec, 0.96) is None
+    w, note = choose_window(spec, 0.9)
+    assert w == pytest.approx(0.9) and "shorter than every window the model was trained on (1 s)" in note

@@ -81,7 +81,7 @@ def evaluate(dataset, model=None, *, params=None, max_lux=None, lpips: bool = Tr
         ``{"n": int, "metrics": {method: {"psnr": (mean, sem), "ssim": ..., "lpips": ...}},
         "per_item": [...], "seconds": {method: s}, "examples": [...]}``.
     """
-    from .infer import Reconstructor, model_window, trained_windows
+    from .infer import Reconstructor, short_window_note, trained_windows
 
     methods = tuple(methods)
     unknown = set(methods) - set(METHODS)
@@ -136,7 +136,7 @@ def evaluate(dataset, model=None, *, params=None, max_lux=None, lpips: bool = Tr
             t0 = time.perf_counter()
             if m == "unet":
                 preds[m] = net.predict_binned(counts, window)
-                if model_window(net.spec, window) != window:
+                if short_window_note(net.spec, window) is not None:
                     short[window] = short.get(window, 0) + 1
             elif m.startswith("ml-inversion"):
                 # a pair's own white level (make-dataset's "lux_scale") when it has one

@@ -71,10 +71,17 @@ def choose_window(spec, duration_s: float, t_start_s: float = 0.0):
     return available, short_window_note(spec, available, "the recording")
 
 
+#: a window this close to the shortest trained one (a share short of it) is used without a warning: its counts are
+#: scaled by at most 1/0.95 (the image's noise within 3 % of the trained window's), and a recording's length read
+#: from its first to its last event (a file without its end time) falls a little short of the length recorded
+SHORT_WINDOW_SLACK = 0.05
+
+
 def short_window_note(spec, window_s: float, what: str = "the window") -> str | None:
-    """A warning when ``window_s`` is shorter than every window the model was trained on (else ``None``)."""
+    """A warning when ``window_s`` is shorter than every window the model was trained on, by more than
+    :data:`SHORT_WINDOW_SLACK` of the shortest (else ``None``)."""
     seen = model_window(spec, window_s)
-    if seen == window_s:
+    if window_s >= seen * (1.0 - SHORT_WINDOW_SLACK):
         return None
     trained = ", ".join(f"{w:g}" for w in trained_windows(spec))
     return (f"{what} ({window_s:.6g} s) is shorter than every window the model was trained on ({trained} s): its "
