@@ -125,7 +125,8 @@ def calibrate(measurements: Measurements, *, method: str = "poisson", distributi
     n_starts : int
         Strata of starting points along ``bias_pr`` (two starts each are screened, the best
         :data:`N_CONVERGED` fitted to convergence): the rate curve is not monotonic and the
-        likelihood has several local optima. More strata are slower and safer.
+        likelihood has several local optima. More strata are slower and safer (``evnoise calibrate``
+        uses 6: the command line's fits and this default's may differ where optima compete).
     n_seeds : int
         Quasi-random parameter vectors scored to choose the starts.
     rng : int, Generator or None
