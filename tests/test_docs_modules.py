@@ -36,3 +36,14 @@ def test_the_docs_name_modules_to_run():
 @pytest.mark.parametrize("module, where", _named_modules())
 def test_every_module_the_docs_run_exists(module, where):
     assert importlib.util.find_spec(module) is not None, f"{where} runs python -m {module}, which does not exist"
+
+
+def test_each_calibration_script_describes_itself_in_a_whole_sentence():
+    """A script's ``--help`` shows its docstring's first line: memory_fit's read "... (issue 32 §2): ``python -m"."""
+    import ast
+
+    scripts = sorted((ROOT / "calibration" / "scripts").glob("*.py"))
+    assert len(scripts) >= 8
+    for path in scripts:
+        first = (ast.get_docstring(ast.parse(path.read_text(encoding="utf-8"))) or "").splitlines()[0]
+        assert first.endswith((".", "?")), f"{path.name}: {first!r}"

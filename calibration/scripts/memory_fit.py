@@ -1,6 +1,7 @@
-"""Fit reset memory to the real quiet windows' event times (issue 32 §2): ``python -m
-evnoise.calibration.scripts.memory_fit [--all]`` (about 20 s for the eDVS128 window; ``--all``: every window of
-``quiet_segments.json``, several minutes each).
+"""Fit reset memory to the real quiet windows' event times, with and without memory.
+
+``python -m evnoise.calibration.scripts.memory_fit [--all]`` (about 20 s for the eDVS128 window; ``--all``: every
+window of ``quiet_segments.json``, several minutes each).
 
 The exact likelihood of the memory chain (:mod:`evnoise.calibration.quiet.memory`) on the ``dvs128`` preset's
 photon noise (thresholds, bias, trial rate; its dead time is 0) with a spread Poisson leak, against the same chain
