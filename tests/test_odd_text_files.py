@@ -103,3 +103,21 @@ def test_a_png_of_no_pixels_is_one_error_line_without_decoder_warnings(tmp_path,
     one_error_line(code, err, "empty.png")
     assert f"declares a {size[0]}x{size[1]} image (no pixels)" in err, err
     assert not (tmp_path / "out.h5").exists()
+
+
+def test_a_column_order_that_contradicts_the_files_header_is_refused(tmp_path, capsys):
+    """``--csv-columns x,y,p,t`` on a file whose header says ``t,x,y,p`` read times as x: "near line 2995: x = 65572
+    is not a pixel coordinate", nothing about the header. The given order agreeing with the header, or a header of
+    other names, reads as before."""
+    header, comment, other = tmp_path / "h.csv", tmp_path / "c.txt", tmp_path / "o.csv"
+    header.write_bytes(EVENTS_TXT.replace(b" ", b","))
+    comment.write_bytes(b"# " + EVENTS_TXT)
+    other.write_bytes(b"time,col,row,pol\n" + EVENTS_TXT.split(b"\n", 1)[1].replace(b" ", b","))
+    for path, what in ((header, "header"), (comment, "comment line")):
+        with pytest.raises(ev.InputError, match=f"csv_columns='x,y,p,t' contradicts the file's {what}, which names "
+                                                f"the columns t,x,y,p; leave csv_columns out"):
+            ev.read_events(path, sensor=(4, 4), csv_columns="x,y,p,t")
+        assert _events(path, csv_columns="t,x,y,p") == _events(path) == [(10, 1, 2, 1), (20, 3, 0, 0), (35, 2, 2, 1)]
+    assert _events(other, csv_columns="t,x,y,p") == _events(header)
+    code, _, err = run_cli(capsys, "info", header, "--csv-columns", "x,y,p,t", "--sensor", "4x4")
+    one_error_line(code, err, "--csv-columns x,y,p,t contradicts the file's header")

@@ -74,6 +74,11 @@ def parse_columns(text) -> dict[str, int]:
     return out
 
 
+def _order(cols: dict[str, int]) -> str:
+    """``{"t": 3, "x": 0, "y": 1, "p": 2}`` -> ``"x,y,p,t"``."""
+    return ",".join(k for k, _ in sorted(cols.items(), key=lambda kv: kv[1]))
+
+
 def _is_number(token: str) -> bool:
     try:
         float(token)
@@ -151,6 +156,17 @@ class CsvSource(EventSource):
             raise InputError(f"{self.path}: empty text event file (no events, no header)")
         self._comma = first[1] if first is not None else (names_line is not None and "," in ",".join(names_line))
         self._default_columns = False
+        if cols is not None:  # a header that names the columns otherwise: the given order read x as t, say
+            for named, what in ((names_line, "header"), (comment_names, "comment line")):
+                if isinstance(named, list):
+                    try:
+                        named = parse_columns([tok.split("@")[0] for tok in named])
+                    except ParameterError:
+                        named = None  # a header of other names says nothing against the given order
+                if named is not None and named != cols:
+                    raise InputError(f"{self.path}: csv_columns={csv_columns!r} contradicts the file's {what}, "
+                                     f"which names the columns {_order(named)}; leave csv_columns out or give "
+                                     f"that order")
         if cols is None and names_line is not None:
             try:
                 cols = parse_columns([tok.split("@")[0] for tok in names_line])
@@ -195,7 +211,7 @@ class CsvSource(EventSource):
         self._set_shape(header_shape)
 
     def _columns_text(self) -> str:
-        return ",".join(k for k, _ in sorted(self._cols.items(), key=lambda kv: kv[1]))
+        return _order(self._cols)
 
     def _hint(self) -> str:
         if self._default_columns:
