@@ -16,6 +16,7 @@ that arrives inside compiled code is still "terminated" (143) or "interrupted" (
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import logging
 import sys
@@ -146,6 +147,14 @@ def _interruption(exc: BaseException):
     return None
 
 
+#: errors of a path itself (not of a file's contents) and what to do about each
+_PATH_ERRNOS = {
+    errno.ENAMETOOLONG: "the file name is too long for the file system (at most 255 bytes per name); give a shorter "
+                        "one",
+    errno.ELOOP: "a loop of symbolic links; give a path that leads to a file",
+}
+
+
 def _known_failure(exc: BaseException) -> str | None:
     """One line (what went wrong and what to do) for failures outside evnoise's own errors that have a known
     cause; ``None`` for anything else (a bug: the traceback is shown)."""
@@ -154,6 +163,12 @@ def _known_failure(exc: BaseException) -> str | None:
         return (f"the cache of compiled kernels is damaged ({type(exc).__name__}: {exc}); delete the folder "
                 f"{cache} (it is rebuilt on the next run, which compiles again) or point NUMBA_CACHE_DIR to an "
                 f"empty folder")
+    if isinstance(exc, OSError) and exc.errno in _PATH_ERRNOS and exc.filename is not None:
+        # a name the file system refuses, met wherever a path is first looked at (exists(), is_dir(), open())
+        return f"{exc.filename}: {_PATH_ERRNOS[exc.errno]}"
+    if isinstance(exc, RuntimeError) and str(exc).startswith("Symlink loop from "):  # pathlib's resolve()
+        path = str(exc)[len("Symlink loop from "):].strip("'")
+        return f"{path}: {_PATH_ERRNOS[errno.ELOOP]}"
     if isinstance(exc, UnicodeEncodeError) and "surrogates not allowed" in str(exc):
         return (f"a file name or text is not valid UTF-8 ({exc.object[exc.start:exc.end]!r} in "
                 f"{exc.object!r}); rename the file to a UTF-8 name")
