@@ -414,6 +414,41 @@ def test_a_signal_inside_compiled_code_is_not_a_traceback(tmp_path, capsys, monk
     assert got == code and err.strip().splitlines() == [line], err
 
 
+@pytest.mark.parametrize("ending", ["terminated", "finished"])
+def test_a_late_sigterm_retry_is_one_line_not_a_traceback(tmp_path, capsys, monkeypatch, ending):
+    """After a SIGTERM, a timer raises Terminated again every 0.5 s until the command is left: landing between the
+    command's end and the handler's removal it printed a traceback after "evnoise: terminated" (2 of 3 kills of a
+    long reconstruct), and landing in a weakref callback Python printed "Exception ignored in ...". Simulated at both
+    moments: one line, exit 143."""
+    import evnoise.cli as cli
+    from evnoise.cli import info
+
+    restore = cli._restore_sigterm
+    calls = []
+
+    def alarm_lands_here(previous):
+        if not calls:
+            calls.append(1)
+            raise cli.Terminated()
+        restore(previous)
+
+    def command(args):
+        sys.unraisablehook(type("U", (), {"exc_value": cli.Terminated(), "exc_type": cli.Terminated,
+                                          "exc_traceback": None, "err_msg": None, "object": None})())
+        if ending == "terminated":
+            raise cli.Terminated()
+
+    monkeypatch.setattr(cli, "_restore_sigterm", alarm_lands_here)
+    monkeypatch.setattr(info, "run", command)
+    hook = sys.unraisablehook
+    try:
+        got, _, err = run_cli(capsys, "info", small_events_file(tmp_path / "rec.h5"))
+    except cli.Terminated:  # a KeyboardInterrupt: it would stop the whole test run
+        pytest.fail("Terminated escaped from main()")
+    assert got == 143 and err.strip().splitlines() == ["evnoise: terminated"], err
+    assert sys.unraisablehook is hook and len(calls) == 1
+
+
 def test_info_states_each_formats_time_convention(tmp_path, capsys):
     """issue 31: the clock a format's owner uses is stated by info (.raw/.dat: the camera's clock as stored)."""
     import json

@@ -88,19 +88,35 @@ def main(argv=None) -> int:
         parser.print_help(sys.stderr)
         return 2
     previous = _catch_sigterm()
+    said = []  # the exit code once a final line is printed
+    try:
+        return _run_command(args, previous, said)
+    except Terminated:  # SIGTERM's retry alarm after the command was left, before its handler was removed
+        _restore_sigterm(previous)
+        if not said:
+            print("evnoise: terminated", file=sys.stderr)
+        return said[0] if said else 143
+
+
+def _run_command(args, previous, said: list) -> int:
+    """Run the parsed command; its errors and interruptions become one line on standard error (appending the exit
+    code to ``said`` once that line is printed)."""
     try:
         code = args.func(args)
     except EvnoiseError as exc:
         _close_progress_bars()
         print(f"evnoise: error: {printable(_flag_names(str(exc), args))}", file=sys.stderr)
+        said.append(2)
         return 2
     except Terminated:
         _close_progress_bars()
         print("evnoise: terminated", file=sys.stderr)
+        said.append(143)
         return 143
     except KeyboardInterrupt:
         _close_progress_bars()
         print("evnoise: interrupted", file=sys.stderr)
+        said.append(130)
         return 130
     except BrokenPipeError:  # e.g. `evnoise info FILE | head`: the reader went away, not an error
         import os
@@ -112,11 +128,13 @@ def main(argv=None) -> int:
         stop = _interruption(exc)
         if stop is not None:  # Ctrl-C or SIGTERM inside compiled code comes back wrapped in a SystemError
             print("evnoise: terminated" if isinstance(stop, Terminated) else "evnoise: interrupted", file=sys.stderr)
-            return 143 if isinstance(stop, Terminated) else 130
+            said.append(143 if isinstance(stop, Terminated) else 130)
+            return said[0]
         line = _known_failure(exc)
         if line is None:
             raise
         print(f"evnoise: error: {printable(line)}", file=sys.stderr)
+        said.append(2)
         return 2
     finally:
         _restore_sigterm(previous)
@@ -247,7 +265,14 @@ def _catch_sigterm():
     except (ValueError, OSError):  # pragma: no cover - no signals here (embedded interpreter)
         return _NO_HANDLER
     previous_alarm = signal.signal(signal.SIGALRM, on_alarm) if timer else _NO_HANDLER
-    return previous, previous_alarm, left
+    hook = sys.unraisablehook
+
+    def quiet_retries(unraisable):  # a retry that landed in a weakref callback or __del__: not a bug to print
+        if not isinstance(unraisable.exc_value, Terminated):
+            hook(unraisable)
+
+    sys.unraisablehook = quiet_retries
+    return previous, previous_alarm, left, hook
 
 
 def _restore_sigterm(previous) -> None:
@@ -255,8 +280,9 @@ def _restore_sigterm(previous) -> None:
 
     if previous is _NO_HANDLER:
         return
-    term, alarm, left = previous
+    term, alarm, left, hook = previous
     left.append(True)
+    sys.unraisablehook = hook
     if alarm is not _NO_HANDLER:
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, alarm if alarm is not None else signal.SIG_DFL)
