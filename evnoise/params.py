@@ -247,6 +247,8 @@ class NoiseParams:
         for spec in specs:
             name, value = spec.name, getattr(self, spec.name)
             try:  # an int beyond the double range (a TOML integer of 400 digits) overflows
+                if isinstance(value, (str, bytes)) or type(value).__name__ in ("bool", "bool_"):  # true is no 1.0
+                    raise TypeError
                 value = float(value)
             except (TypeError, ValueError, OverflowError):
                 raise ParameterError(f"NoiseParams.{name} must be a number, got {_short_repr(value)}") from None

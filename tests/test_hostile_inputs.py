@@ -506,6 +506,8 @@ def test_overwrite_does_not_replace_a_named_pipe_with_a_file(tmp_path, capsys, f
     (("eps_pos = ", "eps_pos = 1" + "0" * 5000 + "  # "), "is not a preset: Exceeds the limit (4300 digits)"),
     (("fitted_lux = ", "fitted_lux = [0, 1" + "0" * 400 + "]  # "), "fitted_lux must be [lo, hi] lux"),
     (None, "its TOML nests too deeply"),
+    (("eps_pos = ", "eps_pos = true  # "), "eps_pos must be a number, got True"),  # was read as 1.0
+    (("eps_pos = ", "eps_pos = \"0.2\"  # "), "eps_pos must be a number, got '0.2'"),  # was read as 0.2
 ])
 def test_a_preset_with_absurd_numbers_or_nesting_is_one_error_line(tmp_path, capsys, edit, expect):
     """Integers beyond the double range, beyond Python's digit limit, and arrays nested past the recursion limit
