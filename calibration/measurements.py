@@ -54,6 +54,7 @@ from pathlib import Path
 import numpy as np
 import tomllib
 
+from evnoise._budget import human_bytes
 from evnoise._checks import check_input_file
 from evnoise.errors import InputError
 
@@ -308,7 +309,16 @@ class MonitorTable:
     source: str = ""
 
 
+#: Largest table read (a rate table of a million rows has tens of MB): a larger file is refused before it is read.
+MAX_TABLE_BYTES = 256 << 20
+
+
 def _read_csv_rows(path: Path) -> tuple[list[str], list[list[str]]]:
+    # a pipe would block the read for ever and a device (/dev/zero) never ends: regular files of bounded size only
+    path = check_input_file(path, missing="file", kind="a table (CSV)")
+    if path.stat().st_size > MAX_TABLE_BYTES:
+        raise InputError(f"{path}: {human_bytes(path.stat().st_size)}, more than the {human_bytes(MAX_TABLE_BYTES)} "
+                         f"a table of rates, counts or monitor levels may have")
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:

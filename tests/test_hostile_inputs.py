@@ -843,3 +843,26 @@ def test_fps_below_a_frame_per_days_and_parameters_that_are_no_table_are_one_err
     for data in ([1], "abc", {1: 2}):
         with pytest.raises(ev.ParameterError, match="must be a table of names and values"):
             ev.NoiseParams.from_dict(data)
+
+
+@pytest.mark.parametrize("kind", ["fifo", "device", "too large"])
+def test_a_calibration_table_that_is_no_bounded_regular_file_is_refused_before_reading(tmp_path, capsys,
+                                                                                      monkeypatch, kind):
+    """``calibrate --monitor FIFO`` waited for ever and ``--monitor /dev/zero`` filled 7.5 GB before a MemoryError
+    traceback (found by a hostile-file review): tables are regular files of at most MAX_TABLE_BYTES."""
+    import evnoise.calibration.measurements as measurements
+
+    table = tmp_path / "monitor.csv"
+    if kind == "fifo":
+        os.mkfifo(table)
+    elif kind == "device":
+        table = Path("/dev/zero")
+    else:
+        table.write_text("grey,lux\n" + "".join(f"{g},{g / 10}\n" for g in range(256)))
+        monkeypatch.setattr(measurements, "MAX_TABLE_BYTES", 1000)
+    with pytest.raises(ev.InputError, match="special file|a table of rates, counts or monitor levels may have"):
+        measurements.read_monitor_table(table)
+    rates = tmp_path / "rates.csv"
+    rates.write_text("grey,on_rate_hz,off_rate_hz\n10,1,1\n")
+    code, _, err = run_cli(capsys, "calibrate", rates, "--monitor", table, "--out", tmp_path / "c.toml")
+    one_error_line(code, err, "special file" if kind != "too large" else "a table of rates, counts or monitor levels")
