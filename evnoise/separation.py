@@ -197,12 +197,18 @@ class Separator:
         self._last_t = None  # last time pushed
         self._t_complete = None
         self._finished = False
+        from ._budget import check_allocation
+
         if isinstance(self.filter, DensityFilter):
             channels = 2 if self.filter.polarity == "same" else 1
+            check_allocation(channels * height * width * 4, f"the filter's counts of a {width}x{height} sensor",
+                             error=InputError)
             self._counts = np.zeros((channels, height, width), dtype=np.int32)
             self._buf = empty_events(0)
             self._lo = self._hi = self._next = 0
         else:
+            check_allocation(height * width * 8, f"the filter's last event times of a {width}x{height} sensor",
+                             error=InputError)
             self._last = np.full((height, width), np.iinfo(np.int64).min // 2, dtype=np.int64)
 
     @property
@@ -485,6 +491,9 @@ def separate_file(path, signal_out=None, noise_out=None, method="density", *, ov
                 if bar is not None:
                     bar.update((min(b, t_end) - t_begin) * 1e-6 - bar.n)
             emit(*sep.finish())
+        if counts["n_events"] != n:  # the outputs (still temporary) are removed: they would look complete
+            raise InputError(f"{path}: {n:,} events, but {counts['n_events']:,} of them were read in time order: its "
+                             f"timestamps decrease somewhere (a recording's must not); sort it by time first")
     if bar is not None:
         bar.close()
     counts["n_noise"] = counts["n_events"] - counts["n_signal"]

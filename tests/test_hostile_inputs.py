@@ -866,3 +866,39 @@ def test_a_calibration_table_that_is_no_bounded_regular_file_is_refused_before_r
     rates.write_text("grey,on_rate_hz,off_rate_hz\n10,1,1\n")
     code, _, err = run_cli(capsys, "calibrate", rates, "--monitor", table, "--out", tmp_path / "c.toml")
     one_error_line(code, err, "special file" if kind != "too large" else "a table of rates, counts or monitor levels")
+
+
+def _h5_events(path, t, width=8, height=6):
+    import h5py
+
+    n = len(t)
+    with h5py.File(path, "w") as f:
+        f["events/x"] = (np.arange(n) % width).astype(np.uint16)
+        f["events/y"] = (np.arange(n) % height).astype(np.uint16)
+        f["events/t"] = np.asarray(t, dtype=np.int64)
+        f["events/p"] = (np.arange(n) % 2).astype(np.uint8)
+        f["t_offset"] = np.int64(0)
+        f.attrs["width"], f.attrs["height"] = width, height
+
+
+def test_separate_refuses_a_recording_whose_times_decrease_instead_of_writing_empty_outputs(tmp_path, capsys):
+    """An events.h5 in descending time order (found by a hostile-file review): ``separate`` wrote two complete-looking
+    files of 0 events and exited 0 (its span, first to last event, was negative)."""
+    rec = tmp_path / "desc.h5"
+    _h5_events(rec, np.arange(2000, 0, -1) * 500)
+    signal, noise = tmp_path / "s.h5", tmp_path / "n.h5"
+    code, _, err = run_cli(capsys, "separate", rec, "--out", signal, "--noise-out", noise, "-q")
+    one_error_line(code, err, "2,000 events, but 0 of them were read in time order: its timestamps decrease")
+    assert not signal.exists() and not noise.exists()
+    assert [p.name for p in tmp_path.iterdir()] == ["desc.h5"]  # no temporary left
+
+
+def test_separate_refuses_a_sensor_whose_filter_state_cannot_fit(tmp_path, capsys, monkeypatch):
+    """A header declaring 65536x65536 pixels: a 32 GiB ArrayMemoryError traceback (hostile-file review)."""
+    monkeypatch.setenv("EVNOISE_MAX_MEMORY", "64M")
+    rec = tmp_path / "wide.h5"
+    _h5_events(rec, np.arange(100) * 10, width=8192, height=8192)
+    code, _, err = run_cli(capsys, "separate", rec, "--out", tmp_path / "s.h5", "-q")
+    one_error_line(code, err, "the filter's counts of a 8192x8192 sensor would need 536.9 MB of memory")
+    with pytest.raises(ev.InputError, match="last event times of a 8192x8192 sensor"):
+        ev.Separator((8192, 8192), "activity")
