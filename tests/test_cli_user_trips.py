@@ -117,6 +117,8 @@ def no_simulation(monkeypatch):
     (["simulate", "IMAGE", "--max-lux", "1e308"], "--max-lux must be at most 1e+09 lux"),
     (["make-dataset", "IMAGE", "--max-lux", "6:1e308"], "--max-lux must be finite, > 0 and at most 1e+09 lux"),
     (["make-dataset", "--procedural", "dead-leaves", "--count", str(10**23)], "--count must be <= 1000000"),
+    # 1e9 starts: an ArrayMemoryError traceback (hostile-input review)
+    (["calibrate", "--example", "--starts", str(10**9)], "--starts must be an integer from 1 to 1000"),
 ])
 def test_absurd_numbers_are_one_line_before_any_work(tmp_path, capsys, no_simulation, argv, expect):
     image = grey_image(tmp_path / "g.png")

@@ -96,6 +96,12 @@ __all__ = ["calibrate", "CalibrationResult", "FIT_NAMES"]
 log = logging.getLogger("evnoise.calibration")
 
 
+#: most strata of starting points and screened seeds a fit takes (each start is a full optimisation: 1000 take hours;
+#: 1e9 asked for an array of gigabytes before the first one)
+MAX_STARTS = 1000
+MAX_SEEDS = 1 << 20
+
+
 def calibrate(measurements: Measurements, *, method: str = "poisson", distribution: str = "binomial",
               free=None, fixed: dict | None = None, initial: NoiseParams | None = None, n_starts: int = 4,
               n_seeds: int = 2048, rng=None, unidentified: str = "report", max_rel_se: float = 0.5,
@@ -167,10 +173,10 @@ def calibrate(measurements: Measurements, *, method: str = "poisson", distributi
     if dispersion == "report" and measurements.kind == "flat-field":
         raise ParameterError("dispersion='report' applies to rate tables; the flat-field likelihood always uses "
                              "the per-pixel counts")
-    if not (isinstance(n_starts, int) and n_starts >= 1):
-        raise ParameterError(f"n_starts must be an integer >= 1, got {n_starts!r}")
-    if not (isinstance(n_seeds, int) and n_seeds >= n_starts):
-        raise ParameterError(f"n_seeds must be an integer >= n_starts, got {n_seeds!r}")
+    if not (isinstance(n_starts, int) and 1 <= n_starts <= MAX_STARTS):
+        raise ParameterError(f"n_starts must be an integer from 1 to {MAX_STARTS}, got {n_starts!r}")
+    if not (isinstance(n_seeds, int) and n_starts <= n_seeds <= MAX_SEEDS):
+        raise ParameterError(f"n_seeds must be an integer from n_starts to {MAX_SEEDS:,}, got {n_seeds!r}")
     if not (isinstance(max_rel_se, (int, float)) and max_rel_se > 0):
         raise ParameterError(f"max_rel_se must be > 0, got {max_rel_se!r}")
     gen = as_generator(rng)
