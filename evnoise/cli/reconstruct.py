@@ -55,6 +55,7 @@ def register(subparsers):
 
 
 def run(args) -> int:
+    import math
     import time
     from pathlib import Path
 
@@ -138,6 +139,15 @@ def run(args) -> int:
         log.warning(note)
     starts = [args.t_start]
     if args.step is not None:
+        from ..reconstruct.infer import check_frame_plan
+
+        # the number of windows, counted before they are listed (a far-off last event spans years of steps)
+        room = duration + 1e-6 - window - args.t_start
+        planned = 0 if room < 0 else math.floor(room / args.step) + 1
+        if args.frames is not None:
+            planned = min(planned, args.frames)
+        check_frame_plan(planned, hint=f"the recording runs from t = {seconds_text(args.t_start)} s to "
+                         f"{seconds_text(duration)} s: give --frames N, a later --t-start or a larger --step")
         starts = []
         t = args.t_start
         while t + window <= duration + 1e-6 and (args.frames is None or len(starts) < args.frames):

@@ -201,6 +201,7 @@ def read_checkpoint(path) -> dict:
         raise InputError(f"model file not found: {path}")
     if not path.is_file():
         raise InputError(f"model path is not a file: {path}")
+    _check_archive_size(path)
     try:
         with warnings.catch_warnings():  # torch warns about the pickle protocol of files that are not ours
             warnings.simplefilter("ignore", UserWarning)
@@ -232,6 +233,41 @@ def read_checkpoint(path) -> dict:
     if problem:
         raise InputError(f"{path} is a damaged checkpoint: {problem}")
     return doc
+
+
+#: Most bytes a checkpoint may hold once loaded: the largest U-Net evnoise builds
+#: (:data:`~evnoise.reconstruct.unet.MAX_PARAMETERS` float32 weights) four times over (best and last weights,
+#: the optimiser's two moments), plus 256 MiB for the rest.
+MAX_CHECKPOINT_BYTES = 4 * 4 * 250_000_000 + (256 << 20)
+#: Most a checkpoint's archive may hold beyond the bytes of the file itself (``torch.save`` stores its members
+#: uncompressed: data that inflate far beyond the file are a compression bomb, not a model); files below
+#: :data:`INFLATION_FREE_BYTES` of content are not looked at this way.
+MAX_INFLATION = 8
+INFLATION_FREE_BYTES = 64 << 20
+
+
+def _check_archive_size(path: Path) -> None:
+    """Refuse a checkpoint whose zip directory declares more data than a model can hold, far more than the file
+    (a compression bomb), or more than the memory budget, before ``torch.load`` inflates any of it. Only the
+    directory is read (:mod:`zipfile`); a file that is no zip archive is left to ``torch.load`` to refuse."""
+    import zipfile
+
+    from .._budget import check_allocation, human_bytes
+
+    try:
+        with zipfile.ZipFile(path) as archive:
+            declared = sum(int(info.file_size) for info in archive.infolist())
+        size = path.stat().st_size
+    except (OSError, zipfile.BadZipFile, ValueError, EOFError, RuntimeError, NotImplementedError):
+        return  # not an archive zipfile reads: torch.load's error (and _not_a_zip_why) says what it is
+    if declared > MAX_CHECKPOINT_BYTES:
+        raise InputError(f"{path} declares {human_bytes(declared)} of data, more than the "
+                         f"{human_bytes(MAX_CHECKPOINT_BYTES)} of the largest model evnoise builds (a damaged or "
+                         f"hostile file)")
+    if declared > INFLATION_FREE_BYTES and declared > MAX_INFLATION * size:
+        raise InputError(f"{path} declares {human_bytes(declared)} of data in a file of {human_bytes(size)}: "
+                         f"compressed far beyond any checkpoint evnoise writes (a compression bomb?)")
+    check_allocation(declared, f"loading the checkpoint {path}")
 
 
 def _not_a_zip_why(path: Path) -> str:

@@ -12,15 +12,43 @@ from pathlib import Path
 import numpy as np
 
 from .._clock import seconds_text
-from .._h5 import event_datasets, first_index, open_h5, sensor_shape
 from ..errors import InputError, ParameterError
 from .imaging import bin_counts
 
 __all__ = ["counts_from_h5", "h5_duration_s", "counts_to_input", "Reconstructor", "default_model_path",
-           "choose_window", "recording_mismatch", "model_window", "trained_windows", "short_window_note"]
+           "choose_window", "recording_mismatch", "model_window", "trained_windows", "short_window_note",
+           "MAX_FRAMES", "MAX_STEPS", "check_frame_plan"]
 
 #: file name of the shipped reconstructor inside the package folder ``evnoise/models``
 DEFAULT_MODEL_FILE = "evk3-hd.pt"
+
+
+#: Most frames (images) one moving-window run may write: a million frames is 11.6 days of a 1 fps video or 16 minutes
+#: at 1 kHz, beyond any real use; a plan of more (a far-off last event of a damaged file spans years of steps) is
+#: refused before any work, naming the count and how to narrow it.
+MAX_FRAMES = 1_000_000
+#: Most window steps one moving-window run may compute (the frames' steps plus those that fill the first window).
+MAX_STEPS = 10 * MAX_FRAMES
+#: Bytes of bookkeeping a planned frame takes before it is made (its start, its output path, its table row):
+#: checked against the memory budget with the plan.
+BYTES_PER_PLANNED_FRAME = 1024
+
+
+def check_frame_plan(n_frames: int, *, n_steps: int | None = None, hint: str = "") -> None:
+    """Refuse (:class:`~evnoise.ParameterError`) a moving-window plan before any work: more than
+    :data:`MAX_FRAMES` frames, more than :data:`MAX_STEPS` steps, or frames whose bookkeeping exceeds
+    the memory budget. ``hint`` says how to narrow the plan (in the caller's words)."""
+    from .._budget import check_allocation
+
+    tail = f"; {hint}" if hint else ""
+    if n_frames > MAX_FRAMES:
+        raise ParameterError(f"the moving window would make {n_frames:,} frames, more than the {MAX_FRAMES:,} one "
+                             f"run may write{tail}")
+    if n_steps is not None and n_steps > MAX_STEPS:
+        raise ParameterError(f"the moving window would take {n_steps:,} steps, more than the {MAX_STEPS:,} one run "
+                             f"may take{tail}")
+    check_allocation(n_frames * BYTES_PER_PLANNED_FRAME, f"the plan of {n_frames:,} frames", hint=hint,
+                     error=ParameterError)
 
 
 def default_model_path() -> Path:
@@ -146,53 +174,53 @@ def recording_mismatch(meta: dict, doc: dict) -> list:
     return out
 
 
-def _open_events(path):
-    """``(file, datasets, (height, width))`` of an events.h5 file, opened read-only and checked."""
-    f = open_h5(path)
-    try:
-        ds = event_datasets(f, path)
-        shape = sensor_shape(f, path)
-    except BaseException:
-        f.close()
-        raise
-    return f, ds, shape
+def _h5_source(path):
+    """The events.h5 file as the readers open it (:class:`evnoise.readers.hdf5.H5Source`): every check
+    ``evnoise info`` makes (its metadata, sensor size, ``/t_offset``, first and last event times), and a
+    sensor size the file must give."""
+    from ..readers.hdf5 import H5Source
+
+    src = H5Source(path)
+    if src.shape is None:
+        src.close()
+        raise InputError(f"{path} has no width/height attributes")
+    return src
 
 
-def _end_us(f) -> int:
-    """End of the recording in µs: the stored ``t_end_us`` (events lie before it), else last event + 1."""
-    t = f["events/t"]
-    last = int(t[-1]) + 1 if t.shape[0] else 0
-    if "t_end_us" in f.attrs:
-        try:
-            return max(int(f.attrs["t_end_us"]), last)
-        except (TypeError, ValueError):
-            pass
-    return last
+def _end_us(src) -> int:
+    """End of the recording in µs on evnoise's clock (the file's ``t`` as stored): the stored ``t_end_us``
+    (events lie before it), else last event + 1."""
+    last = src.t_last_us - src.t_offset_us + 1 if src.n_events else 0
+    end = src.meta.get("t_end_us")
+    return last if end is None else max(int(end), last)
 
 
 def h5_duration_s(path) -> float:
     """Length of the recording in seconds: its stored end time ``t_end_us`` when it has one
     (a 10 s simulation lasts 10 s even if its last event came earlier), else the time just
     after the last event (0 for an empty stream without ``t_end_us``)."""
-    f, _, _ = _open_events(path)
-    with f:
-        return _end_us(f) * 1e-6
+    with _h5_source(path) as src:
+        return _end_us(src) * 1e-6
 
 
 def counts_from_h5(path, *, t_start_s: float = 0.0, window_s: float | None = None):
     """Counts ``(2, H, W)`` ``[ON, OFF]`` of ``[t_start, t_start + window)`` and the window used.
 
     Without ``window_s`` the window runs to the end of the recording (its stored ``t_end_us``,
-    else the last event). Returns ``(counts, window_s)``.
+    else the last event). Returns ``(counts, window_s)``. Times are on evnoise's clock (the file's
+    ``/events/t``; a DSEC ``/t_offset`` is checked, not added). The file is read as the readers read
+    it (:mod:`evnoise.readers`: the same checks as ``evnoise info``), and the count maps the sensor size
+    declares are checked against the memory budget before they are allocated.
     """
+    from ..readers.stats import pixel_counts
+
     if not (math.isfinite(t_start_s) and t_start_s >= 0):
         raise ParameterError(f"t_start_s must be >= 0 seconds, got {t_start_s!r}")
     if window_s is not None and not (math.isfinite(window_s) and window_s > 0):
         raise ParameterError(f"window must be > 0 seconds, got {window_s!r}")
-    f, ds, (height, width) = _open_events(path)
-    with f:
+    with _h5_source(path) as src:
         t0 = int(round(t_start_s * 1e6))
-        end = _end_us(f)
+        end = _end_us(src)
         if window_s is None:
             if end <= t0:
                 raise InputError(f"{path} has no events after t = {seconds_text(t_start_s)} s")
@@ -205,14 +233,8 @@ def counts_from_h5(path, *, t_start_s: float = 0.0, window_s: float | None = Non
                     f"the window {seconds_text(t_start_s)} s + {window_s:g} s runs past the end of the recording "
                     f"({end * 1e-6:.6g} s)"
                 )
-        lo, hi = first_index(f, ds["t"], t0), first_index(f, ds["t"], t1)
-        x = ds["x"][lo:hi].astype(np.int64)
-        y = ds["y"][lo:hi].astype(np.int64)
-        p = ds["p"][lo:hi].astype(np.int64)
-    if x.size and (x.max() >= width or y.max() >= height):
-        raise InputError(f"{path} has events outside its {width}x{height} sensor")
-    flat = (1 - p) * (height * width) + y * width + x  # channel 0 = ON (p = 1)
-    counts = np.bincount(flat, minlength=2 * height * width).reshape(2, height, width)
+        off = src.t_offset_us
+        counts, _ = pixel_counts(src.chunks(t0 + off, t1 + off), src.shape)
     return counts, float(window_s)
 
 

@@ -98,10 +98,11 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
     Frames start at the first step where a whole window has elapsed since ``t_start_s``. See
     the module docstring for how masked pixels are shown (the last static estimate).
     """
+    from .._clock import seconds_text
     from .._recordings import recording_info, recording_start_us
     from ..readers import parse_sensor
     from .imaging import write_png
-    from .infer import Reconstructor, short_window_note
+    from .infer import Reconstructor, check_frame_plan, short_window_note
 
     fps = check_float(fps, "fps", "frames per second")
     if max_frames is not None:
@@ -155,6 +156,10 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
                 "holds %.6g s from its start (a shorter window_s= gives more frames)", n_out, max_frames,
                 window_steps * step_us * 1e-6, (t_end_us - t_start_us) * 1e-6)
         n_out = min(n_out, max_frames)
+    span = f"t = {seconds_text(t_start_us * 1e-6)} s to {seconds_text(t_end_us * 1e-6)} s"
+    check_frame_plan(n_out, n_steps=n_out + window_steps - 1,
+                     hint=f"the span runs from {span} at {fps:g} frames per second: give max_frames=, a later "
+                     f"t_start_s= (or t_end_s=) or a lower fps")
     created = not out_dir.exists()
     out_dir.mkdir(exist_ok=True)
     if overwrite:  # no stale frames of an earlier, longer run
