@@ -102,6 +102,7 @@ def no_simulation(monkeypatch):
     (["simulate", "IMAGE", "--seed", str(2**64)], "--seed must be at most 2**63 - 1"),
     (["simulate", "IMAGE", "--seed", "-3"], "--seed must be a non-negative integer"),
     (["simulate", "IMAGE", "--threads", "0"], "--threads must be >= 1"),
+    (["reconstruct", "EVENTS", "--threads", "100000"], "--threads must be <= 1024"),  # libgomp: Out of memory
     (["simulate", "IMAGE", "--duration", "abc"], "--duration must be a number"),
     (["reconstruct", "EVENTS", "--window", "1e308"], "--window must be at most"),
     (["reconstruct", "EVENTS", "--t-start", "1e308"], "--t-start must be at most"),

@@ -398,9 +398,15 @@ def add_fps(p, *, help: str, default=None):
     return p.add_argument("--fps", type=frequency("--fps"), default=default, metavar="F", help=help)
 
 
+#: most worker threads a command starts: more than any machine's cores gains nothing, and 100,000 made OpenMP (torch)
+#: run out of memory starting them
+MAX_THREADS = 1024
+
+
 def add_threads(p, *, help: str, default=None):
-    """``--threads N``."""
-    return p.add_argument("--threads", type=count("--threads"), default=default, metavar="N", help=help)
+    """``--threads N`` (at most :data:`MAX_THREADS`)."""
+    return p.add_argument("--threads", type=count("--threads", maximum=MAX_THREADS), default=default, metavar="N",
+                          help=help)
 
 
 def add_seed(p, *, help: str, default=None):
