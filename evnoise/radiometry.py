@@ -315,6 +315,37 @@ def _open_pillow(path: Path, limit: int):
                 Image.MAX_IMAGE_PIXELS = pil_limit
 
 
+#: Most scans (start-of-scan markers) a JPEG may have: a progressive JPEG has about 10, and the decoder walks the
+#: whole image once per scan, so thousands of tiny scans made a 2 MB file take minutes.
+MAX_JPEG_SCANS = 1000
+
+
+def _count_jpeg_scans(path: Path, stop: int) -> int:
+    """Start-of-scan markers (``FF DA``) in a JPEG file, counted up to ``stop`` (no pixel is decoded).
+
+    In entropy-coded data every ``FF`` byte is followed by ``00`` or a restart marker, so ``FF DA`` is a
+    marker (an embedded thumbnail's scans count too, which is harmless against a limit of hundreds).
+    """
+    count, tail = 0, b""
+    with open(path, "rb") as fh:
+        while count < stop:
+            block = fh.read(1 << 20)
+            if not block:
+                break
+            data = tail + block
+            count += data.count(b"\xff\xda")
+            tail = data[-1:] if data[-1:] == b"\xff" else b""
+    return count
+
+
+def _check_jpeg_scans(name: str, path: Path) -> None:
+    """Refuse a JPEG with more than :data:`MAX_JPEG_SCANS` scans before it is decoded."""
+    scans = _count_jpeg_scans(path, MAX_JPEG_SCANS + 1)
+    if scans > MAX_JPEG_SCANS:
+        raise InputError(f"{name}: the JPEG has more than {MAX_JPEG_SCANS} scans (a progressive JPEG has about "
+                         "10; each is a pass over the whole image, a guard against decompression bombs)")
+
+
 def _read_pillow(path: Path, limit: int = DEFAULT_MAX_IMAGE_PIXELS) -> np.ndarray:
     from PIL import ImageOps
 
@@ -322,6 +353,8 @@ def _read_pillow(path: Path, limit: int = DEFAULT_MAX_IMAGE_PIXELS) -> np.ndarra
     try:
         with _open_pillow(path, limit) as im:
             _check_pixels(name, _declared_pixels(im.width, im.height), f"{im.width}x{im.height}", limit)
+            if im.format in ("JPEG", "MPO"):
+                _check_jpeg_scans(name, path)
             im.load()
             im = ImageOps.exif_transpose(im)
             if "icc_profile" in im.info:
@@ -364,6 +397,18 @@ def _read_png16(path: Path, head: bytes, limit: int = DEFAULT_MAX_IMAGE_PIXELS) 
     return np.asarray(arr)
 
 
+def _check_tiles(name: str, page, limit: int) -> None:
+    """Refuse a tiled TIFF page whose tiles declare more than ``limit`` pixels or the memory budget (header only)."""
+    from ._budget import check_allocation
+
+    depth = max(1, int(page.tiledepth))
+    tile = f"{page.tilewidth}x{page.tilelength}" + (f"x{depth}" if depth > 1 else "")
+    _check_pixels(name, _declared_pixels(page.tilewidth, page.tilelength, page.samplesperpixel, depth),
+                  f"tiles of {tile}", limit)
+    nbytes = int(page.tilewidth) * int(page.tilelength) * depth * max(1, int(page.samplesperpixel))
+    check_allocation(nbytes * page.dtype.itemsize, f"{name}: decoding one of its {tile} tiles")
+
+
 def _read_tiff(path: Path, limit: int = DEFAULT_MAX_IMAGE_PIXELS) -> np.ndarray:
     import tifffile
 
@@ -377,6 +422,8 @@ def _read_tiff(path: Path, limit: int = DEFAULT_MAX_IMAGE_PIXELS) -> np.ndarray:
                 size += f" with {page.samplesperpixel} samples"
             _check_pixels(name, _declared_pixels(page.imagewidth, page.imagelength, page.samplesperpixel,
                                                  page.imagedepth), size, limit)
+            if page.is_tiled:  # a tile is decoded whole, whatever the image size: 16x16 pixels in one 48k x 48k tile
+                _check_tiles(name, page, limit)
             photometric = page.photometric
             if photometric not in (ph.MINISBLACK, ph.MINISWHITE, ph.RGB):
                 return _read_pillow(path, limit)  # palette, CMYK, YCbCr: let Pillow convert

@@ -728,23 +728,85 @@ def _is_int(value) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
+def _is_positive(value) -> bool:
+    """A finite number > 0 (not a bool, not a string)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
+
+
+def _shape_problem(value, name: str, optional: bool = False) -> str | None:
+    if optional and value is None:
+        return None
+    if not (isinstance(value, list) and len(value) == 2 and all(_is_int(v) and v > 0 for v in value)):
+        return f"its config field {name!r} is {str(value)[:60]!r}, not [height, width] in whole pixels > 0"
+    return None
+
+
+def _config_problem(cfg) -> str | None:
+    """What in a manifest's ``config`` is not of the type and range its readers use (one field named), or None."""
+    if not isinstance(cfg, dict):
+        return "its 'config' entry is not a record"
+    for key in ("crops_per_image", "binning"):
+        value = cfg.get(key)
+        if not (_is_int(value) and value >= 1):
+            return f"its config field {key!r} is {str(value)[:60]!r}, not a whole number >= 1"
+    windows = cfg.get("windows_s")
+    if not (isinstance(windows, list) and windows and all(_is_positive(w) for w in windows)):
+        return f"its config field 'windows_s' is {str(windows)[:60]!r}, not a list of finite windows > 0 seconds"
+    if not _is_positive(cfg.get("white_lux")):
+        return f"its config field 'white_lux' is {str(cfg.get('white_lux'))[:60]!r}, not a finite number > 0 (lux)"
+    for key in ("max_lux", "lux_scale", "contrast"):
+        value = cfg.get(key)
+        if not (isinstance(value, list) and len(value) == 2 and all(_is_positive(v) for v in value)):
+            return f"its config field {key!r} is {str(value)[:60]!r}, not a range [low, high] of finite numbers > 0"
+    problem = (_shape_problem(cfg.get("sensor_shape"), "sensor_shape")
+               or _shape_problem(cfg.get("crop_shape"), "crop_shape", optional=True))
+    if problem:
+        return problem
+    if not isinstance(cfg.get("params"), dict):
+        return f"its config field 'params' is {str(cfg.get('params'))[:60]!r}, not a record of noise parameters"
+    return None
+
+
+def _pair_problem(cfg: dict, pair) -> str | None:
+    """The ``pair`` entry against the config: counts ``[2, h, w]`` and image ``[h, w]`` of the crop (or sensor)
+    after binning, uint16 and float32, or what differs."""
+    counts = pair.get("counts") if isinstance(pair, dict) else None
+    image = pair.get("image") if isinstance(pair, dict) else None
+    shape = counts.get("shape") if isinstance(counts, dict) else None
+    if not (isinstance(shape, list) and len(shape) == 3 and all(_is_int(v) and v > 0 for v in shape)
+            and _is_int(counts.get("binning")) and isinstance(image, dict)):
+        return "its 'pair' entry does not give the counts' shape [2, h, w] and binning"
+    b = cfg["binning"]
+    h, w = cfg["crop_shape"] or cfg["sensor_shape"]
+    expected = [2, h // b, w // b]
+    if shape != expected or counts["binning"] != b:
+        return (f"its pair counts have shape {shape} (binning {counts['binning']}), but its config (a "
+                f"{w}x{h} {'crop' if cfg['crop_shape'] else 'sensor'}, binning {b}) gives {expected}")
+    if image.get("shape") != expected[1:]:
+        return f"its pair image has shape {str(image.get('shape'))[:60]}, not the counts' {expected[1:]}"
+    if counts.get("dtype", "uint16") != "uint16" or image.get("dtype", "float32") != "float32":
+        return (f"its pairs are {counts.get('dtype')!r} counts and {image.get('dtype')!r} images; this evnoise "
+                "reads uint16 counts and float32 images")
+    return None
+
+
 def _manifest_problem(m: dict) -> str | None:
-    """What in a manifest's entries is not of the kind its readers (``info``, :class:`PairDataset`) use, or None."""
+    """What in a manifest's entries is not of the kind its readers (``info``, :class:`PairDataset`) use, or None.
+
+    The one place a manifest's fields are checked (types, finite, in range), each problem naming its field.
+    """
     def ints(d, keys):
         return isinstance(d, dict) and all(_is_int(d.get(k)) and d.get(k) >= 0 for k in keys)
 
     cfg, totals, pair, splits = m.get("config"), m.get("totals"), m.get("pair"), m.get("splits")
-    if not (isinstance(cfg, dict) and ints(cfg, ("crops_per_image",)) and isinstance(cfg.get("windows_s"), list)
-            and cfg["windows_s"] and all(isinstance(w, (int, float)) and not isinstance(w, bool)
-                                         for w in cfg["windows_s"])):
-        return "its 'config' entry lacks crops_per_image or windows_s"
+    problem = _config_problem(cfg)
+    if problem:
+        return problem
     if not ints(totals, ("samples", "bytes", "shards")):
         return "its 'totals' entry is not a record of counts"
-    counts = pair.get("counts") if isinstance(pair, dict) else None
-    shape = counts.get("shape") if isinstance(counts, dict) else None
-    if not (isinstance(shape, list) and len(shape) == 3 and all(_is_int(v) and v > 0 for v in shape)
-            and ints(counts, ("binning",))):
-        return "its 'pair' entry does not give the counts' shape [2, h, w] and binning"
+    problem = _pair_problem(cfg, pair)
+    if problem:
+        return problem
     if not (isinstance(splits, dict) and set(splits) <= set(SPLITS)
             and all(ints(v, ("samples", "sources", "sources_planned", "shards")) for v in splits.values())):
         return f"its 'splits' entry is not a record of {'/'.join(SPLITS)} counts"

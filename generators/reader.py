@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
@@ -12,6 +13,10 @@ from evnoise.errors import InputError, ParameterError
 from .dataset import SPLITS, load_manifest
 
 __all__ = ["PairDataset"]
+
+#: Bytes of memory per binned pixel of one pair: the pair (uint16 counts [ON, OFF] and a float32 image) and the
+#: float64 copies evaluation and ``evnoise info``'s check make of it.
+PAIR_WORK_BYTES = 64
 
 
 class PairDataset:
@@ -82,6 +87,13 @@ class PairDataset:
                                  f"{len(s['sources'])} sources for {s['samples']} pairs")
             sources.extend(item for item in s["sources"] for _ in range(per_source))
         self.sources = sources
+        _, h, w = manifest["pair"]["counts"]["shape"]
+        self._pair_shape = (h, w)
+        self._samples = [int(s["samples"]) for s in shards]
+        from evnoise._budget import check_allocation
+
+        # a pair read (uint16 counts, float32 image) and the float64 work done on it (evaluation, `info`'s check)
+        check_allocation(h * w * PAIR_WORK_BYTES, f"reading the {w}x{h} pairs the manifest of {self.root} declares")
         if verify:
             from .shards import file_sha256
 
@@ -132,12 +144,35 @@ class PairDataset:
                 # as for events.h5 (evnoise._h5.open_h5): nothing is read from other files (external links, external
                 # storage, virtual datasets), so a shard cannot make a reader open what the user did not name
                 check_stored_inside(f, path)
+                self._check_layout(f, path, k)
                 self._meta[k] = read_meta(f, path)
             except BaseException:
                 f.close()
                 raise
             self._handles[k] = f
         return f
+
+    def _check_layout(self, f, path, k: int) -> None:
+        """Refuse a shard whose ``counts`` / ``image`` differ from the pairs the manifest declares (shape, dtype,
+        chunks), before any pair is read: a small file of compressed zeros may declare gigabytes per pair."""
+        from evnoise._budget import check_allocation
+
+        h, w = self._pair_shape
+        n = self._samples[k]
+        for key, shape, dtype in (("counts", (n, 2, h, w), np.uint16), ("image", None, np.float32)):
+            try:
+                ds = f[key]
+                got, got_dtype, chunks = ds.shape, ds.dtype, ds.chunks
+            except (KeyError, OSError, TypeError, AttributeError) as exc:
+                raise InputError(f"{path} is not a complete evnoise pairs shard: no dataset {key!r} ({exc})") from None
+            if shape is None:  # one image per crop: any number of rows (read_meta checks the pairs point inside)
+                shape = (got[0] if len(got) == 3 else -1, h, w)
+            if got != shape or got_dtype != dtype:
+                raise InputError(f"{path}: {key!r} is {got_dtype} of shape {got}, but the manifest declares "
+                                 f"{np.dtype(dtype)} of shape {shape}")
+            if chunks is not None:
+                check_allocation(math.prod(chunks) * got_dtype.itemsize,
+                                 f"{path}: one stored chunk of {key!r} (shape {chunks})")
 
     def __getstate__(self):
         state = self.__dict__.copy()

@@ -143,6 +143,8 @@ class NpzPairs(PairList):
                 _check_npz_members(z, path)
                 # only the arrays a pairs file has (another member, however large, is not decompressed)
                 data = {k: z[k] for k in NPZ_KEYS if k in z.files}
+        except InputError:
+            raise
         except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
             # numpy's own words point at allow_pickle / pickle.load, which evnoise never uses on user files
             why = "it holds Python objects, not plain arrays" if "pickle" in str(exc) else str(exc)
@@ -182,28 +184,62 @@ class NpzPairs(PairList):
 NPZ_KEYS = ("counts", "images", "window_s", "sources", "max_lux", "params_json")
 
 
+#: The arrays every pairs file has.
+NPZ_REQUIRED = ("counts", "images", "window_s")
+
+#: Memory a pairs file takes per byte of its arrays while loading (the arrays, their per-pair copies converted to
+#: uint16 / float32, the checks' temporaries).
+NPZ_LOAD_FACTOR = 3
+
+
+def _npy_header(z, info) -> tuple:
+    """``(shape, dtype)`` from the ``.npy`` header of archive member ``info`` (only the header is decompressed)."""
+    with z.zip.open(info) as fh:
+        version = np.lib.format.read_magic(fh)
+        if version == (1, 0):
+            shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
+        elif version in ((2, 0), (3, 0)):  # 3.0 is 2.0 with a UTF-8 header: its ASCII part reads alike
+            shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
+        else:
+            raise ValueError(f"{info.filename} has .npy format version {version}, which evnoise does not read")
+    return shape, dtype
+
+
 def _check_npz_members(z, path) -> None:
-    """Refuse a pairs member whose header declares more data than the archive holds for it (a header of shape
-    ``(10**12,)`` made ``np.load`` ask for 7 TiB) or Python objects, before it is read."""
+    """Check a pairs file from its directory and ``.npy`` headers before any array is read.
+
+    Refused (``InputError``): a missing required array; counts / images whose shapes do not make pairs;
+    arrays that together need more than the memory budget (a few MB of deflated zeros may inflate to
+    gigabytes); a member whose header declares more data than the archive holds for it (a header of shape
+    ``(10**12,)`` made ``np.load`` ask for 7 TiB); Python objects.
+    """
+    from .._budget import check_allocation
+
+    names = z.zip.namelist()
+    headers, total = {}, 0
     for key in NPZ_KEYS:
         name = f"{key}.npy"
-        if name not in z.zip.namelist():
+        if name not in names:
             continue
         info = z.zip.getinfo(name)
-        with z.zip.open(info) as fh:
-            version = np.lib.format.read_magic(fh)
-            if version == (1, 0):
-                shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
-            elif version == (2, 0):
-                shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
-            else:
-                continue  # (3, 0): np.load checks it as it reads
+        shape, dtype = _npy_header(z, info)
         if dtype.hasobject:
             raise ValueError(f"{key} holds Python objects, not plain arrays")
         declared = math.prod(shape) * dtype.itemsize
         if declared > info.file_size:
             raise ValueError(f"{key} declares shape {shape} of {dtype} ({declared:,} bytes) but the archive holds "
                              f"{info.file_size:,} bytes for it")
+        headers[key] = shape
+        total += max(declared, info.file_size)
+    missing = [key for key in NPZ_REQUIRED if key not in headers]
+    if missing:
+        raise InputError(f"{path} has no array {missing[0]!r}: not a pairs file")
+    counts, images = headers["counts"], headers["images"]
+    if len(counts) != 4 or counts[1] != 2 or len(images) != 3:
+        raise InputError(f"{path}: counts must be (N, 2, h, w) and images (N, h, w), got {counts} and {images}")
+    if images != (counts[0], *counts[2:]):
+        raise InputError(f"{path}: images of shape {images} do not match counts of shape {counts}")
+    check_allocation(total * NPZ_LOAD_FACTOR, f"{path}: loading its pairs (counts {counts}, images {images})")
 
 
 def save_pairs_npz(path, dataset) -> Path:
