@@ -34,6 +34,12 @@ _FITS = ("cover", "crop", "resize")
 _ENCODINGS = ("srgb", "gamma2.2", "linear")
 
 
+#: largest sensor a dataset is made at (the image decoder's default limit: a frame is made whole, in float64)
+MAX_SENSOR_PIXELS = 1 << 26
+#: most crops taken from one image (a billion made a run of days with nothing to stop it but Ctrl-C)
+MAX_CROPS_PER_IMAGE = 100_000
+
+
 def _int(value, name: str, minimum: int) -> int:
     if isinstance(value, bool) or not isinstance(value, numbers.Integral) or int(value) < minimum:
         raise ParameterError(f"{name} must be an integer >= {minimum}, got {value!r}")
@@ -206,6 +212,9 @@ class PairConfig:
             object.__setattr__(self, name, value)
 
         sensor = _shape(self.sensor_shape, "sensor_shape")
+        if sensor is not None and sensor[0] * sensor[1] > MAX_SENSOR_PIXELS:  # a frame is made whole, in float64
+            raise ParameterError(f"sensor_shape {sensor[1]}x{sensor[0]} has more than the {MAX_SENSOR_PIXELS:,} "
+                                 f"pixels (8192 x 8192) a dataset's images may have")
         put("sensor_shape", sensor)
         b = _int(self.binning, "binning", 1)
         put("binning", b)
@@ -219,6 +228,8 @@ class PairConfig:
             what = "crop" if crop is not None else "sensor"
             raise ParameterError(f"the {what} size {w}x{h} must be a multiple of binning={b} in both directions")
         n_crops = _int(self.crops_per_image, "crops_per_image", 1)
+        if n_crops > MAX_CROPS_PER_IMAGE:
+            raise ParameterError(f"crops_per_image must be at most {MAX_CROPS_PER_IMAGE:,}, got {n_crops:,}")
         if n_crops > 1 and crop is None:
             raise ParameterError("crops_per_image > 1 needs a crop_shape smaller than the sensor")
         put("crops_per_image", n_crops)

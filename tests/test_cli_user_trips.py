@@ -118,6 +118,11 @@ def no_simulation(monkeypatch):
     (["simulate", "IMAGE", "--max-lux", "1e308"], "--max-lux must be at most 1e+09 lux"),
     (["make-dataset", "IMAGE", "--max-lux", "6:1e308"], "--max-lux must be finite, > 0 and at most 1e+09 lux"),
     (["make-dataset", "--procedural", "dead-leaves", "--count", str(10**23)], "--count must be <= 1000000"),
+    # a 65536x65536 sensor: an ArrayMemoryError traceback; 1e9 crops per image: a run of days (hostile-input review)
+    (["make-dataset", "--procedural", "dead-leaves", "--count", "1", "--sensor", "65536x65536"],
+     "--sensor 65536x65536 has more than the 67,108,864 pixels"),
+    (["make-dataset", "IMAGE", "--crop", "4", "--crops-per-image", str(10**9)],
+     "--crops-per-image must be at most 100,000"),
     # 1e9 starts: an ArrayMemoryError traceback (hostile-input review)
     (["calibrate", "--example", "--starts", str(10**9)], "--starts must be an integer from 1 to 1000"),
 ])
