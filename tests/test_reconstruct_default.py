@@ -387,3 +387,11 @@ def test_a_window_a_hair_short_of_the_trained_one_is_not_warned_about():
     assert short_window_note(spec, 0.96) is None
     w, note = choose_window(spec, 0.9)
     assert w == pytest.approx(0.9) and "shorter than every window the model was trained on (1 s)" in note
+
+
+def test_a_recording_that_ends_before_the_start_says_where_it_ends():
+    """A file whose times are all negative read "the recording (-999999 s) has nothing after t = 0 s"."""
+    spec = InputSpec(window_s=1.0, windows_s=[1.0])
+    with pytest.raises(ev.InputError, match=r"the recording ends at t = -999999 s on its own clock: nothing after "
+                                            r"t = 0 s"):
+        choose_window(spec, -999999.0)

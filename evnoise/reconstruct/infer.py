@@ -95,7 +95,8 @@ def choose_window(spec, duration_s: float, t_start_s: float = 0.0):
     if fitting:
         return max(fitting), None
     if available <= 0:
-        raise InputError(f"the recording ({duration_s:.6g} s) has nothing after t = {seconds_text(t_start_s)} s")
+        raise InputError(f"the recording ends at t = {seconds_text(duration_s)} s on its own clock: nothing after "
+                         f"t = {seconds_text(t_start_s)} s")
     return available, short_window_note(spec, available, "the recording")
 
 
