@@ -201,13 +201,13 @@ class Separator:
 
         if isinstance(self.filter, DensityFilter):
             channels = 2 if self.filter.polarity == "same" else 1
-            check_allocation(channels * height * width * 4, f"the filter's counts of a {width}x{height} sensor",
+            check_allocation(channels * height * width * 4, f"the filter's counts of the {width}x{height} sensor",
                              error=InputError)
             self._counts = np.zeros((channels, height, width), dtype=np.int32)
             self._buf = empty_events(0)
             self._lo = self._hi = self._next = 0
         else:
-            check_allocation(height * width * 8, f"the filter's last event times of a {width}x{height} sensor",
+            check_allocation(height * width * 8, f"the filter's last event times of the {width}x{height} sensor",
                              error=InputError)
             self._last = np.full((height, width), np.iinfo(np.int64).min // 2, dtype=np.int64)
 

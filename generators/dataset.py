@@ -777,11 +777,11 @@ def _pair_problem(cfg: dict, pair) -> str | None:
             and _is_int(counts.get("binning")) and isinstance(image, dict)):
         return "its 'pair' entry does not give the counts' shape [2, h, w] and binning"
     b = cfg["binning"]
-    h, w = cfg["crop_shape"] or cfg["sensor_shape"]
+    h, w = cfg.get("crop_shape") or cfg["sensor_shape"]
     expected = [2, h // b, w // b]
     if shape != expected or counts["binning"] != b:
         return (f"its pair counts have shape {shape} (binning {counts['binning']}), but its config (a "
-                f"{w}x{h} {'crop' if cfg['crop_shape'] else 'sensor'}, binning {b}) gives {expected}")
+                f"{w}x{h} {'crop' if cfg.get('crop_shape') else 'sensor'}, binning {b}) gives {expected}")
     if image.get("shape") != expected[1:]:
         return f"its pair image has shape {str(image.get('shape'))[:60]}, not the counts' {expected[1:]}"
     if counts.get("dtype", "uint16") != "uint16" or image.get("dtype", "float32") != "float32":

@@ -189,6 +189,13 @@ def test_a_manifest_field_of_the_wrong_type_or_range_is_one_error_naming_it(data
         PairDataset(dataset, "train")
 
 
+def test_a_manifest_without_a_crop_shape_is_read_as_the_sensor_not_a_traceback(dataset, capsys):
+    """crop_shape is optional in the checks of the config, but the pair check read cfg["crop_shape"]: KeyError."""
+    _edit_manifest(dataset, lambda m: m["config"].pop("crop_shape"))
+    err = _one_error(capsys, ["info", str(dataset)])
+    assert "manifest.json is damaged" in err and "sensor, binning" in err, err
+
+
 def test_a_manifest_pair_shape_that_its_config_does_not_give_is_refused(dataset, capsys):
     def change(m):
         m["pair"]["counts"]["shape"], m["pair"]["image"]["shape"] = [2, 16, 16], [16, 16]

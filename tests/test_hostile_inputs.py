@@ -899,6 +899,6 @@ def test_separate_refuses_a_sensor_whose_filter_state_cannot_fit(tmp_path, capsy
     rec = tmp_path / "wide.h5"
     _h5_events(rec, np.arange(100) * 10, width=8192, height=8192)
     code, _, err = run_cli(capsys, "separate", rec, "--out", tmp_path / "s.h5", "-q")
-    one_error_line(code, err, "the filter's counts of a 8192x8192 sensor would need 536.9 MB of memory")
-    with pytest.raises(ev.InputError, match="last event times of a 8192x8192 sensor"):
+    one_error_line(code, err, "the filter's counts of the 8192x8192 sensor would need 536.9 MB of memory")
+    with pytest.raises(ev.InputError, match="last event times of the 8192x8192 sensor"):
         ev.Separator((8192, 8192), "activity")

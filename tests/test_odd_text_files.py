@@ -119,5 +119,8 @@ def test_a_column_order_that_contradicts_the_files_header_is_refused(tmp_path, c
             ev.read_events(path, sensor=(4, 4), csv_columns="x,y,p,t")
         assert _events(path, csv_columns="t,x,y,p") == _events(path) == [(10, 1, 2, 1), (20, 3, 0, 0), (35, 2, 2, 1)]
     assert _events(other, csv_columns="t,x,y,p") == _events(header)
+    prose = tmp_path / "prose.txt"  # a comment's words are not columns: its order agrees, its places do not
+    prose.write_bytes(b"# columns: t x y p\n" + EVENTS_TXT.split(b"\n", 1)[1])
+    assert _events(prose, csv_columns="t,x,y,p") == _events(header)
     code, _, err = run_cli(capsys, "info", header, "--csv-columns", "x,y,p,t", "--sensor", "4x4")
     one_error_line(code, err, "--csv-columns x,y,p,t contradicts the file's header")

@@ -385,6 +385,9 @@ def test_a_window_a_hair_short_of_the_trained_one_is_not_warned_about():
     spec = InputSpec(window_s=1.0, windows_s=[1.0])
     assert choose_window(spec, 0.999943) == (pytest.approx(0.999943), None)
     assert short_window_note(spec, 0.96) is None
+    several = InputSpec(window_s=1.0, windows_s=[0.5, 1.0])  # not half of it at the 0.5 s window
+    assert choose_window(several, 0.999943) == (pytest.approx(0.999943), None)
+    assert choose_window(several, 0.9) == (0.5, None)
     w, note = choose_window(spec, 0.9)
     assert w == pytest.approx(0.9) and "shorter than every window the model was trained on (1 s)" in note
 

@@ -117,6 +117,7 @@ def test_cli_fps_refuses_a_plan_of_millions_of_frames(tmp_path, capsys):
     assert main(["reconstruct", str(path), "--out", str(out), "--fps", "1", "--window", "1"]) == 2
     line = one_error_line(capsys)
     assert "frames" in line and f"{infer.MAX_FRAMES:,}" in line
+    assert line.endswith("give fewer frames (--frames), a later --t-start or a lower --fps (1 per second)"), line
     assert not out.exists()
 
 

@@ -163,7 +163,8 @@ class CsvSource(EventSource):
                         named = parse_columns([tok.split("@")[0] for tok in named])
                     except ParameterError:
                         named = None  # a header of other names says nothing against the given order
-                if named is not None and named != cols:
+                # a comment is prose ("# columns: t x y p"): only its order of the names counts, not their places
+                if named is not None and (named != cols if what == "header" else _order(named) != _order(cols)):
                     raise InputError(f"{self.path}: csv_columns={csv_columns!r} contradicts the file's {what}, "
                                      f"which names the columns {_order(named)}; leave csv_columns out or give "
                                      f"that order")

@@ -91,9 +91,11 @@ def choose_window(spec, duration_s: float, t_start_s: float = 0.0):
     if not windows:
         raise ParameterError("the model does not record its training window: give window_s=")
     available = duration_s - t_start_s
-    fitting = [w for w in windows if w <= available + 1e-9]
+    # a window within SHORT_WINDOW_SLACK of the recording's length fits (a file without its end time ends at its
+    # last event, a little short of the length recorded): the recording is then used whole
+    fitting = [w for w in windows if w * (1.0 - SHORT_WINDOW_SLACK) <= available + 1e-9]
     if fitting:
-        return max(fitting), None
+        return min(max(fitting), available), None
     if available <= 0:
         raise InputError(f"the recording ends at t = {seconds_text(duration_s)} s on its own clock: nothing after "
                          f"t = {seconds_text(t_start_s)} s")

@@ -158,8 +158,8 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
         n_out = min(n_out, max_frames)
     span = f"t = {seconds_text(t_start_us * 1e-6)} s to {seconds_text(t_end_us * 1e-6)} s"
     check_frame_plan(n_out, n_steps=n_out + window_steps - 1,
-                     hint=f"the span runs from {span} at {fps:g} frames per second: give max_frames=, a later "
-                     f"t_start_s= (or t_end_s=) or a lower fps")
+                     hint=f"the recording runs from {span}: give fewer frames (max_frames=), a later t_start_s= "
+                     f"or a lower fps= ({fps:g} per second)")
     created = not out_dir.exists()
     out_dir.mkdir(exist_ok=True)
     if overwrite:  # no stale frames of an earlier, longer run
