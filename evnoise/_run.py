@@ -95,7 +95,7 @@ class RunSetup:
 
 
 def run_setup(shape, params, rng=None, *, thresholds=None, background=None, draw_key: bool = True,
-              key_seed: int | None = None) -> RunSetup:
+              key_seed: int | None = None, before_draws=None) -> RunSetup:
     """Check a run's inputs and draw, in order, its thresholds, background maps and kernel key.
 
     Parameters
@@ -114,10 +114,15 @@ def run_setup(shape, params, rng=None, *, thresholds=None, background=None, draw
     key_seed : int, optional
         Instead of ``rng``: the key straight from this seed (:func:`stream_key`), for runs that draw no map
         (the dataset's direct binned counts); a ``ValueError`` if ``params`` needs a per-pixel map.
+    before_draws : callable, optional
+        Called with the checked parameters before anything is drawn (a check of the run that needs them, such
+        as its span in trials, refuses it with the caller's generator untouched).
     """
     from .background import check_background
 
     params = check_params(params)
+    if before_draws is not None:
+        before_draws(params)
     if key_seed is not None:
         if rng is not None or thresholds is not None or background is not None or terms.maps_needed(params):
             raise ValueError("key_seed is for runs without per-pixel maps or a generator")

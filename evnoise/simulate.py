@@ -29,7 +29,7 @@ import numpy as np
 
 from . import terms
 from ._budget import human_bytes
-from ._checks import check_lux, check_params, duration_to_us, resolve_threads
+from ._checks import check_lux, duration_to_us, resolve_threads
 from ._engine import (
     Collector,
     PixelState,
@@ -228,8 +228,8 @@ def _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, t
         raise ParameterError(f"method must be one of {METHODS}, got {method!r}")
     t_start_us = check_t_start(t_start_us)
     threads = resolve_threads(threads)
-    check_span(t_start_us, duration_us, check_params(params).trial_us, "duration")  # before any map is drawn
-    run = run_setup(lux.shape, params, rng, thresholds=thresholds, background=background)
+    run = run_setup(lux.shape, params, rng, thresholds=thresholds, background=background,  # before any draw:
+                    before_draws=lambda p: check_span(t_start_us, duration_us, p.trial_us, "duration"))
     params, key, (eps_on, eps_off), bg = run.params, run.key, run.thresholds, run.background
     if memory_on(params) and method != "trials":
         return _still_memory_windows(lux, params, key, t_start_us, duration_us, threads, progress, sink, bg,
@@ -524,7 +524,11 @@ def iter_video(
     duration_us = int(round(frame_us[-1]))
     if duration_us < 1:
         raise InputError("the video is shorter than one microsecond")
-    check_span(t0_us, duration_us, check_params(params).trial_us, "video")  # before the frames are read
+    def span_check(p):
+        check_span(t0_us, duration_us, p.trial_us, "video")
+
+    if isinstance(params, NoiseParams):
+        span_check(params)  # before the frames are read (a preset name is loaded, once, by run_setup)
     shape = frames.shape
     static = np.ones(shape, dtype=bool)
     first = frames.get(0)
@@ -542,7 +546,7 @@ def iter_video(
         static[:] = False
     elif method == "renewal" and not static.all():
         raise ParameterError("method='renewal' needs a static scene, but some pixels change between frames")
-    run = run_setup(shape, params, rng, thresholds=thresholds, background=background)
+    run = run_setup(shape, params, rng, thresholds=thresholds, background=background, before_draws=span_check)
     params, key, (eps_on, eps_off), bg = run.params, run.key, run.thresholds, run.background
     return _iter_dynamic(frames, frame_us, params, key, eps_on, eps_off, static.ravel(), t0_us,
                          duration_us, threads, progress, labels=return_labels, bg=bg, renewal=method == "renewal")
