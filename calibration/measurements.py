@@ -54,8 +54,7 @@ from pathlib import Path
 import numpy as np
 import tomllib
 
-from evnoise._budget import human_bytes
-from evnoise._checks import check_input_file
+from evnoise._checks import check_input_file, read_bounded_file
 from evnoise.errors import InputError
 
 __all__ = [
@@ -315,15 +314,12 @@ MAX_TABLE_BYTES = 256 << 20
 
 def _read_csv_rows(path: Path) -> tuple[list[str], list[list[str]]]:
     # a pipe would block the read for ever and a device (/dev/zero) never ends: regular files of bounded size only
-    path = check_input_file(path, missing="file", kind="a table (CSV)")
-    if path.stat().st_size > MAX_TABLE_BYTES:
-        raise InputError(f"{path}: {human_bytes(path.stat().st_size)}, more than the {human_bytes(MAX_TABLE_BYTES)} "
-                         f"a table of rates, counts or monitor levels may have")
+    data = read_bounded_file(path, max_bytes=MAX_TABLE_BYTES, missing="file", kind="a table (CSV)",
+                             bound="a table of rates, counts or monitor levels may have")
+    path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(f"file not found: {path}") from None
-    except (OSError, UnicodeDecodeError) as exc:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
         raise InputError(f"cannot read {path}: {exc}") from None
     lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
     if not lines:

@@ -66,6 +66,37 @@ def check_input_file(path, *, missing: str, kind: str, folders: bool = False):
     return path
 
 
+def read_bounded_file(path, *, max_bytes: int, missing: str, kind: str, bound: str) -> bytes:
+    """The bytes of an input that must be a regular file of at most ``max_bytes`` bytes; :class:`InputError`
+    naming it otherwise.
+
+    :func:`check_input_file`'s checks first (``missing``, ``kind``: a pipe would block the read for ever, a device
+    never ends), then the size, before anything is read: ``bound`` says whose size the limit is ("a table of rates
+    may have" -> "t.csv: 300.0 MB, more than the 268.4 MB a table of rates may have"). A file that grows while it is
+    read is cut at ``max_bytes + 1`` bytes and refused the same way.
+    """
+    from ._budget import human_bytes
+
+    path = check_input_file(path, missing=missing, kind=kind)
+
+    def too_big(size):
+        return InputError(f"{path}: {human_bytes(size)}, more than the {human_bytes(max_bytes)} {bound}")
+
+    try:
+        with open(path, "rb") as fh:
+            size = os.fstat(fh.fileno()).st_size
+            if size > max_bytes:
+                raise too_big(size)
+            data = fh.read(max_bytes + 1)
+    except FileNotFoundError:
+        raise InputError(f"{missing} not found: {path}") from None
+    except OSError as exc:
+        raise InputError(f"cannot read {path}: {exc.strerror or exc}") from None
+    if len(data) > max_bytes:
+        raise too_big(len(data))
+    return data
+
+
 def check_params(params) -> NoiseParams:
     if isinstance(params, NoiseParams):
         return params

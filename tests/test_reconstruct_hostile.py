@@ -4,6 +4,7 @@ files and checkpoint bombs give one clear error line (exit 2), never a traceback
 from __future__ import annotations
 
 import os
+import re
 import zipfile
 
 import numpy as np
@@ -141,8 +142,8 @@ def test_frame_plan_checks_the_memory_budget(monkeypatch):
     ("no_metrics", "no 'metrics'"),
     ("deep", "nested too deeply"),
     ("not_json", "not JSON"),
-    ("fifo", "not a regular file"),
-    ("dev_zero", "not a regular file"),
+    ("fifo", "special file"),
+    ("dev_zero", "special file"),
     ("too_big", "more than the"),
     ("no_name", "NAME=JSON"),
 ])
@@ -223,3 +224,17 @@ def test_checkpoint_size_bound_is_the_largest_model(tmp_path, capsys):
 
     assert checkpoint.MAX_CHECKPOINT_BYTES == 4 * 4 * MAX_PARAMETERS + (256 << 20)
     assert main(["-q", "info", str(default_model_path())]) == 0  # the shipped model still loads
+
+
+def test_ship_as_a_library_call_checks_its_scores(tmp_path):
+    """``ship(..., scores=...)`` called from Python took any dict: a result without ``metrics`` was a KeyError and
+    a text mean a ValueError from deep inside; now one ParameterError naming the test set, and nothing written."""
+    from evnoise.reconstruct.pretrain import ship
+
+    out = tmp_path / "shipped.pt"
+    for scores, expect in [({"id": {"n": 3}}, "scores['id'] is not an evaluate() result: it has no 'metrics'"),
+                           ({"id": {"metrics": {"unet": {"psnr": ["x"]}}}}, "not a list starting with a finite"),
+                           ([("id", {})], "must be a dict")]:
+        with pytest.raises(ParameterError, match=re.escape(expect)):
+            ship(default_model_path(), out, scores=scores)
+        assert not out.exists()

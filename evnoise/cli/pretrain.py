@@ -83,62 +83,18 @@ MAX_SCORES_BYTES = 16 * 1024 * 1024
 
 
 def _scores_file(path):
-    """The text of a --scores file: a regular file (not a FIFO or a device) of at most MAX_SCORES_BYTES."""
-    import os
-    import stat
+    """The bytes of a --scores file: a regular file (not a FIFO or a device) of at most MAX_SCORES_BYTES."""
+    from .._checks import read_bounded_file
 
-    from ..errors import InputError
-
-    try:
-        info = os.stat(path)
-    except OSError as exc:
-        raise InputError(f"cannot read scores {path}: {exc.strerror or exc}") from None
-    if not stat.S_ISREG(info.st_mode):
-        raise InputError(f"cannot read scores {path}: not a regular file (a folder, a pipe or a device?)")
-    if info.st_size > MAX_SCORES_BYTES:
-        raise InputError(f"scores {path} holds {info.st_size:,} bytes, more than the {MAX_SCORES_BYTES:,} of an "
-                         f"evnoise evaluate --json result")
-    try:
-        with open(path, "rb") as fh:
-            data = fh.read(MAX_SCORES_BYTES + 1)
-    except OSError as exc:
-        raise InputError(f"cannot read scores {path}: {exc.strerror or exc}") from None
-    if len(data) > MAX_SCORES_BYTES:
-        raise InputError(f"scores {path} holds more than {MAX_SCORES_BYTES:,} bytes")
-    return data
-
-
-def _scores_problem(result) -> str:
-    """What in a parsed --scores file is not what ship takes (``""``: nothing): ``{"n": count, "metrics":
-    {method: {name: [mean, ...] or null}}}`` with finite means."""
-    import math
-
-    def number(v) -> bool:
-        return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-
-    if not isinstance(result, dict):
-        return f"it holds a JSON {type(result).__name__}, not an object"
-    n = result.get("n")
-    if n is not None and not (isinstance(n, int) and not isinstance(n, bool) and n >= 0):
-        return f"its 'n' is {n!r}, not a count of pairs"
-    metrics = result.get("metrics")
-    if not isinstance(metrics, dict) or not metrics:
-        return "it has no 'metrics' object of methods"
-    for method, vals in metrics.items():
-        if not isinstance(vals, dict):
-            return f"metrics[{method!r}] is not an object of scores"
-        for key, v in vals.items():
-            if v is None:
-                continue
-            if not isinstance(v, list) or not v or not (v[0] is None or number(v[0])):
-                return f"metrics[{method!r}][{key!r}] is not a list starting with a finite number (or null)"
-    return ""
+    return read_bounded_file(path, max_bytes=MAX_SCORES_BYTES, missing="scores", kind="a scores file (JSON)",
+                             bound="an evaluate result (JSON) may have")
 
 
 def _scores(items) -> dict:
     import json
 
     from ..errors import InputError, ParameterError
+    from ..reconstruct import pretrain as recipe
 
     scores = {}
     for item in items:
@@ -151,7 +107,7 @@ def _scores(items) -> dict:
         except (ValueError, RecursionError) as exc:  # RecursionError: lists nested past the recursion limit
             why = "nested too deeply" if isinstance(exc, RecursionError) else str(exc)
             raise InputError(f"cannot read scores {path}: not JSON ({why})"[:300]) from None
-        problem = _scores_problem(result)
+        problem = recipe.scores_problem(result)
         if problem:
             raise InputError(f"scores {path} is not an evnoise evaluate --json result: {problem}"[:300])
         scores[name] = result

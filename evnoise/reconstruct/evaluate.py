@@ -81,7 +81,7 @@ def evaluate(dataset, model=None, *, params=None, max_lux=None, lpips: bool = Tr
         ``{"n": int, "metrics": {method: {"psnr": (mean, sem), "ssim": ..., "lpips": ...}},
         "per_item": [...], "seconds": {method: s}, "examples": [...]}``.
     """
-    from .infer import Reconstructor, short_window_note, trained_windows
+    from .infer import Reconstructor, short_window_note
 
     methods = tuple(methods)
     unknown = set(methods) - set(METHODS)
@@ -155,11 +155,8 @@ def evaluate(dataset, model=None, *, params=None, max_lux=None, lpips: bool = Tr
             examples.append({"counts": counts, "target": target, "window_s": window, "predictions": preds,
                              "source": row["source"]})
     if short:
-        trained = ", ".join(f"{w:g}" for w in trained_windows(net.spec))
-        log.warning("%d of the %d pairs have windows (%s s) shorter than every window the model was trained on "
-                    "(%s s): the U-Net sees their counts scaled up to its shortest window (a noisier image; a model "
-                    "trained on such windows does better)", sum(short.values()), n,
-                    ", ".join(f"{w:g}" for w in sorted(short)), trained)
+        log.warning("%d of the %d pairs have windows (%s s) shorter than the model's; %s", sum(short.values()), n,
+                    ", ".join(f"{w:g}" for w in sorted(short)), short_window_note(net.spec, min(short), "the shortest"))
     metrics = {}
     for m in methods:
         metrics[m] = {k: _summary([r[m][k] for r in per_item]) for k in ("psnr", "ssim", "lpips")}

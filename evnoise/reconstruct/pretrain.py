@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, ParameterError
 
 __all__ = ["SceneCrops", "build_training_data", "make_test_sets", "ship", "main", "HELD_OUT_PHOTOS"]
 
@@ -265,6 +265,36 @@ def make_test_sets(out_dir, *, progress: bool = True) -> dict:
     return made
 
 
+def scores_problem(result) -> str:
+    """What in a held-out test set's scores is not what :func:`ship` takes (``""``: nothing).
+
+    Scores are :func:`evnoise.reconstruct.evaluate.evaluate`'s result (as its JSON reads back):
+    ``{"n": count, "metrics": {method: {name: [mean, ...] or null}}}`` with finite means.
+    """
+    import math
+
+    def number(v) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+    if not isinstance(result, dict):
+        return f"it holds a JSON {type(result).__name__}, not an object"
+    n = result.get("n")
+    if n is not None and not (isinstance(n, int) and not isinstance(n, bool) and n >= 0):
+        return f"its 'n' is {n!r}, not a count of pairs"
+    metrics = result.get("metrics")
+    if not isinstance(metrics, dict) or not metrics:
+        return "it has no 'metrics' object of methods"
+    for method, vals in metrics.items():
+        if not isinstance(vals, dict):
+            return f"metrics[{method!r}] is not an object of scores"
+        for key, v in vals.items():
+            if v is None:
+                continue
+            if not isinstance(v, list) or not v or not (v[0] is None or number(v[0])):
+                return f"metrics[{method!r}][{key!r}] is not a list starting with a finite number (or null)"
+    return ""
+
+
 def ship(checkpoint, out, *, scores=None) -> Path:
     """Copy a trained checkpoint without its resumable state (last weights, optimiser), with its card.
 
@@ -278,6 +308,13 @@ def ship(checkpoint, out, *, scores=None) -> Path:
     train_state = {k: v for k, v in (doc.get("train") or {}).items() if k not in ("last_state_dict", "optimizer")}
     card = dict(doc.get("card") or {})
     if scores:
+        if not isinstance(scores, dict):
+            raise ParameterError(f"scores must be a dict of test-set name to evaluate() result, got "
+                                 f"{type(scores).__name__}")
+        for name, result in scores.items():
+            problem = scores_problem(result)
+            if problem:
+                raise ParameterError(f"scores[{name!r}] is not an evaluate() result: {problem}"[:300])
         held = {}
         for name, result in scores.items():
             held[name] = {"pairs": result.get("n"), **{
