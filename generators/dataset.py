@@ -45,7 +45,7 @@ from evnoise._pool import collect_results
 from evnoise._version import __version__
 from evnoise.errors import InputError, OutputError, ParameterError
 
-from .config import COUNT_MAX, LEVELS, PairConfig
+from .config import COMPRESSIONS, COUNT_MAX, LEVELS, MODES, PairConfig
 from .folder import (
     MANIFEST,
     PREVIEW,  # noqa: F401 - importable from here as before the split
@@ -741,14 +741,30 @@ def _shape_problem(value, name: str, optional: bool = False) -> str | None:
     return None
 
 
+def _choice_problem(cfg: dict, key: str, choices) -> str | None:
+    value = cfg.get(key)
+    if key not in cfg or not ((value is None and None in choices) or (isinstance(value, str) and value in choices)):
+        return f"its config field {key!r} is {str(value)[:60]!r}, not one of {', '.join(map(str, choices))}"
+    return None
+
+
+def _is_fraction(value) -> bool:
+    """A finite number >= 0 (not a bool, not a string)."""
+    return _is_positive(value) or (isinstance(value, (int, float)) and not isinstance(value, bool) and value == 0)
+
+
 def _config_problem(cfg) -> str | None:
     """What in a manifest's ``config`` is not of the type and range its readers use (one field named), or None."""
+    from evnoise.radiometry import FIT_MODES
+
     if not isinstance(cfg, dict):
         return "its 'config' entry is not a record"
-    for key in ("crops_per_image", "binning"):
+    for key in ("crops_per_image", "binning", "shard_size"):
         value = cfg.get(key)
         if not (_is_int(value) and value >= 1):
             return f"its config field {key!r} is {str(value)[:60]!r}, not a whole number >= 1"
+    if not (_is_int(cfg.get("seed")) and cfg["seed"] >= 0):
+        return f"its config field 'seed' is {str(cfg.get('seed'))[:60]!r}, not a whole number >= 0"
     windows = cfg.get("windows_s")
     if not (isinstance(windows, list) and windows and all(_is_positive(w) for w in windows)):
         return f"its config field 'windows_s' is {str(windows)[:60]!r}, not a list of finite windows > 0 seconds"
@@ -758,12 +774,44 @@ def _config_problem(cfg) -> str | None:
         value = cfg.get(key)
         if not (isinstance(value, list) and len(value) == 2 and all(_is_positive(v) for v in value)):
             return f"its config field {key!r} is {str(value)[:60]!r}, not a range [low, high] of finite numbers > 0"
+    splits = cfg.get("splits")
+    if not (isinstance(splits, list) and len(splits) == 3 and all(_is_fraction(f) for f in splits)
+            and sum(splits) > 0):
+        return (f"its config field 'splits' is {str(splits)[:60]!r}, not three fractions >= 0 (train, val, test) "
+                "with a positive sum")
     problem = (_shape_problem(cfg.get("sensor_shape"), "sensor_shape")
-               or _shape_problem(cfg.get("crop_shape"), "crop_shape", optional=True))
+               or _shape_problem(cfg.get("crop_shape"), "crop_shape", optional=True)
+               or _choice_problem(cfg, "fit", FIT_MODES) or _choice_problem(cfg, "mode", MODES)
+               or _choice_problem(cfg, "compression", COMPRESSIONS))
     if problem:
         return problem
+    if not (isinstance(cfg.get("preset"), str) and cfg["preset"]):
+        return f"its config field 'preset' is {str(cfg.get('preset'))[:60]!r}, not a preset name"
     if not isinstance(cfg.get("params"), dict):
         return f"its config field 'params' is {str(cfg.get('params'))[:60]!r}, not a record of noise parameters"
+    from evnoise.params import NoiseParams
+
+    try:
+        NoiseParams.from_dict(cfg["params"])
+    except (ParameterError, TypeError, ValueError) as exc:
+        return f"its config field 'params' does not hold valid noise parameters: {str(exc)[:200]}"
+    return None
+
+
+def _sources_problem(sources) -> str | None:
+    """The ``sources`` entry: a list of source records, each with the field of its kind (as ``spec()`` writes it)."""
+    fields = {"folder": ("path", str, "a path"), "files": ("paths", list, "a list of paths"),
+              "dead-leaves": ("count", int, "a whole number"), "package-photos": ("packages", list, "a list of names")}
+    if not (isinstance(sources, list) and all(isinstance(s, dict) for s in sources)):
+        return "its 'sources' entry is not a list of source records"
+    for spec in sources:
+        if spec.get("kind") in fields:
+            key, kind, what = fields[spec["kind"]]
+            value = spec.get(key)
+            if not isinstance(value, kind) or isinstance(value, bool) or (
+                    kind is list and not all(isinstance(v, str) for v in value)):
+                return (f"its 'sources' entry has a {spec['kind']} source whose {key!r} is {str(value)[:60]!r}, "
+                        f"not {what}")
     return None
 
 
@@ -802,8 +850,8 @@ def _manifest_problem(m: dict) -> str | None:
     problem = _config_problem(cfg)
     if problem:
         return problem
-    if not ints(totals, ("samples", "bytes", "shards")):
-        return "its 'totals' entry is not a record of counts"
+    if not ints(totals, ("samples", "bytes", "shards", "saturated_bins")):
+        return "its 'totals' entry is not a record of counts (samples, bytes, shards, saturated_bins)"
     problem = _pair_problem(cfg, pair)
     if problem:
         return problem
@@ -811,9 +859,15 @@ def _manifest_problem(m: dict) -> str | None:
             and all(ints(v, ("samples", "sources", "sources_planned", "shards")) for v in splits.values())):
         return f"its 'splits' entry is not a record of {'/'.join(SPLITS)} counts"
     skipped = m.get("skipped", [])
-    if not (isinstance(skipped, list) and all(isinstance(e, dict) and "source" in e and "reason" in e
-                                              for e in skipped)):
+    if not (isinstance(skipped, list) and all(isinstance(e, dict) and isinstance(e.get("source"), str)
+                                              and isinstance(e.get("reason"), str) for e in skipped)):
         return "its 'skipped' entry is not a list of source/reason records"
+    problem = _sources_problem(m.get("sources"))
+    if problem:
+        return problem
+    for key in ("sampler", "evnoise_version"):
+        if not isinstance(m.get(key, ""), str):
+            return f"its {key!r} entry is {str(m.get(key))[:60]!r}, not a name"
     for entry in m["shards"]:
         if not (entry.get("split") in SPLITS and ints(entry, ("samples",)) and isinstance(entry.get("sources"), list)
                 and isinstance(entry.get("file"), str)):

@@ -46,6 +46,10 @@ FORMAT = "evnoise-pairs"
 FORMAT_VERSION = 1
 GZIP_LEVEL = 1
 
+#: What h5py raises when a write fails (a full disk): OSError, or RuntimeError from a flush or a close whose text
+#: names the errno ("file write failed: ..., errno = 28, ...", over two lines).
+_WRITE_ERRORS = (OSError, RuntimeError)
+
 #: Per-pair metadata columns: name -> dtype (``str`` for variable-length UTF-8).
 META_COLUMNS = {
     "source": str,
@@ -126,10 +130,12 @@ class ShardWriter:
         self._meta = {k: [] for k in META_COLUMNS}
         self._boxes = []
         self._closed = False
+        self._held = []  # datasets made by close(): kept open until the file is closed or discarded
         try:
             self._file = h5py.File(self._tmp, "w-", libver="earliest")
-        except OSError as exc:
-            raise OutputError(f"cannot write shard {self.path}: {exc}") from None
+        except OSError as exc:  # h5py's text spans two lines and names the temporary file
+            self._out.discard()
+            raise OutputError(f"cannot write shard {self.path}: {os_error_text(exc)}") from None
         try:
             f = self._file
             f.attrs["format"] = FORMAT
@@ -148,6 +154,9 @@ class ShardWriter:
                 dcpl = self._counts.id.get_create_plist()
                 order = [dcpl.get_filter(k)[0] for k in range(dcpl.get_nfilters())]
                 self._lzf_mask = 1 << order.index(LZF_FILTER)
+        except _WRITE_ERRORS as exc:
+            self.abort()
+            raise OutputError(f"cannot write shard {self.path}: {os_error_text(exc)}") from None
         except BaseException:
             self.abort()
             raise
@@ -177,7 +186,7 @@ class ShardWriter:
         try:
             self._image.resize((m + 1, self.h, self.w))
             self._put(self._image, m, image)
-        except OSError as exc:
+        except _WRITE_ERRORS as exc:
             self.abort()
             raise OutputError(f"writing shard {self.path} failed: {os_error_text(exc)}") from None
         self.n_images = m + 1
@@ -191,7 +200,7 @@ class ShardWriter:
         try:
             self._counts.resize((i + 1, 2, self.h, self.w))
             self._put(self._counts, i, counts)
-        except OSError as exc:
+        except _WRITE_ERRORS as exc:
             self.abort()
             raise OutputError(f"writing shard {self.path} failed: {os_error_text(exc)}") from None
         for key in META_COLUMNS:
@@ -207,19 +216,23 @@ class ShardWriter:
             return self.path
 
         def close():
-            f = self._file
+            # each dataset is held (not closed one by one): on a full disk the close of one fails inside h5py's
+            # deallocation, where the error is lost and the file was left broken (the discarding close crashed)
+            f, held = self._file, self._held
             for key, dtype in META_COLUMNS.items():
                 values = self._meta[key]
                 if dtype is str:
                     data = np.array(values, dtype=object) if values else np.zeros(0, dtype=object)
-                    f.create_dataset(key, data=data, dtype=h5py.string_dtype())
+                    held.append(f.create_dataset(key, data=data, dtype=h5py.string_dtype()))
                 else:
-                    f.create_dataset(key, data=np.asarray(values, dtype=dtype).reshape(len(values)))
-            f.create_dataset("crop_box", data=np.asarray(self._boxes, dtype=np.int32).reshape(len(self._boxes), 4))
+                    held.append(f.create_dataset(key, data=np.asarray(values, dtype=dtype).reshape(len(values))))
+            held.append(f.create_dataset("crop_box",
+                                         data=np.asarray(self._boxes, dtype=np.int32).reshape(len(self._boxes), 4)))
             f.flush()  # a failure (a full disk) leaves the file open for abort() to discard cleanly
+            held.clear()
             f.close()
 
-        self._out.finish(close, self.abort)
+        self._out.finish(close, self.abort, catch=_WRITE_ERRORS, one_line=True)
         self._closed = True
         return self.path
 
@@ -228,6 +241,7 @@ class ShardWriter:
         file, self._file = getattr(self, "_file", None), None
         if file is not None:  # a full disk: a failed close crashed the process at exit (close_h5_discarding)
             close_h5_discarding(file, self._out, [getattr(self, "_counts", None), getattr(self, "_image", None)])
+        getattr(self, "_held", []).clear()  # their file is closed: releasing them writes nothing
         self._out.discard()
 
 

@@ -189,6 +189,48 @@ def test_a_manifest_field_of_the_wrong_type_or_range_is_one_error_naming_it(data
         PairDataset(dataset, "train")
 
 
+@pytest.mark.parametrize("field, value", [
+    ("seed", "x"), ("seed", -1), ("seed", 1.5), ("splits", 5), ("splits", [0.8, "x", 0.1]), ("splits", [0, 0, 0]),
+    ("splits", [0.5, 0.5]), ("shard_size", -1), ("shard_size", "64"), ("compression", 7), ("compression", "zip"),
+    ("fit", None), ("fit", "stretch"), ("mode", []), ("mode", "photons"), ("preset", 3), ("preset", ""),
+    ("params", {"eps_pos": "x"}), ("params", {"no_such_parameter": 1}),
+])
+def test_every_config_field_info_shows_is_checked_and_named(dataset, capsys, field, value):
+    """Fields ``evnoise info`` reads (seed, splits, shard_size, compression, fit, mode, preset, the parameters) were
+    not checked: a hand-edited manifest gave a TypeError traceback or a summary quoting nonsense."""
+    from evnoise.generators import PairDataset
+
+    _edit_manifest(dataset, lambda m: m["config"].__setitem__(field, value))
+    err = _one_error(capsys, ["info", str(dataset)])
+    assert "manifest.json is damaged" in err and f"config field {field!r}" in err, err
+    with pytest.raises(InputError, match=re.escape(f"config field {field!r}")):
+        PairDataset(dataset, "train")
+
+
+@pytest.mark.parametrize("path, value, named", [
+    (("totals", "saturated_bins"), "x", "'totals'"), (("totals", "saturated_bins"), None, "'totals'"),
+    (("sources",), 5, "'sources'"), (("sources",), [{"kind": "folder", "path": 3}], "'sources'"),
+    (("sources",), [{"kind": "dead-leaves"}], "'sources'"),
+    (("sources",), [{"kind": "files", "paths": "a"}], "'sources'"),
+    (("sources",), None, "'sources'"), (("skipped",), [{"source": ["a"], "reason": "r"}], "'skipped'"),
+    (("sampler",), {"a": 1}, "'sampler'"), (("evnoise_version",), [1], "'evnoise_version'"),
+])
+def test_every_other_manifest_entry_info_shows_is_checked_and_named(dataset, capsys, path, value, named):
+    """The totals' saturated bins, the sources, the skipped sources' names, the sampler and the version."""
+    def change(m):
+        owner = m
+        for key in path[:-1]:
+            owner = owner[key]
+        if value is None:
+            del owner[path[-1]]
+        else:
+            owner[path[-1]] = value
+
+    _edit_manifest(dataset, change)
+    err = _one_error(capsys, ["info", str(dataset)])
+    assert "manifest.json is damaged" in err and named in err, err
+
+
 def test_a_manifest_without_a_crop_shape_is_read_as_the_sensor_not_a_traceback(dataset, capsys):
     """crop_shape is optional in the checks of the config, but the pair check read cfg["crop_shape"]: KeyError."""
     _edit_manifest(dataset, lambda m: m["config"].pop("crop_shape"))

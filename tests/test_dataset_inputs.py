@@ -225,3 +225,51 @@ def test_a_failure_before_any_shard_keeps_a_folder_the_user_made(tmp_path, capsy
     assert code != 0
     capsys.readouterr()
     assert out.is_dir() and list(out.iterdir()) == [] or sorted(p.name for p in out.iterdir()) == [".evnoise-progress"]
+
+
+#: What h5py raises on a full disk: HDF5's text over two lines, naming the temporary file and the errno.
+_HDF5_FULL = ("{what} (file write failed: time = Sun Nov 29 08:37:19 2026\n, filename = '{name}', file descriptor = 4, "
+              "errno = 28, error message = 'No space left on device', buf = 0x561e54988918, total write size = 96, "
+              "bytes this sub-write = 96, offset = 0)")
+
+
+@pytest.mark.parametrize("stage", ["create", "layout", "flush"])
+def test_a_full_disk_while_writing_a_shard_is_one_clean_line_and_leaves_no_dataset(tmp_path, capsys, monkeypatch,
+                                                                                     stage):
+    """A full disk met by h5py when the shard file is created (OSError), while its datasets are laid out (OSError)
+    or at its last flush (RuntimeError): one line with the errno's text and the shard's name, not HDF5's two-line
+    text (printed with a literal \\n) nor a traceback; nothing is left that looks like a dataset."""
+    import errno
+
+    import h5py
+
+    real_file = h5py.File
+
+    def create(name, mode="r", *args, **kwargs):
+        if mode == "w-":
+            raise OSError(errno.ENOSPC, _HDF5_FULL.format(what="Unable to synchronously create file", name=name))
+        return real_file(name, mode, *args, **kwargs)
+
+    def layout(self, name, *args, **kwargs):
+        text = _HDF5_FULL.format(what="Unable to synchronously create dataset", name=self.file.filename)
+        raise OSError(errno.ENOSPC, text)
+
+    def flush(self):
+        raise RuntimeError(_HDF5_FULL.format(what="Can't flush cache", name=self.filename))
+
+    if stage == "create":
+        monkeypatch.setattr(h5py, "File", create)
+    elif stage == "layout":
+        monkeypatch.setattr(h5py.Group, "create_dataset", layout)
+    else:
+        monkeypatch.setattr(h5py.File, "flush", flush)
+    out = tmp_path / "ds"
+    code = main(["make-dataset", "--procedural", "dead-leaves", "--count", "2", "--crop", "64", "--out", str(out),
+                 "--seed", "1", "-q", "--workers", "1"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1, (code, err)
+    assert err.startswith("evnoise: error: ") and "No space left on device" in err, err
+    assert str(out / "shards") in err and ".h5" in err, err
+    for inner in ("\\n", "errno =", ".tmp", "filename =", "Traceback"):
+        assert inner not in err, err
+    assert not out.exists()  # nothing was made: the folder this run created is gone (no temporary file either)

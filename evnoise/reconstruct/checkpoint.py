@@ -26,13 +26,16 @@ truncated checkpoint behind.
 from __future__ import annotations
 
 import math
+import os
 import re
+import shutil
 import warnings
 from pathlib import Path
 
-from .._atomic import atomic_output
+from .._atomic import atomic_output, os_error_text
+from .._budget import human_bytes
 from .._version import __version__
-from ..errors import InputError, ParameterError
+from ..errors import InputError, OutputError, ParameterError
 from ._torch import require_torch
 
 __all__ = [
@@ -165,13 +168,45 @@ class InputSpec:
         return f"InputSpec({', '.join(f'{k}={v!r}' for k, v in shown.items())})"
 
 
+def _tensor_bytes(obj, torch) -> int:
+    """Bytes of the tensors in ``obj`` (dicts, lists and tuples walked): about the size of its checkpoint."""
+    if isinstance(obj, torch.Tensor):
+        return obj.numel() * obj.element_size()
+    if isinstance(obj, dict):
+        return sum(_tensor_bytes(v, torch) for v in obj.values())
+    if isinstance(obj, (list, tuple)):
+        return sum(_tensor_bytes(v, torch) for v in obj)
+    return 0
+
+
+def _save_failure(exc: BaseException, path: Path, tmp: Path, needed: int) -> str:
+    """Why a checkpoint could not be written, in one line: the errno's text where the error gives one, else a full
+    disk when the folder has no room left for it (torch's zip writer reports a full disk as ``RuntimeError("[enforce
+    fail at inline_container.cc:672] . unexpected pos ...")``, with no errno), else torch's words without their
+    C++ prefix."""
+    if (isinstance(exc, OSError) and exc.errno) or re.search(r"errno = \d+", str(exc)):
+        return os_error_text(exc)
+    folder = path.parent
+    try:
+        free = shutil.disk_usage(folder).free
+        written = os.path.getsize(tmp) if os.path.exists(tmp) else 0
+    except (OSError, ValueError):
+        free = None
+    if free is not None and free < max(needed - written, 0) + (1 << 20):  # the partial file still holds its part
+        return (f"the disk is full ({human_bytes(free)} free in {folder}; the checkpoint needs about "
+                f"{human_bytes(needed)}): free some space or write it elsewhere")
+    text = re.sub(r"^\[enforce fail at [^\]]*\]\s*\.?\s*", "", " ".join(str(exc).split()))
+    return f"torch could not write it ({text[:200] or type(exc).__name__})"
+
+
 def _atomic_torch_save(obj, path: Path):
     torch = require_torch()
     with atomic_output(path, what="checkpoint") as tmp:
         try:
             torch.save(obj, tmp)
-        except RuntimeError as exc:  # torch's zip writer reports a full disk or an I/O error as RuntimeError
-            raise OSError(" ".join(str(exc).split())[:200]) from None
+        except (RuntimeError, OSError) as exc:  # torch's zip writer reports a full disk or an I/O error as RuntimeError
+            why = _save_failure(exc, path, tmp, _tensor_bytes(obj, torch))
+            raise OutputError(f"cannot write checkpoint {path}: {why}") from None
 
 
 def save_checkpoint(path, *, model_config, input_spec: InputSpec, state_dict, train_state=None,
