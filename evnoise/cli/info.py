@@ -16,6 +16,7 @@ import os
 from pathlib import Path
 from typing import Callable
 
+from .._budget import human_bytes
 from ..errors import InputError, ParameterError
 
 Detector = Callable[[Path], bool]
@@ -288,15 +289,6 @@ def _plain(value):
     if isinstance(value, (tuple, set)):
         return list(value)
     return value
-
-
-def human_bytes(n: int) -> str:
-    """``1234567`` -> ``'1.2 MB'`` (decimal units)."""
-    for unit in ("B", "kB", "MB", "GB"):
-        if n < 1000 or unit == "GB":
-            return f"{n} B" if unit == "B" else f"{n:.1f} {unit}"
-        n /= 1000
-    return f"{n:.1f} TB"  # pragma: no cover
 
 
 register_kind("events", _is_event_file, lambda path: summarise_events(path))

@@ -386,7 +386,7 @@ def save_count_png(counts, path, *, lux=None, duration_s=None, scene_title: str 
 
 def summary(counts, duration_s, scene, *, params_label, seed, method, out, png, elapsed_s) -> str:
     """The one-paragraph report printed at the end of a run."""
-    from .info import human_bytes
+    from .._budget import human_bytes
 
     on, off = (int(c.sum()) for c in counts)
     total = on + off
