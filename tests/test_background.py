@@ -89,6 +89,7 @@ def test_parameter_validation():
 
 
 @pytest.mark.parametrize("refractory_s", [0.0, 3e-3])
+@pytest.mark.long
 def test_renewal_and_counts_match_closed_form(refractory_s):
     params = LEAKY.replace(refractory_s=refractory_s)
     lux = np.tile(np.array([0.0, 0.2, 2.0, 30.0]).repeat(50), (20, 1))  # (20, 200)
@@ -385,6 +386,7 @@ def test_regular_noise_stream_and_changing_scene():
 
 
 @pytest.mark.parametrize("refractory_s", [0.0, 2e-3])
+@pytest.mark.long
 def test_regular_background_starts_in_the_steady_state(refractory_s):
     # a window much shorter than the background period, with photon noise resetting the timer: the count of a
     # pixel that starts in its steady state has mean rate * T (a start that ignored the photon resets gave

@@ -76,6 +76,7 @@ def test_background_nodes_mixture_weights():
 
 
 @pytest.mark.parametrize("j", range(len(LUX)))
+@pytest.mark.long
 def test_population_mean_and_variance_match_monte_carlo_refractory_0(j):
     """Exact with refractory 0: mean rate and across-pixel variance of P against drawn pixels."""
     n = 200_000

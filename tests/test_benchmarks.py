@@ -17,6 +17,7 @@ pytest.importorskip("matplotlib")
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "run.py"
 
 
+@pytest.mark.long
 def test_benchmark_report_tiny_run(tmp_path):
     sys.path.insert(0, str(SCRIPT.parent))
     try:
@@ -43,6 +44,7 @@ def test_benchmark_report_tiny_run(tmp_path):
             assert png.is_file() and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
 
 
+@pytest.mark.long
 def test_memory_benchmark_tiny_run(tmp_path):
     """benchmarks/bench_memory.py writes its section into a report (structure only, at smoke size)."""
     script = SCRIPT.parent / "bench_memory.py"

@@ -43,6 +43,7 @@ EVK3 = ev.load_preset("evk3-hd")
 
 
 @pytest.mark.parametrize("case", ["evk3-hd", "no-background", "long-refractory", "busy", "long-window"])
+@pytest.mark.long
 def test_bracketed_counts_equal_the_plain_path_bit_for_bit(monkeypatch, case):
     lux = _scene()
     params, duration_s = EVK3.replace(eps_sigma=0.03), 1.0

@@ -166,6 +166,7 @@ def _check_recovery(results_truths):
         assert np.all(np.abs(err) < 0.05), err
 
 
+@pytest.mark.long
 def test_flat_field_recovery_one_parameter_set():
     truth = _random_params(101)
     meas = _flat_fields(truth, 7)
@@ -186,6 +187,7 @@ def test_flat_field_recovery_coverage_several_parameter_sets():
     _check_recovery(pairs)
 
 
+@pytest.mark.long
 def test_flat_field_from_event_files_and_cli(tmp_path):
     """events.h5 recordings -> listing -> counts equal count_events; the CLI writes a usable preset."""
     truth = ev.NoiseParams(eps_pos=0.6, eps_neg=0.8, bias_pr=1.5, trial_rate_hz=40.0, photons_per_lux=2.0,
@@ -233,6 +235,7 @@ def _write_csv(path, header, rows):
     return path
 
 
+@pytest.mark.long
 def test_rate_table_counts_recovery(tmp_path):
     """Counts from a known model: eps_sigma (not determined by means) assumed; the rest recovered."""
     from evnoise.calibration.rates.spec import TABLE_SIGMA
@@ -259,6 +262,7 @@ def test_rate_table_counts_recovery(tmp_path):
     assert np.all(np.abs(err) < 4.0 * rel_sd + 1e-9), (err, rel_sd)
 
 
+@pytest.mark.long
 def test_rates_without_exposure_use_residual_scatter(tmp_path):
     """Rates without n_pixels/duration_s: quasi-likelihood; 3 % scatter gives about 3 % residuals."""
     from evnoise.calibration.rates.spec import TABLE_SIGMA
@@ -368,6 +372,7 @@ def round_trip_fit():
     return _round_trip_fit()
 
 
+@pytest.mark.long
 def test_preset_round_trip(tmp_path, round_trip_fit):
     _, result = round_trip_fit
     path = result.write_preset(tmp_path / "p.toml")
@@ -441,6 +446,7 @@ def test_the_search_stays_within_the_parameter_limits():
     assert math.exp(wide.hi[i]) < PARAM_LIMITS["dark_lux"] < wide.bounds["dark_lux"][1]
 
 
+@pytest.mark.long
 def test_calibration_survives_a_non_finite_optimiser_step(monkeypatch, round_trip_fit):
     """A degenerate information matrix (as on a CPU whose last bits differ, where Fisher scoring
     proposed NaN for eps_pos and bias_pr) is forced on purpose: the NaN step is rejected, no

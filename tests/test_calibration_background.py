@@ -62,6 +62,7 @@ def test_the_likelihood_uses_the_rate_with_the_background():
     np.testing.assert_allclose(stats.mean_rate(), ev.expected_rate(np.array(DARK_AND_LIT), truth), rtol=1e-12)
 
 
+@pytest.mark.long
 def test_floors_are_recovered_from_dark_flat_fields():
     meas = _flat_fields(TRUTH, DARK_AND_LIT)
     r = cal.calibrate(meas, fixed=HELD, n_starts=1, n_seeds=128, rng=0)
@@ -81,6 +82,7 @@ def test_floors_are_recovered_from_dark_flat_fields():
     assert "leak_off_hz = " in doc and 'leak_off_hz = "fitted"' in doc
 
 
+@pytest.mark.long
 def test_without_a_dark_level_the_on_floor_is_reported_not_identified():
     """Lit levels only: the small ON floor hides under the photon noise; the OFF floor shows at the bright end."""
     meas = _flat_fields(TRUTH, LIT_ONLY)
@@ -102,6 +104,7 @@ def test_without_a_dark_level_the_on_floor_is_reported_not_identified():
     assert r.status["leak_off_hz"] == "fitted" and abs(_z(r, "leak_off_hz")) < K_SIGMA, r.summary()
 
 
+@pytest.mark.long
 def test_a_sensor_without_floors_reports_them_as_zero(tmp_path):
     truth = TRUTH.replace(leak_on_hz=0.0, leak_off_hz=0.0)
     meas = _flat_fields(truth, DARK_AND_LIT, seed=2)

@@ -65,6 +65,7 @@ def test_pairs_in_a_short_window_fail_the_check(duration_us):
 
 
 @pytest.mark.parametrize("duration_us", [1_000_000, 400_000, 150_000])
+@pytest.mark.long
 def test_independent_streams_of_a_short_window_pass_as_often_as_they_should(duration_us):
     # 60 windows of independent Poisson streams: the share of p-values <= 0.05 is at most 0.05 plus three
     # binomial standard errors (a one-sided bound: a conservative test may fall short of it), and
@@ -345,6 +346,7 @@ def _quiet_segment(rel: str, from_s: float):
 
 
 @needs_realdata
+@pytest.mark.long
 def test_the_timing_fit_reaches_the_maximum_of_the_other_basin():
     # issue 32: a real window's timing likelihood has maxima far apart; the fit's starts (its count fit's maximum and
     # two near Poisson) all lead BFGS to a near-periodic leak with little spread (log L -2662.5), 6.7 below a Poisson
@@ -367,6 +369,7 @@ def test_the_timing_fit_reaches_the_maximum_of_the_other_basin():
 
 
 @needs_realdata
+@pytest.mark.long
 def test_a_fit_started_from_a_model_it_holds_does_not_end_below_it():
     # issue 32: in cam255_alex_standing_up 23.75-25.25 s the fit with the hot pixels' own regularity (hot pixels
     # ON-only, event-time log L -3760.75) ended below the fit without it (hot pixels OFF-only, -3759.01), which it

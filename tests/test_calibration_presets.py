@@ -95,6 +95,7 @@ _FAST_PRESETS = ("evk3-hd",)
 
 @pytest.mark.parametrize("name", [n if n in _FAST_PRESETS else pytest.param(n, marks=pytest.mark.slow)
                                   for n in ev.list_presets()])
+@pytest.mark.long
 def test_calibration_recovers_the_shipped_preset(name):
     """Mean rates do not determine eps_sigma (nor the spread, hot pixels or the photoreceptor time constant):
     they are held at the preset's values (the slow test assumes eps_sigma as the default fit does)."""
@@ -152,6 +153,7 @@ def bounded_fit():
                          n_seeds=64, rng=0)
 
 
+@pytest.mark.long
 def test_a_fit_outside_its_bounds_is_rejected_and_flagged(bounded_fit):
     r = bounded_fit
     assert r.fit_status == "rejected", r.summary()
@@ -174,6 +176,7 @@ def test_rate_band_is_finite_with_a_parameter_on_its_upper_bound(bounded_fit):
     assert np.all(rel_sd > 0)
 
 
+@pytest.mark.long
 def test_cli_warns_when_the_fit_is_rejected(tmp_path, capsys):
     out = tmp_path / "bad.toml"
     # a photons_per_lux far too small for the example table: nothing else can make up for it
@@ -246,6 +249,7 @@ def test_docstrings_agree_with_the_code():
     assert "damping" in S.local_fit.__code__.co_varnames
 
 
+@pytest.mark.long
 def test_rng_defaults_to_none_and_a_seed_reproduces(tmp_path):
     assert inspect.signature(cal.calibrate).parameters["rng"].default is None
     truth = ev.NoiseParams(eps_pos=0.7, eps_neg=0.9, bias_pr=2.0, trial_rate_hz=30.0, photons_per_lux=1.5,
@@ -280,6 +284,7 @@ def test_unidentified_fix_holds_them_and_refits_the_rest():
         assert abs(math.log(getattr(r2.params, n) / getattr(r1.params, n))) < 3.0 * r1.rel_error[n]
 
 
+@pytest.mark.long
 def test_poisson_count_distribution_of_flat_fields():
     """distribution='poisson': the mixture of Poisson(M q) over the thresholds, checked term by term."""
     from scipy.stats import poisson
@@ -380,6 +385,7 @@ def test_readme_calibrate_example(tmp_path, capsys):
 # --------------------------------------------------------------------------------------
 # a regular background (leak_regularity > 0) held in a fit
 # --------------------------------------------------------------------------------------
+@pytest.mark.long
 def test_a_rate_table_fit_with_a_regular_background_finishes_and_says_why_no_shape():
     """The mean rates model the regular timer; the fit's goodness report must not ask for an NB shape
     (the slow dvs128 recovery failed there after 15 minutes of fitting)."""
@@ -424,6 +430,7 @@ def test_a_regular_background_is_refused_where_only_poisson_arrivals_are_modelle
         cal.calibrate(meas, fixed={"leak_regularity": 0.9}, n_starts=1, n_seeds=4, rng=0)
 
 
+@pytest.mark.long
 def test_a_fit_rejected_with_floors_held_at_0_says_to_fit_them():
     """A table without a dark level from a sensor with a strong ON leak: the fit without floors fails and the
     warning names the floors to fit; with them free, it is accepted."""

@@ -112,6 +112,7 @@ def _mp_count_pmf(k: int, rate: float, T: float, r: float) -> float:
     (114.0, 8.42, 0.3, [630, 761, 960, 1200]),
     (41.0, 8.66, 0.01, [234, 355, 531]),
 ])
+@pytest.mark.long
 def test_count_log_pmf_in_both_tails_against_mpmath(rate, T, r, ks):
     """Where a pixel's count is far from the model's mean, the count likelihood is the log-probability, not a floor:
     the difference of two survival values near 1 gave 0 (log 1e-300 = -691) for P(N = 0) = 8.8e-27 at a mean of 60,
@@ -199,6 +200,7 @@ def test_fit_recovers_known_background_within_its_uncertainty():
     assert all(g["p_value"] > 1e-3 for g in fit.goodness)
 
 
+@pytest.mark.long
 def test_fit_reports_absent_terms_as_not_identified():
     plain = ev.NoiseParams(eps_pos=5, eps_neg=5, bias_pr=2, trial_rate_hz=1000, photons_per_lux=1, leak_on_hz=0.3,
                            leak_off_hz=0.1)
@@ -252,6 +254,7 @@ def test_every_dvs128_quiet_window_is_described_by_its_own_fit(index):
 
 
 @needs_realdata
+@pytest.mark.long
 def test_cleanest_dvs128_window_counts_need_a_regular_leak():
     # the counts alone (timing="off"); the event times forbid this periodic timer (tests/test_quiet_timing_fit.py)
     rel, seg = _quiet_windows()[0]
@@ -289,6 +292,7 @@ def _recording(tmp_path, params, shape=(40, 50), duration_s=6.0):
     return path
 
 
+@pytest.mark.long
 def test_cli_calibrates_from_a_recording(tmp_path, capsys):
     from evnoise.cli import main
 
@@ -335,6 +339,7 @@ def test_cli_quiet_errors(tmp_path, capsys):
     assert not out.exists()
 
 
+@pytest.mark.long
 def test_cli_writes_the_hot_pixels_own_regularity(tmp_path, capsys):
     """``--hot-regularity on`` reaches the fit, and the preset carries what it found as hot_pixel_regularity (the
     fit's own value; its accuracy is tested in test_quiet_timing_selfconsistency.py)."""
@@ -425,6 +430,7 @@ def test_a_polarity_whose_events_are_all_the_hot_pixels_is_at_its_bound():
 
 
 @needs_realdata
+@pytest.mark.long
 def test_terms_each_dispensable_are_not_dropped_together_when_the_data_need_one():
     """On the cleanest DVS128 window (the guide's), spread (p 0.98) and hot pixels (p 0.97) were each tested against
     the full model only and both dropped, though dropping both costs 206 in log-likelihood: the fit was rejected and

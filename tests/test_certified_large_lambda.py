@@ -112,6 +112,7 @@ def _check_point(lam, eps, b):
 
 @pytest.mark.parametrize("eps", EPS)
 @pytest.mark.parametrize("b", BIAS)
+@pytest.mark.long
 def test_certified_panels_against_mpmath(eps, b):
     """A panel around each lam: proven bound <= 1e-10, and the value within the bound of mpmath's."""
     logs = [_check_point(lam, eps, b) for lam in LAM_FAST]

@@ -372,6 +372,7 @@ def test_a_phase_line_keeps_its_clock_running(monkeypatch, capsys):
     assert "fit: a long phase" in capsys.readouterr().err
 
 
+@pytest.mark.long
 def test_quiet_fit_and_checks_show_progress(tmp_path, capsys):
     from evnoise.calibration.quiet import fit_quiet, quiet_window
 

@@ -93,6 +93,7 @@ def uninterrupted(tmp_path_factory):
 
 
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM, signal.SIGINT], ids=["kill", "term", "int"])
+@pytest.mark.long
 def test_killed_two_worker_run_resumes_keeping_recorded_shards(uninterrupted, tmp_path, sig):
     out = tmp_path / "ds"
     log = tmp_path / "stderr.txt"

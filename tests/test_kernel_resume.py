@@ -63,6 +63,7 @@ def _runs(params):
     {"pr_tau_s_at_1lux": 0.05},  # bandwidth: the trial tier's filtered level
 ])
 @pytest.mark.parametrize("keep", [False, True])
+@pytest.mark.long
 def test_stopping_at_every_event_gives_the_same_events(extra, keep, monkeypatch):
     params = ev.load_preset("evk3-hd").replace(**extra)
     whole = _runs(params)

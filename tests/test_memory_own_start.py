@@ -265,6 +265,7 @@ def test_stream_without_tables_is_simulate_events(no_tables):
 @pytest.mark.parametrize("params, background_hz", [(MEM, (0.0, 0.0)), (MEM.replace(eps_pos=1.5, eps_neg=1.5,
                                                                                     leak_on_hz=2.0, leak_off_hz=0.5),
                                                                         (2.0, 0.5))], ids=["memory", "background"])
+@pytest.mark.long
 def test_stream_goes_trial_by_trial_at_a_change_of_light(params, background_hz, monkeypatch):
     """A stream on tables whose next light would pass the budget goes on trial by trial: the events pending from the
     last interval on tables come with the next interval, and the light steps 0.5 -> 0 -> 2 lux (the switch at the

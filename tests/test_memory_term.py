@@ -119,6 +119,7 @@ def test_closed_form_against_an_independent_per_trial_simulation():
     _check_against_closed_form(s, st, duration_s, n_pix)
 
 
+@pytest.mark.long
 def test_fast_kernel_against_the_closed_form():
     lux = np.full((30, 40), 2.0)
     lux[:15] = 0.5
@@ -327,6 +328,7 @@ STREAM_PATHS = pytest.mark.parametrize("tables", [True, False], ids=["tables", "
 
 
 @STREAM_PATHS
+@pytest.mark.long
 def test_noise_stream_with_memory_against_the_closed_form(tables, monkeypatch):
     """NoiseStream with reset memory, advanced through irregular intervals: rates, ON share, alternation,
     transition matrix and mean intervals of the stationary closed form (the pixels keep their stored level
@@ -491,6 +493,7 @@ def test_tonic_transform_with_memory_against_the_closed_form(params, sample_us):
 # --------------------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.long
 def test_background_with_memory_closed_form_against_an_independent_per_trial_simulation():
     lam, n_pix, n_trials = BG_LUX * BG.photons_per_lux, 600, 40_000
     pix, t, p = _reference_schedule(np.full(n_trials, lam), BG, n_pix, seed=21, background_hz=(2.0, 0.5))
@@ -503,6 +506,7 @@ def test_background_with_memory_closed_form_against_an_independent_per_trial_sim
     _check_against_closed_form(s, st, n_trials * BG.trial_us * 1e-6, n_pix)
 
 
+@pytest.mark.long
 def test_background_with_memory_fast_kernel_against_the_reference_and_the_closed_form():
     lam, n_pix, n_trials = BG_LUX * BG.photons_per_lux, 600, 40_000
     duration_s = n_trials * BG.trial_us * 1e-6

@@ -311,6 +311,7 @@ def test_a_changing_video_with_memory_and_the_timer_runs():
     assert np.all(e["t"] < 20_000_000)
 
 
+@pytest.mark.long
 def test_noise_stream_with_memory_and_timer_against_the_closed_form():
     """Irregular intervals at one light: each drops its pending event and redraws the photon gap, keeping the
     timer's arrival; the closed form's rates, transitions and mean intervals. (When written: a stream that drew a

@@ -35,6 +35,7 @@ def _pix_t_p(e, width):
 
 
 @pytest.mark.parametrize("params, lux_value", [(MEM, 2.0), (BG, BG_LUX)], ids=["memory", "memory-and-background"])
+@pytest.mark.long
 def test_trial_tier_with_memory_against_the_closed_form(params, lux_value):
     """Static pixels in the trial tier: rate, ON share, alternation, transition matrix, mean intervals per polarity
     pair, and each pair's interval distribution (KS against the closed-form CDF)."""
@@ -174,6 +175,7 @@ def _step_reference(params, lam_a, lam_b, n_pix, n_before, n_after, seed):
 
 @pytest.mark.parametrize("params", [MEM, MEM.replace(leak_on_hz=40.0, leak_off_hz=10.0, leak_regularity=0.7)],
                          ids=["memory", "memory-and-timer"])
+@pytest.mark.long
 def test_video_step_with_memory_against_a_per_trial_reference(params):
     """A step of light 0.5 -> 2 lux at 1 s: the changing pixels' signal events (two ON each), then their noise
     right after the step (the stored count drawn at the new reference meets the new light), and settled, against

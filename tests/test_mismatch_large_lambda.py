@@ -59,6 +59,7 @@ def test_table_sums_match_the_windowed_exact_sum(lam):
 
 
 @pytest.mark.parametrize("lam, b, mu, s", HARD)
+@pytest.mark.long
 def test_grid_brackets_hold_the_enumerated_moments(lam, b, mu, s):
     lp_e, mass_e, m1_e, m2_e = threshold_atoms(lam, b, mu, s, ATOM_BIN)
     lp, mass, m1, m2, info, n_grid = threshold_atoms_grid(lam, b, mu, s, ATOM_BIN)
@@ -136,6 +137,7 @@ def test_switch_over_keeps_the_enumeration_bit_for_bit():
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.long
 def test_evk4_mean_rate_at_10000_lux_with_a_bounded_grid():
     """evk4 at 10,000 lux (lam ~ 6.4e5: about 1e9 breakpoints, minutes to enumerate) takes the grid; the number of
     p evaluations is bounded by the grid's span, and the rate is the nominal pixel's (p ~ e^-258 and below
@@ -155,6 +157,7 @@ def test_evk4_mean_rate_at_10000_lux_with_a_bounded_grid():
 
 
 @pytest.mark.parametrize("refractory_s", [0.0, 1e-4])
+@pytest.mark.long
 def test_population_rate_and_nb_shape_on_the_grid_match_the_enumeration(monkeypatch, refractory_s):
     """A level where the grid is chosen for ON only (lam = 6.4e4) against the enumeration forced everywhere.
 

@@ -208,6 +208,7 @@ def test_per_pixel_thresholds_on_shared_levels_match_the_windowed_sum():
         assert np.all(np.abs(got[finite] - ref[finite]) <= 1e-12 + 1e-14 * np.abs(ref[finite]))
 
 
+@pytest.mark.long
 def test_probability_alone_is_the_same_bits_in_any_batch_and_matches_the_windowed_sum():
     """``log_event_probability_alone`` (the trial tier's runs in a video): each value's bits do not depend on what
     else the call holds (uniform, narrowly and widely spread thresholds, 1 to 20,000 values, other values at the same

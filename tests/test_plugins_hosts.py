@@ -107,6 +107,7 @@ def dataloader_run():
     return json.loads(proc.stdout)
 
 
+@pytest.mark.long
 def test_tonic_transform_runs_in_forked_dataloader_workers_after_a_call_in_the_parent(dataloader_run):
     """Two forked workers, two epochs, after the transform ran in the main process (no OpenMP pool in a worker;
     also with the regular timer and with reset memory run trial by trial); an int seed gives every sample the noise it

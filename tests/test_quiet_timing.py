@@ -136,6 +136,7 @@ def test_counts_only_windows_have_no_timing_tests():
     assert fit.timing == [] and "timing" not in fit.summary()
 
 
+@pytest.mark.long
 def test_counts_right_timing_wrong_is_rejected():
     """Each pixel's events moved into a random 2 s stretch of the 20 s window: the per-pixel counts (and the
     polarity order) are those of the memoryless window, so the count histograms pass, but the intervals do
@@ -230,6 +231,7 @@ def test_renewal_intervals_have_the_count_law_and_the_interval_law():
             np.testing.assert_allclose(xs, 1.0 / lam, rtol=1e-12)
 
 
+@pytest.mark.long
 def test_interval_p_value_holds_its_level_where_intervals_are_not_independent():
     """Windows drawn from the model itself (a population of pixels with spread rates and busy hot pixels, whose
     intervals share their pixel's rate): the KS p-value of independent intervals rejects them far more often than
@@ -276,6 +278,7 @@ def _population_intervals(n_pix, duration_s, rng, first_unit=0):
     return np.concatenate(gaps), np.concatenate(units)
 
 
+@pytest.mark.long
 def test_pixel_permutation_ks_holds_its_level_where_scipy_does_not():
     """A window and four replicas drawn from one spread population (pixels are the independent units): SciPy's
     two-sample KS p-value, which takes the intervals as independent, rejects far beyond its level; the pixel

@@ -58,6 +58,7 @@ def _densities(times, T, rate, r, share_on):
 
 
 @pytest.mark.parametrize("r", [0.0, 0.4, 0.85])
+@pytest.mark.long
 def test_event_time_density_integrates_to_the_count_pmf(r):
     # P(N = 0) directly, P(N = 1) and P(N = 2) by integrating the density over the event times (trapezoid rules on
     # fine grids: the density jumps where a gap passes r / rate, so the error is O(grid step)), against the
@@ -146,6 +147,7 @@ needs_realdata = pytest.mark.skipif(not (REALDATA / "quiet_segments.json").is_fi
 
 
 @needs_realdata
+@pytest.mark.long
 def test_the_count_fits_periodic_timer_is_impossible_for_the_event_times():
     # the cleanest DVS128 window: the count fit's near-periodic leak (r = 1) gives its own window's event times
     # likelihood 0 in practice (gaps far shorter than r / rate in the active pixels: only pixels of rates far out in

@@ -179,6 +179,7 @@ def _check_truth(fit):
     assert fit.tests["regularity"]["p_value"] < q.LR_P and fit.tests["spread"]["p_value"] < q.LR_P
 
 
+@pytest.mark.long
 def test_timing_fit_of_the_simulators_leaky_sensor(tmp_path):
     # the simulator's regular timer (gaps of whole trials, a stationary first event, the refractory period) is the
     # renewal law of the timing likelihood: the fit finds the truth within K standard errors and its counts pass
@@ -195,6 +196,7 @@ def test_timing_fit_of_the_documentation_example(tmp_path):
     _check_truth(_fit_leaky(tmp_path, (128, 128), 40.0, 7))
 
 
+@pytest.mark.long
 def test_hot_regularity_off_is_not_listed(leaky):
     counts = leaky.counts
     w = qw.QuietWindow(counts, leaky.duration_s, "sim")

@@ -40,6 +40,7 @@ def _per_pixel(monkeypatch, fn):
 
 
 @pytest.mark.parametrize("name", list(_fields()))
+@pytest.mark.long
 def test_probabilities_once_per_level_are_bit_identical(name, monkeypatch):
     lux = _fields()[name]
     params = ev.load_preset("evk3-hd")
@@ -109,6 +110,7 @@ def test_find_levels_is_exact_and_gives_up():
     assert levels.size == 0 and inverse.size == 0
 
 
+@pytest.mark.long
 def test_serial_and_parallel_table_evaluation_agree():
     """The one-thread kernel for few values is the parallel one's body: same bits, direct panels included."""
     g = np.random.default_rng(2)

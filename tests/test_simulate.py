@@ -159,6 +159,7 @@ print(h.hexdigest())
 """
 
 
+@pytest.mark.long
 def test_same_output_for_one_and_two_threads():
     digests = []
     for threads in ("1", "2"):

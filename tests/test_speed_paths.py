@@ -138,6 +138,7 @@ def pinned_now():
 
 
 @pytest.mark.parametrize("name", EXACT_PINS)
+@pytest.mark.long
 def test_outputs_bit_identical_to_code_before_issue16(name, pinned_now):
     """Event streams and counts: integers from the same draws, identical on every machine."""
     assert pinned_now[name] == PINNED[name]
@@ -219,6 +220,7 @@ HARD_EPS = {
 
 @pytest.mark.parametrize("bias", [0.0, 1.7, 105.0])
 @pytest.mark.parametrize("eps_range", sorted(HARD_EPS))
+@pytest.mark.long
 def test_grouped_mismatch_path_matches_exact_sum(eps_range, bias):
     """Per-pixel thresholds on shared lam levels (1e-3 .. 1e6, i.e. far beyond the old limit of 200)
     agree with the windowed exact sum to 1e-10 relative wherever p > 1e-300 (tiny p included)."""

@@ -42,6 +42,7 @@ def test_an_interval_whose_events_cannot_fit_is_refused_before_drawing(params):
     _still_usable(stream, params)
 
 
+@pytest.mark.long
 def test_an_interval_run_trial_by_trial_is_refused_before_drawing(monkeypatch):
     """Reset memory beyond the table budget runs trial by trial (no tables give the pixels' rates): the bound of an
     event per pixel and trial, then the population's mean rate, size the check."""

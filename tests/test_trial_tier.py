@@ -135,6 +135,7 @@ def test_video_matches_reference_in_changing_and_static_regions(reference, monke
         assert abs(sig_f[pol].mean() - sig_s[pol].mean()) <= K * se + 1e-12
 
 
+@pytest.mark.long
 def test_video_same_output_for_any_thread_count(monkeypatch):
     monkeypatch.setattr(es, "TARGET_PIXEL_TRIALS_PER_WINDOW", 20_000)
     from evnoise import _engine
@@ -165,6 +166,7 @@ def test_still_scene_trial_tier_does_not_depend_on_the_windows(monkeypatch):
     np.testing.assert_array_equal(top, whole[whole["y"] < 8])
 
 
+@pytest.mark.long
 def test_video_trial_tier_does_not_depend_on_the_windows(monkeypatch):
     """A changing pixel jumps over its runs of trials at one light; the runs were the windows' (a window whose frames
     all had one light), so the events depended on the windows and on the number of changing pixels. Runs are now
@@ -190,6 +192,7 @@ def test_video_trial_tier_does_not_depend_on_the_windows(monkeypatch):
 
 
 @pytest.mark.parametrize("eps_sigma", [0.0, 0.05])
+@pytest.mark.long
 def test_video_jump_probabilities_do_not_depend_on_the_windows_at_any_batch_size(monkeypatch, eps_sigma):
     """The closed form takes another path (equal to ~1e-11, not bit for bit) for batches from
     ``evnoise.model.TABLE_MIN_SIZE`` values on: a video whose jumps' probabilities were evaluated per window would
