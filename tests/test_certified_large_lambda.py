@@ -128,6 +128,7 @@ def test_certified_panels_against_mpmath_full_range(eps, b):
         _check_point(lam, eps, b)
 
 
+@pytest.mark.long
 def test_grid_reaches_far_below_1e_minus_300():
     """The fast grid has points with log p < -690 (p < 1e-300), where only log space works."""
     logs = [REF(lam, eps, b) for eps in (0.5, 1.0, 2.0) for b in (0.0, 1000.0) for lam in LAM_FAST]

@@ -560,6 +560,7 @@ def test_background_off_keeps_the_memory_streams():
     assert a.size > 1000 and np.array_equal(a, b)
 
 
+@pytest.mark.long
 def test_background_with_memory_in_a_noise_stream():
     """NoiseStream with a background through irregular intervals: the closed form's rate, ON share, alternation,
     transitions and mean intervals."""

@@ -329,6 +329,7 @@ def test_video_reproducible_and_independent_of_frame_container():
 
 
 # ------------------------------------------------------------------------------ stream API
+@pytest.mark.long
 def test_noise_stream_matches_static_rate_and_merges():
     shape = (60, 60)
     lux = np.full(shape, 2.0)
