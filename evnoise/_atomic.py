@@ -20,15 +20,28 @@ from .errors import EvnoiseError, OutputError
 log = logging.getLogger(__name__)
 
 
+#: how an errno is named in the texts of errors that are not OSError: h5py's ("errno = 28"), Rust's ("(os error 28)")
+_ERRNO_IN_TEXT = re.compile(r"errno = (\d+)|\(os error (\d+)\)")
+
+
 def os_error_text(exc: BaseException) -> str:
     """An OS error in one line: the ``strerror`` of its errno, also when only the text names it (h5py's
-    texts span lines, name the temporary file and sometimes come as RuntimeError), else the text squeezed."""
+    texts span lines, name the temporary file and sometimes come as RuntimeError; faery's Rust errors end in
+    "(os error 28)"), else the text squeezed."""
     errno = getattr(exc, "errno", None)
-    if not errno:
-        m = re.search(r"errno = (\d+)", str(exc))
-        errno = int(m.group(1)) if m else None
+    if not errno or not isinstance(errno, int):
+        m = _ERRNO_IN_TEXT.search(str(exc))
+        errno = int(m.group(1) or m.group(2)) if m else None
     if errno:
         return os.strerror(errno)
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def error_text(exc: BaseException) -> str:
+    """Any error in one line: :func:`os_error_text` for an ``OSError`` or a text that names an errno, else the
+    text squeezed (a library's own failure, e.g. a Rust panic's message)."""
+    if isinstance(exc, OSError) or _ERRNO_IN_TEXT.search(str(exc)):
+        return os_error_text(exc)
     return " ".join(str(exc).split()) or type(exc).__name__
 
 
@@ -105,7 +118,7 @@ class AtomicFile:
             raise
         except catch as exc:
             abort()
-            if isinstance(exc, OSError) or re.search(r"errno = \d+", str(exc)):
+            if isinstance(exc, OSError) or _ERRNO_IN_TEXT.search(str(exc)):
                 text = os_error_text(exc)  # h5py's texts span lines and name the temporary file
             else:
                 text = " ".join(str(exc).split()) if one_line else str(exc)
@@ -113,6 +126,19 @@ class AtomicFile:
         except BaseException:
             abort()
             raise
+
+    def verify_tail(self) -> None:
+        """Raise the ``OSError`` of a last write that the writing library lost, before :meth:`commit`.
+
+        faery's Rust encoders flush their buffer when they are dropped and ignore a failure of that flush: on a
+        full disk or past a file-size limit the file ended short, without an error, and became a complete-looking
+        output. The write that failed left the file at the limit, or ending at a disk block with no block free;
+        one more byte at its end fails then with the same error, which is raised (else the byte is cut off again).
+        """
+        with open(self.tmp, "r+b", buffering=0) as fh:
+            size = fh.seek(0, os.SEEK_END)
+            fh.write(b"\0")
+            fh.truncate(size)
 
     def release(self) -> None:
         """Truncate the temporary file to 0 bytes (before a library that still holds it open closes it).
@@ -158,9 +184,9 @@ def atomic_output(path, *, overwrite: bool = True, what: str = "file"):
     except EvnoiseError:
         out.discard()
         raise
-    except OSError as exc:
+    except OSError as exc:  # its errno's text: str(exc) reads "[Errno 28] ..." and may name the temporary file
         out.discard()
-        raise OutputError(f"cannot write {what} {path}: {exc}") from None
+        raise OutputError(f"cannot write {what} {path}: {os_error_text(exc)}") from None
     except BaseException:
         out.discard()
         raise
@@ -181,8 +207,8 @@ def close_h5_discarding(file, out: AtomicFile | None = None, datasets=()) -> Non
     again when the interpreter exits and crashed the process there (exit 139, after the error line).
     So the close must succeed the first time: the resizable ``datasets`` are cut to nothing (no chunk
     left to flush), the space written is freed (:meth:`AtomicFile.release`), and the file's descriptor
-    is pointed at an anonymous file in memory (Linux ``memfd``) before the close, so that HDF5's last
-    writes land there whatever the disk holds. Nothing here raises.
+    is pointed at a file that takes HDF5's last writes whatever the disk holds (:func:`_spare_descriptor`)
+    before the close. Nothing here raises.
     """
     for ds in datasets:
         if ds is not None:
@@ -196,9 +222,9 @@ def close_h5_discarding(file, out: AtomicFile | None = None, datasets=()) -> Non
         fd = file.id.get_vfd_handle()
     except Exception:  # noqa: BLE001 - not a POSIX driver, or already closed
         fd = None
-    if isinstance(fd, int) and hasattr(os, "memfd_create"):
+    if isinstance(fd, int):
         try:
-            spare = os.memfd_create("evnoise-discarded")
+            spare = _spare_descriptor()
             try:
                 os.dup2(spare, fd)
             finally:
@@ -209,3 +235,23 @@ def close_h5_discarding(file, out: AtomicFile | None = None, datasets=()) -> Non
         file.close()
     except Exception:  # noqa: BLE001 - nothing more to do
         pass
+
+
+def _spare_descriptor() -> int:
+    """A descriptor that takes the last writes of an HDF5 file being discarded (see :func:`close_h5_discarding`).
+
+    Without a file-size limit: an anonymous file in memory (Linux ``memfd``), which also takes the ``ftruncate``
+    HDF5 may do on close. Under a file-size limit (``ulimit -f``, ``RLIMIT_FSIZE``) a ``memfd`` is a regular file
+    bound by that limit too, and the discarded file's writes lie at offsets past it (that close failed and the
+    process crashed at exit, 139): then ``/dev/null``, a device the limit does not bind, where writes at any
+    offset succeed and reads find nothing (HDF5 reads that as zeros).
+    """
+    try:
+        import resource
+
+        limited = resource.getrlimit(resource.RLIMIT_FSIZE)[0] != resource.RLIM_INFINITY
+    except (ImportError, OSError, ValueError):
+        limited = False
+    if not limited and hasattr(os, "memfd_create"):
+        return os.memfd_create("evnoise-discarded")
+    return os.open(os.devnull, os.O_RDWR)

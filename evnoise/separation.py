@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -417,7 +418,7 @@ def separate_file(path, signal_out=None, noise_out=None, method="density", *, ov
     signal_out, noise_out : path, optional
         Output files for the events labelled signal and noise (at least one); the suffix
         decides the format (``.h5``, ``.aedat4``, ``.raw``, ``.dat``, ``.es``, ``.csv``).
-        Written atomically (temporary name, renamed on success). An events.h5 output of a
+        Written atomically (temporary name, renamed on success), both or neither. An events.h5 output of a
         recording whose clock does not start near 0 stores it as ``/t_offset``.
     sensor : str or (int, int), optional
         Sensor size ``"WxH"`` for inputs whose header has none.
@@ -494,6 +495,19 @@ def separate_file(path, signal_out=None, noise_out=None, method="density", *, ov
         if counts["n_events"] != n:  # the outputs (still temporary) are removed: they would look complete
             raise InputError(f"{path}: {n:,} events, but {counts['n_events']:,} of them were read in time order: its "
                              f"timestamps decrease somewhere (a recording's must not); sort it by time first")
+        # closed here, both or neither: when one output cannot be finished (a full disk), one already renamed is
+        # removed again (alone it would look like a finished run); the rest are discarded by the stack
+        finished = []
+        try:
+            for writer in writers.values():
+                finished.append(writer.close())
+        except BaseException:
+            for done in finished:
+                try:
+                    os.unlink(done)
+                except OSError:
+                    pass
+            raise
     if bar is not None:
         bar.close()
     counts["n_noise"] = counts["n_events"] - counts["n_signal"]

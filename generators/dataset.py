@@ -352,7 +352,8 @@ def make_and_record_shard(job: _Job, on_sample=None) -> dict:
     (name, size, SHA-256) into the progress folder. A run killed at any moment keeps every shard
     whose record was written, and a re-run keeps exactly those whose file still matches it."""
     rec = generate_shard(job, on_sample)
-    write_json(record_file(job.root, rec["name"]), {k: v for k, v in rec.items() if k != "timings"})
+    write_json(record_file(job.root, rec["name"]), {k: v for k, v in rec.items() if k != "timings"},
+               what="progress record")
     return rec
 
 
@@ -477,10 +478,6 @@ def make_dataset(sources, out_dir, config: PairConfig | None = None, *, workers:
             return DatasetResult(root, manifest, [], reused, list(manifest.get("skipped", [])),
                                  time.perf_counter() - started, {}, 0, manifest.get("sampler", ""))
         (root / MANIFEST).unlink(missing_ok=True)  # from here on the dataset is incomplete
-        write_json(progress_dir / "plan.json", plan.record())
-        for name, rec in valid.items():  # a manifest's records become progress records
-            if not (progress_dir / f"{name}.done.json").exists():
-                write_json(progress_dir / f"{name}.done.json", rec)
         if reused:
             log.info("resuming: %d shard(s) verified and kept, %d to make", len(reused), len(todo))
         bar = None
@@ -508,6 +505,11 @@ def make_dataset(sources, out_dir, config: PairConfig | None = None, *, workers:
                     bar.refresh()
 
         try:
+            # in the try: a failure to write these (a full disk) also leaves no empty dataset behind
+            write_json(progress_dir / "plan.json", plan.record(), what="progress plan")
+            for name, rec in valid.items():  # a manifest's records become progress records
+                if not (progress_dir / f"{name}.done.json").exists():
+                    write_json(progress_dir / f"{name}.done.json", rec, what="progress record")
             if not todo:  # every shard recorded by an interrupted run: only the manifest is missing
                 n_workers = 0
             elif scheduler is not None:
@@ -541,7 +543,7 @@ def make_dataset(sources, out_dir, config: PairConfig | None = None, *, workers:
             first = manifest["skipped"][0]
             raise InputError(f"no pair could be made: all {len(manifest['skipped'])} source image(s) were "
                              f"skipped (first: {first['source']}: {first['reason']})")
-        write_json(root / MANIFEST, manifest)
+        write_json(root / MANIFEST, manifest, what="manifest")
         shutil.rmtree(progress_dir, ignore_errors=True)
     from .pairs import CountSampler
 

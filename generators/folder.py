@@ -15,7 +15,7 @@ import shutil
 import stat
 from pathlib import Path
 
-from evnoise._atomic import write_text_atomic
+from evnoise._atomic import os_error_text, write_text_atomic
 from evnoise.errors import InputError, OutputError
 
 from .shards import file_sha256
@@ -31,9 +31,10 @@ SHARDS_DIR = "shards"
 PROGRESS_DIR = ".evnoise-progress"
 
 
-def write_json(path: Path, data) -> None:
-    """Write ``data`` as indented, key-sorted JSON, atomically."""
-    write_text_atomic(path, json.dumps(data, indent=1, sort_keys=True) + "\n", what="manifest")
+def write_json(path: Path, data, *, what: str = "JSON file") -> None:
+    """Write ``data`` as indented, key-sorted JSON, atomically; ``what`` names the file in an error
+    ("manifest", "progress record", ...)."""
+    write_text_atomic(path, json.dumps(data, indent=1, sort_keys=True) + "\n", what=what)
 
 
 def read_json(path: Path):
@@ -64,7 +65,7 @@ class FolderLock:
             self.fh.close()
             raise OutputError(f"another evnoise make-dataset run is writing to {self.path.parent.parent}") from None
         except OSError as exc:
-            raise OutputError(f"cannot lock {self.path}: {exc}") from None
+            raise OutputError(f"cannot lock {self.path}: {os_error_text(exc)}") from None
         return self
 
     def __exit__(self, *exc):

@@ -9,9 +9,42 @@ raising, which is what the closed forms expect and is faster), and no ``fastmath
 
 from __future__ import annotations
 
+import errno
+import logging
+
 import numba
 
+log = logging.getLogger(__name__)
+
 _OPTIONS = dict(cache=True, nogil=True, error_model="numpy", fastmath=False)
+
+#: errors of a cache folder without room: the kernel runs uncached (compiled again next time) rather than fail
+_NO_ROOM = {errno.ENOSPC, errno.EFBIG, getattr(errno, "EDQUOT", errno.ENOSPC)}
+_warned = []
+
+
+def _room_tolerant_cache(dispatcher):
+    """Let ``dispatcher`` run when its compiled code cannot be saved for lack of room (a full disk, a file-size
+    limit): Numba raises that ``OSError`` from the call (after removing its temporary file), and the command
+    failed with it, although the kernel was compiled and only its copy on disk is missing."""
+    cache = getattr(dispatcher, "_cache", None)
+    save = getattr(cache, "save_overload", None)
+    if save is None:
+        return dispatcher
+
+    def save_overload(sig, data):
+        try:
+            save(sig, data)
+        except OSError as exc:
+            if exc.errno not in _NO_ROOM:
+                raise
+            if not _warned:
+                _warned.append(True)
+                log.warning("compiled kernels are not cached (%s: %s); they are compiled again on the next run",
+                            getattr(cache, "_cache_path", "the cache folder"), exc.strerror or exc)
+
+    cache.save_overload = save_overload
+    return dispatcher
 
 
 def kernel(func=None, *, parallel: bool = False, inline: bool = False):
@@ -23,6 +56,6 @@ def kernel(func=None, *, parallel: bool = False, inline: bool = False):
 
     def wrap(f):
         extra = {"inline": "always"} if inline else {}
-        return numba.njit(parallel=parallel, **_OPTIONS, **extra)(f)
+        return _room_tolerant_cache(numba.njit(parallel=parallel, **_OPTIONS, **extra)(f))
 
     return wrap(func) if func is not None else wrap

@@ -20,6 +20,7 @@ import errno
 import importlib
 import logging
 import sys
+import warnings
 
 from .._version import __version__
 from ..errors import EvnoiseError
@@ -84,6 +85,9 @@ def main(argv=None) -> int:
     handler = _ProgressAwareHandler(getattr(args, "cli_flags", None))
     handler.setFormatter(logging.Formatter("evnoise: %(levelname)s: %(message)s"))
     logging.basicConfig(level=level, handlers=[handler], force=True)
+    # Numba warns in five lines when it cannot make the semaphore of its threading layer (no room for the file:
+    # `ulimit -f 0`, a full /dev/shm) and runs on without it; the command's own error, if any, is the line to see
+    warnings.filterwarnings("ignore", message="Could not obtain multiprocessing lock")
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)
         return 2

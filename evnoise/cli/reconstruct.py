@@ -166,22 +166,30 @@ def run(args) -> int:
         if os.path.lexists(path) and not args.overwrite:  # a link counts, even a broken one
             raise OutputError(f"{path} exists (use --overwrite)")
     times = []
-    for t0, path in zip(starts, targets, strict=True):
-        if camera:
-            if t0 + window > duration + 1e-6:
-                raise InputError(f"the window {seconds_text(t0)} s + {window:g} s runs past the end of the "
-                                 f"recording ({seconds_text(duration)} s)")
-            counts, used = window_counts(args.events, t0, window, sensor=args.sensor,
-                                         csv_columns=args.csv_columns), window
-        else:
-            counts, used = counts_from_h5(args.events, t_start_s=t0, window_s=window)
-        tic = time.perf_counter()
-        image = rec.predict(counts, used)
-        ms = 1000 * (time.perf_counter() - tic)
-        times.append(ms)
-        write_png(path, image)
-        log.info("%s: window %.6g s from %s s, %d events, %dx%d -> %dx%d in %.0f ms", path, used, seconds_text(t0),
-                 int(counts.sum()), counts.shape[2], counts.shape[1], image.shape[1], image.shape[0], ms)
+    written = []  # this run's frames: removed again if it does not finish (a full disk, Ctrl-C), as in video mode
+    try:
+        for t0, path in zip(starts, targets, strict=True):
+            if camera:
+                if t0 + window > duration + 1e-6:
+                    raise InputError(f"the window {seconds_text(t0)} s + {window:g} s runs past the end of the "
+                                     f"recording ({seconds_text(duration)} s)")
+                counts, used = window_counts(args.events, t0, window, sensor=args.sensor,
+                                             csv_columns=args.csv_columns), window
+            else:
+                counts, used = counts_from_h5(args.events, t_start_s=t0, window_s=window)
+            tic = time.perf_counter()
+            image = rec.predict(counts, used)
+            ms = 1000 * (time.perf_counter() - tic)
+            times.append(ms)
+            write_png(path, image)
+            written.append(path)
+            log.info("%s: window %.6g s from %s s, %d events, %dx%d -> %dx%d in %.0f ms", path, used,
+                     seconds_text(t0), int(counts.sum()), counts.shape[2], counts.shape[1], image.shape[1],
+                     image.shape[0], ms)
+    except BaseException:  # the first frames alone would look like a finished, shorter series
+        for path in written:
+            path.unlink(missing_ok=True)
+        raise
     if not args.quiet:
         what = targets[0] if len(targets) == 1 else f"{len(targets)} frames {targets[0]} ... {targets[-1]}"
         print(f"wrote {what} ({image.shape[1]}x{image.shape[0]}, window {window:g} s, "

@@ -317,7 +317,7 @@ def _write_outputs(args, fmt, out, png, scene: _Scene, attrs):
     """Run the simulation into the event file (and the PNG); returns the counts ``(2, H, W)``."""
     import numpy as np
 
-    from .._atomic import AtomicFile
+    from .._atomic import AtomicFile, os_error_text
     from ..events import polarity_index
     from ..io import open_event_writer
 
@@ -340,24 +340,27 @@ def _write_outputs(args, fmt, out, png, scene: _Scene, attrs):
                 writer.write(chunk)
             if png is not None:  # written before the event file is renamed: both or neither
                 png_out = AtomicFile(png, what="PNG file")
-                _write_png_file(counts.reshape(2, height, width), png_out.tmp, scene)
+                _write_png_file(counts.reshape(2, height, width), png_out, scene)
         if png_out is not None:
             try:
                 png_out.commit()
             except OSError as exc:
-                raise OutputError(f"cannot write PNG file {png}: {exc}") from None
+                raise OutputError(f"cannot write PNG file {png}: {os_error_text(exc)}") from None
     finally:
         if png_out is not None and not png_out.done:
             png_out.discard()
     return counts.reshape(2, height, width)
 
 
-def _write_png_file(counts, path, scene: _Scene) -> None:
+def _write_png_file(counts, out, scene: _Scene) -> None:
+    """Draw the PNG into the temporary file of ``out`` (an ``AtomicFile``); an error names the final name."""
+    from .._atomic import os_error_text
+
     try:
-        save_count_png(counts, path, lux=scene.lux, duration_s=scene.t_end_us * 1e-6,
+        save_count_png(counts, out.tmp, lux=scene.lux, duration_s=scene.t_end_us * 1e-6,
                        scene_title="first frame" if scene.attrs.get("scene") == "video" else "scene")
-    except OSError as exc:
-        raise OutputError(f"cannot write PNG file {path}: {exc}") from None
+    except OSError as exc:  # its errno's text: str(exc) reads "[Errno 28] ..." and may name the temporary file
+        raise OutputError(f"cannot write PNG file {out.path}: {os_error_text(exc)}") from None
 
 
 def _example_path():

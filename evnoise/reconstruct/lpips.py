@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._atomic import atomic_output
+from .._atomic import atomic_output, os_error_text
 from .._cache import cache_dir
 from ..errors import EvnoiseError, InputError, OutputError
 
@@ -221,7 +221,7 @@ def install_weights(source=None, *, dest=None, url: str | None = None, log=None)
     try:
         dest.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise OutputError(f"cannot write LPIPS weights to {dest}: {exc}") from None
+        raise OutputError(f"cannot write LPIPS weights to {dest}: {os_error_text(exc)}") from None
     with atomic_output(dest, what="LPIPS weights") as tmp:
         with open(tmp, "wb") as fh:
             np.savez(fh, **arrays)

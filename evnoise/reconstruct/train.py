@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._atomic import AtomicFile, refuse_folder_name
+from .._atomic import AtomicFile, os_error_text, refuse_folder_name
 from ..errors import InputError, OutputError, ParameterError
 from .checkpoint import InputSpec, read_checkpoint, save_checkpoint
 from .data import Subset, dataset_sources, item_seed, random_crop, split_by_source
@@ -265,7 +265,7 @@ def plot_history(history: dict, path, *, loss_label: str = "L1 + w (1 - SSIM)") 
         out.commit()
     except OSError as exc:
         out.discard()
-        raise OutputError(f"cannot write {path}: {exc}") from None
+        raise OutputError(f"cannot write plot {path}: {os_error_text(exc)}") from None
     finally:
         plt.close(fig)
     return path
