@@ -59,30 +59,20 @@ def _files(folder) -> list:
 
 # -- the discarded HDF5 file under a file-size limit -------------------------------------------------------------
 @needs_rlimit
-def test_make_dataset_past_a_file_size_limit_exits_2_without_a_crash(tmp_path):
-    """Under ``ulimit -f`` a shard that could not be written was discarded through a memfd, a regular file that the
-    limit binds too: HDF5's last writes failed there, the close failed, and the process crashed at exit (-11 after
-    its clean error line, with h5py tracebacks before it). The folder this run created is gone again."""
-    warm = _cli(tmp_path, [*DATASET, "--out", tmp_path / "warm"])  # compiled kernels cached before the limit
+@pytest.mark.parametrize("command, output, limits", [("make-dataset", "ds", (2_000, 25_600)),
+                                                     ("simulate", "ev.h5", (0, 4_000))])
+def test_an_hdf5_output_past_a_file_size_limit_exits_2_without_a_crash(tmp_path, command, output, limits):
+    """Under ``ulimit -f`` a shard or an events.h5 that could not be written was discarded through a memfd, a
+    regular file that the limit binds too: HDF5's last writes failed there, the close failed, and the process
+    crashed at exit (-11 after its clean error line, with h5py tracebacks before it); with ``ulimit -f 0`` Numba's
+    five-line warning about its semaphore came before the error line. The folder a run created is gone again."""
+    argv = DATASET if command == "make-dataset" else SIMULATE
+    warm = _cli(tmp_path, [*argv, "--out", tmp_path / f"warm-{output}"])  # compiled kernels cached before the limit
     assert warm.returncode == 0, warm.stderr[-3000:]
-    for limit in (2_000, 25_600):
+    for limit in limits:
         work = tmp_path / f"limit-{limit}"
         work.mkdir()
-        proc = _cli(work, [*DATASET, "--out", work / "ds"], limit=limit)
-        _failed_cleanly(proc, "File too large")
-        assert _files(work) == [], (limit, _files(work))
-
-
-@needs_rlimit
-def test_simulate_past_a_file_size_limit_exits_2_without_a_crash_or_numba_warning(tmp_path):
-    """events.h5 crashed the same way at exit (-11); with ``ulimit -f 0`` Numba's five-line warning about its
-    semaphore came before the error line."""
-    warm = _cli(tmp_path, [*SIMULATE, "--out", tmp_path / "warm.h5"])
-    assert warm.returncode == 0, warm.stderr[-3000:]
-    for limit in (0, 4_000):
-        work = tmp_path / f"limit-{limit}"
-        work.mkdir()
-        proc = _cli(work, [*SIMULATE, "--out", work / "ev.h5"], limit=limit)
+        proc = _cli(work, [*argv, "--out", work / output], limit=limit)
         _failed_cleanly(proc, "File too large")
         assert _files(work) == [], (limit, _files(work))
 
