@@ -21,6 +21,7 @@ _OPTIONS = dict(cache=True, nogil=True, error_model="numpy", fastmath=False)
 #: errors of a cache folder without room: the kernel runs uncached (compiled again next time) rather than fail
 _NO_ROOM = {errno.ENOSPC, errno.EFBIG, getattr(errno, "EDQUOT", errno.ENOSPC)}
 _warned = []
+_warned_uncached = []
 
 
 def _room_tolerant_cache(dispatcher):
@@ -47,6 +48,14 @@ def _room_tolerant_cache(dispatcher):
     return dispatcher
 
 
+def _warn_uncached() -> None:
+    """Warn once that the kernels are compiled without an on-disk cache (no folder for it can be written)."""
+    if not _warned_uncached:
+        _warned_uncached.append(True)
+        log.warning("compiled kernels are not cached: no writable cache folder (set NUMBA_CACHE_DIR to a writable "
+                    "folder); they are compiled again on each run")
+
+
 def kernel(func=None, *, parallel: bool = False, inline: bool = False):
     """Compile ``func`` with evnoise's standard Numba options (usable with or without arguments).
 
@@ -56,6 +65,14 @@ def kernel(func=None, *, parallel: bool = False, inline: bool = False):
 
     def wrap(f):
         extra = {"inline": "always"} if inline else {}
-        return _room_tolerant_cache(numba.njit(parallel=parallel, **_OPTIONS, **extra)(f))
+        try:
+            return _room_tolerant_cache(numba.njit(parallel=parallel, **_OPTIONS, **extra)(f))
+        except RuntimeError as exc:
+            if "no locator available" not in str(exc):
+                raise
+        # no writable cache folder (NUMBA_CACHE_DIR, __pycache__ beside the kernels, the user's cache folder):
+        # Numba refuses cache=True when the kernel is defined; compile without a cache rather than fail
+        _warn_uncached()
+        return numba.njit(parallel=parallel, **dict(_OPTIONS, cache=False), **extra)(f)
 
     return wrap(func) if func is not None else wrap

@@ -182,8 +182,9 @@ def _known_failure(exc: BaseException) -> str | None:
     cause; ``None`` for anything else (a bug: the traceback is shown)."""
     cache = _numba_cache_dir(exc)
     if cache is not None:
-        return (f"the cache of compiled kernels is damaged ({type(exc).__name__}: {exc}); delete the folder "
-                f"{cache} (it is rebuilt on the next run, which compiles again) or point NUMBA_CACHE_DIR to an "
+        where = cache if cache == _NUMBA_CACHE_SOMEWHERE else f"the folder {cache}"
+        return (f"the cache of compiled kernels is damaged ({type(exc).__name__}: {exc}); delete "
+                f"{where} (it is rebuilt on the next run, which compiles again) or point NUMBA_CACHE_DIR to an "
                 f"empty folder")
     if isinstance(exc, OSError) and exc.errno in _PATH_ERRNOS and exc.filename is not None:
         # a name the file system refuses, met wherever a path is first looked at (exists(), is_dir(), open())
@@ -197,6 +198,10 @@ def _known_failure(exc: BaseException) -> str | None:
     return None
 
 
+#: where Numba's cache is when the traceback does not name its folder
+_NUMBA_CACHE_SOMEWHERE = "the Numba cache folder (NUMBA_CACHE_DIR, or __pycache__ beside evnoise/_kernels)"
+
+
 def _numba_cache_dir(exc: BaseException):
     """The folder of Numba's on-disk cache when ``exc`` was raised while loading from it, else ``None``."""
     import os
@@ -206,7 +211,7 @@ def _numba_cache_dir(exc: BaseException):
     while tb is not None:
         frame = tb.tb_frame
         if frame.f_code.co_filename.replace(os.sep, "/").endswith("numba/core/caching.py"):
-            found = found or "the Numba cache folder (NUMBA_CACHE_DIR, or __pycache__ beside evnoise/_kernels)"
+            found = found or _NUMBA_CACHE_SOMEWHERE
             owner = frame.f_locals.get("self")
             for attr in ("_cache_path", "cache_path"):
                 path = getattr(owner, attr, None)
