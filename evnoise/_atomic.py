@@ -24,24 +24,23 @@ log = logging.getLogger(__name__)
 _ERRNO_IN_TEXT = re.compile(r"errno = (\d+)|\(os error (\d+)\)")
 
 
-def os_error_text(exc: BaseException) -> str:
-    """An OS error in one line: the ``strerror`` of its errno, also when only the text names it (h5py's
-    texts span lines, name the temporary file and sometimes come as RuntimeError; faery's Rust errors end in
-    "(os error 28)"), else the text squeezed."""
+def errno_of(exc: BaseException) -> int | None:
+    """The errno of an OS error: its own, or the one its text names where the error is not an ``OSError`` or lost
+    its errno (h5py's "errno = 28", faery's Rust errors "(os error 28)"); ``None`` if neither gives one."""
     errno = getattr(exc, "errno", None)
-    if not errno or not isinstance(errno, int):
-        m = _ERRNO_IN_TEXT.search(str(exc))
-        errno = int(m.group(1) or m.group(2)) if m else None
+    if isinstance(errno, int) and errno:
+        return errno
+    m = _ERRNO_IN_TEXT.search(str(exc))
+    return int(m.group(1) or m.group(2)) if m else None
+
+
+def os_error_text(exc: BaseException) -> str:
+    """An error in one line: the ``strerror`` of its errno (:func:`errno_of`: h5py's texts span lines, name the
+    temporary file and sometimes come as RuntimeError; faery's end in "(os error 28)"), else its text squeezed (a
+    library's own failure, e.g. a Rust panic's message)."""
+    errno = errno_of(exc)
     if errno:
         return os.strerror(errno)
-    return " ".join(str(exc).split()) or type(exc).__name__
-
-
-def error_text(exc: BaseException) -> str:
-    """Any error in one line: :func:`os_error_text` for an ``OSError`` or a text that names an errno, else the
-    text squeezed (a library's own failure, e.g. a Rust panic's message)."""
-    if isinstance(exc, OSError) or _ERRNO_IN_TEXT.search(str(exc)):
-        return os_error_text(exc)
     return " ".join(str(exc).split()) or type(exc).__name__
 
 
@@ -118,7 +117,7 @@ class AtomicFile:
             raise
         except catch as exc:
             abort()
-            if isinstance(exc, OSError) or _ERRNO_IN_TEXT.search(str(exc)):
+            if isinstance(exc, OSError) or errno_of(exc):
                 text = os_error_text(exc)  # h5py's texts span lines and name the temporary file
             else:
                 text = " ".join(str(exc).split()) if one_line else str(exc)

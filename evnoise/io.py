@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._atomic import AtomicFile, close_h5_discarding, error_text, os_error_text, refuse_folder_name
+from ._atomic import AtomicFile, close_h5_discarding, os_error_text, refuse_folder_name
 from ._h5 import READ_BLOCK, event_datasets, h5_metadata, open_h5
 from ._version import __version__
 from .errors import EvnoiseError, InputError, OutputError, ParameterError
@@ -603,7 +603,7 @@ class EventFileWriter(_AtomicWriter):
         except BaseException as exc:  # faery's Rust encoders raise PanicException (a BaseException)
             self.abort()
             if not isinstance(exc, (EvnoiseError, KeyboardInterrupt, SystemExit, GeneratorExit)):
-                raise OutputError(f"cannot write {what} {self.path}: {error_text(exc)}") from None
+                raise OutputError(f"cannot write {what} {self.path}: {os_error_text(exc)}") from None
             raise
 
     def _open_encoder(self, extension, attrs: dict):  # pragma: no cover - abstract
@@ -623,7 +623,7 @@ class EventFileWriter(_AtomicWriter):
         except BaseException as exc:
             self.abort()
             if not isinstance(exc, (EvnoiseError, KeyboardInterrupt, SystemExit, GeneratorExit)):
-                raise OutputError(f"writing {self.what} {self.path} failed: {error_text(exc)}") from None
+                raise OutputError(f"writing {self.what} {self.path} failed: {os_error_text(exc)}") from None
             raise
 
     def _write(self, events):

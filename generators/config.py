@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 from evnoise.errors import ParameterError
 from evnoise.params import NoiseParams
+from evnoise.radiometry import FIT_MODES
 
 __all__ = ["PairConfig", "MODES", "COMPRESSIONS", "LEVELS", "parse_range", "parse_windows", "parse_shape"]
 
@@ -30,7 +31,6 @@ LEVELS = 16383
 DEFAULT_PRESET = "evk3-hd"
 #: Largest count a ``uint16`` bin holds; larger binned counts saturate at this value.
 COUNT_MAX = 65535
-_FITS = ("cover", "crop", "resize")
 _ENCODINGS = ("srgb", "gamma2.2", "linear")
 
 
@@ -259,8 +259,8 @@ class PairConfig:
         put("contrast", _range(self.contrast, "contrast", "(gamma exponent)"))
         if self.white_lux is not None:
             put("white_lux", _positive(self.white_lux, "white_lux", "lux"))
-        if self.fit not in _FITS:
-            raise ParameterError(f"fit must be one of {_FITS}, got {self.fit!r}")
+        if self.fit not in FIT_MODES:
+            raise ParameterError(f"fit must be one of {FIT_MODES}, got {self.fit!r}")
         if self.encoding not in _ENCODINGS:
             raise ParameterError(f"encoding must be one of {_ENCODINGS}, got {self.encoding!r}")
         put("clip_invalid", bool(self.clip_invalid))

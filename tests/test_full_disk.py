@@ -284,9 +284,11 @@ def test_reconstruct_step_on_a_full_disk_removes_the_frames_it_wrote(tmp_path, m
 
 # -- the one-line texts --------------------------------------------------------------------------------------------
 def test_error_texts_give_the_errno_words_whatever_the_library():
-    from evnoise._atomic import error_text, os_error_text
+    from evnoise._atomic import errno_of, os_error_text
 
     assert os_error_text(RuntimeError("writing failed: No space left on device (os error 28)")) == os.strerror(28)
-    assert error_text(RuntimeError("File too large (os error 27)")) == os.strerror(27)
-    assert error_text(OSError(errno.ENOSPC, "No space", "/x/.f.tmp")) == os.strerror(errno.ENOSPC)
-    assert error_text(RuntimeError("x must be\n  below 3")) == "x must be below 3"
+    assert os_error_text(RuntimeError("File too large (os error 27)")) == os.strerror(27)
+    assert os_error_text(OSError(errno.ENOSPC, "No space", "/x/.f.tmp")) == os.strerror(errno.ENOSPC)
+    assert os_error_text(RuntimeError("x must be\n  below 3")) == "x must be below 3"
+    assert errno_of(RuntimeError("file write failed: ..., errno = 28, ...")) == 28
+    assert errno_of(RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 123 vs 456")) is None

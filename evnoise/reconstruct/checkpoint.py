@@ -32,7 +32,7 @@ import shutil
 import warnings
 from pathlib import Path
 
-from .._atomic import atomic_output, os_error_text
+from .._atomic import atomic_output, errno_of, os_error_text
 from .._budget import human_bytes
 from .._version import __version__
 from ..errors import InputError, OutputError, ParameterError
@@ -184,7 +184,7 @@ def _save_failure(exc: BaseException, path: Path, tmp: Path, needed: int) -> str
     disk when the folder has no room left for it (torch's zip writer reports a full disk as ``RuntimeError("[enforce
     fail at inline_container.cc:672] . unexpected pos ...")``, with no errno), else torch's words without their
     C++ prefix."""
-    if (isinstance(exc, OSError) and exc.errno) or re.search(r"errno = \d+", str(exc)):
+    if errno_of(exc):
         return os_error_text(exc)
     folder = path.parent
     try:
