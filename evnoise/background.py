@@ -72,6 +72,21 @@ def draw_background(shape, params, rng=None) -> np.ndarray:
     spread by ``hot_pixel_sigma`` past 1e9 events/s, ``hot_pixel_rate_hz``'s own limit, is capped there).
     Draws from ``rng`` only for the terms that are on (spread first, then hot pixels), so turning
     them off leaves every other draw of a run unchanged.
+
+    Parameters
+    ----------
+    shape : (H, W)
+        Sensor size in pixels.
+    params : NoiseParams
+        Model parameters (``leak_sigma``, ``hot_pixel_fraction``, ``hot_pixel_rate_hz``, ``hot_pixel_sigma``),
+        or the name of a preset.
+    rng : numpy.random.Generator, int or None
+        Randomness: a generator (drawn from in place), a seed, or None for fresh entropy.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 array of shape ``(2, H, W)``: the spread factors, then the hot-pixel rates in events/s.
     """
     params = check_params(params)
     gen = as_generator(rng)
@@ -98,8 +113,20 @@ def check_background(background, shape) -> np.ndarray:
 def background_rate(lux, params, *, background=None) -> np.ndarray:
     """Background intensities ``(2, *lux.shape)`` ``[l_on, l_off]`` in events/s (before sharing trials).
 
-    ``background`` (from :func:`draw_background`) gives each pixel's spread factor and hot rate;
-    without it every pixel is at the nominal values (``s = 1``, no hot pixel).
+    Parameters
+    ----------
+    lux : array_like
+        Illuminance at the sensor in lux (finite, ``>= 0``), of any shape.
+    params : NoiseParams
+        Model parameters, or the name of a preset.
+    background : array_like, optional
+        Per-pixel maps ``(2, *lux.shape)`` from :func:`draw_background`: each pixel's spread factor and hot
+        rate; without it every pixel is at the nominal values (``s = 1``, no hot pixel).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 array of shape ``(2, *lux.shape)``: ``l_on`` then ``l_off``, in events/s.
     """
     params = check_params(params)
     lux = check_lux(lux, ndim=None)

@@ -99,7 +99,25 @@ def check_shape(shape) -> tuple:
 
 
 def count_events(events, shape, t_start_us=None, t_end_us=None) -> np.ndarray:
-    """Per-pixel event counts ``(2, H, W)`` int64, ``[ON, OFF]``, for ``t_start_us <= t < t_end_us``."""
+    """Per-pixel event counts ``(2, H, W)`` int64, ``[ON, OFF]``, for ``t_start_us <= t < t_end_us``.
+
+    Parameters
+    ----------
+    events : numpy.ndarray
+        Events (:data:`EVENT_DTYPE`, or any structured array with fields ``t, x, y, p``), sorted by time,
+        with coordinates inside ``shape``.
+    shape : (H, W)
+        Sensor size in pixels.
+    t_start_us : int, optional
+        Start of the counted span in microseconds (included); None: from the first event.
+    t_end_us : int, optional
+        End of the counted span in microseconds (excluded); None: through the last event.
+
+    Returns
+    -------
+    numpy.ndarray
+        int64 array of shape ``(2, H, W)``: ON counts, then OFF counts.
+    """
     height, width = check_shape(shape)
     events = check_events(events, shape)
     t = events["t"]
@@ -111,7 +129,20 @@ def count_events(events, shape, t_start_us=None, t_end_us=None) -> np.ndarray:
 
 
 def merge_events(a, b) -> np.ndarray:
-    """Merge two time-sorted event arrays into one sorted array (stable: ``a`` before ``b`` on ties)."""
+    """Merge two time-sorted event arrays into one sorted array (stable: ``a`` before ``b`` on ties).
+
+    Parameters
+    ----------
+    a : numpy.ndarray
+        First events (:data:`EVENT_DTYPE`), sorted by time; they come first among events of the same time.
+    b : numpy.ndarray
+        Second events (:data:`EVENT_DTYPE`), sorted by time.
+
+    Returns
+    -------
+    numpy.ndarray
+        The ``len(a) + len(b)`` events (:data:`EVENT_DTYPE`), sorted by time.
+    """
     a = check_events(a, name="first events")
     b = check_events(b, name="second events")
     out = np.empty(a.size + b.size, dtype=EVENT_DTYPE)
@@ -127,8 +158,20 @@ def merge_events(a, b) -> np.ndarray:
 def events_to_array(events, *, time_unit: str = "us") -> np.ndarray:
     """Events as an ``N x 4`` float64 array ``[t, x, y, p]`` as v2e / ESIM-style tools use.
 
-    ``time_unit`` is ``"us"`` (integer microseconds stored as float) or ``"s"`` (seconds).
     Polarity stays 1 (ON) / 0 (OFF); use ``2 * p - 1`` for the +1/-1 convention.
+
+    Parameters
+    ----------
+    events : numpy.ndarray
+        Events (:data:`EVENT_DTYPE`), sorted by time.
+    time_unit : {"us", "s"}
+        Unit of the time column: ``"us"`` (integer microseconds stored as float, the default) or ``"s"``
+        (seconds).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 array of shape ``(N, 4)``, columns ``[t, x, y, p]``.
     """
     events = check_events(events)
     out = np.empty((events.size, 4), dtype=np.float64)
@@ -145,7 +188,22 @@ def events_to_array(events, *, time_unit: str = "us") -> np.ndarray:
 
 
 def events_from_array(arr, *, time_unit: str = "us") -> np.ndarray:
-    """Events from an ``N x 4`` array ``[t, x, y, p]`` (p in {0, 1} or {-1, +1}); sorted stably by t."""
+    """Events from an ``N x 4`` array ``[t, x, y, p]`` (p in {0, 1} or {-1, +1}); sorted stably by t.
+
+    Parameters
+    ----------
+    arr : array_like, shape (N, 4)
+        Numeric, finite columns ``[t, x, y, p]``: ``x`` and ``y`` whole numbers in 0 .. 65535, ``p`` 0 / 1 or
+        -1 / +1 (positive is ON).
+    time_unit : {"us", "s"}
+        Unit of the time column: ``"us"`` (microseconds, the default) or ``"s"`` (seconds); times are rounded
+        to whole microseconds.
+
+    Returns
+    -------
+    numpy.ndarray
+        Events (:data:`EVENT_DTYPE`), sorted by time (stable: rows of the same time keep their order).
+    """
     arr = np.asarray(arr)
     if arr.ndim != 2 or arr.shape[1] != 4:
         raise InputError(f"expected an N x 4 array [t, x, y, p], got shape {arr.shape}")

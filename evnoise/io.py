@@ -264,7 +264,15 @@ class EventWriter(_AtomicWriter):
     # -- context manager ---------------------------------------------------------------
     # -- writing -------------------------------------------------------------------------
     def write(self, events) -> None:
-        """Append a chunk of events, sorted by time and not earlier than the previous chunk."""
+        """Append a chunk of events, sorted by time and not earlier than the previous chunk.
+
+        Parameters
+        ----------
+        events : numpy.ndarray
+            Events (:data:`evnoise.EVENT_DTYPE`) on the recording's clock, sorted by time, at or after
+            ``t_offset_us`` and before ``t_end_us`` when given, coordinates inside ``shape``. An empty
+            chunk writes nothing. An invalid chunk raises and removes the unfinished file (as :meth:`abort`).
+        """
         if self._closed:
             raise OutputError(f"event file {self.path} is already closed")
         try:
@@ -403,9 +411,17 @@ def write_events(path, events, shape, attrs=None, *, overwrite: bool = False, co
         Events (:data:`evnoise.EVENT_DTYPE`), sorted by time, ``t >= 0`` microseconds.
     shape : (H, W)
         Sensor size in pixels.
-    attrs, overwrite, compression, t_end_us, t_offset_us
-        As in :class:`EventWriter` (``compression`` and ``t_offset_us`` apply to events.h5 only;
-        by default ``t_offset`` is taken from the first event, so a Unix clock is stored compactly).
+    attrs : dict, optional
+        Attributes stored with the events (``params``, ``seed``, ``source``, ...), as in :class:`EventWriter`.
+    overwrite : bool
+        Replace an existing ``path``; otherwise an existing file is an :class:`~evnoise.OutputError`.
+    compression : {"gzip", "lzf", None}
+        HDF5 filter of an events.h5 file, as in :class:`EventWriter`; the other formats ignore it.
+    t_end_us : int, optional
+        End of the recording in microseconds (exclusive); every event must have ``t < t_end_us``.
+    t_offset_us : int, optional
+        events.h5 only: the ``/t_offset`` stored, as in :class:`EventWriter`; by default it is taken from the
+        first event, so a Unix clock is stored compactly. The other formats ignore it.
 
     Returns
     -------

@@ -573,6 +573,23 @@ def nb_shape(lux, params, duration_s: float, *, method: str = "poisson") -> np.n
     of a pixel drawn from the population (threshold mismatch, background spread, hot pixels);
     a pixel's own count is ``Binomial(M, P)``, ``M = trial_rate_hz * duration_s``. ``inf`` where
     the counts are not over-dispersed (no mismatch); the dead time is ignored here.
+
+    Parameters
+    ----------
+    lux : array_like
+        Illuminance in lux (``>= 0``), any shape.
+    params : NoiseParams or str
+        Parameters or a preset name.
+    duration_s : float
+        Length of the counting window in seconds (``> 0``).
+    method : {"poisson", "gaussian"}
+        Exact closed form or the paper's eq. 3.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 array of shape ``(2, *lux.shape)``, ``[ON, OFF]``: the shape ``r``, ``inf`` where the counts
+        are not over-dispersed (the Poisson limit, which :func:`evnoise.sample_counts` takes as such).
     """
     params = check_params(params)
     lux = check_lux(lux, ndim=None)

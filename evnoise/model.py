@@ -346,9 +346,23 @@ def event_probability(lam, eps, bias=0.0, *, method: str = "poisson") -> np.ndar
     """Per-trial probability that one polarity fires in a static scene.
 
     ``P(log(n + b) - log(n0 + b) > eps)`` for ``n, n0 ~ Poisson(lam)`` i.i.d. (strict inequality).
-    Parameters as in :func:`log_event_probability`; returns a float64 array of the broadcast
-    shape, or a ``numpy.float64`` when every input is a scalar (values that are below the
-    smallest double underflow to 0 without a warning).
+
+    Parameters
+    ----------
+    lam : array_like
+        Mean photon count per trial (dimensionless, ``>= 0``; ``inf`` allowed).
+    eps : array_like
+        Log-intensity contrast threshold (dimensionless, finite, ``> 0``).
+    bias : array_like, optional
+        Photoreceptor bias ``b_pr`` in photons per trial (finite, ``>= 0``; default 0).
+    method : {"poisson", "gaussian"}
+        Exact discrete form or the paper's Gaussian approximation (eq. 3), as in :func:`log_event_probability`.
+
+    Returns
+    -------
+    numpy.ndarray or numpy.float64
+        float64 array of the broadcast shape, or a ``numpy.float64`` when every input is a scalar
+        (values that are below the smallest double underflow to 0 without a warning).
     """
     lam, eps, bias, shape = _check_inputs(lam, eps, bias, method)
     if method == "gaussian":

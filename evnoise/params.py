@@ -188,12 +188,16 @@ class NoiseParams:
         sensors' hot pixels can be Poisson while the ordinary pixels' leak is close to periodic (the quiet-scene
         calibration's ``hot_regularity="on"`` fits both; calibration/README.md).
 
+    Notes
+    -----
     Every field also has an upper limit, where the physics of a pixel ends (:data:`PARAM_LIMITS`:
     thresholds up to 20, photon counts up to 1e12 per trial, background rates up to 1e9/s, times up to
     an hour); a value beyond it raises :class:`~evnoise.ParameterError` naming the limit.
 
-    All the terms after ``eps_sigma`` default to zero (no background, no hot pixels, no
-    photoreceptor lag); with all of them zero the simulators' output is what it was without them.
+    All the terms after ``eps_sigma`` default to off: zero (no background, no hot pixels, no
+    photoreceptor lag, no reset memory), except ``hot_pixel_on_fraction`` (0.5) and ``hot_pixel_regularity``
+    (-1), which only shape the events of hot pixels; with them off the simulators' output is what it was
+    without them.
     """
 
     eps_pos: float = _param("1", "threshold", high=20.0, positive=True, fit_role="core",
@@ -262,7 +266,18 @@ class NoiseParams:
 
     # -- derived quantities -------------------------------------------------------------
     def photons_per_trial(self, lux):
-        """Mean photon count per trial, ``lam = photons_per_lux * (lux + dark_lux)``."""
+        """Mean photon count per trial, ``lam = photons_per_lux * (lux + dark_lux)``.
+
+        Parameters
+        ----------
+        lux : float or array_like
+            Illuminance at the sensor in lux (not checked here).
+
+        Returns
+        -------
+        float or numpy.ndarray
+            ``lam`` of the same shape as ``lux``, photons per trial.
+        """
         return self.photons_per_lux * (lux + self.dark_lux)
 
     @property
@@ -299,17 +314,56 @@ class NoiseParams:
         return int(math.ceil(self.refractory_s * 1e6 - 1e-9))
 
     def replace(self, **changes) -> "NoiseParams":
-        """A copy with some fields changed (validated again)."""
+        """A copy with some fields changed (validated again).
+
+        Parameters
+        ----------
+        **changes
+            New values of fields, by name (``eps_sigma=0.05``); an unknown name is a :class:`TypeError`, an
+            invalid value a :class:`~evnoise.ParameterError`.
+
+        Returns
+        -------
+        NoiseParams
+            The copy; ``self`` is unchanged.
+        """
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict:
+        """Every field by name, as a new dict (what :meth:`from_dict` takes back).
+
+        Returns
+        -------
+        dict
+            ``{field name: float value}``, in field order.
+        """
         return dataclasses.asdict(self)
 
     def to_json(self) -> str:
+        """The fields as a JSON object, keys sorted (how event files store a :class:`NoiseParams` attribute).
+
+        Returns
+        -------
+        str
+            JSON text of :meth:`to_dict`.
+        """
         return json.dumps(self.to_dict(), sort_keys=True)
 
     @classmethod
     def from_dict(cls, data: dict) -> "NoiseParams":
+        """Parameters from a mapping of field names to values (a preset's ``[params]`` table, :meth:`to_dict`).
+
+        Parameters
+        ----------
+        data : Mapping
+            Field names (strings) and their values; every field without a default must be there, and an unknown
+            name is a :class:`~evnoise.ParameterError`.
+
+        Returns
+        -------
+        NoiseParams
+            The validated parameters.
+        """
         if not isinstance(data, collections.abc.Mapping) or not all(isinstance(k, str) for k in data):
             raise ParameterError(f"noise parameters must be a table of names and values, got {_short_repr(data)}")
         fields = {f.name for f in dataclasses.fields(cls)}
@@ -416,6 +470,17 @@ def load_preset(name_or_path) -> NoiseParams:
 
     The file holds a ``[params]`` table with :class:`NoiseParams` fields; other tables
     (``[provenance]``, ``[fit]``) describe where the numbers come from.
+
+    Parameters
+    ----------
+    name_or_path : str or os.PathLike
+        A shipped preset's name (:func:`list_presets`), or the path of a TOML file (a name ending in ``.toml``
+        or an existing path).
+
+    Returns
+    -------
+    NoiseParams
+        The preset's parameters.
     """
     doc = load_preset_document(name_or_path)
     if "params" not in doc or not isinstance(doc["params"], dict):

@@ -105,6 +105,16 @@ def srgb_encode(linear) -> np.ndarray:
 
     ``12.92 V`` for ``V <= 0.0031308``, else ``1.055 V ** (1 / 2.4) - 0.055``: the inverse of
     :func:`srgb_to_linear`.
+
+    Parameters
+    ----------
+    linear : array_like
+        Linear light values, nominally in ``[0, 1]`` (clipped there first), any shape.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 array of the input's shape (0-d for a scalar), sRGB-encoded values in ``[0, 1]``.
     """
     v = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
     out = np.asarray(v * 12.92)  # an array also for a scalar input

@@ -29,6 +29,21 @@ def draw_thresholds(shape, params, rng=None) -> np.ndarray:
     Each pixel's two thresholds are drawn independently from normal distributions with means
     ``eps_pos`` / ``eps_neg`` and standard deviation ``eps_sigma``, truncated to ``> 0``
     (values ``<= 0`` are redrawn). With ``eps_sigma = 0`` the maps are constant.
+
+    Parameters
+    ----------
+    shape : (H, W)
+        Sensor size in pixels.
+    params : NoiseParams or str
+        Parameters (``eps_pos``, ``eps_neg``, ``eps_sigma``) or a preset name.
+    rng : numpy.random.Generator, int or None
+        Randomness: a generator (drawn from in place), a seed, or None for fresh entropy; nothing is drawn
+        when ``eps_sigma = 0``.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 array of shape ``(2, H, W)``: the ON thresholds, then the OFF thresholds.
     """
     params = check_params(params)
     gen = as_generator(rng)
@@ -75,6 +90,11 @@ def expected_rate(lux, params, *, thresholds=None, background=None, mismatch: st
         Per-pixel thresholds ``(2, *lux.shape)`` (e.g. from :func:`draw_thresholds`). Without it
         the nominal thresholds are used; with ``eps_sigma > 0`` the result is then the rate
         of a pixel whose thresholds equal the nominal values, not the population mean.
+    background : array_like, optional
+        Per-pixel background maps ``(2, *lux.shape)`` (``[spread factor, hot rate]``, from
+        :func:`evnoise.draw_background`); without it each pixel has the nominal background
+        (spread factor 1, not hot). The background (leak) adds events as described in
+        :mod:`evnoise.background`.
     mismatch : {"nominal", "mean"}
         ``"nominal"`` (default): the rate of a pixel at the nominal (or the given) thresholds.
         ``"mean"``: the mean rate over the population of pixels whose thresholds are spread by
@@ -82,11 +102,6 @@ def expected_rate(lux, params, *, thresholds=None, background=None, mismatch: st
         trial, beyond within about 1e-10 without dead time and 1e-5 with it: :mod:`evnoise.mismatch`): what a
         measurement averaged over many pixels sees (threshold mismatch, background spread and
         hot pixels). The two agree when ``eps_sigma``, ``leak_sigma`` and ``hot_pixel_fraction`` are 0.
-    background : array_like, optional
-        Per-pixel background maps ``(2, *lux.shape)`` (``[spread factor, hot rate]``, from
-        :func:`evnoise.draw_background`); without it each pixel has the nominal background
-        (spread factor 1, not hot). The background (leak) adds events as described in
-        :mod:`evnoise.background`.
 
     Returns
     -------

@@ -313,8 +313,17 @@ def density_filter(events, shape, *, radius_px: int = 2, window_us: int = 5_000,
         :data:`evnoise.EVENT_DTYPE`, sorted by time.
     shape : (H, W)
         Sensor size in pixels.
-    radius_px, window_us, threshold, lookahead_us, polarity
-        As in :class:`DensityFilter` (pixels, microseconds, events).
+    radius_px : int
+        Half-side of the square neighbourhood in pixels (0 .. 255; 0: the pixel alone), as in
+        :class:`DensityFilter`.
+    window_us : int
+        How far back the time window reaches, in microseconds.
+    threshold : int
+        Minimum number of other events in the neighbourhood and window for an event to be signal (``>= 1``).
+    lookahead_us : int
+        How far forward the time window reaches, in microseconds (0: causal).
+    polarity : {"any", "same"}
+        Count events of both polarities, or only those of the event's own polarity.
 
     Returns
     -------
@@ -356,7 +365,27 @@ def activity_filter(events, shape, *, radius_px: int = 1, window_us: int = 5_000
 
 
 def separate_events(events, shape, method="density", **params):
-    """Split events into ``(signal, noise)`` arrays with a filter (see :class:`Separator`)."""
+    """Split events into ``(signal, noise)`` arrays with a filter (see :class:`Separator`).
+
+    Parameters
+    ----------
+    events : numpy.ndarray
+        :data:`evnoise.EVENT_DTYPE`, sorted by time.
+    shape : (H, W)
+        Sensor size in pixels.
+    method : DensityFilter, ActivityFilter or {"density", "activity"}
+        The filter: a filter object, or a name whose keyword parameters are ``params``.
+    **params
+        Keyword parameters of the named filter (:class:`DensityFilter`, :class:`ActivityFilter`); none with a
+        filter object.
+
+    Returns
+    -------
+    signal : numpy.ndarray
+        The events labelled signal, in their order.
+    noise : numpy.ndarray
+        The events labelled noise, in their order.
+    """
     flt = as_filter(method, **params)
     events = check_events(events, shape)
     is_signal = _run_whole(events, shape, flt)

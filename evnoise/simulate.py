@@ -210,10 +210,38 @@ def iter_events(
 ) -> Iterator[np.ndarray]:
     """Simulate a static scene, yielding time-sorted event arrays window by window.
 
-    Same parameters as :func:`simulate_events`; the concatenation of the yielded arrays is
-    the full, sorted event stream, and memory stays bounded by one window (about a million events or
-    8 per pixel of the scene, whichever is more, at most eight million). Validation happens at the call,
-    before the first window.
+    The concatenation of the yielded arrays is the full, sorted event stream of :func:`simulate_events`, and
+    memory stays bounded by one window (about a million events or 8 per pixel of the scene, whichever is more, at
+    most eight million). Validation happens at the call, before the first window.
+
+    Parameters
+    ----------
+    lux : array_like, shape (H, W)
+        Illuminance at the sensor in lux (finite, ``>= 0``).
+    params : NoiseParams
+        Model parameters.
+    duration_s : float
+        Length of the recording in seconds (``> 0``), as in :func:`simulate_events`.
+    rng : numpy.random.Generator, int or None
+        Randomness; the same seed gives the same events as :func:`simulate_events`.
+    method : {"auto", "renewal", "trials"}
+        Fidelity tier, as in :func:`simulate_events`.
+    thresholds : array_like, optional
+        Per-pixel thresholds ``(2, H, W)``, as in :func:`simulate_events`.
+    background : array_like, optional
+        Per-pixel background maps ``(2, H, W)``, as in :func:`simulate_events`.
+    t_start_us : int
+        Timestamp of the start of the recording in microseconds.
+    threads : int, optional
+        Worker threads (default ``NUMBA_NUM_THREADS`` or the CPU count).
+    progress : bool
+        Show a progress bar (tqdm) in simulated seconds while the windows are made.
+
+    Returns
+    -------
+    EventWindows
+        An iterator of event arrays (:data:`evnoise.EVENT_DTYPE`), each sorted by time, that also gives the
+        expected number of events before the first window is made.
     """
     return _iter_events(lux, params, duration_s, rng, method, thresholds, t_start_us, threads, progress,
                         background=background)
@@ -427,6 +455,8 @@ def simulate_events(
         Timestamp of the start of the recording in microseconds.
     threads : int, optional
         Worker threads (default ``NUMBA_NUM_THREADS`` or the CPU count).
+    progress : bool
+        Show a progress bar (tqdm) in simulated seconds while the events are made.
 
     Returns
     -------
@@ -513,6 +543,36 @@ def iter_video(
     See :func:`simulate_video`. Frames may be any sequence of ``(H, W)`` arrays (read
     lazily, two passes: one to find the static pixels, one to simulate). With
     ``return_labels`` each item is ``(events, is_signal)``.
+
+    Parameters
+    ----------
+    frames_lux : array_like (F, H, W) or sequence of (H, W) arrays
+        Illuminance in lux of each frame (finite, ``>= 0``, all the same shape), at least two frames.
+    timestamps_s : array_like (F,)
+        Time of each frame in seconds, strictly increasing, as in :func:`simulate_video`.
+    params : NoiseParams
+        Model parameters.
+    rng : numpy.random.Generator, int or None
+        Randomness, as in :func:`simulate_events`.
+    method : {"auto", "renewal", "trials"}
+        Fidelity tier, as in :func:`simulate_video`.
+    thresholds : array_like, optional
+        Per-pixel thresholds ``(2, H, W)``, as in :func:`simulate_events`.
+    background : array_like, optional
+        Per-pixel background maps ``(2, H, W)``, as in :func:`simulate_events`.
+    threads : int, optional
+        Worker threads (default ``NUMBA_NUM_THREADS`` or the CPU count).
+    progress : bool
+        Show progress bars (tqdm): while the frames are first read (videos of more than
+        :data:`FRAMES_WITHOUT_BAR` frames) and in simulated seconds while the windows are made.
+    return_labels : bool
+        Yield ``(events, is_signal)`` pairs: a bool array, True for signal events, as in :func:`simulate_video`.
+
+    Returns
+    -------
+    EventWindows
+        An iterator of event arrays (:data:`evnoise.EVENT_DTYPE`) sorted by time (or of ``(events, is_signal)``
+        pairs with ``return_labels``); its ``expected_events`` counts the noise at the first frame's light.
     """
     frames = _FrameSource(frames_lux)
     ts = _check_timestamps(timestamps_s, frames.n)
@@ -574,12 +634,23 @@ def simulate_video(
     timestamps_s : array_like (F,)
         Time of each frame in seconds, strictly increasing. The recording spans
         ``[timestamps_s[0], timestamps_s[-1])``; event timestamps are absolute microseconds.
-    params, rng, thresholds, background, threads
-        As in :func:`simulate_events`.
+    params : NoiseParams
+        Model parameters.
+    rng : numpy.random.Generator, int or None
+        Randomness, as in :func:`simulate_events`.
     method : {"auto", "renewal", "trials"}
         ``"auto"``: renewal tier for pixels that never change, trial tier for the rest;
         ``"trials"``: trial tier everywhere; ``"renewal"``: only valid if nothing changes (and, with reset
         memory whose chains are too many for tables, refused: ``"auto"`` then runs every pixel trial by trial).
+    thresholds : array_like, optional
+        Per-pixel thresholds ``(2, H, W)``, as in :func:`simulate_events`.
+    background : array_like, optional
+        Per-pixel background maps ``(2, H, W)``, as in :func:`simulate_events`.
+    threads : int, optional
+        Worker threads (default ``NUMBA_NUM_THREADS`` or the CPU count).
+    progress : bool
+        Show progress bars (tqdm): while the frames are first read (videos of more than
+        :data:`FRAMES_WITHOUT_BAR` frames) and in simulated seconds while the events are made.
     return_labels : bool
         Also return a bool array, True for *signal* events (threshold crossings of the mean
         level) and False for *noise* events (the photon-count comparison): the ground truth
@@ -868,8 +939,14 @@ def sample_counts(
 
     Parameters
     ----------
-    lux, params, duration_s, rng, thresholds, background, threads
-        As in :func:`simulate_events`.
+    lux : array_like, shape (H, W)
+        Illuminance at the sensor in lux (finite, ``>= 0``).
+    params : NoiseParams
+        Model parameters.
+    duration_s : float
+        Length of the recording in seconds (``> 0``), as in :func:`simulate_events`.
+    rng : numpy.random.Generator, int or None
+        Randomness, as in :func:`simulate_events`.
     distribution : {"exact", "poisson", "negative-binomial"}
         ``"exact"`` (default): the count distribution of the event process itself (trials
         with dead time; counts equal :func:`count_events` of :func:`simulate_events` in
@@ -878,7 +955,15 @@ def sample_counts(
         gamma-Poisson with the expected count as mean and shape ``nb_shape`` (the paper's
         over-dispersed variant; variance ``mu + mu^2 / r``).
     nb_shape : float or array_like, optional
-        Shape ``r > 0`` for ``"negative-binomial"``, broadcastable to ``(2, H, W)``.
+        Shape ``r > 0`` for ``"negative-binomial"``, broadcastable to ``(2, H, W)``; required there and
+        refused with the other distributions. ``inf`` (where :func:`evnoise.calibration.nb_shape` finds no
+        over-dispersion) is the Poisson limit.
+    thresholds : array_like, optional
+        Per-pixel thresholds ``(2, H, W)``, as in :func:`simulate_events`.
+    background : array_like, optional
+        Per-pixel background maps ``(2, H, W)``, as in :func:`simulate_events`.
+    threads : int, optional
+        Worker threads (default ``NUMBA_NUM_THREADS`` or the CPU count).
 
     Returns
     -------
@@ -893,8 +978,8 @@ def sample_counts(
         if nb_shape is None:
             raise ParameterError("distribution='negative-binomial' needs nb_shape (r > 0)")
         r = np.asarray(nb_shape, dtype=np.float64)
-        if not (np.isfinite(r).all() and (r > 0).all()):
-            raise ParameterError(f"nb_shape must be finite and > 0, got {nb_shape!r}")
+        if not (~np.isnan(r) & (r > 0)).all():  # inf: the Poisson limit, as calibration.nb_shape gives it
+            raise ParameterError(f"nb_shape must be > 0 (inf for Poisson), got {nb_shape!r}")
         try:
             r = np.broadcast_to(r, (2, *lux.shape))
         except ValueError:
@@ -942,8 +1027,16 @@ def sample_counts(
     _check_count_means(mean)
     if distribution == "poisson":
         return gen.poisson(mean).astype(np.int64)
-    rate = gen.gamma(r, mean / r)
-    return gen.poisson(rate).astype(np.int64)
+    return _gamma_poisson(gen, mean, r)
+
+
+def _gamma_poisson(gen, mean, r):
+    """Negative-binomial counts of mean ``mean`` and shape ``r`` (gamma-Poisson); ``r = inf`` is the Poisson
+    limit (where a placeholder shape keeps the gamma draw finite)."""
+    limit = np.isinf(r)
+    shape = np.where(limit, 1.0, r)
+    rate = gen.gamma(shape, mean / shape)
+    return gen.poisson(np.where(limit, mean, rate)).astype(np.int64)
 
 
 def _memory_counts(lux, params, key, duration_us, threads, distribution, gen, nb_shape, bg=None, eps=None,
@@ -970,7 +1063,7 @@ def _memory_counts(lux, params, key, duration_us, threads, distribution, gen, nb
     _check_count_means(mean)
     if distribution == "poisson":
         return gen.poisson(mean).astype(np.int64)
-    return gen.poisson(gen.gamma(nb_shape, mean / nb_shape)).astype(np.int64)
+    return _gamma_poisson(gen, mean, nb_shape)
 
 
 # --------------------------------------------------------------------------------------

@@ -113,9 +113,27 @@ class NoiseStream:
     def advance(self, lux, t_end_us: int) -> np.ndarray:
         """Noise events with ``t_us <= t < t_end_us`` under illuminance ``lux`` (H, W), sorted by time.
 
+        Parameters
+        ----------
+        lux : array_like, shape (H, W)
+            Illuminance at the sensor in lux (finite, ``>= 0``), held over the trials that start in the
+            interval; the shape must be the stream's.
+        t_end_us : int
+            End of the interval (excluded), an absolute time in whole microseconds, not before the stream's
+            current time :attr:`t_us` (equal to it: no events, the stream unchanged).
+
+        Returns
+        -------
+        numpy.ndarray
+            Events (:data:`evnoise.EVENT_DTYPE`) of the interval, sorted by time; the stream's current time
+            is then ``t_end_us``.
+
+        Notes
+        -----
         An interval whose events would not fit in memory (``t_end_us`` in another unit than microseconds,
         say) is a :class:`~evnoise.ParameterError` before anything is drawn, and so is a time more than 2**52
-        trials after ``t_start_us`` (143 years at the highest trial rate); the stream is then unchanged."""
+        trials after ``t_start_us`` (143 years at the highest trial rate); the stream is then unchanged.
+        """
         lux = check_lux(lux)
         if lux.shape != self.shape:
             raise InputError(f"lux has shape {lux.shape}, but the stream was made for {self.shape}")

@@ -455,6 +455,45 @@ def test_counts_from_h5_matches_count_events(tmp_path):
     assert full.sum() == events.size and w_all == pytest.approx((events["t"][-1] + 1) * 1e-6)
     with pytest.raises(InputError, match="past the end"):
         counts_from_h5(path, t_start_s=2.5, window_s=1.0)
+    for bad in (0.0, -1.0, float("nan"), "one"):  # a string was a TypeError; the message said "window"
+        with pytest.raises(ev.ParameterError, match="window_s must be"):
+            counts_from_h5(path, window_s=bad)
+
+
+def test_ml_inversion_refuses_a_window_it_cannot_count_in():
+    """``lux`` refused a window <= 0; ``expected_counts`` and ``cramer_rao_std`` gave zeros, inf or NaN for it."""
+    inv = MLInversion(PARAMS, max_lux=MAX_LUX, grid_size=16)
+    for bad in (0.0, -0.5, float("inf"), float("nan")):
+        for call in (lambda w: inv.expected_counts(w), lambda w: inv.cramer_rao_std(1.0, w),
+                     lambda w: inv.lux(np.ones((2, 4, 4)), w)):
+            with pytest.raises(ev.ParameterError, match="window_s must be finite and > 0 seconds"):
+                call(bad)
+
+
+def test_save_pairs_npz_refuses_counts_uint16_would_wrap(tmp_path):
+    """Counts of a dataset that is not a PairList (which checks them) were cast to uint16 unchecked: 70000 was
+    saved as 4464, -1 as 65535."""
+    class Pairs:
+        def __init__(self, counts):
+            self.counts = counts
+
+        def __len__(self):
+            return 1
+
+        def __getitem__(self, i):
+            return {"counts": self.counts, "image": np.zeros((4, 4)), "window_s": 1.0}
+
+    for bad in (70000, -1, 2.5, np.nan):
+        counts = np.zeros((2, 4, 4))
+        counts[0, 1, 1] = bad
+        with pytest.raises(InputError, match="whole numbers in \\[0, 65535\\]"):
+            save_pairs_npz(tmp_path / "p.npz", Pairs(counts))
+        assert not (tmp_path / "p.npz").exists()
+    counts = np.zeros((2, 4, 4), dtype=np.int64)
+    counts[1, 2, 3] = 65535
+    save_pairs_npz(tmp_path / "p.npz", Pairs(counts))
+    with np.load(tmp_path / "p.npz") as saved:
+        assert saved["counts"].dtype == np.uint16 and saved["counts"][0, 1, 2, 3] == 65535
 
 
 @pytest.fixture(scope="module")

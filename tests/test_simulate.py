@@ -218,6 +218,41 @@ def test_sample_counts_poisson_and_negative_binomial():
         assert abs(x.var(ddof=1) - var) <= K * math.sqrt((m4 - var**2) / x.size)
 
 
+def test_negative_binomial_takes_the_poisson_limit_nb_shape_gives():
+    """``calibration.nb_shape`` is ``inf`` where counts are not over-dispersed (no threshold mismatch), and
+    ``sample_counts`` refused any shape that was not finite: its own output could not be passed on."""
+    from evnoise.calibration import nb_shape
+
+    lux = np.full((120, 120), 3.0)
+    duration = 5.0
+    r = nb_shape(lux, PARAMS, duration)
+    assert np.isinf(r).all()
+    counts = ev.sample_counts(lux, PARAMS, duration, rng=3, distribution="negative-binomial", nb_shape=r)
+    mean = ev.expected_rate(lux, PARAMS) * duration
+    for pol in range(2):  # Poisson: mean and variance both mu
+        mu = mean[pol, 0, 0]
+        x = counts[pol].ravel().astype(float)
+        assert abs(x.mean() - mu) <= K * math.sqrt(mu / x.size)
+        assert abs(x.var(ddof=1) - mu) <= K * math.sqrt((mu + 2 * mu**2) / x.size)
+    # mixed: ON at the Poisson limit, OFF over-dispersed (r = 0.5), each with its own variance
+    r = 0.5
+    mixed = ev.sample_counts(lux, PARAMS, duration, rng=4, distribution="negative-binomial",
+                             nb_shape=np.array([np.inf, r])[:, None, None])
+    for pol, var_of in ((0, lambda mu: mu), (1, lambda mu: mu + mu**2 / r)):
+        mu = mean[pol, 0, 0]
+        x = mixed[pol].ravel().astype(float)
+        assert abs(x.mean() - mu) <= K * math.sqrt(var_of(mu) / x.size)
+    x_on, x_off = (mixed[pol].ravel().astype(float) for pol in range(2))
+    mu_on, mu_off = mean[0, 0, 0], mean[1, 0, 0]
+    assert abs(x_on.var(ddof=1) - mu_on) <= K * math.sqrt((mu_on + 2 * mu_on**2) / x_on.size)
+    var = mu_off + mu_off**2 / r
+    m4 = stats.nbinom.stats(r, r / (r + mu_off), moments="k") * var**2 + 3 * var**2
+    assert abs(x_off.var(ddof=1) - var) <= K * math.sqrt((m4 - var**2) / x_off.size)
+    for bad in (np.nan, -np.inf, 0.0):
+        with pytest.raises(ev.ParameterError, match="nb_shape"):
+            ev.sample_counts(lux, PARAMS, duration, distribution="negative-binomial", nb_shape=bad)
+
+
 def test_threshold_mismatch_matches_mixture_prediction():
     params = PARAMS.replace(eps_sigma=0.15)
     shape = (150, 150)

@@ -48,6 +48,19 @@ def _room_tolerant_cache(dispatcher):
     return dispatcher
 
 
+def warnings_given() -> tuple[bool, bool]:
+    """Which of this module's once-per-process warnings this process has given (for :func:`note_warnings_given`)."""
+    return bool(_warned), bool(_warned_uncached)
+
+
+def note_warnings_given(given: tuple[bool, bool]) -> None:
+    """Count the warnings ``given`` by another process as given here: a pool worker started by a process that
+    said them would say each again, once per worker."""
+    for said, store in zip(given, (_warned, _warned_uncached)):
+        if said and not store:
+            store.append(True)
+
+
 def _warn_uncached() -> None:
     """Warn once that the kernels are compiled without an on-disk cache (no folder for it can be written)."""
     if not _warned_uncached:

@@ -45,7 +45,20 @@ def _seconds_to_us(t_s, name: str = "t_frame") -> int:
 
 
 def noise_rows(noise) -> np.ndarray:
-    """evnoise events as ``N x 4`` float64 rows ``[t_s, x, y, p]`` with ``p = +1`` (ON) / ``-1`` (OFF)."""
+    """evnoise events as ``N x 4`` float64 rows ``[t_s, x, y, p]`` with ``p = +1`` (ON) / ``-1`` (OFF).
+
+    Parameters
+    ----------
+    noise : numpy.ndarray
+        Events of :data:`~evnoise.events.EVENT_DTYPE` (``t`` in integer microseconds, ``p`` 1 for ON
+        and 0 for OFF).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 array of shape ``(N, 4)``: time in seconds, ``x``, ``y`` and polarity ``+1`` / ``-1``,
+        in the order of ``noise``.
+    """
     out = np.empty((noise.size, 4), dtype=np.float64)
     out[:, 0] = noise["t"] * 1e-6
     out[:, 1] = noise["x"]
@@ -60,7 +73,25 @@ def merge_rows(signal, noise):
     The signal rows keep their values and their order, whatever it is (an emulator may emit a
     few out of order); each noise row goes after every signal row whose time, or any earlier
     signal row's time, is ``<=`` its own. When the signal rows are sorted by time, so is the
-    result. Returns a float64 ``N x 4`` array, or ``None`` when both are empty.
+    result.
+
+    Parameters
+    ----------
+    signal : array_like or None
+        The emulator's rows ``[t_s, x, y, p]``, shape ``(N, 4)``, or ``None`` for no rows.
+    noise : array_like
+        Noise rows ``[t_s, x, y, p]`` sorted by time (as :func:`noise_rows` makes them); any
+        array with a multiple of 4 values, reshaped to ``(M, 4)``.
+
+    Returns
+    -------
+    numpy.ndarray or None
+        float64 array of shape ``(N + M, 4)``, or ``None`` when both are empty.
+
+    Raises
+    ------
+    InputError
+        If ``signal`` is not an ``N x 4`` array.
     """
     return merge_with_positions(signal, noise)[0]
 
@@ -68,7 +99,22 @@ def merge_rows(signal, noise):
 def merge_with_positions(signal, noise):
     """:func:`merge_rows` and the positions of the noise rows in the result (``(rows, positions)``), so that
     other per-row data (an emulator's own conversion of its rows, labels) can be interleaved the same way
-    with :func:`interleave`."""
+    with :func:`interleave`.
+
+    Parameters
+    ----------
+    signal : array_like or None
+        The emulator's rows ``[t_s, x, y, p]``, shape ``(N, 4)``, or ``None`` for no rows.
+    noise : array_like
+        Noise rows ``[t_s, x, y, p]`` sorted by time, reshaped to ``(M, 4)``.
+
+    Returns
+    -------
+    rows : numpy.ndarray or None
+        The merged float64 rows, shape ``(N + M, 4)``, or ``None`` when both are empty.
+    positions : numpy.ndarray
+        Integer indices, one per noise row in its order, of that row in ``rows``.
+    """
     noise = np.asarray(noise, dtype=np.float64).reshape(-1, 4)
     n_n = noise.shape[0]
     if signal is not None:
@@ -84,7 +130,25 @@ def merge_with_positions(signal, noise):
 
 def interleave(signal, noise, positions, dtype=None):
     """Rows of ``signal`` in their order with the rows of ``noise`` at ``positions`` of the result
-    (first axis; the other axes must agree)."""
+    (first axis; the other axes must agree).
+
+    Parameters
+    ----------
+    signal : array_like
+        Rows that fill the positions not in ``positions``, in their order.
+    noise : array_like
+        Rows placed at ``positions``, one per position.
+    positions : array_like of int
+        Indices into the result, along the first axis, of the ``noise`` rows (as
+        :func:`merge_with_positions` returns them).
+    dtype : numpy.dtype, optional
+        Type of the result; by default the common type of ``signal`` and ``noise``.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``len(signal) + len(noise)`` rows.
+    """
     signal, noise = np.asarray(signal), np.asarray(noise)
     n = signal.shape[0] + noise.shape[0]
     out = np.empty((n, *signal.shape[1:]), dtype=dtype or np.result_type(signal, noise))
@@ -160,7 +224,18 @@ class EmulatorNoise:
             object.__setattr__(self, name, value)
 
     def frame_lux(self, frame) -> np.ndarray:
-        """The illuminance (lux, float64 ``(H, W)``) that the wrapper uses for ``frame``."""
+        """The illuminance (lux, float64 ``(H, W)``) that the wrapper uses for ``frame``.
+
+        Parameters
+        ----------
+        frame : array_like
+            A frame as passed to :meth:`generate_events`; mapped by ``frame_to_lux`` when one was given.
+
+        Returns
+        -------
+        numpy.ndarray
+            Illuminance in lux, float64 of shape ``(H, W)``, checked to be finite and non-negative.
+        """
         lux = frame if self._frame_to_lux is None else self._frame_to_lux(frame)
         return check_lux(lux, name="frame illuminance")
 

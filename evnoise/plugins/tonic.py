@@ -369,7 +369,21 @@ class PhotonNoise:
         return self._as_events(events, t[order], x[order], y[order], on[order], dtype)
 
     def noise(self, events) -> np.ndarray:
-        """The noise events alone that :meth:`__call__` adds to ``events`` (the output's dtype, sorted by t)."""
+        """The noise events alone that :meth:`__call__` adds to ``events`` (the output's dtype, sorted by t).
+
+        Parameters
+        ----------
+        events : numpy.ndarray
+            A tonic sample: 1-D structured array with fields ``x``, ``y``, ``t`` (microseconds) and ``p``,
+            inside ``sensor_size``. It sets the span of the noise and, with an int seed, its randomness.
+
+        Returns
+        -------
+        numpy.ndarray
+            The noise events, in the input's dtype with ``p`` made signed, sorted by ``t``; empty for an
+            empty sample. With an int seed they are the ones :meth:`__call__` adds to the same sample;
+            with a Generator or ``None`` each call draws new ones.
+        """
         events = self._check_events(events)
         dtype = _signed_p(events.dtype)
         if events.size == 0:

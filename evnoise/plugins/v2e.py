@@ -65,7 +65,25 @@ WHITE_GREY = 255.0
 def grey_to_lux(frame, white_lux: float, *, log_input: bool = False) -> np.ndarray:
     """Illuminance (lux, float64) of a v2e luma frame: ``white_lux * grey / 255``.
 
-    ``log_input``: the frame holds ``ln(grey)`` (v2e's ``--hdr`` input) instead of the grey level.
+    Parameters
+    ----------
+    frame : array_like, shape (height, width)
+        Grey levels (white = 255, at least 0), or ``ln(grey)`` with ``log_input``.
+    white_lux : float
+        Illuminance at the sensor of grey level 255, in lux; must be positive.
+    log_input : bool, default False
+        The frame holds ``ln(grey)`` (v2e's ``--hdr`` input, at most 700) instead of the grey level.
+
+    Returns
+    -------
+    numpy.ndarray
+        Illuminance in lux, float64 of the frame's shape.
+
+    Raises
+    ------
+    InputError
+        If the frame is not a finite numeric 2-D array, has a negative grey level, or (with
+        ``log_input``) a value above 700.
     """
     white_lux = check_positive(white_lux, "white_lux", "lux")
     try:
@@ -269,7 +287,27 @@ class PhotonNoise(EmulatorNoise):
                           "evnoise's photon noise is added", UserWarning, stacklevel=stacklevel)
 
     def generate_events(self, new_frame, t_frame):
-        """As :meth:`EmulatorNoise.generate_events`, after checking that v2e's own noise is still off."""
+        """As :meth:`EmulatorNoise.generate_events`, after checking that v2e's own noise is still off.
+
+        Parameters
+        ----------
+        new_frame : array_like, shape (height, width)
+            v2e's luma frame (grey levels, or ``ln(grey)`` with ``log_input``), passed to the emulator unchanged.
+        t_frame : float
+            Its time in seconds.
+
+        Returns
+        -------
+        numpy.ndarray or None
+            float64 ``N x 4`` rows ``[t_s, x, y, p]`` (``p`` = +1 ON, -1 OFF): v2e's rows unchanged and in
+            their order with the noise rows of ``[t_previous, t_frame)`` inserted by time; ``None`` when
+            there are no events (e.g. on the first frame).
+
+        Warns
+        -----
+        UserWarning
+            Once, when v2e's ``shot_noise_rate_hz`` or ``leak_rate_hz`` is above 0.
+        """
         self._check_own_noise(stacklevel=3)
         return super().generate_events(new_frame, t_frame)
 
@@ -291,11 +329,29 @@ class PhotonNoise(EmulatorNoise):
 def noisy_emulator_class(base, params, white_lux, rng=None, **kwargs):
     """A subclass of v2e's ``EventEmulator`` class ``base`` whose instances add evnoise's photon noise.
 
-    Each instance wraps itself in a :class:`PhotonNoise` (``params``, ``white_lux``, ``rng`` and
-    ``kwargs`` as there; ``rng`` an int seed gives every instance the same noise) that calls ``base``'s
-    own ``generate_events``: v2e's code that creates ``EventEmulator(...)`` and uses its attributes
+    Each instance wraps itself in a :class:`PhotonNoise` that calls ``base``'s own
+    ``generate_events``: v2e's code that creates ``EventEmulator(...)`` and uses its attributes
     (``v2e.py``) runs unchanged, with the noise in its events, files and counts. The class keeps the
     wrappers it made in ``made``.
+
+    Parameters
+    ----------
+    base : type
+        v2e's ``EventEmulator`` class (or a class with its interface) to subclass.
+    params : NoiseParams or str
+        Noise model parameters, or a preset name / path (e.g. ``"evk3-hd"``).
+    white_lux : float
+        Illuminance at the sensor of grey level 255, in lux.
+    rng : numpy.random.Generator, int or None
+        Randomness of the noise, given to every instance's :class:`PhotonNoise`: an int seed gives
+        every instance the same noise, a Generator is shared by them.
+    **kwargs
+        Further keyword arguments of :class:`PhotonNoise` (``log_input``, ``threads``).
+
+    Returns
+    -------
+    type
+        The subclass, named ``Noisy`` + ``base``'s name; instances have the wrapper as ``evnoise``.
     """
 
     class NoisyEventEmulator(base):
@@ -329,7 +385,25 @@ def noisy_emulator_class(base, params, white_lux, rng=None, **kwargs):
 def noisy_emulators(params, white_lux, rng=None, **kwargs):
     """Within the block, ``v2ecore.emulator.EventEmulator`` is :func:`noisy_emulator_class` of v2e's class, so code
     that imports the name inside the block, as ``v2e.py`` does, creates emulators that add evnoise's photon noise.
-    Yields the list of the :class:`PhotonNoise` wrappers made."""
+
+    A context manager; v2e's class is put back when the block ends. v2e's ``v2ecore`` must be importable.
+
+    Parameters
+    ----------
+    params : NoiseParams or str
+        Noise model parameters, or a preset name / path (e.g. ``"evk3-hd"``).
+    white_lux : float
+        Illuminance at the sensor of grey level 255, in lux.
+    rng : numpy.random.Generator, int or None
+        Randomness of the noise, as in :func:`noisy_emulator_class`.
+    **kwargs
+        Further keyword arguments of :class:`PhotonNoise` (``log_input``, ``threads``).
+
+    Yields
+    ------
+    list of PhotonNoise
+        The wrappers of the emulators made in the block, filled as they are made.
+    """
     import v2ecore.emulator as emulator_module
 
     original = emulator_module.EventEmulator
@@ -356,7 +430,18 @@ def _find_v2e_script(given):
 def main(argv=None) -> int:
     """``python -m evnoise.plugins.v2e [options] -- <v2e.py arguments>``: v2e.py with evnoise's photon noise.
 
-    ``--seed`` and the check of ``--white-lux`` are the command line's (:mod:`evnoise.cli._options`)."""
+    ``--seed`` and the check of ``--white-lux`` are the command line's (:mod:`evnoise.cli._options`).
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        The command line's arguments without the program name; by default ``sys.argv[1:]``.
+
+    Returns
+    -------
+    int
+        The exit status of v2e.py (0 when it ends normally). Bad options exit through argparse.
+    """
     from ..cli import _options as opt
 
     parser = argparse.ArgumentParser(

@@ -102,10 +102,14 @@ def iter_event_chunks(path, *, sensor=None, t_start=None, t_end=None, csv_column
 
     Parameters
     ----------
-    path, sensor, csv_columns
-        As in :func:`open_events`.
+    path : str or os.PathLike
+        The file, as in :func:`open_events`.
+    sensor : str or (int, int), optional
+        Sensor size ``"WxH"`` or ``(width, height)`` (width first), as in :func:`open_events`.
     t_start, t_end : float, optional
         Time window in seconds on the file's own clock (``t_start <= t < t_end``).
+    csv_columns : str or list of str, optional
+        Column order of a CSV or text file, e.g. ``"x,y,p,t"``, as in :func:`open_events`.
     t_start_us, t_end_us : int, optional
         The same window in integer microseconds (give one form, not both).
 

@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from .._checks import MAX_LUX, check_lux
+from .._checks import MAX_LUX, check_lux, check_positive
 from ..errors import InputError, ParameterError
 from ..params import NoiseParams
 from .imaging import lux_to_display, srgb_decode
@@ -38,7 +38,23 @@ def _check_counts(counts) -> np.ndarray:
 
 
 def count_image(counts, *, target=None, mode: str = "minmax") -> np.ndarray:
-    """The total-count image ``ON + OFF`` mapped to ``[0, 1]`` (see the module docstring)."""
+    """The total-count image ``ON + OFF`` mapped to ``[0, 1]`` (see the module docstring).
+
+    Parameters
+    ----------
+    counts : array_like, shape (2, H, W)
+        ON and OFF counts (finite, >= 0), binned or not.
+    target : array_like, shape (H, W), optional
+        Display-encoded ground truth in ``[0, 1]``; required by ``mode="affine"``, unused otherwise.
+    mode : {"minmax", "affine"}, default "minmax"
+        ``"minmax"`` stretches the total to ``[0, 1]`` (all zeros when it is constant); ``"affine"``
+        fits the least-squares affine map of the total onto ``target`` and clips to ``[0, 1]``.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 image of shape ``(H, W)`` in ``[0, 1]``.
+    """
     total = _check_counts(counts).sum(axis=0)
     if mode == "minmax":
         lo, hi = float(total.min()), float(total.max())
@@ -114,19 +130,46 @@ class MLInversion:
         return self._grids[key]
 
     def expected_counts(self, window_s: float, max_lux: float | None = None) -> np.ndarray:
-        """Mean counts ``(2, G)`` of one bin over the grid."""
+        """Mean counts ``(2, G)`` of one bin over the grid.
+
+        Parameters
+        ----------
+        window_s : float
+            Length of the counting window in seconds.
+        max_lux : float, optional
+            White level in lux of the grid; by default the constructor's ``max_lux``.
+
+        Returns
+        -------
+        numpy.ndarray
+            Expected ON (row 0) and OFF (row 1) counts of a ``binning x binning`` bin at each of the
+            ``G = grid_size`` illuminances of the grid.
+        """
+        window_s = check_positive(window_s, "window_s", "seconds")
         rates = self._grid(self.max_lux if max_lux is None else max_lux)[1]
-        return rates * (self.binning**2 * float(window_s))
+        return rates * (self.binning**2 * window_s)
 
     def lux(self, counts, window_s: float, *, max_lux: float | None = None) -> np.ndarray:
         """Maximum-likelihood illuminance ``(H, W)`` in lux from binned counts ``(2, H, W)``.
 
-        ``max_lux`` overrides the white level (the search range) for this call, e.g. with a
-        dataset whose pairs have their own ``lux_scale``.
+        Parameters
+        ----------
+        counts : array_like, shape (2, H, W)
+            ON and OFF counts of ``binning x binning`` bins (finite, >= 0).
+        window_s : float
+            Length of the counting window in seconds (finite, > 0).
+        max_lux : float, optional
+            White level in lux for this call, overriding the constructor's (the search range), e.g.
+            with a dataset whose pairs have their own ``lux_scale``.
+
+        Returns
+        -------
+        numpy.ndarray
+            float64 illuminance in lux of shape ``(H, W)``, each value a point of the grid in
+            ``[0, max_lux]``.
         """
         c = _check_counts(counts)
-        if not (math.isfinite(window_s) and window_s > 0):
-            raise ParameterError(f"window_s must be finite and > 0 seconds, got {window_s!r}")
+        window_s = check_positive(window_s, "window_s", "seconds")
         white = self.max_lux if max_lux is None else float(max_lux)
         lux_grid = self._grid(white)[0]
         if self.smoothing_sigma > 0:
@@ -147,7 +190,22 @@ class MLInversion:
         return lux_grid[best[inverse.ravel()]].reshape(c.shape[1:])
 
     def display(self, counts, window_s: float, *, max_lux: float | None = None) -> np.ndarray:
-        """Display-encoded estimate in ``[0, 1]`` (same encoding as the dataset targets)."""
+        """Display-encoded estimate in ``[0, 1]`` (same encoding as the dataset targets).
+
+        Parameters
+        ----------
+        counts : array_like, shape (2, H, W)
+            ON and OFF counts of ``binning x binning`` bins (finite, >= 0).
+        window_s : float
+            Length of the counting window in seconds (finite, > 0).
+        max_lux : float, optional
+            White level in lux for this call (search range and encoding); by default the constructor's.
+
+        Returns
+        -------
+        numpy.ndarray
+            float64 image of shape ``(H, W)``: ``srgb_encode(lux / max_lux)`` of :meth:`lux`.
+        """
         white = self.max_lux if max_lux is None else float(max_lux)
         return lux_to_display(self.lux(counts, window_s, max_lux=white), white)
 
@@ -155,12 +213,25 @@ class MLInversion:
 
     def cramer_rao_std(self, lux, window_s: float) -> np.ndarray:
         """Cramér-Rao standard deviation (lux) of the per-bin estimate at ``lux`` (no smoothing; inf where the counts
-        carry no information about the light)."""
+        carry no information about the light).
+
+        Parameters
+        ----------
+        lux : float or array_like
+            Illuminance in lux (finite, >= 0), any shape.
+        window_s : float
+            Length of the counting window in seconds.
+
+        Returns
+        -------
+        numpy.ndarray
+            Standard deviation in lux, of the shape of ``lux`` (at least 1-D: a scalar gives shape ``(1,)``).
+        """
         from ..rates import expected_rate
 
         lux = np.atleast_1d(check_lux(lux, ndim=None))
         h = 1e-4 * np.maximum(lux, 1e-2)
-        scale = self.binning**2 * float(window_s)
+        scale = self.binning**2 * check_positive(window_s, "window_s", "seconds")
         mu = expected_rate(lux, self.params) * scale
         upper, lower = np.minimum(lux + h, MAX_LUX), np.maximum(lux - h, 0)  # within the light evnoise takes
         dmu = (expected_rate(upper, self.params) - expected_rate(lower, self.params)) * scale

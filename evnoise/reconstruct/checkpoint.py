@@ -75,6 +75,9 @@ class InputSpec:
         Default integration window for inference, seconds (the longest window trained on).
     max_lux : float or None
         Illuminance shown as white in the training targets, if known (for the ML baseline).
+    encoding : str
+        Display encoding of the training targets (``"srgb"``: the sRGB transfer function of
+        ``lux / max_lux``); recorded, not checked.
     transform : {"rate", "anscombe"}
         ``"rate"``: ``counts / (window_s * rate_scale_hz)``. ``"anscombe"``: the variance-
         stabilised ``sqrt(counts + 3/8) / sqrt(window_s * rate_scale_hz)`` (Poisson noise of
@@ -154,6 +157,14 @@ class InputSpec:
         return self._ml
 
     def to_dict(self) -> dict:
+        """The specification as plain values (the checkpoint's ``input`` entry).
+
+        Returns
+        -------
+        dict
+            The constructor's keyword arguments by name, ``windows_s`` as a sorted list; :meth:`from_dict`
+            takes it back.
+        """
         return {"binning": self.binning, "rate_scale_hz": self.rate_scale_hz, "polarities": self.polarities,
                 "window_s": self.window_s, "max_lux": self.max_lux, "encoding": self.encoding,
                 "transform": self.transform, "ml_sigma": self.ml_sigma, "params": self.params,
@@ -161,6 +172,26 @@ class InputSpec:
 
     @classmethod
     def from_dict(cls, data: dict) -> "InputSpec":
+        """Rebuild a specification from :meth:`to_dict`'s values, checked as the constructor checks them.
+
+        Parameters
+        ----------
+        data : dict
+            Constructor keyword arguments by name; missing ones take their defaults (a format-1
+            checkpoint's ``input`` entry loads this way).
+
+        Returns
+        -------
+        InputSpec
+            The specification.
+
+        Raises
+        ------
+        ParameterError
+            If a value is out of range.
+        TypeError
+            If ``data`` has a key that is not a constructor argument.
+        """
         return cls(**data)
 
     def __repr__(self):
@@ -229,7 +260,24 @@ def save_checkpoint(path, *, model_config, input_spec: InputSpec, state_dict, tr
 
 
 def read_checkpoint(path) -> dict:
-    """Load a checkpoint dict with ``weights_only=True`` and check that it is one of ours."""
+    """Load a checkpoint dict with ``weights_only=True`` and check that it is one of ours.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The checkpoint file.
+
+    Returns
+    -------
+    dict
+        The checkpoint's entries (see the module docstring), tensors on the CPU.
+
+    Raises
+    ------
+    InputError
+        If the file is missing, is not an evnoise reconstructor checkpoint, has a newer format
+        version, is incomplete or damaged, or declares more data than a model can hold.
+    """
     torch = require_torch()
     path = Path(path)
     if not path.exists():
@@ -380,7 +428,26 @@ def _damaged_entry(doc: dict, torch) -> str:
 def load_model(path, *, which: str = "best"):
     """Build the U-Net of a checkpoint; returns ``(model, input_spec, doc)`` (model in eval mode).
 
-    ``which="last"`` loads the weights of the last epoch instead of the best one.
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The checkpoint file.
+    which : {"best", "last"}, default "best"
+        ``"best"``: the weights of the lowest validation loss; ``"last"``: those of the last epoch
+        (an :class:`~evnoise.errors.InputError` when the checkpoint holds none, e.g. a shipped model).
+
+    Returns
+    -------
+    model : UNet
+        The network on the CPU, in eval mode.
+    input_spec : InputSpec
+        How counts become its input.
+    doc : dict
+        The checkpoint's entries, as :func:`read_checkpoint` returns them.
+
+    Notes
+    -----
+    The checkpoint of an unfinished training run loads, with a warning on the ``evnoise`` logger.
     """
     from .unet import UNet, UNetConfig
 
@@ -433,7 +500,19 @@ def _scores(vals: dict) -> dict:
 
 
 def checkpoint_summary(path) -> dict:
-    """``{label: value}`` about a reconstructor checkpoint, model card first (for ``evnoise info``)."""
+    """``{label: value}`` about a reconstructor checkpoint, model card first (for ``evnoise info``).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The checkpoint file.
+
+    Returns
+    -------
+    dict
+        Labels to plain values (text, numbers, lists, or nested dicts for the training state and the
+        scores); ``None`` where a value was not recorded.
+    """
     doc = read_checkpoint(path)
     model = doc["model"]
     spec = doc["input"]
@@ -493,7 +572,18 @@ def checkpoint_summary(path) -> dict:
 
 
 def describe_checkpoint(path) -> str:
-    """Human-readable lines about a reconstructor checkpoint, its model card included."""
+    """Human-readable lines about a reconstructor checkpoint, its model card included.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The checkpoint file.
+
+    Returns
+    -------
+    str
+        :func:`checkpoint_summary` as ``label: value`` lines, nested entries indented.
+    """
     lines = []
 
     def add(block: dict, indent: str) -> None:

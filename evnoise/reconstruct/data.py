@@ -243,15 +243,34 @@ def _check_npz_members(z, path) -> None:
 
 
 def save_pairs_npz(path, dataset) -> Path:
-    """Write the items of a pair dataset (all of the same size) to a :class:`NpzPairs` file."""
+    """Write the items of a pair dataset (all of the same size) to a :class:`NpzPairs` file.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The ``.npz`` file to write (compressed, atomically; an existing file is replaced).
+    dataset : pair dataset
+        Any object of the pair protocol (module docstring) with at least one item; its ``max_lux``
+        and ``params`` (a :class:`~evnoise.NoiseParams`) are saved when present. Counts are stored as
+        uint16 and images as float32.
+
+    Returns
+    -------
+    pathlib.Path
+        ``path``.
+    """
     items = [dataset[i] for i in range(len(dataset))]
     if not items:
         raise InputError("cannot save an empty dataset")
     shapes = {np.asarray(it["counts"]).shape for it in items}
     if len(shapes) != 1:
         raise InputError(f"all pairs must have the same size to be saved together, got {sorted(shapes)}")
+    counts = np.stack([np.asarray(it["counts"]) for it in items])
+    if not (np.issubdtype(counts.dtype, np.number) and np.all((counts >= 0) & (counts <= np.iinfo(np.uint16).max))
+            and np.array_equal(counts, np.round(counts))):  # uint16 would wrap them (NaN fails the range)
+        raise InputError("counts must be whole numbers in [0, 65535] to be saved as uint16")
     arrays = {
-        "counts": np.stack([np.asarray(it["counts"], dtype=np.uint16) for it in items]),
+        "counts": counts.astype(np.uint16),
         "images": np.stack([np.asarray(it["image"], dtype=np.float32) for it in items]),
         "window_s": np.array([float(it["window_s"]) for it in items]),
         "sources": np.array([str(it.get("source", i)) for i, it in enumerate(items)]),
@@ -396,7 +415,24 @@ class ResampledPairs:
         return np.stack([on, off]).astype(np.int64)
 
     def sample(self, i: int, rng, crop: int | None = None) -> dict:
-        """A fresh pair from image ``i``; with ``crop`` a random ``crop x crop`` (binned) window."""
+        """A fresh pair from image ``i``; with ``crop`` a random ``crop x crop`` (binned) window.
+
+        Parameters
+        ----------
+        i : int
+            Index of the image.
+        rng : numpy.random.Generator
+            Draws the crop's position and the counts.
+        crop : int, optional
+            Side of the window in binned pixels, at most the binned image's height and width; by
+            default the whole image.
+
+        Returns
+        -------
+        dict
+            ``"counts"`` uint16 ``(2, h, w)`` binned ``[ON, OFF]`` counts (capped at 65535), ``"image"``
+            float32 ``(h, w)`` display-encoded target, ``"window_s"`` and ``"source"``.
+        """
         b = self.binning
         target = self._targets[i]
         h, w = target.shape
@@ -453,6 +489,23 @@ def split_by_source(dataset, *, val_fraction: float = 0.15, seed: int = 0):
 
     Sources are ordered by a hash of ``(seed, source)``, so the split is reproducible and does
     not depend on the order of items.
+
+    Parameters
+    ----------
+    dataset : pair dataset
+        Any object of the pair protocol with at least two source ids (see :func:`dataset_sources`).
+    val_fraction : float, default 0.15
+        Fraction of the source images (not of the items) put in the validation set, in ``(0, 1)``;
+        rounded to a whole number of sources, at least one and leaving at least one for training.
+    seed : int, default 0
+        Seed of the hash that orders the sources.
+
+    Returns
+    -------
+    train : list of int
+        Indices of the training items, in order.
+    val : list of int
+        Indices of the validation items, in order.
     """
     if not 0 < val_fraction < 1:
         raise ParameterError(f"val_fraction must be in (0, 1), got {val_fraction!r}")
@@ -491,8 +544,23 @@ def random_crop(item: dict, crop: int, rng) -> dict:
 
 
 def open_pairs(path, split: str = "train", *, verify: bool = True):
-    """Open a pair dataset: a ``.npz`` pairs file, or a folder written by ``evnoise make-dataset`` (``verify``: each
-    shard of the split checked against its SHA-256 in the manifest first, as training and evaluation read them all)."""
+    """Open a pair dataset: a ``.npz`` pairs file, or a folder written by ``evnoise make-dataset``.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A ``.npz`` pairs file (:class:`NpzPairs`) or a dataset folder (:class:`evnoise.generators.PairDataset`).
+    split : {"train", "val", "test"}, default "train"
+        The split of a dataset folder; unused for a ``.npz`` file.
+    verify : bool, default True
+        Check each shard of a folder's split against its SHA-256 in the manifest first, as training
+        and evaluation read them all; unused for a ``.npz`` file.
+
+    Returns
+    -------
+    NpzPairs or evnoise.generators.PairDataset
+        The dataset.
+    """
     path = Path(path)
     if not path.exists():
         raise InputError(f"dataset not found: {path}")

@@ -63,17 +63,25 @@ def evaluate(dataset, model=None, *, params=None, max_lux=None, lpips: bool = Tr
         Test pairs (see :mod:`evnoise.reconstruct.data`).
     model : path or Reconstructor, optional
         Checkpoint of the U-Net (needed for ``"unet"``).
-    params, max_lux : optional
-        Noise model and white level for the ML baseline (default: the dataset's ``params`` and
-        ``max_lux`` attributes, then the checkpoint's ``max_lux``). A pair with a
-        ``"lux_scale"`` (lux of image value 1) uses that instead of ``max_lux``.
-    lpips : bool
+    params : NoiseParams, optional
+        Noise model of the ML baseline (default: the dataset's ``params`` attribute).
+    max_lux : float, optional
+        White level in lux of the ML baseline (default: the dataset's ``max_lux`` attribute, then
+        the checkpoint's ``max_lux``). A pair with a ``"lux_scale"`` (lux of image value 1) uses
+        that instead.
+    lpips : bool, default True
         Also compute LPIPS (needs torch and the installed weights).
-    smoothing_sigma : float or sequence of float
+    methods : sequence of str, default METHODS
+        Which of :data:`METHODS` to run.
+    smoothing_sigma : float or sequence of float, default 0.7
         Gaussian smoothing (binned pixels) of the ML baseline; several values give one row
         each (``"ml-inversion@<sigma>"``).
-    keep_predictions : int
+    max_items : int, optional
+        Evaluate only the first this-many pairs (default: all).
+    keep_predictions : int, default 0
         Keep the outputs of the first this-many pairs (for :func:`comparison_figure`).
+    progress : bool, default False
+        Show a progress bar (needs tqdm).
 
     Returns
     -------
@@ -164,7 +172,20 @@ def evaluate(dataset, model=None, *, params=None, max_lux=None, lpips: bool = Tr
 
 
 def format_table(result: dict, *, title: str | None = None) -> str:
-    """Markdown table of :func:`evaluate`'s result (mean +- standard error)."""
+    """Markdown table of :func:`evaluate`'s result (mean +- standard error).
+
+    Parameters
+    ----------
+    result : dict
+        What :func:`evaluate` returns (its ``"n"`` and ``"metrics"`` are used).
+    title : str, optional
+        A bold heading above the table, followed by the number of pairs.
+
+    Returns
+    -------
+    str
+        The table, one row per method; ``n/a`` where a metric was not computed.
+    """
 
     def cell(v, digits):
         mean, sem = v

@@ -31,6 +31,16 @@ def srgb_decode(display) -> np.ndarray:
     """Inverse of :func:`srgb_encode`: display ``[0, 1]`` -> linear ``[0, 1]`` (clipped first).
 
     :func:`evnoise.radiometry.srgb_to_linear` of the clipped values (the one home of the closed form).
+
+    Parameters
+    ----------
+    display : float or array_like
+        Display-encoded values; clipped to ``[0, 1]``.
+
+    Returns
+    -------
+    numpy.ndarray
+        Linear values in ``[0, 1]``, float64, of the shape of ``display``.
     """
     return srgb_to_linear(np.clip(np.asarray(display, dtype=np.float64), 0.0, 1.0))
 
@@ -40,7 +50,20 @@ def _check_max_lux(max_lux) -> float:
 
 
 def lux_to_display(lux, max_lux) -> np.ndarray:
-    """Display-encoded image ``srgb_encode(lux / max_lux)`` in ``[0, 1]`` (float64)."""
+    """Display-encoded image ``srgb_encode(lux / max_lux)`` in ``[0, 1]`` (float64).
+
+    Parameters
+    ----------
+    lux : float or array_like
+        Illuminance in lux.
+    max_lux : float
+        Illuminance in lux shown as white (> 0).
+
+    Returns
+    -------
+    numpy.ndarray
+        Display-encoded values of the shape of ``lux``.
+    """
     return srgb_encode(np.asarray(lux, dtype=np.float64) / _check_max_lux(max_lux))
 
 
@@ -59,6 +82,23 @@ def bin_counts(counts, binning: int = 2) -> np.ndarray:
     """Sum ``binning x binning`` blocks of counts ``(..., H, W)`` -> ``(..., H // b, W // b)`` int64.
 
     A last row or column that does not fill a whole block is dropped (as a sensor crop would).
+
+    Parameters
+    ----------
+    counts : array_like, shape (..., H, W)
+        Event counts, at least 2-D; converted to int64.
+    binning : int, default 2
+        Side ``b`` of the square blocks, an integer >= 1 (1 keeps the counts as they are).
+
+    Returns
+    -------
+    numpy.ndarray
+        int64 block sums of shape ``(..., H // b, W // b)``.
+
+    Raises
+    ------
+    InputError
+        If ``counts`` has fewer than 2 dimensions or is smaller than one block.
     """
     arr = np.asarray(counts)
     if arr.ndim < 2:
@@ -73,7 +113,23 @@ def bin_mean(image, binning: int = 2) -> np.ndarray:
 
 
 def write_png(path, image, *, overwrite: bool = True) -> Path:
-    """Write a ``[0, 1]`` grayscale image as an 8-bit PNG, atomically (temporary name, then rename)."""
+    """Write a ``[0, 1]`` grayscale image as an 8-bit PNG, atomically (temporary name, then rename).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The PNG file to write; its folder must exist.
+    image : array_like, shape (H, W)
+        Grayscale values; clipped to ``[0, 1]`` (NaN as 0) and rounded to ``0..255``.
+    overwrite : bool, default True
+        Replace an existing file; when False an existing ``path`` is an
+        :class:`~evnoise.errors.OutputError`.
+
+    Returns
+    -------
+    pathlib.Path
+        ``path``.
+    """
     from PIL import Image
 
     path = Path(path)

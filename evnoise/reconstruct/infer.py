@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._checks import check_positive
 from .._clock import seconds_text
 from ..errors import InputError, ParameterError
 from .imaging import bin_counts
@@ -86,6 +87,30 @@ def choose_window(spec, duration_s: float, t_start_s: float = 0.0):
     (the least noisy); a recording shorter than every trained window is used whole, with a
     ``note`` saying so (``note`` is None otherwise): its counts are scaled up to the shortest
     trained window before the model sees them (:meth:`Reconstructor.predict_binned`).
+
+    Parameters
+    ----------
+    spec : InputSpec
+        The model's input specification (its ``windows_s``, else ``window_s``).
+    duration_s : float
+        Length of the recording in seconds (e.g. :func:`h5_duration_s`).
+    t_start_s : float, default 0.0
+        Start of the window in seconds on the recording's clock.
+
+    Returns
+    -------
+    window_s : float
+        The window in seconds; a trained window within :data:`SHORT_WINDOW_SLACK` of the time left
+        is cut to that time.
+    note : str or None
+        A warning when the recording is shorter than every trained window, else None.
+
+    Raises
+    ------
+    ParameterError
+        If the model does not record its training windows.
+    InputError
+        If nothing of the recording is left after ``t_start_s``.
     """
     windows = trained_windows(spec)
     if not windows:
@@ -209,18 +234,34 @@ def h5_duration_s(path) -> float:
 def counts_from_h5(path, *, t_start_s: float = 0.0, window_s: float | None = None):
     """Counts ``(2, H, W)`` ``[ON, OFF]`` of ``[t_start, t_start + window)`` and the window used.
 
-    Without ``window_s`` the window runs to the end of the recording (its stored ``t_end_us``,
-    else the last event). Returns ``(counts, window_s)``. Times are on evnoise's clock (the file's
-    ``/events/t``; a DSEC ``/t_offset`` is checked, not added). The file is read as the readers read
-    it (:mod:`evnoise.readers`: the same checks as ``evnoise info``), and the count maps the sensor size
-    declares are checked against the memory budget before they are allocated.
+    Times are on evnoise's clock (the file's ``/events/t``; a DSEC ``/t_offset`` is checked, not
+    added). The file is read as the readers read it (:mod:`evnoise.readers`: the same checks as
+    ``evnoise info``), and the count maps the sensor size declares are checked against the memory
+    budget before they are allocated.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        An events.h5 file with the sensor's width and height.
+    t_start_s : float, default 0.0
+        Start of the window in seconds (>= 0); rounded to whole microseconds.
+    window_s : float, optional
+        Length of the window in seconds (> 0); it must end within the recording. Without it the
+        window runs to the end of the recording (its stored ``t_end_us``, else just after the last event).
+
+    Returns
+    -------
+    counts : numpy.ndarray
+        Event counts of shape ``(2, H, W)``, ON then OFF, at full sensor resolution.
+    window_s : float
+        The window's length in seconds.
     """
     from ..readers.stats import pixel_counts
 
     if not (math.isfinite(t_start_s) and t_start_s >= 0):
         raise ParameterError(f"t_start_s must be >= 0 seconds, got {t_start_s!r}")
-    if window_s is not None and not (math.isfinite(window_s) and window_s > 0):
-        raise ParameterError(f"window must be > 0 seconds, got {window_s!r}")
+    if window_s is not None:
+        window_s = check_positive(window_s, "window_s", "seconds")
     with _h5_source(path) as src:
         t0 = int(round(t_start_s * 1e6))
         end = _end_us(src)
@@ -293,6 +334,20 @@ class Reconstructor:
     def predict_binned(self, counts, window_s: float) -> np.ndarray:
         """Image ``(h, w)`` in ``[0, 1]`` from counts already binned like the training data.
 
+        Parameters
+        ----------
+        counts : array_like, shape (2, h, w)
+            ON and OFF counts summed over ``binning x binning`` blocks (:attr:`binning`).
+        window_s : float
+            Length of the counting window in seconds.
+
+        Returns
+        -------
+        numpy.ndarray
+            float32 display-encoded image of shape ``(h, w)``, clipped to ``[0, 1]``.
+
+        Notes
+        -----
         A window shorter than every window the model was trained on is shown to it as its counts
         scaled to the shortest trained window ``W`` (``counts * W / window_s`` over ``W``: the same
         rates; :func:`model_window`). Unscaled, the Anscombe input of a pixel without events,
@@ -317,7 +372,20 @@ class Reconstructor:
     def predict(self, counts, window_s: float, *, binning: int | None = None) -> np.ndarray:
         """Image from full-resolution counts ``(2, H, W)``: binned as in training, then the U-Net.
 
-        ``binning``, when given, must equal the model's (a guard for callers that assume one).
+        Parameters
+        ----------
+        counts : array_like, shape (2, H, W)
+            ON and OFF counts at full sensor resolution.
+        window_s : float
+            Length of the counting window in seconds.
+        binning : int, optional
+            When given, must equal the model's binning (a guard for callers that assume one).
+
+        Returns
+        -------
+        numpy.ndarray
+            float32 display-encoded image ``(H // binning, W // binning)`` in ``[0, 1]`` (see
+            :meth:`predict_binned`).
         """
         if binning is not None and binning != self.spec.binning:
             raise ParameterError(

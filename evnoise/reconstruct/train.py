@@ -127,6 +127,13 @@ class TrainConfig:
             raise ParameterError(f"ml_sigma must be >= 0 or None, got {self.ml_sigma!r}")
 
     def to_dict(self) -> dict:
+        """The settings as plain values (the checkpoint's ``train["config"]`` entry).
+
+        Returns
+        -------
+        dict
+            Every field by name; ``TrainConfig(**d)`` rebuilds the configuration.
+        """
         return dataclasses.asdict(self)
 
 

@@ -5,9 +5,10 @@ embedding: :class:`ConvNormAct` (3x3 convolution, GroupNorm, SiLU), :class:`ResB
 them and a residual path), :class:`Downsample` (pixel-unshuffle then 1x1 convolution, so no
 information is thrown away) and :class:`Upsample` (nearest-neighbour then 3x3 convolution).
 
-The network takes ``(N, C, H, W)`` with ``C`` = 2 (ON, OFF rates) or 1 (one polarity) and
-returns ``(N, 1, H, W)``. Inputs whose sides are not multiples of ``2 ** (levels - 1)`` are
-padded (replicate by default) and the output is cropped back, so any size >= 1 works.
+The network takes ``(N, C, H, W)`` with ``C`` = 2 (ON, OFF rates) or 1 (one polarity), one more
+with the ML-estimate channel of :class:`~evnoise.reconstruct.InputSpec`, and returns ``(N, 1, H, W)``.
+Inputs whose sides are not multiples of ``stem * 2 ** (levels - 1)`` are padded (replicate by
+default) and the output is cropped back, so any size >= 1 works.
 """
 
 from __future__ import annotations
@@ -44,7 +45,8 @@ class UNetConfig:
     Parameters
     ----------
     in_channels : int
-        Input channels: 2 for ON and OFF rates, 1 for a single polarity.
+        Input channels: 2 for ON and OFF rates, 1 for a single polarity (one more with the
+        ML-estimate channel).
     out_channels : int
         Output channels (1: a grayscale image).
     base_channels : int
@@ -60,7 +62,8 @@ class UNetConfig:
         (``C`` -> ``4C`` channels at half resolution), the body runs at half resolution and
         the head pixel-shuffles back. Lossless, and about 4x cheaper at full resolution.
     padding : {"replicate", "reflect", "zeros", "none"}
-        How inputs are padded to a multiple of ``2 ** (levels - 1)``; ``"none"`` raises instead.
+        How inputs are padded to a multiple of :attr:`multiple` (``stem * 2 ** (levels - 1)``);
+        ``"none"`` raises instead.
     """
 
     in_channels: int = 2
@@ -125,12 +128,36 @@ class UNetConfig:
         return self.stem * 2 ** (len(self.channel_mults) - 1)
 
     def to_dict(self) -> dict:
+        """The settings as plain values (the checkpoint's ``model`` entry).
+
+        Returns
+        -------
+        dict
+            Every field by name, ``channel_mults`` as a list; :meth:`from_dict` takes it back.
+        """
         d = dataclasses.asdict(self)
         d["channel_mults"] = list(self.channel_mults)
         return d
 
     @classmethod
     def from_dict(cls, data: dict) -> "UNetConfig":
+        """Rebuild a configuration from :meth:`to_dict`'s values, checked as the constructor checks them.
+
+        Parameters
+        ----------
+        data : dict
+            Field values by name; missing fields take their defaults.
+
+        Returns
+        -------
+        UNetConfig
+            The configuration.
+
+        Raises
+        ------
+        ParameterError
+            If ``data`` has a key that is not a field, or a value out of range.
+        """
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = set(data) - names
         if unknown:
@@ -223,7 +250,14 @@ class UNet(nn.Module):
         self.final = nn.Conv2d(widths[0], cfg.out_channels * s * s, 1)
 
     def check_input(self, x):
-        """Raise :class:`~evnoise.InputError` unless ``x`` is a float tensor ``(N, C, H, W)``."""
+        """Raise :class:`~evnoise.InputError` unless ``x`` is a float tensor ``(N, C, H, W)``.
+
+        Parameters
+        ----------
+        x : torch.Tensor
+            The network input: floating point, 4-D, ``C`` = ``config.in_channels``, no side of length
+            0; with padding ``"none"`` its height and width multiples of ``config.multiple``.
+        """
         if not torch.is_tensor(x) or not torch.is_floating_point(x):
             raise InputError("UNet input must be a floating-point torch tensor")
         if x.ndim != 4 or x.shape[1] != self.config.in_channels:
@@ -240,6 +274,18 @@ class UNet(nn.Module):
             )
 
     def forward(self, x):
+        """The image of a batch of inputs (padded to :attr:`UNetConfig.multiple` and cropped back).
+
+        Parameters
+        ----------
+        x : torch.Tensor
+            Float input ``(N, C, H, W)`` (see :meth:`check_input`).
+
+        Returns
+        -------
+        torch.Tensor
+            ``(N, out_channels, H, W)``, not clamped.
+        """
         self.check_input(x)
         h, w = x.shape[-2:]
         m = self.config.multiple
@@ -269,4 +315,11 @@ class UNet(nn.Module):
         return x[..., :h, :w]
 
     def n_parameters(self) -> int:
+        """Number of weights of the network.
+
+        Returns
+        -------
+        int
+            Elements of all its parameter tensors.
+        """
         return sum(p.numel() for p in self.parameters())

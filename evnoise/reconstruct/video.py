@@ -67,16 +67,16 @@ def reconstruct_video(events_h5, model_path, out_dir, *, fps: float, window_s: f
         What a masked step does to a pixel's window (see :data:`ON_MOTION`).
     min_exposure_s : float, optional
         Motion-free time after which a pixel's estimate is refreshed (default: the window).
-    sensor : str or (int, int), optional
-        Sensor size ``"WxH"`` for a recording whose header has none.
-    csv_columns : str, optional
-        Column order of a CSV recording (e.g. ``"x,y,p,t"``).
     binning : int, optional
         Check that the model uses this binning (a guard; a mismatch is a ParameterError).
     t_start_s, t_end_s : float, optional
         Time span in seconds on the recording's clock (default: all of it; see :func:`iter_motion`).
     max_frames : int, optional
         Stop after this many frames.
+    sensor : str or (int, int), optional
+        Sensor size ``"WxH"`` for a recording whose header has none.
+    csv_columns : str, optional
+        Column order of a CSV recording (e.g. ``"x,y,p,t"``).
     overlay : bool
         Also write the overlay PNGs.
     overwrite : bool
