@@ -189,8 +189,35 @@ def rate_table(lux, rate_on_hz, rate_off_hz, *, n_pixels=None, duration_s=None, 
                source: str = "table", grey=None) -> Measurements:
     """Measurements from per-pixel mean rates (events/s) at each illuminance (checked).
 
+    Parameters
+    ----------
+    lux : array_like (J,)
+        Illuminance of each level in lux, ``>= 0`` (strictly increasing unless ``grey`` is given).
+    rate_on_hz, rate_off_hz : float or array_like (J,)
+        Mean per-pixel ON and OFF noise-event rates, events per second, ``>= 0``; a scalar applies to
+        every level. Each polarity needs a rate above zero at some level.
+    n_pixels : int or array_like (J,), optional
+        Number of pixels averaged at each level (whole numbers ``> 0``).
+    duration_s : float or array_like (J,), optional
+        Recording length of each level in seconds (``> 0``).
+    r_on, r_off : array_like (J,), optional
+        Measured negative-binomial shapes ``r`` of the per-pixel ON and OFF counts over ``duration_s``
+        (``> 0``, ``inf`` allowed); both or neither, and they need ``duration_s``.
+    source : str, default "table"
+        Where the numbers come from, for provenance and error messages.
+    grey : array_like (J,), optional
+        Monitor grey levels the ``lux`` values were converted from; when given, the levels must be in
+        strictly increasing grey instead.
+
+    Returns
+    -------
+    Measurements
+        The checked measurements.
+
+    Notes
+    -----
     ``n_pixels`` and ``duration_s`` (scalars or one per level) make the fit a likelihood on
-    counts; ``r_on``/``r_off`` are measured negative-binomial shapes over ``duration_s``.
+    counts; without them uncertainties are scaled by the scatter of the residuals.
     """
     where = source or "table"
     lux = _vector(lux, "lux", where)
@@ -222,7 +249,32 @@ def rate_table(lux, rate_on_hz, rate_off_hz, *, n_pixels=None, duration_s=None, 
 
 def count_table(lux, count_on, count_off, n_pixels, duration_s, *, r_on=None, r_off=None, source: str = "table",
                 grey=None) -> Measurements:
-    """Measurements from total event counts over ``n_pixels`` pixels and ``duration_s`` seconds."""
+    """Measurements from total event counts over ``n_pixels`` pixels and ``duration_s`` seconds.
+
+    Parameters
+    ----------
+    lux : array_like (J,)
+        Illuminance of each level in lux, ``>= 0`` (strictly increasing unless ``grey`` is given).
+    count_on, count_off : array_like (J,)
+        Total number of ON and OFF events of each level over all pixels and the whole duration
+        (whole numbers ``>= 0``).
+    n_pixels : int or array_like (J,)
+        Number of pixels counted at each level (whole numbers ``> 0``).
+    duration_s : float or array_like (J,)
+        Recording length of each level in seconds (``> 0``).
+    r_on, r_off : array_like (J,), optional
+        Measured negative-binomial shapes ``r`` of the per-pixel ON and OFF counts over ``duration_s``;
+        both or neither.
+    source : str, default "table"
+        Where the numbers come from, for provenance and error messages.
+    grey : array_like (J,), optional
+        Monitor grey levels the ``lux`` values were converted from, as in :func:`rate_table`.
+
+    Returns
+    -------
+    Measurements
+        The checked measurements, counts turned into per-pixel rates.
+    """
     where = source or "table"
     lux_v = _vector(lux, "lux", where)
     j = lux_v.size
@@ -253,6 +305,17 @@ def flat_field(lux, pixel_counts, duration_s, *, pixel_ids=None, source: str = "
     pixel_ids : sequence of J integer arrays, optional
         Sensor-pixel identifier of each counted pixel (same pixel, same id at every level);
         default: position in the array, i.e. the same pixels at every level.
+    source : str, default "flat fields"
+        Where the counts come from (file names), for provenance and error messages.
+    grey : array_like (J,), optional
+        Monitor grey levels the ``lux`` values were converted from; when given, the levels must be in
+        strictly increasing grey instead of lux.
+
+    Returns
+    -------
+    Measurements
+        Level means and the moment estimate of the negative-binomial shape, with the per-pixel counts
+        and pixel ids kept.
     """
     where = source or "flat fields"
     lux = _vector(lux, "lux", where)
@@ -355,7 +418,18 @@ def _column(path, header, body, name, *, required=True):
 
 
 def read_monitor_table(path) -> MonitorTable:
-    """Read a ``grey, lux`` CSV (grey strictly increasing, lux finite, >= 0 and non-decreasing)."""
+    """Read a ``grey, lux`` CSV (grey strictly increasing, lux finite, >= 0 and non-decreasing).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The CSV file, with columns ``grey`` and ``lux`` and at least two rows.
+
+    Returns
+    -------
+    MonitorTable
+        The table, its ``source`` the file's path.
+    """
     path = Path(path)
     header, body = _read_csv_rows(path)
     grey = _column(path, header, body, "grey")
@@ -380,10 +454,24 @@ def read_monitor_table(path) -> MonitorTable:
 def grey_to_lux(grey, table: MonitorTable, *, model: str = "interp", gamma: float = 2.2) -> np.ndarray:
     """Illuminance in lux of monitor grey levels.
 
-    ``model="interp"``: piecewise-linear interpolation in the linear intensity ``grey^gamma``
-    between the table's points (no extrapolation). ``model="gamma"``: the least-squares line
-    ``lux = a grey^gamma + c`` through the table (the Noise2Image authors' mapping; values
-    below 0 are an error).
+    Parameters
+    ----------
+    grey : float or array_like
+        Grey levels to convert (finite, ``>= 0``).
+    table : MonitorTable
+        Measured illuminance at the camera for some grey levels.
+    model : {"interp", "gamma"}, default "interp"
+        ``"interp"``: piecewise-linear interpolation in the linear intensity ``grey^gamma``
+        between the table's points (no extrapolation: a grey level outside the table is an error).
+        ``"gamma"``: the least-squares line ``lux = a grey^gamma + c`` through the table (the
+        Noise2Image authors' mapping; values below 0 are an error).
+    gamma : float, default 2.2
+        The monitor's gamma (finite, ``> 0``).
+
+    Returns
+    -------
+    numpy.ndarray
+        Illuminance in lux, one per grey level (1-D, also for a scalar ``grey``).
     """
     g = _vector(np.atleast_1d(grey), "grey", "grey levels")
     if not (isinstance(gamma, (int, float)) and math.isfinite(gamma) and gamma > 0):
@@ -426,7 +514,22 @@ def _levels_from(path, header, body, monitor, monitor_model):
 # files
 # --------------------------------------------------------------------------------------
 def read_rate_table(path, *, monitor: MonitorTable | None = None, monitor_model: str = "interp") -> Measurements:
-    """Read a rate table (CSV; schema in the module docstring)."""
+    """Read a rate table (CSV; schema in the module docstring).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The CSV file.
+    monitor : MonitorTable, optional
+        Converts a ``grey`` column to lux; required when the levels are given as grey.
+    monitor_model : {"interp", "gamma"}, default "interp"
+        How grey levels are converted, as in :func:`grey_to_lux`.
+
+    Returns
+    -------
+    Measurements
+        The table's measurements (from rates, or from counts when it has ``count_on, count_off`` columns).
+    """
     path = Path(path)
     header, body = _read_csv_rows(path)
     lux, grey = _levels_from(path, header, body, monitor, monitor_model)
@@ -500,7 +603,25 @@ def _num(e, key, where):
 
 def read_flat_fields(path, *, monitor: MonitorTable | None = None, monitor_model: str = "interp",
                      progress: bool = False) -> Measurements:
-    """Per-pixel counts from a flat-field listing (TOML or CSV; schema in the module docstring)."""
+    """Per-pixel counts from a flat-field listing (TOML or CSV; schema in the module docstring).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The listing, TOML (``[[level]]`` tables) if its suffix is ``.toml``, otherwise CSV.
+        Relative file names in it are relative to its folder.
+    monitor : MonitorTable, optional
+        Converts ``grey`` levels to lux; required when the levels are given as grey.
+    monitor_model : {"interp", "gamma"}, default "interp"
+        How grey levels are converted, as in :func:`grey_to_lux`.
+    progress : bool, default False
+        Show a progress bar over the recordings read.
+
+    Returns
+    -------
+    Measurements
+        Flat-field measurements, as from :func:`flat_field`.
+    """
     from evnoise.events import count_events
     from evnoise.io import read_events
 
@@ -584,7 +705,23 @@ def read_flat_fields(path, *, monitor: MonitorTable | None = None, monitor_model
 def read_measurements(path, *, monitor=None, monitor_model: str = "interp", progress: bool = False) -> Measurements:
     """Read a rate table or a flat-field listing (told apart by a ``file`` column / ``[[level]]``).
 
-    ``monitor`` is a :class:`MonitorTable` or the path of a ``grey, lux`` CSV.
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A rate table (CSV) or a flat-field listing (TOML, or CSV with a ``file`` column). An
+        events.h5 file, a camera recording or an image is refused with a message saying what to give.
+    monitor : MonitorTable or str or os.PathLike, optional
+        A monitor table, or the path of a ``grey, lux`` CSV read with :func:`read_monitor_table`;
+        required when the levels are given as grey.
+    monitor_model : {"interp", "gamma"}, default "interp"
+        How grey levels are converted, as in :func:`grey_to_lux`.
+    progress : bool, default False
+        Show a progress bar while a flat-field listing's recordings are read.
+
+    Returns
+    -------
+    Measurements
+        The measurements read.
     """
     path = check_input_file(path, missing="measurements", kind="a table or a listing file")
     if monitor is not None and not isinstance(monitor, MonitorTable):

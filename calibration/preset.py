@@ -106,7 +106,27 @@ def result_to_toml(result, *, extra_provenance: dict | None = None, header: str 
 
 
 def write_text_atomic(path, text: str, *, overwrite: bool = False) -> Path:
-    """Write a preset ``text`` to ``path`` through a temporary file and a rename (never half-written)."""
+    """Write a preset ``text`` to ``path`` through a temporary file and a rename (never half-written).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file to write; its folder must exist.
+    text : str
+        The preset's TOML text, written as UTF-8.
+    overwrite : bool, default False
+        Replace an existing file; otherwise an existing ``path`` is an error.
+
+    Returns
+    -------
+    pathlib.Path
+        The path written.
+
+    Raises
+    ------
+    evnoise.OutputError
+        When the folder does not exist, ``path`` exists and ``overwrite`` is false, or the write fails.
+    """
     from evnoise._atomic import write_text_atomic as _write
 
     return _write(path, text, overwrite=overwrite, what="preset")

@@ -327,6 +327,18 @@ class PairConfig:
         return self.crops_per_image * len(self.windows_s)
 
     def replace(self, **changes) -> "PairConfig":
+        """A copy with some options changed (checked again, as a new configuration).
+
+        Parameters
+        ----------
+        **changes
+            New values of options, by name (the class's parameters).
+
+        Returns
+        -------
+        PairConfig
+            The new configuration.
+        """
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict:
@@ -343,6 +355,19 @@ class PairConfig:
 
     @classmethod
     def from_dict(cls, data: dict) -> "PairConfig":
+        """The configuration a dict describes, e.g. one written by :meth:`to_dict` (a manifest's ``config``).
+
+        Parameters
+        ----------
+        data : dict
+            Options by name, in plain JSON types (lists for tuples); ``params``, if present, is a dict of
+            model parameters read with :meth:`evnoise.NoiseParams.from_dict`. An unknown name is an error.
+
+        Returns
+        -------
+        PairConfig
+            The configuration, checked.
+        """
         data = dict(data)
         params = data.pop("params", None)
         names = {f.name for f in dataclasses.fields(cls)}

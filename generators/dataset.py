@@ -219,7 +219,23 @@ def _assign_splits(ids: list, fractions) -> dict:
 
 
 def plan_dataset(sources, config: PairConfig) -> Plan:
-    """The split and shard plan of a job (``config.seed`` must be set)."""
+    """The split and shard plan of a job (``config.seed`` must be set).
+
+    Lists the sources' items without loading any image; nothing is written.
+
+    Parameters
+    ----------
+    sources : source, path, or list of them
+        Scene sources, as in :func:`make_dataset`; item ids must be unique across them.
+    config : PairConfig
+        Dataset options, with ``seed`` set.
+
+    Returns
+    -------
+    Plan
+        The configuration, the sources, the shards of each split with their items, the number of sources
+        per split, and the job's fingerprint.
+    """
     if config.seed is None:
         raise ParameterError("plan_dataset needs a config with a seed")
     sources = resolve_sources(sources)
@@ -422,6 +438,7 @@ def make_dataset(sources, out_dir, config: PairConfig | None = None, *, workers:
     Returns
     -------
     DatasetResult
+        The dataset's folder and manifest, the shards made and reused, the sources skipped, and timings.
 
     Raises
     ------
@@ -878,7 +895,25 @@ def _manifest_problem(m: dict) -> str | None:
 
 
 def load_manifest(path) -> tuple:
-    """``(root, manifest)`` of a dataset folder (or its ``manifest.json``); InputError if incomplete."""
+    """``(root, manifest)`` of a dataset folder (or its ``manifest.json``); InputError if incomplete.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The dataset's folder, or its ``manifest.json``.
+
+    Returns
+    -------
+    root : pathlib.Path
+        The dataset's folder.
+    manifest : dict
+        The manifest, checked (format, version, shard records; every file it names lies in ``root``).
+
+    Raises
+    ------
+    InputError
+        No dataset there, an incomplete one (an interrupted run), or a damaged or newer manifest.
+    """
     path = Path(path)
     root = path.parent if path.name == MANIFEST and path.is_file() else path
     if not root.is_dir():

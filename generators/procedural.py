@@ -86,6 +86,13 @@ class DeadLeavesModel:
             raise ParameterError(f"max_leaves must be >= 1, got {self.max_leaves}")
 
     def to_dict(self) -> dict:
+        """The model's parameters in plain JSON types (``DeadLeavesModel(**d)`` rebuilds it, ``blur_px`` as a tuple).
+
+        Returns
+        -------
+        dict
+            Each field by name; ``blur_px`` as a list ``[low, high]``.
+        """
         return {"r_min": self.r_min, "r_max": self.r_max, "exponent": self.exponent,
                 "texture_fraction": self.texture_fraction, "texture_amplitude": self.texture_amplitude,
                 "shading": self.shading, "illumination": self.illumination, "blur_px": list(self.blur_px),

@@ -208,7 +208,25 @@ class PairDataset:
 
     # -- items -----------------------------------------------------------------------------
     def locate(self, i: int) -> tuple:
-        """``(shard file, row)`` of item ``i``."""
+        """``(shard, row)`` of item ``i``: the index of its shard in the split and its row there.
+
+        Parameters
+        ----------
+        i : int
+            Index of the pair in the split; negative counts from the end.
+
+        Returns
+        -------
+        tuple of (int, int)
+            The shard's index in the split's order and the pair's row in that shard.
+
+        Raises
+        ------
+        TypeError
+            ``i`` is not an integer (a bool is not one).
+        IndexError
+            ``i`` is out of range.
+        """
         n = len(self)
         if isinstance(i, (bool, np.bool_)) or not isinstance(i, (int, np.integer)):
             raise TypeError(f"PairDataset indices must be integers, got {type(i).__name__}")

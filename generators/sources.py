@@ -96,14 +96,55 @@ class FolderSource:
         object.__setattr__(self, "path", os.fspath(Path(self.path).resolve()))
 
     def items(self) -> list:
+        """The item ids: names of the folder's image files, sorted naturally.
+
+        Returns
+        -------
+        list of str
+            File names (not hidden, known image extension).
+
+        Raises
+        ------
+        InputError
+            The folder does not exist, cannot be listed or holds no image file.
+        """
         from evnoise.radiometry import list_frames
 
         return [p.name for p in list_frames(self.path)]
 
     def load(self, item_id: str, ctx: LoadContext):
+        """Relative linear luminance of one image file of the folder.
+
+        Parameters
+        ----------
+        item_id : str
+            The file's name in the folder, one of :meth:`items`.
+        ctx : LoadContext
+            Its ``encoding`` decodes display-referred files; with ``clip_invalid`` NaN, infinite or
+            negative pixels are clipped rather than refused.
+
+        Returns
+        -------
+        Y : numpy.ndarray
+            Relative linear luminance, float64 ``(H, W)`` at the file's size.
+        kind : str
+            ``"display"`` (full-scale white is ``Y = 1``) or ``"linear"`` (scaled by ``lux_scale``).
+
+        Raises
+        ------
+        InputError
+            The file cannot be read or holds invalid pixels (without ``clip_invalid``).
+        """
         return _load_file(Path(self.path) / item_id, ctx)
 
     def spec(self) -> dict:
+        """What the manifest records of the source (:func:`source_from_spec` rebuilds it).
+
+        Returns
+        -------
+        dict
+            ``{"kind": "folder", "path": ...}``, the folder's absolute path.
+        """
         return {"kind": self.kind, "path": self.path}
 
 
@@ -135,15 +176,51 @@ class FilesSource:
         object.__setattr__(self, "paths", paths)
 
     def items(self) -> list:
+        """The item ids: the files' names, in the order given.
+
+        Returns
+        -------
+        list of str
+            File names (without their folders).
+        """
         return [Path(p).name for p in self.paths]
 
     def load(self, item_id: str, ctx: LoadContext):
+        """Relative linear luminance of one of the files.
+
+        Parameters
+        ----------
+        item_id : str
+            The file's name, one of :meth:`items`.
+        ctx : LoadContext
+            Its ``encoding`` decodes display-referred files; with ``clip_invalid`` NaN, infinite or
+            negative pixels are clipped rather than refused.
+
+        Returns
+        -------
+        Y : numpy.ndarray
+            Relative linear luminance, float64 ``(H, W)`` at the file's size.
+        kind : str
+            ``"display"`` (full-scale white is ``Y = 1``) or ``"linear"`` (scaled by ``lux_scale``).
+
+        Raises
+        ------
+        InputError
+            No file of that name in the source, or the file cannot be read or holds invalid pixels.
+        """
         for p in self.paths:
             if Path(p).name == item_id:
                 return _load_file(p, ctx)
         raise InputError(f"no file {item_id!r} in this source")
 
     def spec(self) -> dict:
+        """What the manifest records of the source (:func:`source_from_spec` rebuilds it).
+
+        Returns
+        -------
+        dict
+            ``{"kind": "files", "paths": [...]}``, the files' absolute paths.
+        """
         return {"kind": self.kind, "paths": list(self.paths)}
 
 
@@ -204,6 +281,19 @@ class PackagePhotos:
         return root / PACKAGE_PHOTOS[package][0] / name
 
     def items(self) -> list:
+        """The item ids ``"<package>/<file>"`` of the photos present in the installed packages.
+
+        Returns
+        -------
+        list of str
+            Ids in the order of ``packages`` and of :data:`PACKAGE_PHOTOS`; packages not installed are
+            passed over.
+
+        Raises
+        ------
+        InputError
+            None of the packages holds any of the photos.
+        """
         out = []
         for package in self.packages:
             root = _package_dir(package)
@@ -217,6 +307,28 @@ class PackagePhotos:
         return out
 
     def load(self, item_id: str, ctx: LoadContext):
+        """Relative linear luminance of one package photo.
+
+        Parameters
+        ----------
+        item_id : str
+            ``"<package>/<file>"``, one of :meth:`items`.
+        ctx : LoadContext
+            Its ``encoding`` decodes the photo (all are display-referred, 8 bits); with ``clip_invalid``
+            invalid pixels are clipped rather than refused.
+
+        Returns
+        -------
+        Y : numpy.ndarray
+            Relative linear luminance, float64 ``(H, W)`` at the photo's size.
+        kind : str
+            ``"display"`` (full-scale white is ``Y = 1``).
+
+        Raises
+        ------
+        InputError
+            Not one of this source's photos, its package is not installed, or the file cannot be read.
+        """
         path = self._path(item_id)
         if path.suffix == ".npz":
             from evnoise.radiometry import to_luminance
@@ -232,6 +344,13 @@ class PackagePhotos:
         return _load_file(path, ctx)
 
     def spec(self) -> dict:
+        """What the manifest records of the source (:func:`source_from_spec` rebuilds it).
+
+        Returns
+        -------
+        dict
+            ``{"kind": "package-photos", "packages": [...]}``.
+        """
         return {"kind": self.kind, "packages": list(self.packages)}
 
 
@@ -261,9 +380,34 @@ class DeadLeaves:
         object.__setattr__(self, "count", int(self.count))
 
     def items(self) -> list:
+        """The item ids ``"dead-leaves/000000"`` to ``"dead-leaves/<count - 1>"`` (six digits).
+
+        Returns
+        -------
+        list of str
+            ``count`` ids.
+        """
         return [f"dead-leaves/{k:06d}" for k in range(self.count)]
 
     def load(self, item_id: str, ctx: LoadContext):
+        """Make one dead-leaves image at the sensor size.
+
+        Parameters
+        ----------
+        item_id : str
+            The image's id, one of :meth:`items`; with ``ctx.seed`` it fixes the random draws.
+        ctx : LoadContext
+            Its ``sensor_shape`` is the image's size and its ``seed`` the global seed; ``encoding`` and
+            ``clip_invalid`` are not used.
+
+        Returns
+        -------
+        Y : numpy.ndarray
+            Relative linear luminance, float64 ``(H, W)`` in ``[0, 1]``: the model's display image
+            decoded with :func:`evnoise.radiometry.srgb_to_linear` (whatever ``ctx.encoding``).
+        kind : str
+            ``"display"`` (full-scale white is ``Y = 1``).
+        """
         from evnoise.radiometry import srgb_to_linear
 
         from .pairs import source_generator
@@ -273,6 +417,14 @@ class DeadLeaves:
         return srgb_to_linear(display), "display"
 
     def spec(self) -> dict:
+        """What the manifest records of the source (:func:`source_from_spec` rebuilds it).
+
+        Returns
+        -------
+        dict
+            ``{"kind": "dead-leaves", "count": ..., "model": {...}}``, the model as
+            :meth:`DeadLeavesModel.to_dict` gives it.
+        """
         return {"kind": self.kind, "count": self.count, "model": self.model.to_dict()}
 
 

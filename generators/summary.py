@@ -34,7 +34,22 @@ def is_dataset(path) -> bool:
 
 
 def summarise_dataset(path, *, sanity: bool = True) -> dict:
-    """``{label: value}`` for ``evnoise info`` (plain JSON types, display order)."""
+    """``{label: value}`` for ``evnoise info`` (plain JSON types, display order).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The dataset's folder, or its ``manifest.json``.
+    sanity : bool, default True
+        Also compare measured noise rates in flat regions of some pairs with the model's (reads
+        pairs from the shards); skipped for a dataset without pairs.
+
+    Returns
+    -------
+    dict
+        Layout, size, pair shapes, splits, skipped sources, configuration, parameters and, with
+        ``sanity``, the rate comparison per lux bin.
+    """
     from .dataset import load_manifest
 
     root, m = load_manifest(path)

@@ -134,7 +134,21 @@ def _times(observed: float, mean: float) -> str:
 
 def check_verdict(check: dict, *, p: float = CHECK_P) -> str:
     """``"passed (p = 0.41 >= 0.001)"``, ``"FAILED (p = 8e-05 < 0.001)"``, ``"information (p = ...)"`` or
-    ``"not testable"``: the p-value always with the threshold it is compared with."""
+    ``"not testable"``: the p-value always with the threshold it is compared with.
+
+    Parameters
+    ----------
+    check : dict
+        One check's dict (module doc): its ``p_value``, ``assumption`` and, where present, ``testable``
+        are read.
+    p : float, default CHECK_P
+        Threshold below which an assumption check fails.
+
+    Returns
+    -------
+    str
+        The verdict in words.
+    """
     if check.get("testable") is False:
         return "not testable"
     pv = check["p_value"]
@@ -456,5 +470,18 @@ def window_checks(events: np.ndarray, counts: np.ndarray, t_start_us: int, durat
 
 
 def failed_checks(checks: list, *, p: float = CHECK_P) -> list:
-    """The assumption checks (not the information ones) whose p-value is below ``p``."""
+    """The assumption checks (not the information ones) whose p-value is below ``p``.
+
+    Parameters
+    ----------
+    checks : list of dict
+        Check dicts (module doc), e.g. from :func:`window_checks`; those marked ``testable: False`` never fail.
+    p : float, default CHECK_P
+        Threshold below which a check fails.
+
+    Returns
+    -------
+    list of dict
+        The failed checks, in the order given.
+    """
     return [c for c in checks if c["assumption"] and c.get("testable", True) and c["p_value"] < p]

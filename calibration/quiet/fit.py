@@ -877,7 +877,29 @@ def _rejections(goodness, windows, timing=()) -> list:
 # --------------------------------------------------------------------------------------
 def preset_toml(params, *, sensor: tuple, header: str, provenance: dict, fit: QuietFit | None = None,
                 validation: list | None = None) -> str:
-    """A preset document: header comment, ``[sensor]``, ``[params]``, ``[provenance]``, ``[fit]``, validation."""
+    """A preset document: header comment, ``[sensor]``, ``[params]``, ``[provenance]``, ``[fit]``, validation.
+
+    Parameters
+    ----------
+    params : NoiseParams
+        The fitted parameters, written in full (``params.to_dict()``) under ``[params]``.
+    sensor : tuple of (int, int, str)
+        ``(width, height, name)`` of the sensor, written under ``[sensor]``.
+    header : str
+        Text written as comment lines (``#``) at the top of the document.
+    provenance : dict
+        Where the preset comes from, written under ``[provenance]``.
+    fit : QuietFit, optional
+        The fit's report, written under ``[fit]`` and its sub-tables (status, values, standard errors,
+        tests, goodness, checks, timing); omitted when ``None``.
+    validation : list of dict, optional
+        Validation results, one ``[[validation]]`` table each.
+
+    Returns
+    -------
+    str
+        The TOML text, ending in a newline.
+    """
     from ..preset import toml_table, toml_value
 
     width, height, name = sensor

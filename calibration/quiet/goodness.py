@@ -338,6 +338,27 @@ def compare_to_recording(params, window: QuietWindow, *, replicas: int = 20, see
     The simulated histogram pools ``replicas`` independent sensors (so its own noise is small and
     accounted for): a homogeneity test of the 2 x bins table, bins merged from 0 upwards until both
     expected counts are at least 5, ``bins - 1`` degrees of freedom. One dict per polarity.
+
+    Parameters
+    ----------
+    params : NoiseParams
+        The model to compare with the recording.
+    window : QuietWindow
+        The recording's quiet window; its kept pixels are compared.
+    replicas : int, default 20
+        Independent simulated sensors pooled into the simulated histogram.
+    seed : int, default 0
+        Seed of the simulation (each replica draws from its own child seed).
+
+    Returns
+    -------
+    list of dict
+        One dict per polarity (ON, then OFF) with keys ``window``, ``polarity``, ``chi2``, ``dof``,
+        ``p_value``, ``events``, ``simulated_events_per_replica`` and ``replicas``.
+
+    Notes
+    -----
+    Counts above ``GOF_MAX_COUNT`` are pooled into one top bin.
     """
     from scipy.stats import chi2
 

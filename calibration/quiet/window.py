@@ -101,9 +101,23 @@ class QuietWindow:
         return self.counts.reshape(2, -1)[:, self.kept()]
 
     def without(self, pixels) -> "QuietWindow":
-        """A copy with ``pixels`` (flat indices) excluded too: their counts set to 0 and their events dropped. The
-        same-pixel timing the checks gathered (``same_pixel``, which the fit's timing tests read) is recomputed
-        from the remaining events; the checks' own p-values stay those of the window as it was read."""
+        """A copy with ``pixels`` (flat indices) excluded too: their counts set to 0 and their events dropped.
+
+        Parameters
+        ----------
+        pixels : int or array_like of int
+            Flat indices ``y * W + x`` of the pixels to leave out, in addition to those already excluded.
+
+        Returns
+        -------
+        QuietWindow
+            The new window; this one itself where no pixel is added.
+
+        Notes
+        -----
+        The same-pixel timing the checks gathered (``same_pixel``, which the fit's timing tests read) is
+        recomputed from the remaining events; the checks' own p-values stay those of the window as it was read.
+        """
         import dataclasses
 
         excluded = np.union1d(self.excluded, np.asarray(pixels, dtype=np.int64).ravel())
@@ -121,6 +135,13 @@ class QuietWindow:
         return dataclasses.replace(self, counts=self.counts.copy(), events=events, excluded=excluded, checks=checks)
 
     def describe(self) -> str:
+        """The window in a few words: the file's name (``"counts"`` without one) and, where known, its span.
+
+        Returns
+        -------
+        str
+            E.g. ``"recording.aedat4 2-12 s"``.
+        """
         when = "" if self.t_start_s is None else f" {seconds_text(self.t_start_s)}-{seconds_text(self.t_end_s)} s"
         return f"{Path(self.source).name or 'counts'}{when}"
 
@@ -248,6 +269,34 @@ def quiet_window(path, t_start_s: float, t_end_s: float, *, lux: float | None = 
     (:func:`oscillating_pixels`) are found and kept in ``QuietWindow.oscillating``; with ``drop_oscillating`` they
     are left out of the window (``QuietWindow.excluded``: counts 0, events dropped, before the checks), as the
     model has no term for a lone periodic pixel.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The recording, any file :func:`evnoise.read_events` opens.
+    t_start_s, t_end_s : float
+        The window's start and end in seconds on the file's clock (``t_end_s > t_start_s``).
+    lux : float, optional
+        Illuminance of the scene in lux (finite, ``>= 0``), if known.
+    sensor : str or (int, int), optional
+        Sensor size ``"WxH"`` or ``(width, height)``, for files whose header has none or a wrong one.
+    csv_columns : str, optional
+        Column order of a CSV file, e.g. ``"x,y,p,t"``.
+    checks : bool, default False
+        Run the model-free checks of the window (:func:`evnoise.calibration.quiet.checks.window_checks`).
+    seed : int, default 0
+        Seed of the checks' resamples.
+    progress : bool, default False
+        Show a progress bar over the checks' resamples.
+    doublet_us : float, default DOUBLET_US
+        Readout doublets within this many microseconds are merged; 0 keeps them.
+    drop_oscillating : bool, default False
+        Leave the oscillating pixels out of the window.
+
+    Returns
+    -------
+    QuietWindow
+        The window's counts, events, checks, oscillating pixels and the number of doublets merged.
     """
     from evnoise.events import count_events
     from evnoise.io import read_events

@@ -157,6 +157,7 @@ def calibrate(measurements: Measurements, *, method: str = "poisson", distributi
     Returns
     -------
     CalibrationResult
+        The fitted parameters with their uncertainties, identifiability findings and goodness of fit.
     """
     from evnoise._checks import as_generator
 

@@ -30,17 +30,25 @@ def plot_fit(result, path, *, title: str | None = None, overwrite: bool = False,
     Parameters
     ----------
     result : CalibrationResult
+        The fit to draw, with its measurements.
     path : str or os.PathLike
         Output PNG.
     title : str, optional
-    overwrite : bool
+        Title of the figure (default: ``"evnoise calibration: "`` and the measurements' source).
+    overwrite : bool, default False
         Replace an existing file.
     extra_curves : list of dict, optional
         More curves on the rate panel: ``dict(label=..., lux=(n,), rate=(2, n), style="--")``.
-    gaussian : bool
-        Also draw the paper's Gaussian form (eq. 3) at the fitted parameters.
+    gaussian : bool, default True
+        Where the fit used the exact (``"poisson"``) form, also draw the paper's Gaussian form (eq. 3)
+        at the fitted parameters.
     extra_r_curves : list of dict, optional
         More curves on the NB-shape panel: ``dict(label=..., lux=(n,), r=(2, n), style="--")``.
+
+    Returns
+    -------
+    pathlib.Path
+        The path written.
     """
     try:
         from matplotlib.figure import Figure

@@ -82,13 +82,40 @@ class CalibrationResult:
     profile: dict = dataclasses.field(default_factory=dict)
 
     def population_rate(self, lux) -> np.ndarray:
-        """Fitted mean rate over pixels, events/s, ``(2, *lux.shape)`` (background included)."""
+        """Fitted mean rate over pixels, events/s, ``(2, *lux.shape)`` (background included).
+
+        Parameters
+        ----------
+        lux : float or array_like
+            Illuminance in lux.
+
+        Returns
+        -------
+        numpy.ndarray
+            ``[ON, OFF]`` rates per pixel in events per second, shape ``(2, *lux.shape)``.
+        """
         from evnoise.mismatch import population_rate
 
         return population_rate(lux, self.params, method=self.method)
 
     def rate_band(self, lux, *, n_sigma: float = 1.0):
-        """``(rate, rel_sd)``: fitted population rate and its relative standard deviation (delta method)."""
+        """``(rate, rel_sd)``: fitted population rate and its relative standard deviation (delta method).
+
+        Parameters
+        ----------
+        lux : float or array_like
+            Illuminance in lux.
+        n_sigma : float, default 1.0
+            Multiple of the standard deviation returned.
+
+        Returns
+        -------
+        rate : numpy.ndarray
+            ``[ON, OFF]`` rates in events per second, shape ``(2, *lux.shape)``, as :meth:`population_rate`.
+        rel_sd : numpy.ndarray
+            ``n_sigma`` times the standard deviation of ``log(rate)``, same shape, from the covariance of
+            the free parameters that have an uncertainty (zeros when none has).
+        """
         lux = np.asarray(lux, dtype=np.float64)
         rate = self.population_rate(lux)
         # parameters with an uncertainty (not those held on a bound, or not identified by a profile)
@@ -148,20 +175,65 @@ class CalibrationResult:
         return "\n".join(lines)
 
     def to_toml(self, *, extra_provenance: dict | None = None) -> str:
-        """The preset document: ``[params]``, ``[provenance]``, ``[fit]`` tables."""
+        """The preset document: ``[params]``, ``[provenance]``, ``[fit]`` tables.
+
+        Parameters
+        ----------
+        extra_provenance : dict, optional
+            More entries for the ``[provenance]`` table (they replace entries of the same name).
+
+        Returns
+        -------
+        str
+            The TOML text.
+        """
         from ..preset import result_to_toml
 
         return result_to_toml(self, extra_provenance=extra_provenance)
 
     def write_preset(self, path, *, overwrite: bool = False, extra_provenance: dict | None = None):
-        """Write the preset TOML atomically; returns the path."""
+        """Write the preset TOML atomically; returns the path.
+
+        Parameters
+        ----------
+        path : str or os.PathLike
+            The file to write; its folder must exist.
+        overwrite : bool, default False
+            Replace an existing file.
+        extra_provenance : dict, optional
+            More entries for the ``[provenance]`` table, as in :meth:`to_toml`.
+
+        Returns
+        -------
+        pathlib.Path
+            The path written.
+        """
         from ..preset import write_text_atomic
 
         return write_text_atomic(path, self.to_toml(extra_provenance=extra_provenance), overwrite=overwrite)
 
     def plot(self, path, *, title: str | None = None, overwrite: bool = False, extra_curves=None,
              extra_r_curves=None):
-        """Save a PNG of the data and the fitted curves (see :func:`evnoise.calibration.plot_fit`)."""
+        """Save a PNG of the data and the fitted curves (see :func:`evnoise.calibration.plot_fit`).
+
+        Parameters
+        ----------
+        path : str or os.PathLike
+            Output PNG.
+        title : str, optional
+            Title of the figure (default: ``"evnoise calibration: "`` and the measurements' source).
+        overwrite : bool, default False
+            Replace an existing file.
+        extra_curves : list of dict, optional
+            More curves on the rate panel: ``dict(label=..., lux=(n,), rate=(2, n), style="--")``.
+        extra_r_curves : list of dict, optional
+            More curves on the NB-shape panel: ``dict(label=..., lux=(n,), r=(2, n), style="--")``.
+
+        Returns
+        -------
+        pathlib.Path
+            The path written.
+        """
         from .plot import plot_fit
 
         return plot_fit(self, path, title=title, overwrite=overwrite, extra_curves=extra_curves,

@@ -51,9 +51,6 @@ class TrainConfig:
         AdamW learning rate (cosine-decayed to ``lr / 20`` over ``epochs``) and weight decay.
     ssim_weight : float
         Loss = pixel loss + ``ssim_weight`` * (1 - SSIM) (Gaussian window, sigma 1.5).
-    pixel_loss : {"l1", "mse"}
-        Pixel term of the loss: mean absolute error (favours the median of what the counts allow,
-        sharp) or mean squared error (favours the mean, which is what PSNR scores).
     patience : int or None
         Early stopping: stop after this many epochs without a lower validation loss.
     max_minutes : float or None
@@ -74,6 +71,9 @@ class TrainConfig:
     ml_sigma : float or None
         Add the closed-form ML estimate (counts smoothed with this Gaussian sigma, binned
         pixels) as an input channel; needs a dataset with ``params`` and ``max_lux``.
+    pixel_loss : {"l1", "mse"}
+        Pixel term of the loss: mean absolute error (favours the median of what the counts allow,
+        sharp) or mean squared error (favours the mean, which is what PSNR scores).
     """
 
     epochs: int = 60
