@@ -625,14 +625,44 @@ def _die_with_parent(parent_pid: int) -> None:
     threading.Thread(target=watch, name="evnoise-parent-watch", daemon=True).start()
 
 
+def _parent_logging() -> tuple:
+    """What a pool worker needs to log as this process does: the root logger's level, the formatter of its first
+    handler (None when there is none or it is not a plain :class:`logging.Formatter`, which a spawned worker might
+    not be able to unpickle), and the once-per-process warnings already given here."""
+    from evnoise._kernels._jit import warnings_given
+
+    root = logging.getLogger()
+    formatter = next((h.formatter for h in root.handlers if h.formatter is not None), None)
+    return root.getEffectiveLevel(), formatter if type(formatter) is logging.Formatter else None, warnings_given()
+
+
+def _start_worker(parent_pid: int, parent_logging: tuple) -> None:
+    """Pool worker initializer: :func:`_die_with_parent`, and log as the parent does. A spawned worker starts with
+    no logging set up, so its warnings came out bare (Python's last-resort handler) where the command's own lines
+    read "evnoise: WARNING: ..."; and a once-per-process warning the parent had given (compiled kernels that cannot
+    be cached) came again from each worker."""
+    from evnoise._kernels._jit import note_warnings_given
+
+    _die_with_parent(parent_pid)
+    level, formatter, given = parent_logging
+    root = logging.getLogger()
+    if not root.handlers:  # spawned (a forked worker has the parent's handlers already)
+        handler = logging.StreamHandler()
+        if formatter is not None:
+            handler.setFormatter(formatter)
+        root.addHandler(handler)
+        root.setLevel(level)
+    note_warnings_given(given)
+
+
 def _run_pool(root, plan, todo, n_workers, threads, finished) -> None:
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
     ctx = multiprocessing.get_context(_start_method())
     jobs = [_Job(os.fspath(root), plan.config, plan.sources, t, threads) for t in todo]
-    pool = ProcessPoolExecutor(max_workers=n_workers, mp_context=ctx, initializer=_die_with_parent,
-                               initargs=(os.getpid(),))
+    pool = ProcessPoolExecutor(max_workers=n_workers, mp_context=ctx, initializer=_start_worker,
+                               initargs=(os.getpid(), _parent_logging()))
     try:
         collect_results(pool, _run_job, jobs, finished)  # each shard as it is done (its record is on disk already)
     except KeyboardInterrupt:  # Ctrl-C, or the CLI's SIGTERM (evnoise.cli.Terminated)

@@ -51,3 +51,33 @@ def test_a_cache_failure_without_a_folder_reads_as_one_sentence():
     assert text is not None and "the cache of compiled kernels is damaged" in text
     assert "the folder the Numba" not in text
     assert "delete the Numba cache folder (NUMBA_CACHE_DIR" in text
+
+
+WORKER_LOGGING = """
+import logging, multiprocessing, os
+from concurrent.futures import ProcessPoolExecutor
+from evnoise._kernels import _jit
+from evnoise.generators import dataset
+
+handler = logging.StreamHandler()
+handler.setFormatter(logging.Formatter("evnoise: %(levelname)s: %(message)s"))
+logging.basicConfig(level=logging.WARNING, handlers=[handler], force=True)
+_jit.note_warnings_given((False, True))  # this process said: kernels not cached
+with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=dataset._start_worker,
+                         initargs=(os.getpid(), dataset._parent_logging())) as pool:
+    pool.submit(logging.getLogger("evnoise.generators").warning, "a worker's warning").result()
+    pool.submit(logging.getLogger("evnoise.generators").info, "a worker's note").result()
+    pool.submit(_jit._warn_uncached).result()
+"""
+
+
+def test_dataset_workers_log_as_the_command_does():
+    """make-dataset's spawned workers started without logging: their warnings came out bare (Python's last-resort
+    handler), and the uncached-kernels warning the command had given came again from each worker."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-c", WORKER_LOGGING], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stderr.splitlines()
+    assert lines == ["evnoise: WARNING: a worker's warning"], proc.stderr
