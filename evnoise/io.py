@@ -18,6 +18,7 @@ never leaves a file that looks complete.
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import os
@@ -74,6 +75,8 @@ def open_output_path(path, *, overwrite: bool = False, what: str = "output") -> 
         raise OutputError(f"cannot write {what} {path}: {parent} is not a directory")
     if path.is_dir():
         raise OutputError(f"cannot write {what} {path}: it is a directory")
+    if _is_symlink_loop(path):  # Python 3.11's resolve() raised on it by chance; 3.13's returns the path
+        raise OutputError(f"cannot write {what} {path}: a loop of symbolic links; give a path that leads to a file")
     if os.path.lexists(path) and not overwrite:  # a symbolic link counts, even a broken one
         raise OutputError(f"{what} {path} already exists; pass overwrite=True to replace it")
     if os.path.lexists(path) and not (path.is_symlink() or path.is_file()):
@@ -83,6 +86,17 @@ def open_output_path(path, *, overwrite: bool = False, what: str = "output") -> 
     if not os.access(parent, os.W_OK | os.X_OK):
         raise OutputError(f"cannot write {what} {path}: directory {parent} is not writable")
     return path
+
+
+def _is_symlink_loop(path: Path) -> bool:
+    """Whether ``path`` is a symbolic link that leads back to itself (directly or through others)."""
+    if not path.is_symlink():
+        return False
+    try:
+        os.stat(path)
+    except OSError as exc:
+        return exc.errno == errno.ELOOP
+    return False
 
 
 def _special_kind(path: Path) -> str:
