@@ -48,11 +48,11 @@ from __future__ import annotations
 
 import csv
 import math
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import tomllib
 
 from evnoise._checks import check_input_file, read_bounded_file
 from evnoise.errors import InputError

@@ -11,13 +11,12 @@ import dataclasses
 import functools
 import json
 import math
+import tomllib
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 from types import MappingProxyType
 from typing import NamedTuple
-
-import tomllib
 
 from .errors import ParameterError
 

@@ -124,3 +124,27 @@ def test_a_column_order_that_contradicts_the_files_header_is_refused(tmp_path, c
     assert _events(prose, csv_columns="t,x,y,p") == _events(header)
     code, _, err = run_cli(capsys, "info", header, "--csv-columns", "x,y,p,t", "--sensor", "4x4")
     one_error_line(code, err, "--csv-columns x,y,p,t contradicts the file's header")
+
+
+def test_a_fractional_coordinate_is_refused_with_numpy_1_loadtxt_too(tmp_path, monkeypatch):
+    """NumPy 1.x's ``loadtxt(dtype=int64)`` parses "5.5" as 5 with only a DeprecationWarning (hidden by default),
+    where NumPy 2 raises: a text file of whole-microsecond times and a fractional coordinate read as pixel 5 there.
+    NumPy 1.x's behaviour is reproduced here (CI runs NumPy 2)."""
+    real = np.loadtxt
+
+    def numpy1_loadtxt(fname, *args, dtype=float, **kw):
+        if dtype is not np.int64:
+            return real(fname, *args, dtype=dtype, **kw)
+        values = real(fname, *args, dtype=np.float64, **kw)
+        if not np.array_equal(values, np.trunc(values)):
+            warnings.warn("loadtxt(): Parsing an integer via a float is deprecated.", DeprecationWarning,
+                          stacklevel=2)
+        return values.astype(np.int64)
+
+    monkeypatch.setattr(text_reader.np, "loadtxt", numpy1_loadtxt)
+    path = tmp_path / "events.txt"
+    path.write_bytes(b"100 3 2 1\n200 5.5 3 0\n")
+    with pytest.raises(ev.InputError, match="x = 5.5 is not a pixel coordinate"):
+        _events(path)
+    path.write_bytes(b"100 3 2 1\n200 1 3 0\n")  # whole numbers still take the integer path
+    assert _events(path) == [(100, 3, 2, 1), (200, 1, 3, 0)]

@@ -257,9 +257,8 @@ def test_no_private_name_crosses_a_module_boundary():
 
 def test_every_library_package_is_installed():
     """A package folder missing from pyproject's list is left out of the wheel (an editable install hides it)."""
-    from pathlib import Path
-
     import tomllib
+    from pathlib import Path
 
     root = Path(__file__).resolve().parents[1]
     listed = set(tomllib.loads(root.joinpath("pyproject.toml").read_text(encoding="utf-8"))["tool"]["setuptools"]

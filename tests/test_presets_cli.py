@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import json
 import math
+import tomllib
 from importlib import resources
 
 import numpy as np
 import pytest
-import tomllib
 
 import evnoise as ev
 from evnoise.cli import main

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import io
 import re
+import warnings
 
 import numpy as np
 
@@ -243,8 +244,10 @@ class CsvSource(EventSource):
         rows = None
         if not self._seconds:  # integers parse about five times faster than floats
             try:
-                rows = np.loadtxt(io.StringIO(text), delimiter=delimiter, comments="#", dtype=np.int64, ndmin=2)
-            except ValueError:
+                with warnings.catch_warnings():  # NumPy 1.x truncates "1.5" to 1 with a DeprecationWarning; 2.x raises
+                    warnings.simplefilter("error", DeprecationWarning)
+                    rows = np.loadtxt(io.StringIO(text), delimiter=delimiter, comments="#", dtype=np.int64, ndmin=2)
+            except (ValueError, DeprecationWarning):
                 rows = None
         if rows is None:
             try:

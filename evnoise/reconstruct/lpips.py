@@ -89,7 +89,10 @@ class _ArrayUnpickler(pickle.Unpickler):
         if (module, name) not in self._ALLOWED:
             raise pickle.UnpicklingError(f"refusing to load {module}.{name} from a weights file")
         if name == "_reconstruct":
-            from numpy._core.multiarray import _reconstruct  # numpy >= 2 location
+            try:
+                from numpy._core.multiarray import _reconstruct  # numpy >= 2 location
+            except ImportError:  # NumPy 1.x (the floor is 1.24)
+                from numpy.core.multiarray import _reconstruct
 
             return _reconstruct
         return np.ndarray if name == "ndarray" else np.dtype
