@@ -430,6 +430,7 @@ def test_cli_outputs_follow_the_suffix(tmp_path, capsys):
     assert code == 0
     events, _ = read_events(tmp_path / "ev.h5")
     # separate --out sig.aedat4 writes AEDAT 4 (it wrote HDF5 under that name before)
+    pytest.importorskip("faery")  # the writer of .aedat4 and .raw (not installable at a NumPy 1.x floor)
     assert main(["-q", "separate", str(tmp_path / "ev.h5"), "--out", str(tmp_path / "sig.aedat4"),
                  "--noise-out", str(tmp_path / "noise.raw")]) == 0
     assert (tmp_path / "sig.aedat4").read_bytes()[:10] == b"#!AER-DAT4"
