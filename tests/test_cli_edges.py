@@ -56,7 +56,8 @@ def test_simulate_refuses_a_link_to_its_input_and_an_output_among_the_frames(tmp
     (tmp_path / "link.png").symlink_to(photo)
     code, _, err = run_cli(capsys, "simulate", photo, "--out", tmp_path / "link.png", "--overwrite")
     one_error_line(code, err, "is the input image")
-    assert PIL_Image.open(photo).format == "PNG"
+    with PIL_Image.open(photo) as img:
+        assert img.format == "PNG"
     frames = tmp_path / "frames"
     frames.mkdir()
     for i in range(3):

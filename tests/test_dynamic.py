@@ -500,8 +500,8 @@ def test_reconstruct_video_writes_frames_overlays_and_a_table(tmp_path, square, 
     frames = sorted(out.glob("frame_*.png"))
     overlays = sorted(out.glob("overlay_*.png"))
     assert len(frames) == len(overlays) == 16
-    assert Image.open(frames[0]).size == (W // 2, H // 2) and Image.open(frames[0]).mode == "L"
-    assert Image.open(overlays[3]).mode == "RGB"
+    with Image.open(frames[0]) as frame, Image.open(overlays[3]) as overlay:
+        assert frame.size == (W // 2, H // 2) and frame.mode == "L" and overlay.mode == "RGB"
     with open(out / "frames.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
     assert len(rows) == 16 and float(rows[-1]["t_end_s"]) == pytest.approx(2.0)

@@ -519,7 +519,8 @@ def test_cli_reconstruct_writes_png(trained, tmp_path, capsys):
     write_events_h5(path, random_events(rng, 41, 30, 4000, 2_500_000), 41, 30)
     out = tmp_path / "image.png"
     assert main(["reconstruct", str(path), "--model", str(model), "--out", str(out), "--window", "1"]) == 0
-    assert Image.open(out).size == (20, 15)  # 41 x 30 sensor, 2x2 binning
+    with Image.open(out) as img:
+        assert img.size == (20, 15)  # 41 x 30 sensor, 2x2 binning
     assert main(["-q", "reconstruct", str(path), "--model", str(model), "--out", str(tmp_path / "f.png"),
                  "--window", "1", "--step", "0.5", "--frames", "3"]) == 0
     assert sorted(p.name for p in tmp_path.glob("f_*.png")) == ["f_0000.png", "f_0001.png", "f_0002.png"]

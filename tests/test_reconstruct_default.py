@@ -307,15 +307,23 @@ def test_fps_mode_writes_a_contact_sheet_and_a_gif_with_a_legend(tmp_path, capsy
     events = ev.events.make_events(t, rng.integers(0, 16, n), rng.integers(0, 12, n), rng.integers(0, 2, n))
     rec = write_events(tmp_path / "e.h5", events, (12, 16), t_end_us=2_000_000)
     out = tmp_path / "video"
-    assert main(["reconstruct", str(rec), "--model", str(model), "--out", str(out), "--fps", "10",
-                 "--separator", "none"]) == 0
+    import gc
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:  # the sheet and the GIF close every frame they open
+        warnings.simplefilter("always", ResourceWarning)
+        assert main(["reconstruct", str(rec), "--model", str(model), "--out", str(out), "--fps", "10",
+                     "--separator", "none"]) == 0
+        gc.collect()
+    assert not [w for w in caught if issubclass(w.category, ResourceWarning)], [str(w.message) for w in caught]
     assert "contact_sheet.png and frames.gif" in capsys.readouterr().out
     n_frames = len(list(out.glob("frame_*.png")))
     assert n_frames > 3
-    gif = Image.open(out / "frames.gif")
-    assert gif.n_frames == n_frames
-    assert gif.size[1] > 6  # the 6x8 overlay plus its legend strip
-    sheet = np.asarray(Image.open(out / "contact_sheet.png").convert("RGB"))
+    with Image.open(out / "frames.gif") as gif:
+        assert gif.n_frames == n_frames
+        assert gif.size[1] > 6  # the 6x8 overlay plus its legend strip
+    with Image.open(out / "contact_sheet.png") as img:
+        sheet = np.asarray(img.convert("RGB"))
     # the legend's colour swatches are on the sheet
     for colour, _ in LEGEND:
         assert (np.abs(sheet.astype(int) - np.array(colour)).sum(axis=2) == 0).any(), colour

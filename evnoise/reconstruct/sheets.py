@@ -80,6 +80,14 @@ def _with_legend(img, overlay: bool):
     return out
 
 
+def _tile(path: Path, size: tuple):
+    """The image at ``path`` as RGB, resized to ``size`` (nearest neighbour), its file closed."""
+    from PIL import Image
+
+    with Image.open(path) as img:
+        return img.convert("RGB").resize(size, Image.Resampling.NEAREST)
+
+
 def contact_sheet(folder, out=None, *, max_tiles: int = 12, columns: int = 4, overwrite: bool = True) -> Path:
     """Write ``contact_sheet.png`` (or ``out``): frames spread over the run, with times and a legend."""
     from PIL import Image, ImageDraw
@@ -87,8 +95,8 @@ def contact_sheet(folder, out=None, *, max_tiles: int = 12, columns: int = 4, ov
     folder = Path(folder)
     frames, overlays, times = _frames(folder)
     pick = np.unique(np.linspace(0, len(frames) - 1, min(max_tiles, len(frames))).round().astype(int))
-    first = Image.open(frames[0])
-    w, h = first.size
+    with Image.open(frames[0]) as first:  # the size only (an image left open holds its file)
+        w, h = first.size
     scale = max(1, 160 // max(w, 1)) if w < 160 else 1
     tile_w = w * scale * (2 if overlays else 1) + (4 if overlays else 0)
     tile_h = h * scale + 16
@@ -101,10 +109,10 @@ def contact_sheet(folder, out=None, *, max_tiles: int = 12, columns: int = 4, ov
     for k, idx in enumerate(pick):
         r, c = divmod(k, cols)
         x0, y0 = c * (tile_w + 6) + 3, r * (tile_h + 6) + 3
-        frame = Image.open(frames[idx]).convert("RGB").resize((w * scale, h * scale), Image.Resampling.NEAREST)
+        frame = _tile(frames[idx], (w * scale, h * scale))
         sheet.paste(frame, (x0, y0 + 14))
         if overlays:
-            ov = Image.open(overlays[idx]).convert("RGB").resize((w * scale, h * scale), Image.Resampling.NEAREST)
+            ov = _tile(overlays[idx], (w * scale, h * scale))
             sheet.paste(ov, (x0 + w * scale + 4, y0 + 14))
         label = f"frame {idx}" + (f", t = {times[idx]:.3f} s" if idx in times else "") + \
             ("  (image | overlay)" if overlays and k == 0 else "")
@@ -123,7 +131,10 @@ def animated_gif(folder, out=None, *, fps: float = 10.0, overwrite: bool = True,
     folder = Path(folder)
     frames, overlays, _ = _frames(folder)
     source = (overlays or frames)[:max_frames]
-    images = [_with_legend(Image.open(p), bool(overlays)) for p in source]
+    images = []
+    for p in source:
+        with Image.open(p) as img:
+            images.append(_with_legend(img, bool(overlays)))
     duration_ms = max(20, int(round(1000.0 / fps))) if fps > 0 else 100
     path = Path(out) if out is not None else folder / "frames.gif"
     with atomic_output(path, overwrite=overwrite, what="animated GIF") as tmp:
