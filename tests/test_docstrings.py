@@ -69,9 +69,8 @@ def test_the_reference_is_found():
     assert len(DOCUMENTED) > 100
 
 
-@pytest.mark.parametrize("qual", [qual for qual, _ in DOCUMENTED])
-def test_docstring_parses_as_rendered(qual):
-    obj = dict(DOCUMENTED)[qual]
+@pytest.mark.parametrize(("qual", "obj"), DOCUMENTED, ids=[qual for qual, _ in DOCUMENTED])
+def test_docstring_parses_as_rendered(qual, obj):
     checks = CLASS_CHECKS if inspect.isclass(obj) else CHECKS
     problems = [f"{code} {text}" for code, text in validate(qual)["errors"] if code in checks]
     assert not problems, "\n".join(problems)

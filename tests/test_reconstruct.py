@@ -494,6 +494,9 @@ def test_save_pairs_npz_refuses_counts_uint16_would_wrap(tmp_path):
     save_pairs_npz(tmp_path / "p.npz", Pairs(counts))
     with np.load(tmp_path / "p.npz") as saved:
         assert saved["counts"].dtype == np.uint16 and saved["counts"][0, 1, 2, 3] == 65535
+    # PairList, which checked the range, took 2.5 as 2: the same one check now
+    with pytest.raises(InputError, match="pair 0: counts must be whole numbers"):
+        PairList([np.full((2, 4, 4), 2.5)], [np.zeros((4, 4))], window_s=1.0)
 
 
 @pytest.fixture(scope="module")

@@ -72,6 +72,16 @@ def _check_item(item, where: str):
     return counts, image, window
 
 
+def _uint16_counts(counts, where: str) -> np.ndarray:
+    """``counts`` as uint16, or an :class:`InputError` when a value is not a whole number in ``[0, 65535]``
+    (a cast would wrap or truncate it; NaN fails the range)."""
+    c = np.asarray(counts)
+    if not (np.issubdtype(c.dtype, np.number) and np.all((c >= 0) & (c <= np.iinfo(np.uint16).max))
+            and np.array_equal(c, np.round(c))):
+        raise InputError(f"{where}: counts must be whole numbers in [0, 65535] to be stored as uint16")
+    return c.astype(np.uint16)
+
+
 class PairList:
     """Pairs held in memory (protocol-compatible with :class:`evnoise.generators.PairDataset`).
 
@@ -105,14 +115,13 @@ class PairList:
             item = {"counts": counts[i], "image": images[i], "window_s": float(windows[i]),
                     "source": self.sources[i]}
             c, im, w = _check_item(item, f"pair {i}")
-            if (c < 0).any() or c.max(initial=0) > np.iinfo(np.uint16).max:
-                raise InputError(f"pair {i}: counts must be in [0, 65535]")
+            c = _uint16_counts(c, f"pair {i}")
             if not np.all((im >= 0) & (im <= 1)):  # NaN too; the metrics take a data range of 1
                 bad = im[~((im >= 0) & (im <= 1))]
                 hint = " (8-bit values? divide by 255)" if np.nanmax(im, initial=0) > 1.5 else ""
                 raise InputError(f"pair {i}: images must be display values in [0, 1], found "
                                  f"{float(bad.flat[0]):g}{hint}")
-            self._items.append({"counts": c.astype(np.uint16), "image": im.astype(np.float32),
+            self._items.append({"counts": c, "image": im.astype(np.float32),
                                 "window_s": w, "source": self.sources[i]})
         self.max_lux = max_lux
         self.params = params
@@ -265,12 +274,8 @@ def save_pairs_npz(path, dataset) -> Path:
     shapes = {np.asarray(it["counts"]).shape for it in items}
     if len(shapes) != 1:
         raise InputError(f"all pairs must have the same size to be saved together, got {sorted(shapes)}")
-    counts = np.stack([np.asarray(it["counts"]) for it in items])
-    if not (np.issubdtype(counts.dtype, np.number) and np.all((counts >= 0) & (counts <= np.iinfo(np.uint16).max))
-            and np.array_equal(counts, np.round(counts))):  # uint16 would wrap them (NaN fails the range)
-        raise InputError("counts must be whole numbers in [0, 65535] to be saved as uint16")
     arrays = {
-        "counts": counts.astype(np.uint16),
+        "counts": _uint16_counts(np.stack([np.asarray(it["counts"]) for it in items]), str(path)),
         "images": np.stack([np.asarray(it["image"], dtype=np.float32) for it in items]),
         "window_s": np.array([float(it["window_s"]) for it in items]),
         "sources": np.array([str(it.get("source", i)) for i, it in enumerate(items)]),
